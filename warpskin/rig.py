@@ -1,0 +1,801 @@
+"""The rig: a rest mesh, a skeleton, skin weights and animation clips, all on the host.
+
+Everything downstream (LBS/DQS baselines, the multi-layer model builder, the exporters) reads a
+:class:`Rig`. Importers (:mod:`warpskin.io`) and procedural generators (:mod:`warpskin.scenes`)
+produce one. A rig is in SI units (metres) once constructed; importers convert.
+
+Skinning convention (glTF and UsdSkel agree on it)::
+
+    p_world(t) = sum_j w_j * G_j(t) @ inverse_bind[j] @ p_rest
+
+where ``G_j(t)`` is the world transform of joint ``j`` at time ``t`` (see
+:meth:`Rig.joint_world_transforms`) and ``p_rest`` are :attr:`Rig.vertices`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .transforms import compose_trs, decompose_trs, quat_normalize, quat_slerp
+
+__all__ = [
+    "RigError",
+    "RigWarning",
+    "Track",
+    "Clip",
+    "Skeleton",
+    "Rig",
+    "ValidationReport",
+    "weld_by_position",
+    "mesh_edge_report",
+]
+
+INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
+PATHS = {"translation": 3, "rotation": 4, "scale": 3}
+
+
+class RigError(ValueError):
+    """A rig (or a file it came from) cannot be used; the message names the bad part."""
+
+
+class RigWarning(UserWarning):
+    """A rig problem that warpskin repaired (for example weights normalised)."""
+
+
+def _fmt_indices(idx: np.ndarray, limit: int = 8) -> str:
+    idx = np.asarray(idx).ravel()
+    head = ", ".join(str(int(i)) for i in idx[:limit])
+    more = f", ... ({idx.size} in all)" if idx.size > limit else ""
+    return head + more
+
+
+# --------------------------------------------------------------------------------------------
+# Animation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Track:
+    """One animated property of one joint: keyframes and how to interpolate between them.
+
+    Attributes:
+        path: ``"translation"`` [m], ``"rotation"`` (quaternion x, y, z, w) or ``"scale"``.
+        times: Key times [s], shape ``[key_count]``, strictly increasing.
+        values: Key values, shape ``[key_count, C]`` for ``LINEAR``/``STEP`` and
+            ``[key_count, 3, C]`` (in-tangent, value, out-tangent) for ``CUBICSPLINE``;
+            ``C`` is 3 or 4.
+        interpolation: ``"LINEAR"`` (rotations slerped), ``"STEP"`` or ``"CUBICSPLINE"``
+            (cubic Hermite, the glTF 2.0 rule; rotations renormalised).
+    """
+
+    path: str
+    times: np.ndarray
+    values: np.ndarray
+    interpolation: str = "LINEAR"
+
+    def __post_init__(self) -> None:
+        if self.path not in PATHS:
+            raise RigError(f"track path {self.path!r} is not one of {sorted(PATHS)}")
+        if self.interpolation not in INTERPOLATIONS:
+            raise RigError(f"interpolation {self.interpolation!r} is not one of {INTERPOLATIONS}")
+        self.times = np.asarray(self.times, dtype=np.float64).ravel()
+        c = PATHS[self.path]
+        values = np.asarray(self.values, dtype=np.float64)
+        k = self.times.size
+        if k == 0:
+            raise RigError(f"{self.path} track has no keys")
+        shape = (k, 3, c) if self.interpolation == "CUBICSPLINE" else (k, c)
+        if values.size != int(np.prod(shape)):
+            raise RigError(
+                f"{self.path} track: {k} key times but {values.size} values; expected shape {shape}"
+            )
+        self.values = values.reshape(shape)
+        if not np.all(np.isfinite(self.times)) or not np.all(np.isfinite(self.values)):
+            raise RigError(f"{self.path} track holds NaN or inf keys")
+        if k > 1 and np.any(np.diff(self.times) <= 0.0):
+            raise RigError(f"{self.path} track key times are not strictly increasing")
+
+    @property
+    def start(self) -> float:
+        return float(self.times[0])
+
+    @property
+    def end(self) -> float:
+        return float(self.times[-1])
+
+    def sample(self, t: float) -> np.ndarray:
+        """Value at time ``t`` [s]; clamped to the first/last key outside the key range."""
+        times, cubic = self.times, self.interpolation == "CUBICSPLINE"
+        vals = self.values[:, 1] if cubic else self.values
+        if t <= times[0] or times.size == 1:
+            out = vals[0].copy()
+        elif t >= times[-1]:
+            out = vals[-1].copy()
+        else:
+            k = int(np.searchsorted(times, t, side="right")) - 1
+            t0, t1 = times[k], times[k + 1]
+            dt = t1 - t0
+            u = (t - t0) / dt
+            if self.interpolation == "STEP":
+                out = vals[k].copy()
+            elif self.interpolation == "LINEAR":
+                if self.path == "rotation":
+                    out = quat_slerp(vals[k], vals[k + 1], u)
+                else:
+                    out = (1.0 - u) * vals[k] + u * vals[k + 1]
+            else:
+                # glTF 2.0 Appendix C: Hermite with tangents scaled by the key interval.
+                p0, m0 = self.values[k, 1], dt * self.values[k, 2]
+                p1, m1 = self.values[k + 1, 1], dt * self.values[k + 1, 0]
+                u2, u3 = u * u, u * u * u
+                out = (
+                    (2 * u3 - 3 * u2 + 1) * p0
+                    + (u3 - 2 * u2 + u) * m0
+                    + (-2 * u3 + 3 * u2) * p1
+                    + (u3 - u2) * m1
+                )
+        if self.path == "rotation":
+            out = quat_normalize(out)
+        return out
+
+
+@dataclass
+class Clip:
+    """A named animation: tracks keyed by ``(joint index, path)``.
+
+    Joints or properties without a track keep the skeleton's rest value.
+    """
+
+    name: str
+    tracks: dict[tuple[int, str], Track] = field(default_factory=dict)
+
+    @property
+    def start(self) -> float:
+        """First key time over all tracks [s] (0 for an empty clip)."""
+        return min((tr.start for tr in self.tracks.values()), default=0.0)
+
+    @property
+    def end(self) -> float:
+        """Last key time over all tracks [s] (0 for an empty clip)."""
+        return max((tr.end for tr in self.tracks.values()), default=0.0)
+
+    @property
+    def duration(self) -> float:
+        return self.end - self.start
+
+    def sample_local_trs(self, skeleton: Skeleton, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Local translation ``[J, 3]``, rotation ``[J, 4]`` and scale ``[J, 3]`` at time ``t``."""
+        tr = skeleton.rest_translation.copy()
+        rot = skeleton.rest_rotation.copy()
+        sc = skeleton.rest_scale.copy()
+        for (j, path), track in self.tracks.items():
+            value = track.sample(t)
+            if path == "translation":
+                tr[j] = value
+            elif path == "rotation":
+                rot[j] = value
+            else:
+                sc[j] = value
+        return tr, rot, sc
+
+
+# --------------------------------------------------------------------------------------------
+# Skeleton
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Skeleton:
+    """Joint hierarchy with its rest pose.
+
+    Attributes:
+        joint_names: Unique joint names, ``[J]``.
+        parents: Parent joint index per joint, ``-1`` for a root, shape ``[J]``.
+        rest_translation: Local rest translation [m], ``[J, 3]``.
+        rest_rotation: Local rest rotation (quaternion x, y, z, w), ``[J, 4]``.
+        rest_scale: Local rest scale, ``[J, 3]``.
+        root_transform: World transform of the (non-joint) ancestors of each root joint,
+            ``[J, 4, 4]``; only read where ``parents[j] == -1``. Identity by default.
+    """
+
+    joint_names: list[str]
+    parents: np.ndarray
+    rest_translation: np.ndarray
+    rest_rotation: np.ndarray
+    rest_scale: np.ndarray
+    root_transform: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.joint_names = [str(n) for n in self.joint_names]
+        j = len(self.joint_names)
+        self.parents = np.asarray(self.parents, dtype=np.int64).reshape(-1)
+        self.rest_translation = np.asarray(self.rest_translation, dtype=np.float64).reshape(j, 3)
+        self.rest_rotation = quat_normalize(np.asarray(self.rest_rotation, dtype=np.float64).reshape(j, 4))
+        self.rest_scale = np.asarray(self.rest_scale, dtype=np.float64).reshape(j, 3)
+        if self.root_transform is None:
+            self.root_transform = np.tile(np.eye(4), (j, 1, 1))
+        self.root_transform = np.asarray(self.root_transform, dtype=np.float64).reshape(j, 4, 4)
+        if self.parents.size != j:
+            raise RigError(f"skeleton has {j} joint names but {self.parents.size} parent entries")
+        self._order = self._topological_order()
+
+    @classmethod
+    def from_local_matrices(
+        cls,
+        joint_names: list[str],
+        parents: np.ndarray,
+        rest_local: np.ndarray,
+        root_transform: np.ndarray | None = None,
+    ) -> Skeleton:
+        """Build from local rest matrices ``[J, 4, 4]`` (decomposed into T, R, S)."""
+        t, r, s = decompose_trs(np.asarray(rest_local, dtype=np.float64))
+        return cls(list(joint_names), parents, t, r, s, root_transform)
+
+    @property
+    def joint_count(self) -> int:
+        return len(self.joint_names)
+
+    def _topological_order(self) -> np.ndarray:
+        j = self.joint_count
+        bad = np.nonzero((self.parents < -1) | (self.parents >= j))[0]
+        if bad.size:
+            k = int(bad[0])
+            raise RigError(
+                f"joint {k} ({self.joint_names[k]!r}) has parent index {int(self.parents[k])}, "
+                f"outside [-1, {j - 1}]"
+            )
+        dup = {n for n in self.joint_names if self.joint_names.count(n) > 1}
+        if dup:
+            raise RigError(f"joint names are not unique: {sorted(dup)}")
+        depth = np.full(j, -1, dtype=np.int64)
+        for start in range(j):
+            chain = []
+            k = start
+            while k != -1 and depth[k] < 0:
+                if k in chain:
+                    cyc = chain[chain.index(k):]
+                    names = " -> ".join(self.joint_names[c] for c in cyc + [k])
+                    raise RigError(f"cycle in the joint hierarchy: {names}")
+                chain.append(k)
+                k = int(self.parents[k])
+            base = -1 if k == -1 else depth[k]
+            for c in reversed(chain):
+                base += 1
+                depth[c] = base
+        return np.argsort(depth, kind="stable")
+
+    def index(self, name: str) -> int:
+        """Joint index of ``name``; raises :class:`RigError` listing the joints otherwise."""
+        try:
+            return self.joint_names.index(name)
+        except ValueError:
+            raise RigError(f"no joint named {name!r}; joints are {self.joint_names}") from None
+
+    def rest_local_matrices(self) -> np.ndarray:
+        """Local rest transforms ``[J, 4, 4]``."""
+        return compose_trs(self.rest_translation, self.rest_rotation, self.rest_scale)
+
+    def world_from_local(self, local: np.ndarray) -> np.ndarray:
+        """Forward kinematics: world transforms ``[J, 4, 4]`` from local ones ``[J, 4, 4]``."""
+        world = np.empty_like(local)
+        for j in self._order:
+            p = self.parents[j]
+            world[j] = (self.root_transform[j] if p < 0 else world[p]) @ local[j]
+        return world
+
+    def children(self, joint: int) -> np.ndarray:
+        return np.nonzero(self.parents == joint)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh helpers
+# --------------------------------------------------------------------------------------------
+
+
+def weld_by_position(points: np.ndarray, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices that share a position (glTF splits them at UV/normal seams).
+
+    Args:
+        points: File vertex positions, ``[N, 3]``.
+        tolerance: Positions closer than this (per axis, after quantisation) merge. 0 merges
+            exactly equal positions only.
+
+    Returns:
+        ``(first, weld_map)``: ``first[k]`` is the file index of the first vertex of welded
+        vertex ``k`` (``[V]``, in order of first appearance); ``weld_map[i]`` is the welded index
+        of file vertex ``i`` (``[N]``).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    key = np.round(p / tolerance).astype(np.int64) if tolerance > 0.0 else p
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    # renumber by first appearance so a mesh without seams keeps its vertex order
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return first[order], rank[inverse]
+
+
+def mesh_edge_report(triangles: np.ndarray, vertex_count: int) -> dict:
+    """Closedness and manifoldness of a triangle mesh.
+
+    Returns a dict with ``boundary_edges`` ``[E, 2]`` (edges used by one triangle),
+    ``nonmanifold_edges`` (used by more than two), ``inconsistent_edges`` (two triangles that
+    traverse the edge in the same direction: flipped winding), ``nonmanifold_vertices`` (whose
+    triangle fan is not a single disc), ``unused_vertices``, ``closed`` and ``manifold``.
+    """
+    tri = np.asarray(triangles, dtype=np.int64)
+    directed = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    undirected = np.sort(directed, axis=1)
+    uniq, inv, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    boundary = uniq[counts == 1]
+    nonmanifold = uniq[counts > 2]
+    # winding: for an edge shared by two triangles, the directed copies must be opposite
+    dir_uniq, dir_counts = np.unique(directed, axis=0, return_counts=True)
+    inconsistent = np.unique(np.sort(dir_uniq[dir_counts > 1], axis=1), axis=0)
+    used = np.zeros(vertex_count, dtype=bool)
+    used[tri.ravel()] = True
+    # vertex manifoldness: around an interior vertex, #incident edges == #incident triangles
+    # (a single closed fan); a boundary vertex has one more edge than triangles.
+    edge_deg = np.bincount(uniq.ravel(), minlength=vertex_count)
+    tri_deg = np.bincount(tri.ravel(), minlength=vertex_count)
+    bnd_deg = np.bincount(boundary.ravel(), minlength=vertex_count)
+    expected = tri_deg + bnd_deg // 2
+    bad_vertices = np.nonzero(used & (edge_deg != expected))[0]
+    del inv
+    return {
+        "boundary_edges": boundary,
+        "nonmanifold_edges": nonmanifold,
+        "inconsistent_edges": inconsistent,
+        "nonmanifold_vertices": bad_vertices,
+        "unused_vertices": np.nonzero(~used)[0],
+        "closed": boundary.shape[0] == 0 and nonmanifold.shape[0] == 0,
+        "manifold": nonmanifold.shape[0] == 0 and inconsistent.shape[0] == 0 and bad_vertices.size == 0,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Rig
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ValidationReport:
+    """What :meth:`Rig.validate` found. ``errors`` make the rig unusable; ``warnings`` were
+    repaired or only matter for the physical model."""
+
+    errors: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    closed: bool = False
+    manifold: bool = False
+    boundary_edge_count: int = 0
+    nonmanifold_edge_count: int = 0
+    degenerate_triangles: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+
+@dataclass
+class Rig:
+    """A skinned character: rest mesh, skeleton, weights and clips, in metres.
+
+    Attributes:
+        name: Display name (file stem or generator name).
+        vertices: Rest (bind) positions [m], ``[V, 3]``, welded.
+        triangles: Counter-clockwise (seen from outside) triangles into ``vertices``, ``[T, 3]``.
+        skeleton: The joint hierarchy.
+        joint_indices: Influencing joints per vertex, ``[V, K]`` (any ``K``; pad with weight 0).
+        joint_weights: Weights per vertex, ``[V, K]``, summing to one.
+        inverse_bind: Inverse bind matrices, ``[J, 4, 4]``: rest space to joint space.
+        clips: Animation clips by name.
+        source: File or generator the rig came from (for messages).
+        mesh_name: Name of the mesh in the source file.
+        weld_map: File vertex -> welded vertex, ``[N]`` (identity when nothing was welded).
+        file_triangles: Triangles of the file's own (unwelded) topology, ``[T, 3]``.
+        up_axis: ``"Y"`` or ``"Z"``, as the source said.
+        meters_per_unit: Scale the source was converted by (informational).
+    """
+
+    name: str
+    vertices: np.ndarray
+    triangles: np.ndarray
+    skeleton: Skeleton
+    joint_indices: np.ndarray
+    joint_weights: np.ndarray
+    inverse_bind: np.ndarray
+    clips: dict[str, Clip] = field(default_factory=dict)
+    source: str = ""
+    mesh_name: str = ""
+    weld_map: np.ndarray | None = None
+    file_triangles: np.ndarray | None = None
+    up_axis: str = "Y"
+    meters_per_unit: float = 1.0
+    report: ValidationReport | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, dtype=np.float64)
+        self.triangles = np.asarray(self.triangles, dtype=np.int64)
+        self.joint_indices = np.asarray(self.joint_indices, dtype=np.int64)
+        self.joint_weights = np.asarray(self.joint_weights, dtype=np.float64)
+        self.inverse_bind = np.asarray(self.inverse_bind, dtype=np.float64)
+        if self.joint_indices.ndim == 1:
+            self.joint_indices = self.joint_indices[:, None]
+        if self.joint_weights.ndim == 1:
+            self.joint_weights = self.joint_weights[:, None]
+        if self.weld_map is None:
+            self.weld_map = np.arange(self.vertices.shape[0] if self.vertices.ndim == 2 else 0)
+        if self.file_triangles is None:
+            self.file_triangles = self.triangles.copy()
+
+    # ---------------------------------------------------------------- construction helpers
+    @classmethod
+    def from_file_arrays(
+        cls,
+        *,
+        name: str,
+        points: np.ndarray,
+        triangles: np.ndarray,
+        skeleton: Skeleton,
+        joint_indices: np.ndarray,
+        joint_weights: np.ndarray,
+        inverse_bind: np.ndarray,
+        clips: dict[str, Clip] | None = None,
+        source: str = "",
+        mesh_name: str = "",
+        weld: bool = True,
+        weld_tolerance: float = 0.0,
+        up_axis: str = "Y",
+        meters_per_unit: float = 1.0,
+        validate: bool = True,
+    ) -> Rig:
+        """Build a rig from per-file-vertex arrays, welding split vertices by position.
+
+        Weights of merged vertices come from the first file vertex of each group; a warning
+        names groups whose weights disagree.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        triangles = np.asarray(triangles, dtype=np.int64)
+        ji = np.asarray(joint_indices, dtype=np.int64)
+        jw = np.asarray(joint_weights, dtype=np.float64)
+        n = points.shape[0]
+        for label, arr in (("joint indices", ji), ("joint weights", jw)):
+            if arr.shape[0] != n:
+                raise RigError(f"{source or name}: {n} vertices but {arr.shape[0]} rows of {label}")
+        if triangles.size and (triangles.min() < 0 or triangles.max() >= n):
+            bad = np.nonzero((triangles < 0).any(1) | (triangles >= n).any(1))[0]
+            raise RigError(
+                f"{source or name}: triangles {_fmt_indices(bad)} index vertices outside [0, {n - 1}]"
+            )
+        if weld and n:
+            finite = np.all(np.isfinite(points), axis=1)
+            if not finite.all():
+                bad = np.nonzero(~finite)[0]
+                raise RigError(f"{source or name}: vertices {_fmt_indices(bad)} have NaN or inf positions")
+            first, wmap = weld_by_position(points, weld_tolerance)
+        else:
+            first, wmap = np.arange(n), np.arange(n)
+        rig = cls(
+            name=name,
+            vertices=points[first],
+            triangles=wmap[triangles],
+            skeleton=skeleton,
+            joint_indices=ji[first],
+            joint_weights=jw[first],
+            inverse_bind=inverse_bind,
+            clips=dict(clips or {}),
+            source=source,
+            mesh_name=mesh_name,
+            weld_map=wmap,
+            file_triangles=triangles,
+            up_axis=up_axis,
+            meters_per_unit=meters_per_unit,
+        )
+        if weld and first.size != n:
+            dense = rig._dense_weights(ji, jw)
+            diff = np.abs(dense - dense[first][wmap]).max(axis=1)
+            split = np.nonzero(diff > 1e-4)[0]
+            if split.size:
+                rig._warn(
+                    f"{split.size} file vertices share a position with a vertex of different "
+                    f"weights (file vertices {_fmt_indices(split)}); the welded vertex keeps the "
+                    "weights of the first"
+                )
+        if validate:
+            rig.validate(raise_on_error=True)
+        return rig
+
+    def _dense_weights(self, ji: np.ndarray, jw: np.ndarray) -> np.ndarray:
+        j = self.skeleton.joint_count
+        dense = np.zeros((ji.shape[0], j))
+        ok = (ji >= 0) & (ji < j)
+        rows = np.repeat(np.arange(ji.shape[0])[:, None], ji.shape[1], axis=1)
+        np.add.at(dense, (rows[ok], ji[ok]), jw[ok])
+        return dense
+
+    def _warn(self, message: str) -> None:
+        if self.report is None:
+            self.report = ValidationReport()
+        self.report.warnings.append(message)
+        warnings.warn(f"{self.source or self.name}: {message}", RigWarning, stacklevel=3)
+
+    # ---------------------------------------------------------------- properties
+    @property
+    def vertex_count(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.triangles.shape[0])
+
+    @property
+    def joint_count(self) -> int:
+        return self.skeleton.joint_count
+
+    @property
+    def file_vertex_count(self) -> int:
+        return int(self.weld_map.shape[0])
+
+    def size(self) -> float:
+        """Diagonal of the rest mesh's bounding box [m] (the "model size" of tolerances)."""
+        return float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0)))
+
+    def dense_weights(self) -> np.ndarray:
+        """Weights as a dense ``[V, J]`` matrix."""
+        return self._dense_weights(self.joint_indices, self.joint_weights)
+
+    # ---------------------------------------------------------------- validation
+    def validate(self, *, raise_on_error: bool = True) -> ValidationReport:
+        """Check the rig and repair what is safe to repair.
+
+        Errors (raised as :class:`RigError` unless ``raise_on_error=False``): NaN/inf in
+        vertices, weights or matrices; a vertex without weight; negative weights; weights whose
+        sums differ by more than rounding and not by one constant factor; joint indices out of
+        range; mismatched array sizes; cycles in the hierarchy (raised when the skeleton is
+        built). Repaired with a warning: weight sums off by rounding or by a constant factor
+        (normalised). Reported: degenerate triangles, and whether the surface is closed and
+        manifold (:meth:`require_closed` raises if not; LBS does not need it).
+        """
+        where = self.source or self.name
+        rep = ValidationReport(warnings=list(self.report.warnings) if self.report else [])
+        errors = rep.errors
+        v = self.vertices
+        j = self.joint_count
+        if v.ndim != 2 or v.shape[1] != 3:
+            errors.append(f"vertices must have shape [V, 3], got {v.shape}")
+            return self._finish(rep, raise_on_error)
+        if self.triangles.ndim != 2 or self.triangles.shape[1] != 3:
+            errors.append(f"triangles must have shape [T, 3], got {self.triangles.shape}")
+            return self._finish(rep, raise_on_error)
+        bad = np.nonzero(~np.all(np.isfinite(v), axis=1))[0]
+        if bad.size:
+            errors.append(f"vertices {_fmt_indices(bad)} have NaN or inf positions")
+        if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= v.shape[0]):
+            badt = np.nonzero((self.triangles < 0).any(1) | (self.triangles >= v.shape[0]).any(1))[0]
+            errors.append(f"triangles {_fmt_indices(badt)} index vertices outside [0, {v.shape[0] - 1}]")
+            return self._finish(rep, raise_on_error)
+        if self.inverse_bind.shape != (j, 4, 4):
+            errors.append(
+                f"the skeleton has {j} joints but there are {self.inverse_bind.shape[0] if self.inverse_bind.ndim == 3 else '?'} "
+                f"inverse bind matrices (shape {self.inverse_bind.shape})"
+            )
+        else:
+            badj = np.nonzero(~np.all(np.isfinite(self.inverse_bind.reshape(j, 16)), axis=1))[0]
+            if badj.size:
+                names = [self.skeleton.joint_names[k] for k in badj[:8]]
+                errors.append(f"inverse bind matrices of joints {names} hold NaN or inf")
+            else:
+                sing = np.nonzero(np.abs(np.linalg.det(self.inverse_bind[:, :3, :3])) < 1e-12)[0]
+                if sing.size:
+                    names = [self.skeleton.joint_names[k] for k in sing[:8]]
+                    errors.append(f"inverse bind matrices of joints {names} are singular")
+        for label, arr in (
+            ("rest translation", self.skeleton.rest_translation),
+            ("rest rotation", self.skeleton.rest_rotation),
+            ("rest scale", self.skeleton.rest_scale),
+        ):
+            badj = np.nonzero(~np.all(np.isfinite(arr), axis=1))[0]
+            if badj.size:
+                errors.append(f"{label} of joints {[self.skeleton.joint_names[k] for k in badj[:8]]} holds NaN or inf")
+        ji, jw = self.joint_indices, self.joint_weights
+        if ji.shape != jw.shape or ji.shape[0] != v.shape[0]:
+            errors.append(
+                f"{v.shape[0]} vertices but joint indices of shape {ji.shape} and weights of shape {jw.shape}"
+            )
+            return self._finish(rep, raise_on_error)
+        badw = np.nonzero(~np.all(np.isfinite(jw), axis=1))[0]
+        if badw.size:
+            errors.append(f"vertices {_fmt_indices(badw)} have NaN or inf weights")
+            return self._finish(rep, raise_on_error)
+        used = jw != 0.0
+        oob = used & ((ji < 0) | (ji >= j))
+        if oob.any():
+            rows = np.nonzero(oob.any(axis=1))[0]
+            vals = np.unique(ji[oob])
+            errors.append(
+                f"vertices {_fmt_indices(rows)} reference joint indices {_fmt_indices(vals)}, "
+                f"outside [0, {j - 1}] (the skeleton has {j} joints)"
+            )
+        neg = np.nonzero((jw < 0.0).any(axis=1))[0]
+        if neg.size:
+            errors.append(f"vertices {_fmt_indices(neg)} have negative weights")
+        sums = jw.sum(axis=1)
+        zero = np.nonzero(sums <= 1e-12)[0]
+        if zero.size:
+            errors.append(f"vertices {_fmt_indices(zero)} have no weight (all weights are zero)")
+        if not errors:
+            off = np.abs(sums - 1.0)
+            if off.max() > 1e-6:
+                if off.max() <= 1e-3:
+                    rep.warnings.append(
+                        f"weight sums are off by rounding (up to {off.max():.2g}); normalised"
+                    )
+                else:
+                    c = np.median(sums)
+                    if np.all(np.abs(sums - c) <= 1e-3 * c):
+                        rep.warnings.append(f"weights sum to {c:.6g} instead of 1 on every vertex; normalised")
+                    else:
+                        worst = np.argsort(-off)[:8]
+                        listing = ", ".join(f"{int(k)} (sum {sums[k]:.4g})" for k in worst)
+                        errors.append(
+                            f"weights do not sum to one and are not off by one common factor: vertices {listing}"
+                        )
+                if not errors:
+                    self.joint_weights = jw / sums[:, None]
+        # topology
+        t = self.triangles
+        if t.size:
+            p0, p1, p2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+            area2 = np.linalg.norm(np.cross(p1 - p0, p2 - p0), axis=1)
+            scale = max(self.size(), 1e-30) if np.all(np.isfinite(v)) else 1.0
+            repeated = (t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])
+            degenerate = np.nonzero(repeated | (area2 <= 1e-12 * scale * scale))[0]
+            rep.degenerate_triangles = degenerate
+            if degenerate.size:
+                rep.warnings.append(f"degenerate (zero-area) triangles {_fmt_indices(degenerate)}")
+            edges = mesh_edge_report(t, v.shape[0])
+            rep.closed = bool(edges["closed"])
+            rep.manifold = bool(edges["manifold"])
+            rep.boundary_edge_count = int(edges["boundary_edges"].shape[0])
+            rep.nonmanifold_edge_count = int(edges["nonmanifold_edges"].shape[0])
+            self._edges = edges
+        else:
+            errors.append("the mesh has no triangles")
+        return self._finish(rep, raise_on_error)
+
+    def _emit(self, message: str) -> None:
+        warnings.warn(f"{self.source or self.name}: {message}", RigWarning, stacklevel=4)
+
+    def _finish(self, rep: ValidationReport, raise_on_error: bool) -> ValidationReport:
+        seen = set(self.report.warnings) if self.report is not None else set()
+        for message in rep.warnings:
+            if message not in seen:
+                self._emit(message)
+        self.report = rep
+        if rep.errors and raise_on_error:
+            where = self.source or self.name
+            raise RigError(f"{where}: " + "; ".join(rep.errors))
+        return rep
+
+    def require_closed(self) -> None:
+        """Raise :class:`RigError` unless the surface is closed, manifold and consistently wound
+        (the physical model needs an inside). The message names offending edges/vertices."""
+        rep = self.report if self.report is not None and hasattr(self, "_edges") else self.validate()
+        e = self._edges
+        where = self.source or self.name
+        problems = []
+        if e["boundary_edges"].shape[0]:
+            problems.append(
+                f"{e['boundary_edges'].shape[0]} boundary edges (open surface), e.g. between vertices "
+                + ", ".join(f"{a}-{b}" for a, b in e["boundary_edges"][:4])
+            )
+        if e["nonmanifold_edges"].shape[0]:
+            problems.append(
+                f"{e['nonmanifold_edges'].shape[0]} edges shared by more than two triangles, e.g. "
+                + ", ".join(f"{a}-{b}" for a, b in e["nonmanifold_edges"][:4])
+            )
+        if e["inconsistent_edges"].shape[0]:
+            problems.append(
+                f"{e['inconsistent_edges'].shape[0]} edges with inconsistent winding, e.g. "
+                + ", ".join(f"{a}-{b}" for a, b in e["inconsistent_edges"][:4])
+            )
+        if e["nonmanifold_vertices"].size:
+            problems.append(f"non-manifold vertices {_fmt_indices(e['nonmanifold_vertices'])}")
+        if problems:
+            raise RigError(f"{where}: mesh {self.mesh_name!r} is not a closed manifold surface: " + "; ".join(problems))
+        del rep
+
+    # ---------------------------------------------------------------- animation
+    def clip(self, name: str | None = None) -> Clip:
+        """The clip called ``name``; the first clip when ``None``; an empty clip (rest pose)
+        when the rig has none."""
+        if name is None:
+            if not self.clips:
+                return Clip("rest")
+            return next(iter(self.clips.values()))
+        if name not in self.clips:
+            known = ", ".join(repr(c) for c in self.clips) or "none"
+            raise RigError(f"{self.source or self.name}: no clip named {name!r} (clips: {known})")
+        return self.clips[name]
+
+    def joint_world_transforms(self, clip: Clip | str | None, t: float) -> np.ndarray:
+        """World transforms of every joint at time ``t`` [s], ``[J, 4, 4]``."""
+        c = clip if isinstance(clip, Clip) else self.clip(clip)
+        tr, rot, sc = c.sample_local_trs(self.skeleton, t)
+        return self.skeleton.world_from_local(compose_trs(tr, rot, sc))
+
+    def skinning_matrices(self, clip: Clip | str | None, t: float) -> np.ndarray:
+        """``G_j(t) @ inverse_bind[j]`` for every joint, ``[J, 4, 4]``."""
+        return self.joint_world_transforms(clip, t) @ self.inverse_bind
+
+    def bind_world_transforms(self) -> np.ndarray:
+        """Joint transforms in rest space at bind time, ``inverse(inverse_bind)``, ``[J, 4, 4]``."""
+        return np.linalg.inv(self.inverse_bind)
+
+    # ---------------------------------------------------------------- units
+    def rescaled(self, factor: float) -> Rig:
+        """A copy with every length multiplied by ``factor`` (e.g. 0.01 for centimetres)."""
+        if not np.isfinite(factor) or factor <= 0.0:
+            raise RigError(f"unit scale must be a positive number, got {factor}")
+        s = np.diag([factor, factor, factor, 1.0])
+        s_inv = np.diag([1.0 / factor] * 3 + [1.0])
+        sk = self.skeleton
+        skel = Skeleton(
+            sk.joint_names,
+            sk.parents.copy(),
+            sk.rest_translation * factor,
+            sk.rest_rotation.copy(),
+            sk.rest_scale.copy(),
+            s @ sk.root_transform @ s_inv,
+        )
+        clips = {}
+        for cname, c in self.clips.items():
+            tracks = {}
+            for key, tr in c.tracks.items():
+                vals = tr.values * factor if tr.path == "translation" else tr.values.copy()
+                tracks[key] = Track(tr.path, tr.times.copy(), vals, tr.interpolation)
+            clips[cname] = Clip(c.name, tracks)
+        return dataclasses.replace(
+            self,
+            vertices=self.vertices * factor,
+            skeleton=skel,
+            inverse_bind=s @ self.inverse_bind @ s_inv,
+            clips=clips,
+            meters_per_unit=self.meters_per_unit * factor,
+            triangles=self.triangles.copy(),
+            joint_indices=self.joint_indices.copy(),
+            joint_weights=self.joint_weights.copy(),
+        )
+
+    def summary(self) -> dict:
+        """Plain-data description (what ``warpskin info`` prints)."""
+        rep = self.report or self.validate(raise_on_error=False)
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        return {
+            "name": self.name,
+            "source": self.source,
+            "mesh": self.mesh_name,
+            "vertices": self.vertex_count,
+            "file_vertices": self.file_vertex_count,
+            "triangles": self.triangle_count,
+            "joints": self.joint_count,
+            "max_influences": int((self.joint_weights > 0).sum(axis=1).max()) if self.vertex_count else 0,
+            "bbox_min": lo.tolist(),
+            "bbox_max": hi.tolist(),
+            "closed": rep.closed,
+            "manifold": rep.manifold,
+            "boundary_edges": rep.boundary_edge_count,
+            "nonmanifold_edges": rep.nonmanifold_edge_count,
+            "degenerate_triangles": int(rep.degenerate_triangles.size),
+            "up_axis": self.up_axis,
+            "meters_per_unit": self.meters_per_unit,
+            "clips": {n: {"start": c.start, "end": c.end, "tracks": len(c.tracks)} for n, c in self.clips.items()},
+            "warnings": list(rep.warnings),
+            "errors": list(rep.errors),
+        }
