@@ -1,0 +1,87 @@
+"""Benchmarks (``warpskin bench``): milliseconds per frame on one device, JSON out.
+
+Timings are the best of ``repeat`` runs of ``frames`` frames each; every measured region ends
+with ``wp.synchronize_device`` so asynchronous CUDA launches are counted in full. Tests never
+assert timings; this is the performance record.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import numpy as np
+import warp as wp
+
+from .device import resolve_device
+
+__all__ = ["run_skinning_bench"]
+
+
+def _best_ms(fn, frames: int, repeat: int, device) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        for f in range(frames):
+            fn(f)
+        wp.synchronize_device(device)
+        best = min(best, (time.perf_counter() - t0) * 1e3 / frames)
+    return best
+
+
+def _scene(target: str):
+    from .io import RIG_EXTENSIONS
+    from .scene import Scene, load_scene
+
+    return Scene.from_rig_file(target) if target.lower().endswith(RIG_EXTENSIONS) else load_scene(target)
+
+
+def run_skinning_bench(targets: list[str], *, device: str | None = None, frames: int = 60, repeat: int = 3) -> dict:
+    """Time LBS and DQS per frame for each scene.
+
+    Reports, per scene: vertices, joints; ``pose_ms`` (host clip sampling and forward
+    kinematics per frame); ``lbs_ms`` and ``dqs_ms`` (upload of joint data plus the kernel);
+    ``lbs_kernel_ms`` and ``dqs_kernel_ms`` (kernel launch alone, joint data resident);
+    and ``dqs_over_lbs`` (ratio of the kernel times, measured in the same run).
+    """
+    from .skinning import Skinner
+
+    if frames < 1 or repeat < 1:
+        raise ValueError("frames and repeat must be >= 1")
+    dev = resolve_device(device)
+    out = {
+        "device": str(dev),
+        "device_name": dev.name if hasattr(dev, "name") else str(dev),
+        "warp": wp.config.version,
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "frames": frames,
+        "repeat": repeat,
+        "scenes": {},
+    }
+    for target in targets:
+        scene = _scene(target)
+        rig = scene.rig()
+        clip = rig.clip(scene.clip)
+        first, last = scene.frame_range()
+        span = max(last - first + 1, 1)
+        times = [scene.frame_time(first + (f % span)) for f in range(frames)]
+        mats = np.stack([rig.skinning_matrices(clip, t) for t in times])
+        lbs = Skinner(rig, method="lbs", device=str(dev))
+        dqs = Skinner(rig, method="dqs", device=str(dev))
+        lbs.skin(mats[0])  # compile / load kernels outside the timed region
+        dqs.skin(mats[0])
+        row = {
+            "vertices": rig.vertex_count,
+            "joints": rig.joint_count,
+            "pose_ms": _best_ms(lambda f: rig.skinning_matrices(clip, times[f]), frames, repeat, dev),
+            "lbs_ms": _best_ms(lambda f: lbs.skin(mats[f]), frames, repeat, dev),
+            "dqs_ms": _best_ms(lambda f: dqs.skin(mats[f]), frames, repeat, dev),
+            "lbs_kernel_ms": _best_ms(lambda f: lbs.launch(), frames, repeat, dev),
+            "dqs_kernel_ms": _best_ms(lambda f: dqs.launch(), frames, repeat, dev),
+        }
+        row["dqs_over_lbs"] = row["dqs_kernel_ms"] / row["lbs_kernel_ms"] if row["lbs_kernel_ms"] > 0 else None
+        out["scenes"][scene.name] = row
+    return out

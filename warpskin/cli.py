@@ -1,0 +1,243 @@
+"""The ``warpskin`` command line.
+
+    warpskin scenes                          list the shipped scenes
+    warpskin info RIG|SCENE                  meshes, joints, clips, closedness, weight problems
+    warpskin skin RIG|SCENE -o OUT.usdc      LBS or DQS skinning to time-sampled USD
+    warpskin bench [SCENE ...] [--json F]    per-frame timings (LBS, DQS) on a device
+    warpskin warmup                          compile (and cache) every Warp kernel
+
+Errors print one line and exit with status 2 (bad input) or 1 (anything else); ``--debug``
+prints the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _is_rig_file(target: str) -> bool:
+    from .io import RIG_EXTENSIONS
+
+    return target.lower().endswith(RIG_EXTENSIONS)
+
+
+def _scene_of(args):
+    from .scene import Scene, load_scene
+
+    if _is_rig_file(args.target):
+        return Scene.from_rig_file(
+            args.target, clip=getattr(args, "clip", None), fps=getattr(args, "fps", None),
+            mesh=getattr(args, "mesh", None), unit_scale=getattr(args, "unit_scale", None),
+        )
+    scene = load_scene(args.target)
+    if getattr(args, "clip", None):
+        scene.clip = args.clip
+    if getattr(args, "mesh", None):
+        scene.rig_spec["mesh"] = args.mesh
+    if getattr(args, "unit_scale", None):
+        scene.rig_spec["unit_scale"] = args.unit_scale
+    return scene
+
+
+def _parse_frames(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        a, b = text.split(":")
+        first, last = int(a), int(b)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--frames must be FIRST:LAST (inclusive integers), got {text!r}") from None
+    if first < 0 or last < first:
+        raise argparse.ArgumentTypeError(f"--frames {text}: need 0 <= FIRST <= LAST")
+    return first, last
+
+
+# ------------------------------------------------------------------------------------ commands
+def cmd_scenes(args) -> int:
+    from .scene import list_scenes
+
+    for s in list_scenes():
+        print(f"{s['name']:<14} {s['rig']:<34} {s['description']}")
+    return 0
+
+
+def cmd_info(args) -> int:
+    from .rig import RigError
+
+    out: dict = {}
+    if _is_rig_file(args.target):
+        from .io import list_meshes
+
+        out["meshes"] = list_meshes(args.target)
+    scene = _scene_of(args)
+    try:
+        rig = scene.rig()
+    except RigError as exc:
+        if args.json:
+            out["error"] = str(exc)
+            print(json.dumps(out, indent=2))
+        raise
+    summary = rig.summary()
+    out.update(summary)
+    out["joint_names"] = rig.skeleton.joint_names
+    out["parents"] = rig.skeleton.parents.tolist()
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(f"{summary['name']}  ({summary['source']})")
+    if "meshes" in out:
+        print("meshes:")
+        for m in out["meshes"]:
+            mark = "*" if m.get("name") == rig.mesh_name else " "
+            skinned = "skinned" if m.get("skinned", m.get("skin") is not None) else "not skinned"
+            print(f"  {mark} {m.get('name')}: {m.get('vertices')} vertices, {m.get('triangles')} triangles, {skinned}")
+    print(
+        f"mesh {summary['mesh']!r}: {summary['vertices']} vertices welded ({summary['file_vertices']} in the file), "
+        f"{summary['triangles']} triangles, up axis {summary['up_axis']}, metres per unit {summary['meters_per_unit']:g}"
+    )
+    lo, hi = summary["bbox_min"], summary["bbox_max"]
+    print("bounds [m]: " + " .. ".join("(" + ", ".join(f"{c:.4g}" for c in v) + ")" for v in (lo, hi)))
+    closed = "closed" if summary["closed"] else f"OPEN ({summary['boundary_edges']} boundary edges)"
+    manifold = "manifold" if summary["manifold"] else f"NOT manifold ({summary['nonmanifold_edges']} non-manifold edges)"
+    print(f"surface: {closed}, {manifold}; degenerate triangles: {summary['degenerate_triangles']}")
+    print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
+    names = rig.skeleton.joint_names
+    for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
+        print(f"  {j:3d} {n}  <- {names[p] if p >= 0 else '(root)'}")
+    print("clips:" if summary["clips"] else "clips: none (rest pose only)")
+    for n, c in summary["clips"].items():
+        print(f"  {n}: {c['start']:.4g} .. {c['end']:.4g} s, {c['tracks']} tracks")
+    for w in summary["warnings"]:
+        print(f"warning: {w}")
+    return 0
+
+
+def cmd_skin(args) -> int:
+    from .skinning import skin_to_usd
+
+    scene = _scene_of(args)
+    out = Path(args.output)
+    path, count = skin_to_usd(
+        scene, out, method=args.method, device=args.device, frames=args.frames, fps=args.fps,
+        with_rest=args.with_rest, with_lbs=args.with_lbs, topology=args.topology, progress=not args.quiet,
+        comment="warpskin " + " ".join(sys.argv[1:]),
+    )
+    print(f"wrote {path} ({count} frames, {args.method})")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_skinning_bench
+
+    result = run_skinning_bench(args.scenes or ["arm"], device=args.device, frames=args.bench_frames, repeat=args.repeat)
+    text = json.dumps(result, indent=2)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+        print(f"wrote {args.json}")
+    print(text)
+    return 0
+
+
+def cmd_warmup(args) -> int:
+    import time
+
+    import warp as wp
+
+    from . import kernels  # noqa: F401
+    from .device import resolve_device
+    from .kernels import skinning as k_skinning
+
+    dev = resolve_device(args.device)
+    t0 = time.perf_counter()
+    wp.load_module(k_skinning, device=dev)
+    print(f"kernels ready on {dev} in {time.perf_counter() - t0:.1f} s (cache: {wp.config.kernel_cache_dir})")
+    return 0
+
+
+# ------------------------------------------------------------------------------------ parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")
+    p.add_argument("--debug", action="store_true", help="print tracebacks on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    s = sub.add_parser("scenes", help="list the shipped scenes")
+    s.set_defaults(func=cmd_scenes)
+
+    s = sub.add_parser("info", help="describe a rig file or scene")
+    s.add_argument("target", metavar="RIG|SCENE")
+    s.add_argument("--mesh", help="skinned mesh to inspect (default: the largest)")
+    s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    s.set_defaults(func=cmd_info)
+
+    s = sub.add_parser("skin", help="skin a rig or scene with LBS or DQS and write USD")
+    s.add_argument("target", metavar="RIG|SCENE", help="a .glb/.gltf/.usd/.usda/.usdc/.usdz file, a scene name or a .toml file")
+    s.add_argument("-o", "--output", required=True, help="output .usdc (default format), .usda or .usd")
+    s.add_argument("--method", choices=["lbs", "dqs"], default="lbs")
+    s.add_argument("--clip", help="clip name (default: the scene's, or the first)")
+    s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
+    s.add_argument("--fps", type=float, help="output frame rate (default: the scene's, 30 for a rig file)")
+    s.add_argument("--device", help="cpu, cuda or cuda:N (default: Warp's default)")
+    s.add_argument("--mesh", help="skinned mesh to use when the file has several")
+    s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--with-rest", action="store_true", help="also write the rest mesh as a sibling prim")
+    s.add_argument("--with-lbs", action="store_true", help="with --method dqs, also write the LBS result")
+    s.add_argument("--topology", choices=["welded", "file"], default="welded",
+                   help="welded closed surface (default) or the file's own seam-split vertices")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_skin)
+
+    s = sub.add_parser("bench", help="time skinning per frame; JSON out")
+    s.add_argument("scenes", nargs="*", metavar="SCENE", help="scenes or rig files (default: arm)")
+    s.add_argument("--device", help="cpu, cuda or cuda:N")
+    s.add_argument("--frames", dest="bench_frames", type=int, default=60, help="frames per measurement")
+    s.add_argument("--repeat", type=int, default=3, help="measurements; the best is reported")
+    s.add_argument("--json", metavar="FILE", help="also write the JSON to FILE")
+    s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("warmup", help="compile and cache the Warp kernels")
+    s.add_argument("--device", help="cpu, cuda or cuda:N")
+    s.set_defaults(func=cmd_warmup)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    if not args.debug:
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_ERROR  # no banner, no "no CUDA driver" notice
+    from .io.usd_export import ExportError
+    from .rig import RigError
+
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("warpskin: interrupted", file=sys.stderr)
+        return 130
+    except (RigError, ExportError, argparse.ArgumentTypeError) as exc:
+        if args.debug:
+            raise
+        print(f"warpskin: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # one clear line; --debug for the traceback
+        if args.debug:
+            raise
+        print(f"warpskin: error: {type(exc).__name__}: {exc} (run with --debug for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""Warp device selection with a clear error instead of a deep Warp exception."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .rig import RigError
+
+__all__ = ["resolve_device", "available_devices"]
+
+
+def available_devices() -> list[str]:
+    """``["cpu", "cuda:0", ...]``: every device Warp can run on here."""
+    wp.init()
+    return ["cpu"] + [str(d) for d in wp.get_cuda_devices()]
+
+
+def resolve_device(device=None):
+    """A ``wp.Device`` for ``device`` (``None``: Warp's default, ``"cpu"``, ``"cuda"``, ``"cuda:N"``).
+
+    Raises:
+        RigError: the device does not exist here (listing the ones that do).
+    """
+    wp.init()
+    if device is None or isinstance(device, wp.Device):
+        return wp.get_device(device)
+    name = str(device)
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise RigError(f"device {name!r} requested but no CUDA device is available here; devices: {available_devices()}")
+    try:
+        return wp.get_device(name)
+    except Exception:
+        raise RigError(f"unknown device {name!r}; devices: {available_devices()}") from None

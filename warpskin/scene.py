@@ -1,0 +1,266 @@
+"""Scenes: a rig (file, shipped asset or procedural generator), its clip, frame rate and frame
+range, in a TOML file.
+
+A shipped scene is named by its file stem (``warpskin skin arm``); any other TOML file is named
+by its path. Example::
+
+    [scene]
+    description = "Elbow flexed to 150 degrees and back"
+
+    [rig]
+    generator = "arm"          # or: file = "character.glb" (relative to this TOML file)
+                               # or: asset = "CesiumMan/CesiumMan.glb" (in the assets folder)
+    # mesh = "Body"            # which skinned mesh, when the file has several
+    # unit_scale = 0.01        # for files authored in centimetres
+
+    [rig.params]               # generator parameters (see warpskin.scenes.<generator>)
+    flex_degrees = 150
+
+    [animation]
+    clip = "flex"
+    fps = 30
+    frames = [0, 135]          # inclusive; default: the whole clip
+
+Unknown sections or keys are errors (a typo must not be silently ignored).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+from .rig import Rig, RigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = ["Scene", "SceneError", "load_scene", "list_scenes", "find_assets_dir", "GENERATORS"]
+
+
+class SceneError(RigError):
+    """A scene file is wrong; the message names the file and the key."""
+
+
+GENERATORS = {"arm": "warpskin.scenes.arm:make_arm"}
+
+_SCHEMA: dict[str, set[str]] = {
+    "scene": {"name", "description"},
+    "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params"},
+    "animation": {"clip", "fps", "frames"},
+}
+
+
+def find_assets_dir() -> Path | None:
+    """The third-party assets folder: ``$WARPSKIN_ASSETS``, else ``shared/assets`` next to the
+    current folder or next to the source checkout; ``None`` when absent."""
+    env = os.environ.get("WARPSKIN_ASSETS")
+    candidates = [Path(env)] if env else []
+    here = Path.cwd()
+    candidates += [here / "shared" / "assets", here.parent / "shared" / "assets"]
+    candidates.append(Path(__file__).resolve().parents[2] / "shared" / "assets")
+    for c in candidates:
+        if c.is_dir():
+            return c
+    return None
+
+
+@dataclass
+class Scene:
+    """A rig plus what to play of it.
+
+    Attributes:
+        name: Scene name (file stem).
+        source: The TOML file (or the rig file for a bare rig).
+        rig_spec: The ``[rig]`` table.
+        clip: Clip name (``None``: the rig's first clip).
+        fps: Frames per second of the output.
+        frames: Inclusive frame range ``(first, last)`` or ``None`` for the whole clip.
+        description: Free text.
+        extra: Sections for later stages (layers, solver), kept verbatim.
+    """
+
+    name: str
+    source: Path | None
+    rig_spec: dict
+    clip: str | None = None
+    fps: float = 30.0
+    frames: tuple[int, int] | None = None
+    description: str = ""
+    extra: dict = field(default_factory=dict)
+    _rig: Rig | None = None
+
+    @classmethod
+    def from_rig_file(
+        cls, path: str | Path, *, clip: str | None = None, fps: float | None = None, mesh: str | None = None,
+        unit_scale: float | None = None,
+    ) -> Scene:
+        """A scene that plays a rig file as it is."""
+        p = Path(path)
+        spec = {"file": str(p.resolve())}
+        if mesh:
+            spec["mesh"] = mesh
+        if unit_scale:
+            spec["unit_scale"] = unit_scale
+        return cls(name=p.stem, source=p, rig_spec=spec, clip=clip, fps=float(fps or 30.0))
+
+    def rig(self) -> Rig:
+        """Load (once) and return the rig."""
+        if self._rig is None:
+            self._rig = _build_rig(self)
+        return self._rig
+
+    def frame_range(self) -> tuple[int, int]:
+        """Inclusive frame range to play."""
+        if self.frames is not None:
+            return self.frames
+        clip = self.rig().clip(self.clip)
+        return 0, int(math.floor(clip.duration * self.fps + 1e-6))
+
+    def frame_time(self, frame: int) -> float:
+        """Clip time [s] of a frame: the clip's first key plus ``frame / fps``."""
+        return self.rig().clip(self.clip).start + frame / self.fps
+
+
+def _where(scene_path: Path | None) -> str:
+    return str(scene_path) if scene_path else "scene"
+
+
+def _build_rig(scene: Scene) -> Rig:
+    spec = scene.rig_spec
+    where = _where(scene.source)
+    given = [k for k in ("generator", "file", "asset") if k in spec]
+    if len(given) != 1:
+        raise SceneError(f"{where}: [rig] needs exactly one of 'generator', 'file' or 'asset' (got {given or 'none'})")
+    unit_scale = spec.get("unit_scale")
+    if "generator" in spec:
+        gen = spec["generator"]
+        if gen not in GENERATORS:
+            raise SceneError(f"{where}: unknown generator {gen!r}; known: {sorted(GENERATORS)}")
+        module, func = GENERATORS[gen].split(":")
+        import importlib
+
+        make = getattr(importlib.import_module(module), func)
+        params = spec.get("params", {})
+        if not isinstance(params, dict):
+            raise SceneError(f"{where}: [rig.params] must be a table")
+        try:
+            rig = make(**params)
+        except RigError as exc:
+            raise SceneError(f"{where}: {exc}") from None
+        return rig.rescaled(unit_scale) if unit_scale else rig
+    if "params" in spec:
+        raise SceneError(f"{where}: [rig.params] only applies to a generator")
+    from .io import load_rig
+
+    if "file" in spec:
+        path = Path(spec["file"])
+        if not path.is_absolute() and scene.source is not None:
+            path = scene.source.parent / path
+    else:
+        assets = find_assets_dir()
+        if assets is None:
+            raise SceneError(
+                f"{where}: the rig is the shared asset {spec['asset']!r}, but no assets folder was found; "
+                "set WARPSKIN_ASSETS to the folder that holds it"
+            )
+        path = assets / spec["asset"]
+    return load_rig(path, mesh=spec.get("mesh"), unit_scale=unit_scale)
+
+
+def _scenes_dir():
+    return resources.files("warpskin.scenes")
+
+
+def list_scenes() -> list[dict]:
+    """Shipped scenes: name, description, rig kind."""
+    out = []
+    for entry in sorted(_scenes_dir().iterdir(), key=lambda e: e.name):
+        if entry.name.endswith(".toml"):
+            data = tomllib.loads(entry.read_text())
+            rig = data.get("rig", {})
+            kind = next((f"{k}: {rig[k]}" for k in ("generator", "asset", "file") if k in rig), "?")
+            out.append(
+                {"name": entry.name[:-5], "description": data.get("scene", {}).get("description", ""), "rig": kind}
+            )
+    return out
+
+
+def _positive(where: str, key: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise SceneError(f"{where}: {key} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def load_scene(name_or_path: str | Path) -> Scene:
+    """Load a shipped scene by name, or a TOML scene file by path.
+
+    Raises:
+        SceneError: unknown scene name (listing the shipped ones), unreadable TOML, unknown
+            sections or keys, or values of the wrong kind.
+    """
+    text_path: Path | None = None
+    candidate = Path(name_or_path)
+    if candidate.suffix.lower() == ".toml" or candidate.exists():
+        if not candidate.is_file():
+            raise SceneError(f"{candidate}: no such scene file")
+        text_path = candidate.resolve()
+        text = candidate.read_text()
+        name = candidate.stem
+    else:
+        name = str(name_or_path)
+        entry = _scenes_dir() / f"{name}.toml"
+        if not entry.is_file():
+            known = ", ".join(s["name"] for s in list_scenes())
+            raise SceneError(f"unknown scene {name!r}; shipped scenes: {known} (or give a path to a .toml file)")
+        text = entry.read_text()
+        text_path = Path(str(entry))
+    where = _where(text_path)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{where}: not valid TOML: {exc}") from None
+
+    extra = {}
+    for section, table in data.items():
+        if section not in _SCHEMA:
+            raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")
+        if not isinstance(table, dict):
+            raise SceneError(f"{where}: {section} must be a table")
+        unknown = sorted(set(table) - _SCHEMA[section])
+        if unknown:
+            raise SceneError(f"{where}: unknown key(s) {unknown} in [{section}]; known: {sorted(_SCHEMA[section])}")
+    meta = data.get("scene", {})
+    anim = data.get("animation", {})
+    if "rig" not in data:
+        raise SceneError(f"{where}: missing [rig] section")
+    fps = _positive(where, "[animation] fps", anim.get("fps", 30.0))
+    frames = anim.get("frames")
+    if frames is not None:
+        if (
+            not isinstance(frames, list)
+            or len(frames) != 2
+            or not all(isinstance(f, int) and not isinstance(f, bool) for f in frames)
+            or frames[0] < 0
+            or frames[1] < frames[0]
+        ):
+            raise SceneError(f"{where}: [animation] frames must be [first, last] integers with 0 <= first <= last, got {frames!r}")
+        frames = (frames[0], frames[1])
+    clip = anim.get("clip")
+    if clip is not None and not isinstance(clip, str):
+        raise SceneError(f"{where}: [animation] clip must be a string")
+    return Scene(
+        name=str(meta.get("name", name)),
+        source=text_path,
+        rig_spec=dict(data["rig"]),
+        clip=clip,
+        fps=fps,
+        frames=frames,
+        description=str(meta.get("description", "")),
+        extra=extra,
+    )
