@@ -90,6 +90,7 @@ def dqs_kernel(
     inv_n = 1.0 / wp.sqrt(n2)
     r0 = b0 * inv_n
     # translation of the normalised dual quaternion: 2 * vec(be * conj(b0)) / |b0|^2
+    # (wp.quat_inverse is the conjugate: it does not divide by |b0|^2)
     te = be * wp.quat_inverse(b0)
-    t = 2.0 * wp.vec3(te[0], te[1], te[2])
+    t = (2.0 / n2) * wp.vec3(te[0], te[1], te[2])
     points[i] = wp.quat_rotate(r0, stretch * p) + t

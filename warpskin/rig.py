@@ -769,6 +769,8 @@ class Rig:
             clips=clips,
             meters_per_unit=self.meters_per_unit * factor,
             triangles=self.triangles.copy(),
+            weld_map=self.weld_map.copy(),
+            file_triangles=self.file_triangles.copy(),
             joint_indices=self.joint_indices.copy(),
             joint_weights=self.joint_weights.copy(),
         )

@@ -1,0 +1,93 @@
+"""The ``warpskin`` command line, run in-process and once as a real console process."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from warpskin.cli import main
+
+
+def _frames(path):
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin"))
+    return stage, mesh.GetPointsAttr().GetTimeSamples()
+
+
+def test_skin_arm_writes_usd_with_all_frames(tmp_path, capsys, device):
+    out = tmp_path / "arm.usdc"
+    assert main(["skin", "arm", "-o", str(out), "--quiet", "--device", device]) == 0
+    stage, samples = _frames(out)
+    assert samples == [float(f) for f in range(151)]  # 5 s at 30 fps, inclusive
+    assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == 150
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_skin_dqs_with_lbs_and_rest_prims(tmp_path):
+    out = tmp_path / "arm.usda"
+    assert main(["skin", "arm", "-o", str(out), "--method", "dqs", "--with-lbs", "--with-rest",
+                 "--frames", "40:49", "--quiet"]) == 0
+    stage, samples = _frames(out)
+    assert samples == [float(f) for f in range(40, 50)]
+    for name in ("lbs", "rest"):
+        assert stage.GetPrimAtPath(f"/warpskin/{name}").IsValid()
+    skin = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().Get(45))
+    lbs = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr().Get(45))
+    assert np.abs(skin - lbs).max() > 1e-3  # DQS and LBS differ at a bent elbow
+
+
+def test_skin_cesium_man_glb(tmp_path, assets):
+    out = tmp_path / "cesium.usdc"
+    rig = assets / "CesiumMan" / "CesiumMan.glb"
+    assert main(["skin", str(rig), "-o", str(out), "--fps", "24", "--quiet"]) == 0
+    stage, samples = _frames(out)
+    assert len(samples) == 48  # 1.9583 s at 24 fps: frames 0..47
+    pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().Get(0))
+    assert pts.shape == (2338, 3)
+
+
+def test_skin_cesium_man_file_topology(tmp_path, assets):
+    out = tmp_path / "cesium.usdc"
+    rig = assets / "usd" / "CesiumMan" / "CesiumMan.usdz"
+    assert main(["skin", str(rig), "-o", str(out), "--topology", "file", "--frames", "0:2", "--quiet"]) == 0
+    stage, samples = _frames(out)
+    pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().Get(1))
+    assert pts.shape == (3273, 3) and len(samples) == 3
+
+
+def test_info_and_scenes(capsys):
+    assert main(["scenes"]) == 0
+    assert "arm" in capsys.readouterr().out
+    assert main(["info", "arm"]) == 0
+    text = capsys.readouterr().out
+    assert "2918 vertices" in text and "closed, manifold" in text and "elbow" in text
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["skin", "nosuchscene", "-o", "x.usdc"], "unknown scene 'nosuchscene'"),
+        (["skin", "arm", "-o", "x.obj"], "must end in one of"),
+        (["skin", "arm", "-o", "x.usdc", "--clip", "walk"], "no clip named 'walk'"),
+        (["skin", "missing.glb", "-o", "x.usdc"], "missing.glb: no such file"),
+        (["info", "missing.usdz"], "missing.usdz: no such file"),
+    ],
+)
+def test_errors_are_one_line_without_traceback(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert err.strip().count("\n") == 0 or all("Warp" in line for line in err.strip().splitlines()[:-1])
+    assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+def test_console_process_exit_code_and_message(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "warpskin", "skin", "arm", "-o", str(tmp_path / "a.usdc"),
+                        "--frames", "9:3"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "--frames 9:3" in r.stderr and "Traceback" not in r.stderr

@@ -1,0 +1,190 @@
+"""Rig validation: every problem gives a clear error (or a named warning), checked on small
+hand-made rigs; mesh checks against trimesh."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from warpskin.rig import Clip, Rig, RigError, Track, RigWarning, Skeleton, mesh_edge_report, weld_by_position
+
+
+def _skeleton(parents=(-1, 0)):
+    j = len(parents)
+    t = np.zeros((j, 3))
+    t[1:, 0] = 1.0
+    return Skeleton([f"j{k}" for k in range(j)], np.array(parents), t, np.tile([0, 0, 0, 1.0], (j, 1)), np.ones((j, 3)))
+
+
+def _box():
+    m = trimesh.creation.box()
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def _rig(**over):
+    v, f = _box()
+    sk = _skeleton()
+    ji = np.tile([0, 1], (len(v), 1))
+    jw = np.tile([0.75, 0.25], (len(v), 1))
+    args = dict(name="box", points=v, triangles=f, skeleton=sk, joint_indices=ji, joint_weights=jw,
+                inverse_bind=np.linalg.inv(sk.world_from_local(sk.rest_local_matrices())), source="box.test")
+    args.update(over)
+    return Rig.from_file_arrays(**args)
+
+
+def test_valid_rig_is_closed_manifold():
+    rig = _rig()
+    assert rig.report.ok and rig.report.closed and rig.report.manifold
+    rig.require_closed()
+
+
+def test_nan_vertex_named():
+    v, _ = _box()
+    v[3, 0] = np.nan
+    with pytest.raises(RigError, match=r"box.test: vertices 3 have NaN"):
+        _rig(points=v)
+
+
+def test_vertex_without_weight_named():
+    jw = np.tile([0.75, 0.25], (8, 1))
+    jw[6] = 0.0
+    with pytest.raises(RigError, match=r"vertices 6 have no weight"):
+        _rig(joint_weights=jw)
+
+
+def test_weights_off_by_constant_factor_are_normalised_with_warning():
+    with pytest.warns(RigWarning, match="sum to 100"):
+        rig = _rig(joint_weights=np.tile([75.0, 25.0], (8, 1)))
+    assert np.allclose(rig.joint_weights.sum(1), 1.0)
+    assert np.allclose(rig.joint_weights[:, 0], 0.75)
+
+
+def test_weights_off_by_rounding_are_normalised_with_warning():
+    jw = np.tile([0.75, 0.25], (8, 1))
+    jw[2] = [0.7504, 0.25]
+    with pytest.warns(RigWarning, match="rounding"):
+        rig = _rig(joint_weights=jw)
+    assert np.allclose(rig.joint_weights.sum(1), 1.0)
+
+
+def test_weights_with_varying_sums_are_an_error():
+    jw = np.tile([0.75, 0.25], (8, 1))
+    jw[4] = [0.3, 0.2]
+    with pytest.raises(RigError, match=r"do not sum to one.*4 \(sum 0.5\)"):
+        _rig(joint_weights=jw)
+
+
+def test_negative_weight_is_an_error():
+    jw = np.tile([1.25, -0.25], (8, 1))
+    with pytest.raises(RigError, match="negative weights"):
+        _rig(joint_weights=jw)
+
+
+def test_joint_index_out_of_range_named():
+    ji = np.tile([0, 1], (8, 1))
+    ji[5, 1] = 7
+    with pytest.raises(RigError, match=r"vertices 5 reference joint indices 7, outside \[0, 1\]"):
+        _rig(joint_indices=ji)
+
+
+def test_mismatched_inverse_bind_count():
+    with pytest.raises(RigError, match="2 joints but there are 3 inverse bind"):
+        _rig(inverse_bind=np.tile(np.eye(4), (3, 1, 1)))
+
+
+def test_cycle_in_hierarchy_named():
+    with pytest.raises(RigError, match="cycle in the joint hierarchy"):
+        _skeleton(parents=(1, 2, 0))
+
+
+def test_parent_out_of_range_named():
+    with pytest.raises(RigError, match=r"joint 1 \('j1'\) has parent index 5"):
+        _skeleton(parents=(-1, 5))
+
+
+def test_degenerate_triangle_reported():
+    v, f = _box()
+    f = np.concatenate([f, [[0, 0, 1]]])
+    with pytest.warns(RigWarning, match=r"degenerate \(zero-area\) triangles 12"):
+        rig = _rig(triangles=f)
+    assert list(rig.report.degenerate_triangles) == [12]
+
+
+def test_open_mesh_is_reported_and_rejected_by_require_closed():
+    v, f = _box()
+    rig = _rig(triangles=f[:-1])
+    assert not rig.report.closed
+    with pytest.raises(RigError, match=r"not a closed manifold surface: 3 boundary edges"):
+        rig.require_closed()
+
+
+def test_flipped_triangle_is_inconsistent_winding():
+    v, f = _box()
+    f = f.copy()
+    f[0] = f[0, ::-1]
+    rig = _rig(triangles=f)
+    assert rig.report.closed and not rig.report.manifold
+    with pytest.raises(RigError, match="inconsistent winding"):
+        rig.require_closed()
+
+
+def test_nonmanifold_edge_reported():
+    v, f = _box()
+    extra = np.array([[0.0, 0.0, 2.0]])
+    e = f[0]
+    f2 = np.concatenate([f, [[e[0], e[1], 8]]])
+    rig = _rig(points=np.concatenate([v, extra]), triangles=f2,
+               joint_indices=np.tile([0, 1], (9, 1)), joint_weights=np.tile([0.5, 0.5], (9, 1)))
+    assert not rig.report.manifold and rig.report.nonmanifold_edge_count == 1
+    with pytest.raises(RigError, match="shared by more than two triangles"):
+        rig.require_closed()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_edge_report_agrees_with_trimesh(seed):
+    rng = np.random.default_rng(seed)
+    m = trimesh.creation.icosphere(subdivisions=2)
+    f = np.asarray(m.faces)
+    f = f[rng.random(len(f)) > 0.05]  # punch holes
+    rep = mesh_edge_report(f, len(m.vertices))
+    t = trimesh.Trimesh(m.vertices, f, process=False)
+    assert rep["closed"] == t.is_watertight
+    edges = np.sort(t.edges, axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    assert rep["boundary_edges"].shape[0] == int((counts == 1).sum())
+
+
+def test_weld_by_position_keeps_order_and_maps_back():
+    v, f = _box()
+    split = np.concatenate([v, v[[0, 3]]])  # two seam duplicates at the end
+    first, wmap = weld_by_position(split)
+    assert np.array_equal(first, np.arange(8))
+    assert np.array_equal(wmap, np.concatenate([np.arange(8), [0, 3]]))
+    assert np.array_equal(split[first][wmap], split)
+
+
+def test_rescaled_scales_skinned_positions():
+    move = Clip("move", {
+        (1, "rotation"): Track("rotation", [0.0, 1.0], [[0, 0, 0, 1.0], [0, 0, 0.6, 0.8]]),
+        (0, "translation"): Track("translation", [0.0, 1.0], [[0, 0, 0.0], [1.0, 2.0, 3.0]]),
+    })
+    rig = _rig(clips={"move": move})
+    small = rig.rescaled(0.01)
+    assert np.allclose(small.vertices, rig.vertices * 0.01)
+    p = np.concatenate([rig.vertices, np.ones((8, 1))], 1)
+    p_s = np.concatenate([small.vertices, np.ones((8, 1))], 1)
+    for j in range(2):
+        big = np.einsum("ij,vj->vi", rig.skinning_matrices("move", 0.5)[j], p)[:, :3]
+        sm = np.einsum("ij,vj->vi", small.skinning_matrices("move", 0.5)[j], p_s)[:, :3]
+        assert np.abs(big - rig.vertices).max() > 0.1  # a real pose, not the identity
+        assert np.allclose(sm, big * 0.01)
+    assert small.meters_per_unit == pytest.approx(0.01)
+    with pytest.raises(RigError, match="positive"):
+        rig.rescaled(-1.0)
+
+
+def test_unknown_clip_lists_clips():
+    rig = _rig()
+    with pytest.raises(RigError, match=r"no clip named 'walk' \(clips: none\)"):
+        rig.clip("walk")
