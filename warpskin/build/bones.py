@@ -1,0 +1,113 @@
+"""Bone segments (center lines) of a rig in rest space, and each vertex's bone.
+
+Deul & Bender 2013, section 3: "For each vertex of the original mesh the nearest point on the
+center line of the corresponding bone is computed. This bone is chosen depending on the skinning
+weights of the mesh vertices."
+
+Bone ``j`` runs from joint ``j`` to its child (to the mean of its children where it has
+several). A leaf joint gets a short segment along its parent's direction: ``leaf_fraction`` of the parent
+bone, but at most half way to the farthest vertex it dominates, so the segment stays inside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..rig import Rig, RigError
+
+__all__ = ["Bones", "bone_segments", "dominant_bone", "closest_point_on_segments"]
+
+
+@dataclass
+class Bones:
+    """Bone center lines at rest.
+
+    Attributes:
+        start: Segment start (the joint) [m], ``[J, 3]``.
+        end: Segment end [m], ``[J, 3]``.
+        joint_names: For messages, ``[J]``.
+    """
+
+    start: np.ndarray
+    end: np.ndarray
+    joint_names: list[str]
+
+    @property
+    def length(self) -> np.ndarray:
+        return np.linalg.norm(self.end - self.start, axis=1)
+
+    @property
+    def direction(self) -> np.ndarray:
+        d = self.end - self.start
+        n = np.linalg.norm(d, axis=1, keepdims=True)
+        return d / np.where(n > 0, n, 1.0)
+
+
+def dominant_bone(rig: Rig) -> np.ndarray:
+    """Index of the joint with the largest weight for each vertex, ``[V]``."""
+    w = rig.joint_weights
+    k = np.argmax(w, axis=1)
+    return rig.joint_indices[np.arange(rig.vertex_count), k]
+
+
+def closest_point_on_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest points on segments ``a[i] b[i]`` to points ``p[i]``; returns ``(points, t)`` with
+    ``t`` in [0, 1] the segment parameter. Shapes ``[N, 3]``."""
+    d = b - a
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.einsum("ij,ij->i", p - a, d) / np.where(dd > 0, dd, 1.0)
+    t = np.clip(np.where(dd > 0, t, 0.0), 0.0, 1.0)
+    return a + t[:, None] * d, t
+
+
+def bone_segments(rig: Rig, *, leaf_fraction: float = 0.5, min_length_fraction: float = 1e-3) -> Bones:
+    """Center line of every bone in rest space (the space of ``rig.vertices``).
+
+    Raises:
+        RigError: a joint that dominates vertices has no usable bone length (it coincides with
+            its child and has no parent direction to fall back on), naming the joint.
+    """
+    bind = rig.bind_world_transforms()
+    pos = bind[:, :3, 3]
+    parents = rig.skeleton.parents
+    j = rig.joint_count
+    names = rig.skeleton.joint_names
+    start = pos.copy()
+    end = pos.copy()
+    scale = max(rig.size(), 1e-12)
+    owner = dominant_bone(rig)
+    for k in range(j):  # joints are few
+        kids = np.nonzero(parents == k)[0]
+        if kids.size:
+            end[k] = pos[kids].mean(axis=0)
+    length = np.linalg.norm(end - start, axis=1)
+    for k in range(j):
+        if length[k] > min_length_fraction * scale:
+            continue
+        # leaf (or degenerate) joint: extend along the parent direction
+        p = parents[k]
+        direction = None
+        if p >= 0:
+            d = pos[k] - pos[p]
+            n = np.linalg.norm(d)
+            if n > min_length_fraction * scale:
+                direction, parent_len = d / n, n
+        if direction is None:
+            if np.any(owner == k):
+                raise RigError(
+                    f"{rig.source or rig.name}: joint {names[k]!r} dominates vertices but has no bone length "
+                    "(it coincides with its child and has no parent direction); move the joint or its child"
+                )
+            end[k] = start[k]
+            continue
+        # stay inside the flesh: half way to the farthest vertex the joint dominates, so that
+        # no vertex lies on its own center line (it would get a zero-height projection segment)
+        mine = rig.vertices[owner == k]
+        reach = float(np.max((mine - start[k]) @ direction)) if mine.size else 0.0
+        length_k = leaf_fraction * parent_len
+        if reach > 0.0:
+            length_k = min(length_k, 0.5 * reach)
+        end[k] = start[k] + direction * length_k
+    return Bones(start=start, end=end, joint_names=list(names))

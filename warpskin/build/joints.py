@@ -1,0 +1,159 @@
+"""Kinematic coupling and joint constraints (Deul & Bender 2013, section 4.4).
+
+* **Kinematic coupling**: every bone-layer particle is pulled to its LBS position by a
+  zero-length distance constraint; its LBS target uses the weights of its skin vertex.
+* **Joint constraints**: particles near a joint keep at least their rest distance to the joint
+  centre (a unilateral, lower-bound distance constraint), so tissue does not sink into the bones
+  at a bent joint while it may still move away from it.
+
+Joint centres are kinematic: the centre of joint ``j`` at time ``t`` is
+``(G_j(t) @ inverse_bind_j) @ bind_position_j``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..rig import Rig, RigError
+from .layers import LAYER_NAMES, Layers
+
+__all__ = ["JointParams", "KinematicCoupling", "JointConstraints", "build_kinematic_coupling", "build_joint_constraints"]
+
+
+@dataclass
+class KinematicCoupling:
+    """Bone-layer particles and their LBS targets.
+
+    Attributes:
+        particles: Global indices of the coupled particles, ``[V]`` (the bone layer).
+        rest: Their rest positions [m], ``[V, 3]``.
+        joint_indices, joint_weights: LBS influences, ``[V, K]``.
+        stiffness: Constraint stiffness in [0, 1] (the paper uses 1).
+    """
+
+    particles: np.ndarray
+    rest: np.ndarray
+    joint_indices: np.ndarray
+    joint_weights: np.ndarray
+    stiffness: float = 1.0
+
+    def targets(self, skin_matrices: np.ndarray) -> np.ndarray:
+        """LBS targets [m], ``[V, 3]``, for skinning matrices ``[J, 4, 4]`` (host reference)."""
+        p = np.concatenate([self.rest, np.ones((self.rest.shape[0], 1))], axis=1)
+        out = np.zeros_like(self.rest)
+        for k in range(self.joint_indices.shape[1]):
+            m = skin_matrices[self.joint_indices[:, k]]
+            out += self.joint_weights[:, k, None] * np.einsum("vij,vj->vi", m, p)[:, :3]
+        return out
+
+
+@dataclass
+class JointParams:
+    """Which particles get joint constraints.
+
+    Attributes:
+        radius_factor: A particle is constrained to joint ``j`` when its rest distance to the
+            joint centre is below ``radius_factor`` times the joint's radius (the median distance
+            of the skin vertices whose bone foot is at that joint).
+        layers: Layers whose particles may be constrained.
+        joints: Joint names to constrain; ``None``: every joint between two bones.
+    """
+
+    radius_factor: float = 1.0
+    layers: tuple[str, ...] = ("fat", "muscle", "bone")
+    joints: list[str] | None = None
+
+
+@dataclass
+class JointConstraints:
+    """Unilateral lower-bound distance constraints to joint centres.
+
+    Attributes:
+        particles: Constrained particle per constraint, ``[C]``.
+        joints: Joint index per constraint, ``[C]``.
+        rest_distance: Lower bound (the rest distance) [m], ``[C]``.
+        joint_rest: Rest (bind) position of every joint centre [m], ``[J, 3]``.
+        joint_radius: Radius used per joint [m], ``[J]`` (0 for joints without constraints).
+    """
+
+    particles: np.ndarray
+    joints: np.ndarray
+    rest_distance: np.ndarray
+    joint_rest: np.ndarray
+    joint_radius: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def count(self) -> int:
+        return int(self.particles.size)
+
+    def centres(self, skin_matrices: np.ndarray) -> np.ndarray:
+        """Joint centres [m], ``[J, 3]``, for skinning matrices ``[J, 4, 4]``."""
+        return np.einsum("jab,jb->ja", skin_matrices[:, :3, :3], self.joint_rest) + skin_matrices[:, :3, 3]
+
+
+def build_kinematic_coupling(rig: Rig, layers: Layers, *, stiffness: float = 1.0) -> KinematicCoupling:
+    """Couple every bone-layer particle to its LBS position."""
+    if not (0.0 <= stiffness <= 1.0):
+        raise RigError(f"coupling stiffness must be in [0, 1], got {stiffness}")
+    v = layers.vertex_count
+    return KinematicCoupling(
+        particles=3 * v + np.arange(v),
+        rest=layers.positions[3].copy(),
+        joint_indices=rig.joint_indices.copy(),
+        joint_weights=rig.joint_weights.copy(),
+        stiffness=float(stiffness),
+    )
+
+
+def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None = None) -> JointConstraints:
+    """Select the particles near each joint and record their rest distances."""
+    params = params or JointParams()
+    where = rig.source or rig.name
+    if not (params.radius_factor > 0 and np.isfinite(params.radius_factor)):
+        raise RigError(f"{where}: joint radius_factor must be positive, got {params.radius_factor}")
+    bad = [name for name in params.layers if name not in LAYER_NAMES]
+    if bad:
+        raise RigError(f"{where}: unknown layers {bad} for joint constraints; layers are {list(LAYER_NAMES)}")
+    parents = rig.skeleton.parents
+    names = rig.skeleton.joint_names
+    joint_rest = rig.bind_world_transforms()[:, :3, 3]
+    if params.joints is None:
+        # joints between two bones: they have a parent and carry a bone (children or vertices)
+        chosen = [j for j in range(rig.joint_count) if parents[j] >= 0 and np.any(layers.bone == j)]
+    else:
+        chosen = [rig.skeleton.index(n) for n in params.joints]
+    skin = layers.positions[0]
+    layer_ids = [LAYER_NAMES.index(n) for n in params.layers]
+    v = layers.vertex_count
+    radius = np.zeros(rig.joint_count)
+    parts, joints, dists = [], [], []
+    for j in chosen:  # joints are few
+        # skin vertices whose projection foot is at this joint: the start of bone j, or the
+        # end of the parent's bone
+        at_joint = ((layers.bone == j) & (layers.bone_t < 1e-6)) | ((layers.bone == parents[j]) & (layers.bone_t > 1 - 1e-6))
+        d_skin = np.linalg.norm(skin - joint_rest[j], axis=1)
+        if at_joint.any():
+            radius[j] = float(np.median(d_skin[at_joint]))
+        else:
+            near = np.isin(layers.bone, [j, parents[j]])
+            if not near.any():
+                continue
+            radius[j] = float(np.quantile(d_skin[near], 0.05))
+        r = params.radius_factor * radius[j]
+        for k in layer_ids:
+            d = np.linalg.norm(layers.positions[k] - joint_rest[j], axis=1)
+            sel = np.nonzero((d < r) & (d > 1e-9 * max(rig.size(), 1e-12)))[0]
+            parts.append(k * v + sel)
+            joints.append(np.full(sel.size, j))
+            dists.append(d[sel])
+    if params.joints is not None:
+        empty = [names[j] for j in chosen if radius[j] == 0.0]
+        if empty:
+            raise RigError(f"{where}: joints {empty} have no nearby vertices for joint constraints")
+    cat = (lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt))
+    return JointConstraints(
+        particles=cat(parts, np.int64), joints=cat(joints, np.int64), rest_distance=cat(dists, np.float64),
+        joint_rest=joint_rest, joint_radius=radius,
+    )
