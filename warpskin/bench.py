@@ -85,3 +85,31 @@ def run_skinning_bench(targets: list[str], *, device: str | None = None, frames:
         row["dqs_over_lbs"] = row["dqs_kernel_ms"] / row["lbs_kernel_ms"] if row["lbs_kernel_ms"] > 0 else None
         out["scenes"][scene.name] = row
     return out
+
+
+def run_build_bench(targets: list[str]) -> dict:
+    """Host build time of the multi-layer model per stage [s], for scenes or rig files.
+
+    ``arm35k`` is the procedural arm at 35k vertices (190 rings of 184). A scene whose rig
+    cannot be found (``cesium_man`` without the assets folder) is reported with its error.
+    """
+    from .model import SkinModelBuilder
+    from .scenes.arm import make_arm
+
+    out = {"machine": platform.machine(), "cpu_count": os.cpu_count(), "scenes": {}}
+    for target in targets:
+        try:
+            if target == "arm35k":
+                rig, params = make_arm(rings=190, segments=184), None
+            else:
+                scene = _scene(target)
+                rig, params = scene.rig(), scene.model_params()
+            t0 = time.perf_counter()
+            builder = SkinModelBuilder(rig, params).build()
+            total = time.perf_counter() - t0
+            row = builder.summary()
+            row["total_s"] = total
+            out["scenes"][target] = row
+        except Exception as exc:  # report and go on with the other scenes
+            out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
+    return out

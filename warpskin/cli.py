@@ -131,10 +131,36 @@ def cmd_skin(args) -> int:
     return 0
 
 
-def cmd_bench(args) -> int:
-    from .bench import run_skinning_bench
+def cmd_layers(args) -> int:
+    from .inspect import write_model_usd
+    from .model import SkinModelBuilder
 
-    result = run_skinning_bench(args.scenes or ["arm"], device=args.device, frames=args.bench_frames, repeat=args.repeat)
+    scene = _scene_of(args)
+    builder = SkinModelBuilder(scene.rig(), scene.model_params())
+    path = write_model_usd(builder, args.output, comment="warpskin " + " ".join(sys.argv[1:]))
+    summary = builder.summary()
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(
+            f"{summary['particles']} particles on 4 layers ({summary['vertices']} per layer), "
+            f"total mass {summary['total_mass_kg']:.3g} kg; regions: omega {summary['omega']}, "
+            f"{summary['mean_region_size']:.1f} particles on average; fast summation: {summary['paths']} paths, "
+            f"{summary['mean_runs_per_region']:.2f} runs per region; {summary['subvolumes']} sub-volumes; "
+            f"{summary['joint_constraints']} joint constraints"
+        )
+        print("build time: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in summary["timings_s"].items()))
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_build_bench, run_skinning_bench
+
+    if args.build:
+        result = run_build_bench(args.scenes or ["arm", "cesium_man", "arm35k"])
+    else:
+        result = run_skinning_bench(args.scenes or ["arm"], device=args.device, frames=args.bench_frames, repeat=args.repeat)
     text = json.dumps(result, indent=2)
     if args.json:
         Path(args.json).write_text(text + "\n")
@@ -192,12 +218,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_skin)
 
-    s = sub.add_parser("bench", help="time skinning per frame; JSON out")
+    s = sub.add_parser("layers", help="build the multi-layer model and write it to USD for inspection")
+    s.add_argument("target", metavar="RIG|SCENE")
+    s.add_argument("-o", "--output", required=True, help="output .usdc/.usda/.usd")
+    s.add_argument("--mesh", help="skinned mesh to use when the file has several")
+    s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--json", action="store_true", help="print the model summary as JSON")
+    s.set_defaults(func=cmd_layers)
+
+    s = sub.add_parser("bench", help="time skinning per frame (or the model build with --build); JSON out")
     s.add_argument("scenes", nargs="*", metavar="SCENE", help="scenes or rig files (default: arm)")
     s.add_argument("--device", help="cpu, cuda or cuda:N")
     s.add_argument("--frames", dest="bench_frames", type=int, default=60, help="frames per measurement")
     s.add_argument("--repeat", type=int, default=3, help="measurements; the best is reported")
     s.add_argument("--json", metavar="FILE", help="also write the JSON to FILE")
+    s.add_argument("--build", action="store_true",
+                   help="time the model build (layers ... sub-volumes) instead; default scenes: arm, cesium_man, arm35k")
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("warmup", help="compile and cache the Warp kernels")

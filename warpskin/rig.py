@@ -664,7 +664,6 @@ class Rig:
             rep.manifold = bool(edges["manifold"])
             rep.boundary_edge_count = int(edges["boundary_edges"].shape[0])
             rep.nonmanifold_edge_count = int(edges["nonmanifold_edges"].shape[0])
-            self._edges = edges
         else:
             errors.append("the mesh has no triangles")
         return self._finish(rep, raise_on_error)
@@ -686,8 +685,8 @@ class Rig:
     def require_closed(self) -> None:
         """Raise :class:`RigError` unless the surface is closed, manifold and consistently wound
         (the physical model needs an inside). The message names offending edges/vertices."""
-        rep = self.report if self.report is not None and hasattr(self, "_edges") else self.validate()
-        e = self._edges
+        # recomputed every time (cheap): the triangles may have changed since validation
+        e = mesh_edge_report(self.triangles, self.vertex_count)
         where = self.source or self.name
         problems = []
         if e["boundary_edges"].shape[0]:
@@ -709,7 +708,6 @@ class Rig:
             problems.append(f"non-manifold vertices {_fmt_indices(e['nonmanifold_vertices'])}")
         if problems:
             raise RigError(f"{where}: mesh {self.mesh_name!r} is not a closed manifold surface: " + "; ".join(problems))
-        del rep
 
     # ---------------------------------------------------------------- animation
     def clip(self, name: str | None = None) -> Clip:

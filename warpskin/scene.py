@@ -53,6 +53,10 @@ _SCHEMA: dict[str, set[str]] = {
     "scene": {"name", "description"},
     "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params"},
     "animation": {"clip", "fps", "frames"},
+    # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
+    "layers": {"fat", "muscle", "bone", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
+    "joints": {"radius_factor", "layers", "joints"},
+    "subvolumes": {"enabled", "planes"},
 }
 
 
@@ -121,6 +125,11 @@ class Scene:
             return self.frames
         clip = self.rig().clip(self.clip)
         return 0, int(math.floor(clip.duration * self.fps + 1e-6))
+
+    def model_params(self):
+        """The :class:`~warpskin.model.ModelParams` of the ``[layers]``, ``[joints]`` and
+        ``[subvolumes]`` sections (defaults: the paper's Arm values)."""
+        return _model_params(self.extra, _where(self.source))
 
     def frame_time(self, frame: int) -> float:
         """Clip time [s] of a frame: the clip's first key plus ``frame / fps``."""
@@ -226,7 +235,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{where}: not valid TOML: {exc}") from None
 
-    extra = {}
+    extra = {k: data[k] for k in ("layers", "joints", "subvolumes") if k in data}
     for section, table in data.items():
         if section not in _SCHEMA:
             raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")
@@ -264,3 +273,82 @@ def load_scene(name_or_path: str | Path) -> Scene:
         description=str(meta.get("description", "")),
         extra=extra,
     )
+
+
+def _numbers(where: str, key: str, value, count: int) -> tuple[float, ...]:
+    if (
+        not isinstance(value, list)
+        or len(value) != count
+        or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+    ):
+        raise SceneError(f"{where}: {key} must be a list of {count} numbers, got {value!r}")
+    return tuple(float(x) for x in value)
+
+
+def _model_params(extra: dict, where: str):
+    from .build.joints import JointParams
+    from .build.layers import LayerParams
+    from .model import ModelParams
+
+    lay = extra.get("layers", {})
+    defaults = LayerParams()
+    per_bone_proj, per_bone_stiff = {}, {}
+    for bone, table in lay.get("per_bone", {}).items():
+        if not isinstance(table, dict) or set(table) - {"projection", "stiffness"}:
+            raise SceneError(f"{where}: [layers.per_bone.{bone}] takes 'projection' and/or 'stiffness'")
+        if "projection" in table:
+            per_bone_proj[bone] = _numbers(where, f"[layers.per_bone.{bone}] projection", table["projection"], 3)
+        if "stiffness" in table:
+            per_bone_stiff[bone] = _numbers(where, f"[layers.per_bone.{bone}] stiffness", table["stiffness"], 4)
+    for key in ("fat", "muscle", "bone", "density", "coupling_stiffness"):
+        if key in lay and (isinstance(lay[key], bool) or not isinstance(lay[key], (int, float))):
+            raise SceneError(f"{where}: [layers] {key} must be a number, got {lay[key]!r}")
+    omega = lay.get("omega", 1)
+    if isinstance(omega, bool) or not isinstance(omega, int):
+        raise SceneError(f"{where}: [layers] omega must be an integer, got {omega!r}")
+    layer_params = LayerParams(
+        fat=float(lay.get("fat", defaults.fat)),
+        muscle=float(lay.get("muscle", defaults.muscle)),
+        bone=float(lay.get("bone", defaults.bone)),
+        per_bone=per_bone_proj,
+    )
+    jt = extra.get("joints", {})
+    jp = JointParams()
+    joint_params = JointParams(
+        radius_factor=float(jt.get("radius_factor", jp.radius_factor)),
+        layers=tuple(jt.get("layers", jp.layers)),
+        joints=list(jt["joints"]) if "joints" in jt else None,
+    )
+    sv = extra.get("subvolumes", {})
+    sub_params = None
+    if "planes" in sv:
+        from .build.subvolumes import SubVolumeParams
+
+        planes = {}
+        for joint, value in sv["planes"].items():
+            if value is False or value == "off":
+                planes[joint] = None
+            elif isinstance(value, (int, float)) and not isinstance(value, bool):
+                planes[joint] = float(value)
+            else:
+                raise SceneError(f"{where}: [subvolumes] planes.{joint} must be a number in [0, 1] or false, got {value!r}")
+        sub_params = SubVolumeParams(planes=planes)
+    enabled = sv.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise SceneError(f"{where}: [subvolumes] enabled must be true or false")
+    params = ModelParams(
+        layers=layer_params,
+        stiffness=_numbers(where, "[layers] stiffness", lay["stiffness"], 4) if "stiffness" in lay else ModelParams().stiffness,
+        stiffness_per_bone=per_bone_stiff,
+        density=float(lay.get("density", 1000.0)),
+        omega=omega,
+        coupling_stiffness=float(lay.get("coupling_stiffness", 1.0)),
+        joints=joint_params,
+        subvolumes=sub_params,
+        volume=enabled,
+    )
+    try:
+        params.check(where)
+    except RigError as exc:
+        raise SceneError(str(exc)) from None
+    return params

@@ -130,7 +130,7 @@ class UsdSkinWriter:
         """
         self._check_open()
         UsdGeom, Vt = self._usdgeom, self._vt
-        key = _prim_name(name)
+        key = "/".join(_prim_name(part) for part in name.split("/"))
         if key in self._meshes:
             raise ExportError(f"mesh {name!r} was already added")
         tri = np.asarray(triangles)
@@ -144,7 +144,7 @@ class UsdSkinWriter:
                     f"mesh {name!r}: rest points of shape {rest.shape} do not cover the {vertex_count} vertices the triangles use"
                 )
             vertex_count = rest.shape[0]
-        path = self._root.GetPath().AppendChild(key)
+        path = self._root.GetPath().AppendPath(key)
         mesh = UsdGeom.Mesh.Define(self._stage, path)
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(tri.shape[0], 3, dtype=np.int32)))
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(tri.astype(np.int32).ravel()))
@@ -162,6 +162,49 @@ class UsdSkinWriter:
         self._meshes[key] = (mesh, pts_attr, ext_attr, vertex_count, animated)
         return str(path)
 
+    def add_points(
+        self,
+        name: str,
+        points: np.ndarray,
+        *,
+        width: float = 0.002,
+        color: tuple[float, float, float] | None = None,
+    ) -> str:
+        """A static ``UsdGeom.Points`` prim (e.g. constrained particles for inspection).
+
+        Args:
+            name: Prim name under the root.
+            points: ``[N, 3]`` positions [m].
+            width: Display diameter of every point [m].
+            color: Display colour, RGB in [0, 1].
+        """
+        self._check_open()
+        UsdGeom, Vt = self._usdgeom, self._vt
+        key = "/".join(_prim_name(part) for part in name.split("/"))
+        if key in self._meshes:
+            raise ExportError(f"prim {name!r} was already added")
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        if not np.isfinite(pts).all():
+            raise ExportError(f"points {name!r} hold NaN or inf")
+        prim = UsdGeom.Points.Define(self._stage, self._root.GetPath().AppendPath(key))
+        prim.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+        prim.CreateWidthsAttr(Vt.FloatArray.FromNumpy(np.full(pts.shape[0], width, dtype=np.float32)))
+        if pts.shape[0]:
+            prim.CreateExtentAttr(self._extent(pts))
+        if color is not None:
+            prim.CreateDisplayColorAttr([self._gf.Vec3f(*map(float, color))])
+        self._meshes[key] = (prim, None, None, pts.shape[0], False)
+        return str(prim.GetPath())
+
+    def add_group(self, name: str) -> UsdSkinWriter:
+        """Not a new writer: returns self after defining an ``Xform`` scope ``name``; prims
+        added with a ``"name/child"`` path land in it."""
+        self._check_open()
+        from pxr import UsdGeom
+
+        UsdGeom.Xform.Define(self._stage, self._root.GetPath().AppendChild(_prim_name(name)))
+        return self
+
     # ------------------------------------------------------------------ frames
     def write_frame(self, frame: float, points: dict[str, np.ndarray]) -> None:
         """Time-sample the points of some or all animated meshes at ``frame`` (a time code).
@@ -178,7 +221,7 @@ class UsdSkinWriter:
         Vt = self._vt
         tc = float(frame)
         for name, pts in points.items():
-            key = _prim_name(name)
+            key = "/".join(_prim_name(part) for part in name.split("/"))
             if key not in self._meshes:
                 raise ExportError(f"frame {frame}: no mesh {name!r} was added (meshes: {sorted(self._meshes)})")
             mesh, pts_attr, ext_attr, count, animated = self._meshes[key]

@@ -1,0 +1,207 @@
+"""The built multi-layer model: layers on their segments, no self-intersection, uploads on
+every device, clear errors; and the exact self-intersection check against brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from pxr import Usd, UsdGeom
+
+from warpskin.build.layers import LayerParams, build_layers, check_layer_folds
+from warpskin.cli import main
+from warpskin.metrics import self_intersections, signed_volume, triangle_pairs_intersect
+from warpskin.model import ModelParams, SkinModelBuilder
+from warpskin.rig import RigError
+from warpskin.scenes.arm import make_arm
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return make_arm()
+
+
+@pytest.fixture(scope="module")
+def arm_builder(arm):
+    return SkinModelBuilder(arm, ModelParams(layers=LayerParams(0.15, 0.45, 0.8))).build()
+
+
+# ---------------------------------------------------------------- the exact check itself
+def _brute_force_intersections(p, tris):
+    out = []
+    for i in range(len(tris)):
+        for j in range(i + 1, len(tris)):
+            if set(tris[i]) & set(tris[j]):
+                continue
+            if triangle_pairs_intersect(p, tris[i][None], tris[j][None])[0]:
+                out.append((i, j))
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_self_intersections_match_all_pairs(seed):
+    rng = np.random.default_rng(seed)
+    m = trimesh.creation.icosphere(subdivisions=1)
+    p = np.asarray(m.vertices) + rng.normal(scale=0.35, size=m.vertices.shape)  # crumpled: many crossings
+    f = np.asarray(m.faces)
+    got = self_intersections(p, f)
+    ref = _brute_force_intersections(p, f)
+    assert len(ref) > 3
+    assert np.array_equal(got, ref)
+
+
+def test_triangle_pair_test_known_cases():
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0],  # triangle in z = 0
+                  [0.2, 0.2, -1], [0.2, 0.2, 1], [0.9, 0.9, 1],  # pierces it
+                  [5, 5, -1], [5, 5, 1], [6, 6, 1]], dtype=float)  # far away
+    assert triangle_pairs_intersect(p, np.array([[0, 1, 2]]), np.array([[3, 4, 5]]))[0]
+    assert not triangle_pairs_intersect(p, np.array([[0, 1, 2]]), np.array([[6, 7, 8]]))[0]
+
+
+# ---------------------------------------------------------------- layers
+def test_every_inner_vertex_on_its_projection_segment(arm_builder):
+    lay = arm_builder.layers
+    x0, foot = lay.positions[0], lay.foot
+    for k, p in enumerate((0.15, 0.45, 0.8), start=1):
+        assert np.allclose(lay.positions[k], x0 + p * (foot - x0), atol=1e-12)
+    # the foot is the closest point of the vertex's bone segment (brute force over 200 samples)
+    b = lay.bones
+    s = np.linspace(0, 1, 2001)
+    for i in np.random.default_rng(0).choice(len(x0), 50, replace=False):
+        j = lay.bone[i]
+        samples = b.start[j] + s[:, None] * (b.end[j] - b.start[j])
+        best = samples[np.argmin(np.linalg.norm(samples - x0[i], axis=1))]
+        assert np.linalg.norm(best - foot[i]) < 1e-3 * np.linalg.norm(b.end[j] - b.start[j])
+
+
+def test_sibling_links_consistent(arm_builder, arm):
+    # particle k*V + i of every layer sits on vertex i's segment, ordered skin -> bone
+    lay = arm_builder.layers
+    seg = lay.foot - lay.positions[0]
+    along = np.stack([np.einsum("ij,ij->i", lay.positions[k] - lay.positions[0], seg) for k in range(4)])
+    assert (np.diff(along, axis=0) > 0).all()
+    reg = arm_builder.regions
+    v = arm.vertex_count
+    for r in (5, v + 5, 2 * v + 5, 3 * v + 5):
+        members = reg.region_members[reg.region_offsets[r]:reg.region_offsets[r + 1]]
+        sib = members[len(members) - reg.sibling_count[r]:]
+        assert set(sib % v) == {5} and set(np.abs(sib // v - r // v)) == {1}
+
+
+def test_arm_inner_layers_do_not_self_intersect(arm_builder, arm):
+    counts = {}
+    for k, name in enumerate(("skin", "fat", "muscle", "bone")):
+        counts[name] = len(self_intersections(arm_builder.layers.positions[k], arm.triangles))
+    print("self-intersecting triangle pairs per layer at 0.15/0.45/0.8:", counts)
+    assert all(c == 0 for c in counts.values())
+    # layers nest: each inner layer encloses less volume
+    vols = [signed_volume(arm_builder.layers.positions[k], arm.triangles) for k in range(4)]
+    assert all(a > b > 0 for a, b in zip(vols, vols[1:]))
+
+
+def _bent_rest_arm(t=0.6):
+    """The arm with its rest pose bent (the elbow at the clip's angle at time t)."""
+    import dataclasses
+
+    arm = make_arm(rings=40, segments=24)
+    g = arm.joint_world_transforms("flex", t)
+    m = g @ arm.inverse_bind
+    p = np.concatenate([arm.vertices, np.ones((arm.vertex_count, 1))], 1)
+    rest = sum(arm.joint_weights[:, k, None] * np.einsum("vij,vj->vi", m[arm.joint_indices[:, k]], p)[:, :3] for k in range(3))
+    return dataclasses.replace(arm, vertices=rest, inverse_bind=np.linalg.inv(g))
+
+
+def test_fold_check_names_the_layer_when_a_setting_makes_it_cross():
+    rig = _bent_rest_arm()
+    ok = build_layers(rig, LayerParams(0.15, 0.45, 0.8))
+    check_layer_folds(ok, rig.triangles, where="bent")  # the paper's parameters are fine
+    bad = build_layers(rig, LayerParams(per_bone={"shoulder": (0.7, 0.8, 0.99), "elbow": (0.01, 0.02, 0.03)}))
+    # independent witness: trimesh face normals of the bone layer against the skin's
+    n_skin = trimesh.Trimesh(rig.vertices, rig.triangles, process=False).face_normals
+    n_bone = trimesh.Trimesh(bad.positions[3], rig.triangles, process=False).face_normals
+    assert (np.einsum("ij,ij->i", n_skin, n_bone) < 0).sum() > 0
+    with pytest.raises(RigError, match=r"bent: the bone layer folds over at \d+ triangles.*bones \['shoulder', 'elbow'\].*lower it"):
+        check_layer_folds(bad, rig.triangles, where="bent")
+
+
+def test_projection_parameters_out_of_order():
+    with pytest.raises(RigError, match="must satisfy 0 < fat < muscle < bone < 1, got fat=0.5, muscle=0.4"):
+        LayerParams(0.5, 0.4, 0.8).check("scene.toml")
+    rig = make_arm(rings=12, segments=10)
+    with pytest.raises(RigError, match="no joint named 'belly'"):
+        build_layers(rig, LayerParams(per_bone={"belly": (0.05, 0.1, 0.2)}))
+
+
+def test_per_bone_override_applies(arm):
+    lay = build_layers(arm, LayerParams(0.15, 0.45, 0.8, per_bone={"elbow": (0.05, 0.1, 0.2)}))
+    fore = lay.bone == 1
+    assert np.allclose(lay.params[fore], [0.05, 0.1, 0.2]) and np.allclose(lay.params[~fore], [0.15, 0.45, 0.8])
+
+
+def test_open_mesh_rejected_by_builder():
+    rig = make_arm(rings=12, segments=10)
+    rig.triangles = rig.triangles[:-3]
+    rig.validate(raise_on_error=True)
+    edges = np.sort(trimesh.Trimesh(rig.vertices, rig.triangles, process=False).edges, axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    open_edges = int((counts == 1).sum())
+    with pytest.raises(RigError, match=f"not a closed manifold surface: {open_edges} boundary edges"):
+        SkinModelBuilder(rig).build()
+
+
+def test_joint_without_bone_length_is_named():
+    from warpskin.build.bones import bone_segments
+
+    rig = make_arm(rings=12, segments=10)
+    # a lone root joint that coincides with nothing: give it vertices and no children
+    rig.skeleton.parents[1] = -1
+    rig.skeleton.parents[2] = -1
+    rig.skeleton.root_transform[:] = np.eye(4)
+    rig.inverse_bind[:] = np.eye(4)  # every joint at the origin: no directions at all
+    with pytest.raises(RigError, match="joint 'shoulder' dominates vertices but has no bone length"):
+        bone_segments(rig)
+
+
+def test_bad_model_params(arm):
+    with pytest.raises(RigError, match="stiffness of 'default' must be four numbers in"):
+        SkinModelBuilder(arm, ModelParams(stiffness=(0.8, 0.6, 1.5, 0.8))).build()
+    with pytest.raises(RigError, match="omega must be an integer"):
+        SkinModelBuilder(arm, ModelParams(omega=0)).build()
+
+
+# ---------------------------------------------------------------- upload, state, control
+def test_finalize_uploads_consistent_arrays(device, arm_builder, arm):
+    model = arm_builder.finalize(device)
+    v = arm.vertex_count
+    assert model.particle_count == 4 * v
+    assert np.allclose(model.particle_q0.numpy(), arm_builder.layers.flat(), atol=1e-6)
+    assert np.array_equal(model.region_offsets.numpy(), arm_builder.regions.region_offsets)
+    assert np.array_equal(model.run_end.numpy(), arm_builder.runs.run_end)
+    assert np.allclose(model.particle_inv_mass.numpy() * model.particle_mass.numpy(), 1.0, rtol=1e-5)
+    assert model.subvolume_count == 3
+    st = model.state()
+    assert np.array_equal(st.x.numpy(), model.particle_q0.numpy()) and not st.v.numpy().any()
+    ctrl = model.control()
+    ctrl.set_pose(arm.skinning_matrices("flex", 1.5))
+    assert np.allclose(ctrl.skin_matrices.numpy(), arm.skinning_matrices("flex", 1.5), atol=1e-6)
+    with pytest.raises(RigError, match="shape"):
+        ctrl.set_pose(np.eye(4))
+
+
+def test_layers_command_writes_inspectable_usd(tmp_path, capsys):
+    out = tmp_path / "layers.usda"
+    assert main(["layers", "arm", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "11672 particles" in text and "3 sub-volumes" in text
+    stage = Usd.Stage.Open(str(out))
+    for name in ("skin", "fat", "muscle", "bone"):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/warpskin/layers/{name}"))
+        assert len(mesh.GetPointsAttr().Get()) == 2918
+    subs = [p for p in stage.GetPrimAtPath("/warpskin/subvolumes").GetChildren()]
+    assert len(subs) == 3
+    for prim in subs:  # each written sub-volume is a closed mesh
+        m = UsdGeom.Mesh(prim)
+        t = trimesh.Trimesh(np.array(m.GetPointsAttr().Get()), np.array(m.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3), process=False)
+        assert t.is_watertight and t.volume > 0
+    pts = UsdGeom.Points(stage.GetPrimAtPath("/warpskin/joint_constraint_particles"))
+    assert len(pts.GetPointsAttr().Get()) > 0
