@@ -205,3 +205,22 @@ def test_layers_command_writes_inspectable_usd(tmp_path, capsys):
         assert t.is_watertight and t.volume > 0
     pts = UsdGeom.Points(stage.GetPrimAtPath("/warpskin/joint_constraint_particles"))
     assert len(pts.GetPointsAttr().Get()) > 0
+
+
+def test_cesium_man_scene_layers_clean_and_paper_values_rejected(assets, monkeypatch):
+    from warpskin.scene import load_scene
+
+    monkeypatch.setenv("WARPSKIN_ASSETS", str(assets))
+    scene = load_scene("cesium_man")
+    rig = scene.rig()
+    builder = SkinModelBuilder(rig, scene.model_params()).build()
+    counts = [len(self_intersections(builder.layers.positions[k], rig.triangles)) for k in range(4)]
+    assert counts == [0, 0, 0, 0]
+    summary = builder.summary()
+    print("CesiumMan model:", {k: v for k, v in summary.items() if k != "timings_s"})
+    assert summary["subvolumes"] >= 10 and summary["mean_runs_per_region"] < 0.5 * summary["mean_region_size"]
+    # at the Arm's bone parameter 0.8 the bone layer truly self-intersects, and the builder says so
+    lay = build_layers(rig, LayerParams(0.15, 0.45, 0.8))
+    assert len(self_intersections(lay.positions[3], rig.triangles)) > 0
+    with pytest.raises(RigError, match=r"the bone layer folds over .*Skeleton_arm_joint_L__4_"):
+        SkinModelBuilder(rig, ModelParams(layers=LayerParams(0.15, 0.45, 0.8))).build()

@@ -30,11 +30,16 @@ def _scene_of(args):
     from .scene import Scene, load_scene
 
     if _is_rig_file(args.target):
-        return Scene.from_rig_file(
+        scene = Scene.from_rig_file(
             args.target, clip=getattr(args, "clip", None), fps=getattr(args, "fps", None),
             mesh=getattr(args, "mesh", None), unit_scale=getattr(args, "unit_scale", None),
         )
+        if getattr(args, "weights", None):
+            scene.rig_spec["weights"] = args.weights
+        return scene
     scene = load_scene(args.target)
+    if getattr(args, "weights", None):
+        scene.rig_spec["weights"] = args.weights
     if getattr(args, "clip", None):
         scene.clip = args.clip
     if getattr(args, "mesh", None):
@@ -211,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", help="cpu, cuda or cuda:N (default: Warp's default)")
     s.add_argument("--mesh", help="skinned mesh to use when the file has several")
     s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--with-rest", action="store_true", help="also write the rest mesh as a sibling prim")
     s.add_argument("--with-lbs", action="store_true", help="with --method dqs, also write the LBS result")
     s.add_argument("--topology", choices=["welded", "file"], default="welded",
@@ -223,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", required=True, help="output .usdc/.usda/.usd")
     s.add_argument("--mesh", help="skinned mesh to use when the file has several")
     s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--json", action="store_true", help="print the model summary as JSON")
     s.set_defaults(func=cmd_layers)
 

@@ -9,6 +9,7 @@ by its path. Example::
 
     [rig]
     generator = "arm"          # or: file = "character.glb" (relative to this TOML file)
+    # weights = "bone_heat"    # automatic weights (Baran & Popovic 2007) instead of the file's
                                # or: asset = "CesiumMan/CesiumMan.glb" (in the assets folder)
     # mesh = "Body"            # which skinned mesh, when the file has several
     # unit_scale = 0.01        # for files authored in centimetres
@@ -51,7 +52,7 @@ GENERATORS = {"arm": "warpskin.scenes.arm:make_arm"}
 
 _SCHEMA: dict[str, set[str]] = {
     "scene": {"name", "description"},
-    "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params"},
+    "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights"},
     "animation": {"clip", "fps", "frames"},
     # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
     "layers": {"fat", "muscle", "bone", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
@@ -141,6 +142,18 @@ def _where(scene_path: Path | None) -> str:
 
 
 def _build_rig(scene: Scene) -> Rig:
+    rig = _load_rig_of(scene)
+    weights = scene.rig_spec.get("weights", "file")
+    if weights == "bone_heat":
+        from .build.weights import with_bone_heat_weights
+
+        rig = with_bone_heat_weights(rig)
+    elif weights != "file":
+        raise SceneError(f"{_where(scene.source)}: [rig] weights must be 'file' or 'bone_heat', got {weights!r}")
+    return rig
+
+
+def _load_rig_of(scene: Scene) -> Rig:
     spec = scene.rig_spec
     where = _where(scene.source)
     given = [k for k in ("generator", "file", "asset") if k in spec]
