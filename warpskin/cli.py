@@ -159,6 +159,38 @@ def cmd_layers(args) -> int:
     return 0
 
 
+def cmd_simulate(args) -> int:
+    from .simulate import simulate
+
+    scene = _scene_of(args)
+    if args.fps:
+        scene.fps = float(args.fps)
+    params = scene.solver_params()
+    for key in ("iterations", "volume_iterations", "dt", "damping"):
+        value = getattr(args, key)
+        if value is not None:
+            setattr(params, key, value)
+    if args.fast_summation:
+        params.fast_summation = True
+    if args.no_gravity:
+        params.gravity = (0.0, 0.0, 0.0)
+    result = simulate(
+        scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params,
+        with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
+        comment="warpskin " + " ".join(sys.argv[1:]),
+    )
+    s = result.summary
+    line = (
+        f"wrote {result.path} ({s['frames']} frames, {s['particles']} particles, {s['substeps_per_frame']} substeps "
+        f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']}); "
+        f"volume deviation: warpskin {100 * s['max_volume_deviation']:.2f} %, LBS {100 * s['max_volume_deviation_lbs']:.2f} %"
+    )
+    print(line)
+    if args.report:
+        print(f"report: {Path(args.report) / 'report.json'}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_build_bench, run_skinning_bench
 
@@ -224,6 +256,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_skin)
 
+    s = sub.add_parser("simulate", help="simulate the physical skin and write it to USD")
+    s.add_argument("target", metavar="RIG|SCENE")
+    s.add_argument("-o", "--output", required=True, help="output .usdc (default format), .usda or .usd")
+    s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
+    s.add_argument("--fps", type=float, help="output frame rate")
+    s.add_argument("--clip", help="clip name")
+    s.add_argument("--device", help="cpu, cuda or cuda:N")
+    s.add_argument("--mesh", help="skinned mesh to use when the file has several")
+    s.add_argument("--unit-scale", type=float, help="multiply lengths by this")
+    s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
+    s.add_argument("--lbs", action="store_true", help="also write the LBS result as a sibling prim")
+    s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
+    s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
+    s.add_argument("--iterations", type=int, help="elasticity iterations per step (scene: [solver] iterations)")
+    s.add_argument("--volume-iterations", type=int, help="volume iterations per step")
+    s.add_argument("--dt", type=float, help="largest substep [s]")
+    s.add_argument("--damping", type=float, help="velocity damping rate [1/s]")
+    s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
+    s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_simulate)
+
     s = sub.add_parser("layers", help="build the multi-layer model and write it to USD for inspection")
     s.add_argument("target", metavar="RIG|SCENE")
     s.add_argument("-o", "--output", required=True, help="output .usdc/.usda/.usd")
@@ -264,12 +318,18 @@ def main(argv: list[str] | None = None) -> int:
         wp.config.log_level = wp.LOG_ERROR  # no banner, no "no CUDA driver" notice
     from .io.usd_export import ExportError
     from .rig import RigError
+    from .solver import SimulationError
 
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("warpskin: interrupted", file=sys.stderr)
         return 130
+    except SimulationError as exc:
+        if args.debug:
+            raise
+        print(f"warpskin: simulation failed: {exc}", file=sys.stderr)
+        return 3
     except (RigError, ExportError, argparse.ArgumentTypeError) as exc:
         if args.debug:
             raise

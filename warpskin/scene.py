@@ -58,6 +58,9 @@ _SCHEMA: dict[str, set[str]] = {
     "layers": {"fat", "muscle", "bone", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
     "joints": {"radius_factor", "layers", "joints"},
     "subvolumes": {"enabled", "planes"},
+    # Algorithm 1 settings
+    "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
+               "fast_summation", "volume_stiffness"},
 }
 
 
@@ -131,6 +134,29 @@ class Scene:
         """The :class:`~warpskin.model.ModelParams` of the ``[layers]``, ``[joints]`` and
         ``[subvolumes]`` sections (defaults: the paper's Arm values)."""
         return _model_params(self.extra, _where(self.source))
+
+    def solver_params(self):
+        """The :class:`~warpskin.solver.SolverParams` of the ``[solver]`` section."""
+        from .solver import SolverParams
+
+        table = dict(self.extra.get("solver", {}))
+        where = _where(self.source)
+        for key in ("iterations", "volume_iterations", "rotation_iterations"):
+            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], int)):
+                raise SceneError(f"{where}: [solver] {key} must be an integer, got {table[key]!r}")
+        for key in ("dt", "damping", "volume_stiffness"):
+            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
+                raise SceneError(f"{where}: [solver] {key} must be a number, got {table[key]!r}")
+        if "fast_summation" in table and not isinstance(table["fast_summation"], bool):
+            raise SceneError(f"{where}: [solver] fast_summation must be true or false")
+        if "gravity" in table:
+            table["gravity"] = _numbers(where, "[solver] gravity", table["gravity"], 3)
+        params = SolverParams(**table)
+        try:
+            params.check(where)
+        except RigError as exc:
+            raise SceneError(str(exc)) from None
+        return params
 
     def frame_time(self, frame: int) -> float:
         """Clip time [s] of a frame: the clip's first key plus ``frame / fps``."""
@@ -248,7 +274,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{where}: not valid TOML: {exc}") from None
 
-    extra = {k: data[k] for k in ("layers", "joints", "subvolumes") if k in data}
+    extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver") if k in data}
     for section, table in data.items():
         if section not in _SCHEMA:
             raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")

@@ -1,0 +1,289 @@
+"""Run the physically-based skin over a scene's frames and write it to USD (``warpskin
+simulate``), with per-frame measurements and an optional report.
+
+Poses for every substep are computed on the host once, before the loop, and uploaded as one
+array; inside the loop a substep copies its pose on the device and calls ``solver.step``. Per
+frame the skin positions come back to the host once, for the USD file and the measurements.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from .build.layers import LAYER_NAMES
+from .io.usd_export import UsdSkinWriter
+from .metrics import signed_volume
+from .model import SkinModelBuilder
+from .progress import Progress
+from .rig import RigError
+from .scene import Scene
+from .solver import SimulationError, SkinSolver, SolverParams
+from .transforms import matrix_to_quat
+
+__all__ = ["SimulationResult", "simulate", "initial_state"]
+
+
+@dataclass
+class SimulationResult:
+    """What a run produced.
+
+    Attributes:
+        path: The USD file.
+        frames: Frame numbers written.
+        metrics: Per-frame series (``time``, ``volume``, ``volume_lbs``, ``subvolume``,
+            ``subvolume_lbs``, ``kinetic_energy``, ``max_offset_from_lbs``, ``step_ms``).
+        summary: Scalars: particle count, substeps, dt, volume deviations, timing.
+    """
+
+    path: Path
+    frames: list[int]
+    metrics: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+
+
+def _lbs(points: np.ndarray, ji: np.ndarray, jw: np.ndarray, mats: np.ndarray) -> np.ndarray:
+    p = np.concatenate([points, np.ones((points.shape[0], 1))], axis=1)
+    out = np.zeros_like(points)
+    for k in range(ji.shape[1]):
+        out += jw[:, k, None] * np.einsum("vij,vj->vi", mats[ji[:, k]], p)[:, :3]
+    return out
+
+
+def initial_state(model, state, skin_matrices: np.ndarray) -> None:
+    """Put ``state`` at the pose ``skin_matrices`` ``[J, 4, 4]``: every particle skinned with
+    its vertex's weights (LBS), at rest (zero velocities), oriented like its dominant bone."""
+    b = model.builder
+    rig = b.rig
+    ji = np.tile(rig.joint_indices, (4, 1))
+    jw = np.tile(rig.joint_weights, (4, 1))
+    x = _lbs(b.layers.flat(), ji, jw, skin_matrices)
+    a = skin_matrices[:, :3, :3]
+    u, _, vt = np.linalg.svd(a)
+    d = np.sign(np.linalg.det(u @ vt))
+    u[:, :, 2] *= d[:, None]
+    q_joint = matrix_to_quat(u @ vt)
+    q = np.tile(q_joint[b.layers.bone], (4, 1))
+    state.x.assign(x.astype(np.float32))
+    state.q.assign(q.astype(np.float32))
+    state.v.zero_()
+    state.omega.zero_()
+
+
+def _report_plots(report_dir: Path, metrics: dict, names: list[str]) -> list[str]:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    t = np.array(metrics["time"])
+    written = []
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    v0 = metrics["volume_rest"]
+    ax.plot(t, 100 * (np.array(metrics["volume"]) / v0 - 1), label="warpskin", lw=2)
+    ax.plot(t, 100 * (np.array(metrics["volume_lbs"]) / v0 - 1), label="LBS", lw=2, ls="--")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("volume change [%]")
+    ax.set_title("Whole skin volume against the rest volume")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(report_dir / "volume.png", dpi=110)
+    plt.close(fig)
+    written.append("volume.png")
+    if metrics.get("subvolume"):
+        sub = np.array(metrics["subvolume"])
+        sub_lbs = np.array(metrics["subvolume_lbs"])
+        rest = np.array(metrics["subvolume_rest"])
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        for s, name in enumerate(names):
+            line, = ax.plot(t, 100 * (sub[:, s] / rest[s] - 1), label=name)
+            ax.plot(t, 100 * (sub_lbs[:, s] / rest[s] - 1), ls="--", color=line.get_color())
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("volume change [%]")
+        ax.set_title("Sub-volumes: warpskin (solid) and LBS (dashed)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+        fig.tight_layout()
+        fig.savefig(report_dir / "subvolumes.png", dpi=110)
+        plt.close(fig)
+        written.append("subvolumes.png")
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    ax.semilogy(t, np.maximum(np.array(metrics["kinetic_energy"]), 1e-12))
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("kinetic energy [J]")
+    ax.set_title("Kinetic energy of all particles")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(report_dir / "energy.png", dpi=110)
+    plt.close(fig)
+    written.append("energy.png")
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    ax.plot(t, 1e3 * np.array(metrics["max_offset_from_lbs"]))
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("largest skin offset from LBS [mm]")
+    ax.set_title("How far the physical skin departs from LBS")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(report_dir / "offset_from_lbs.png", dpi=110)
+    plt.close(fig)
+    written.append("offset_from_lbs.png")
+    return written
+
+
+def simulate(
+    scene: Scene,
+    out_path,
+    *,
+    device=None,
+    frames: tuple[int, int] | None = None,
+    solver_params: SolverParams | None = None,
+    with_lbs: bool = False,
+    with_layers: bool = False,
+    report_dir=None,
+    progress: bool = True,
+    comment: str = "",
+) -> SimulationResult:
+    """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
+
+    Raises:
+        SimulationError: a particle became NaN; the message names the frame, particle, layer
+            and vertex; the USD file keeps the frames before it (valid, closed).
+    """
+    params = solver_params or scene.solver_params()
+    params.check(str(scene.source or scene.name))
+    rig = scene.rig()
+    clip = rig.clip(scene.clip)
+    first, last = frames if frames is not None else scene.frame_range()
+    if first < 0 or last < first:
+        raise RigError(f"bad frame range {first}:{last}")
+    t_build = time.perf_counter()
+    builder = SkinModelBuilder(rig, scene.model_params())
+    model = builder.finalize(device)
+    build_s = time.perf_counter() - t_build
+    solver = SkinSolver(model, params)
+    dev = model.device
+    v = model.vertex_count
+    frame_dt = 1.0 / scene.fps
+    substeps = max(1, math.ceil(frame_dt / params.dt - 1e-9))
+    dt = frame_dt / substeps
+    frame_list = list(range(first, last + 1))
+    # every substep's pose, once, on the host; then one upload
+    j = rig.joint_count
+    step_times = [scene.frame_time(f) + (s + 1) * dt for f in frame_list[:-1] for s in range(substeps)]
+    poses = np.stack([rig.skinning_matrices(clip, t) for t in step_times]) if step_times else np.zeros((0, j, 4, 4))
+    frame_poses = np.stack([rig.skinning_matrices(clip, scene.frame_time(f)) for f in frame_list])
+    poses_dev = wp.array(poses.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
+    state_a, state_b, control = model.state(), model.state(), model.control()
+    initial_state(model, state_a, frame_poses[0])
+
+    subs = builder.subvolumes
+    b_layers = builder.layers
+    tris = rig.triangles
+    masses = builder.masses
+    ji, jw = rig.joint_indices, rig.joint_weights
+    metrics: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
+                                      "max_offset_from_lbs", "step_ms")}
+    metrics["volume_rest"] = signed_volume(rig.vertices, tris)
+    metrics["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
+    bar = Progress(len(frame_list), f"simulate {scene.name} ({dev}, {model.particle_count} particles)", enabled=progress)
+    writer = UsdSkinWriter(out_path, fps=scene.fps, up_axis=rig.up_axis, comment=comment)
+    written: list[int] = []
+    failure: SimulationError | None = None
+    try:
+        writer.add_mesh("skin", tris, rest_points=rig.vertices, color=(0.85, 0.64, 0.52))
+        if with_lbs:
+            writer.add_mesh("lbs", tris, rest_points=rig.vertices, color=(0.4, 0.55, 0.85), purpose="guide")
+        if with_layers:
+            for k in range(1, 4):
+                writer.add_mesh(f"layer_{LAYER_NAMES[k]}", tris, rest_points=b_layers.positions[k], purpose="guide")
+        for fi, f in enumerate(frame_list):
+            t0 = time.perf_counter()
+            if fi > 0:
+                for s in range(substeps):
+                    k = (fi - 1) * substeps + s
+                    wp.copy(control.skin_matrices, poses_dev, dest_offset=0, src_offset=k * j, count=j)
+                    solver.step(state_a, state_b, control, dt)
+                    state_a, state_b = state_b, state_a
+            x = state_a.x.numpy()
+            step_ms = (time.perf_counter() - t0) * 1e3 / substeps if fi > 0 else 0.0
+            finite = np.isfinite(x).all(axis=1)
+            if not finite.all():
+                bad = int(np.nonzero(~finite)[0][0])
+                layer, vert = divmod(bad, v)
+                failure = SimulationError(
+                    f"frame {f}: particle {bad} ({LAYER_NAMES[layer]} layer, vertex {vert}) became NaN or inf; "
+                    f"{len(written)} frames before it were written to {writer.path}. Lower dt or raise damping/iterations."
+                )
+                break
+            skin = x[:v]
+            lbs = _lbs(rig.vertices, ji, jw, frame_poses[fi])
+            frame_points = {"skin": skin}
+            if with_lbs:
+                frame_points["lbs"] = lbs
+            if with_layers:
+                for k in range(1, 4):
+                    frame_points[f"layer_{LAYER_NAMES[k]}"] = x[k * v:(k + 1) * v]
+            writer.write_frame(f, frame_points)
+            written.append(f)
+            vel = state_a.v.numpy()
+            metrics["time"].append(scene.frame_time(f))
+            metrics["volume"].append(signed_volume(skin, tris))
+            metrics["volume_lbs"].append(signed_volume(lbs, tris))
+            if subs is not None:
+                centres = subs.center_positions(frame_poses[fi])
+                metrics["subvolume"].append(subs.volumes(skin.astype(np.float64), centres).tolist())
+                metrics["subvolume_lbs"].append(subs.volumes(lbs, centres).tolist())
+            metrics["kinetic_energy"].append(float(0.5 * np.sum(masses * np.einsum("ij,ij->i", vel, vel))))
+            metrics["max_offset_from_lbs"].append(float(np.linalg.norm(skin - lbs, axis=1).max()))
+            metrics["step_ms"].append(step_ms)
+            bar.update(extra=f"{1e3 / step_ms:6.1f} steps/s" if step_ms > 0 else "")
+    except BaseException:
+        writer.abort()
+        raise
+    finally:
+        bar.close()
+    writer.close()  # on a NaN the frames before it stay, in a valid file
+
+    vol = np.array(metrics["volume"])
+    vol_lbs = np.array(metrics["volume_lbs"])
+    v0 = metrics["volume_rest"]
+    summary = {
+        "scene": scene.name,
+        "device": str(dev),
+        "particles": model.particle_count,
+        "vertices": v,
+        "frames": len(written),
+        "substeps_per_frame": substeps,
+        "dt_s": dt,
+        "iterations": params.iterations,
+        "volume_iterations": params.volume_iterations,
+        "fast_summation": params.fast_summation,
+        "build_s": build_s,
+        "mean_step_ms": float(np.mean(metrics["step_ms"][1:])) if len(written) > 1 else 0.0,
+        "max_volume_deviation": float(np.abs(vol / v0 - 1).max()) if vol.size else 0.0,
+        "max_volume_deviation_lbs": float(np.abs(vol_lbs / v0 - 1).max()) if vol.size else 0.0,
+    }
+    if subs is not None and metrics["subvolume"]:
+        rest = np.array(metrics["subvolume_rest"])
+        summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"]) / rest - 1).max())
+        summary["max_subvolume_deviation_lbs"] = float(np.abs(np.array(metrics["subvolume_lbs"]) / rest - 1).max())
+        summary["subvolume_names"] = list(subs.names)
+    result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
+    if report_dir is not None:
+        report = Path(report_dir)
+        report.mkdir(parents=True, exist_ok=True)
+        plots = _report_plots(report, metrics, list(subs.names) if subs is not None else [])
+        summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
+        (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=1))
+    if failure is not None:
+        raise failure
+    return result
