@@ -9,7 +9,8 @@ model of Deul & Bender 2013 (section 4.2.1), with both ways of computing region 
 Region ``r`` (one per particle) with members ``j``, masses ``m_j``, rest offsets
 ``o_j = x0_j - c0_r`` (``c0_r`` the rest centre of mass), oriented-particle moments
 ``mu_j = m_j rho_j^2 / 5`` (spherical particle ellipsoids of radius ``rho_j``, rest orientation
-the identity) and orientations ``R_j = R(q_j)``:
+the identity) and orientations ``R_j = R(q_j)``; the per-particle matrices ``mu_j R_j`` are
+computed once per orientation change (by the goal-blend kernel), not once per region member:
 
     c_r = sum_j m_j x_j / M_r
     A_r = sum_j ( mu_j R_j + m_j (x_j - c_r) o_j^T )
@@ -39,7 +40,7 @@ def region_fit_gather_kernel(
     x: wp.array(dtype=wp.vec3),
     q: wp.array(dtype=wp.quat),
     particle_mass: wp.array(dtype=wp.float32),
-    particle_moment: wp.array(dtype=wp.float32),
+    moment_matrix: wp.array(dtype=wp.mat33),
     region_offsets: wp.array(dtype=wp.int32),
     region_members: wp.array(dtype=wp.int32),
     region_rest_offsets: wp.array(dtype=wp.vec3),
@@ -60,7 +61,7 @@ def region_fit_gather_kernel(
         mj = particle_mass[j]
         d = x[j] - xr
         s1 += mj * d
-        a += mj * wp.outer(d, region_rest_offsets[e]) + particle_moment[j] * wp.quat_to_matrix(q[j])
+        a += mj * wp.outer(d, region_rest_offsets[e]) + moment_matrix[j]
     region_com[r] = xr + s1 / region_mass[r]
     region_q[r] = extract_rotation(a, q[r], rotation_iterations)
 
@@ -99,27 +100,25 @@ def to_mat33(m: wp.mat33d) -> wp.mat33:
 def particle_terms(
     j: int,
     x: wp.array(dtype=wp.vec3),
-    q: wp.array(dtype=wp.quat),
     x0: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=wp.float32),
-    particle_moment: wp.array(dtype=wp.float32),
+    moment_matrix: wp.array(dtype=wp.mat33),
     s1: wp.vec3d,
     s2: wp.mat33d,
 ):
     m = wp.float64(particle_mass[j])
     xj = to_vec3d(x[j])
     s1 = s1 + m * xj
-    s2 = s2 + m * wp.outer(xj, to_vec3d(x0[j])) + wp.float64(particle_moment[j]) * to_mat33d(wp.quat_to_matrix(q[j]))
+    s2 = s2 + m * wp.outer(xj, to_vec3d(x0[j])) + to_mat33d(moment_matrix[j])
     return s1, s2
 
 
 @wp.kernel
 def path_scan_kernel(
     x: wp.array(dtype=wp.vec3),
-    q: wp.array(dtype=wp.quat),
     x0: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=wp.float32),
-    particle_moment: wp.array(dtype=wp.float32),
+    moment_matrix: wp.array(dtype=wp.mat33),
     path_order: wp.array(dtype=wp.int32),
     path_offsets: wp.array(dtype=wp.int32),
     vertex_count: int,
@@ -136,7 +135,7 @@ def path_scan_kernel(
     s2 = wp.mat33d()
     for pos in range(path_offsets[path], path_offsets[path + 1]):
         j = base + path_order[pos]
-        s1, s2 = particle_terms(j, x, q, x0, particle_mass, particle_moment, s1, s2)
+        s1, s2 = particle_terms(j, x, x0, particle_mass, moment_matrix, s1, s2)
         prefix_mx[base + pos] = s1
         prefix_mxx[base + pos] = s2
 
@@ -152,7 +151,7 @@ def region_fit_runs_kernel(
     q: wp.array(dtype=wp.quat),
     x0: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=wp.float32),
-    particle_moment: wp.array(dtype=wp.float32),
+    moment_matrix: wp.array(dtype=wp.mat33),
     prefix_mx: wp.array(dtype=wp.vec3d),
     prefix_mxx: wp.array(dtype=wp.mat33d),
     position_is_path_start: wp.array(dtype=wp.int32),
@@ -186,7 +185,7 @@ def region_fit_runs_kernel(
             s2 = s2 - prefix_mxx[base + a - 1]
     end = region_offsets[r + 1]
     for e in range(end - region_sibling_count[r], end):
-        s1, s2 = particle_terms(region_members[e], x, q, x0, particle_mass, particle_moment, s1, s2)
+        s1, s2 = particle_terms(region_members[e], x, x0, particle_mass, moment_matrix, s1, s2)
     m = wp.float64(region_mass[r])
     c = s1 / m
     a_mat = s2 - m * wp.outer(c, to_vec3d(region_rest_com[r]))
@@ -215,10 +214,14 @@ def blend_and_constrain_kernel(
     joint_ids: wp.array(dtype=wp.int32),
     joint_rest_distance: wp.array(dtype=wp.float32),
     joint_centres: wp.array(dtype=wp.vec3),
+    particle_moment: wp.array(dtype=wp.float32),
     # outputs
     x: wp.array(dtype=wp.vec3),
+    moment_matrix: wp.array(dtype=wp.mat33),
 ):
     i = wp.tid()
+    # the oriented-particle moment of particle i for the next fit: mu_i R(q_i), q_i = region i's rotation
+    moment_matrix[i] = particle_moment[i] * wp.quat_to_matrix(region_q[i])
     start = particle_region_offsets[i]
     end = particle_region_offsets[i + 1]
     g = wp.vec3(0.0)
@@ -234,3 +237,15 @@ def blend_and_constrain_kernel(
     for c in range(joint_offsets[i], joint_offsets[i + 1]):
         xi = project_joint_lower_bound(xi, joint_centres[joint_ids[c]], joint_rest_distance[c])
     x[i] = xi
+
+
+@wp.kernel
+def moment_matrices_kernel(
+    q: wp.array(dtype=wp.quat),
+    particle_moment: wp.array(dtype=wp.float32),
+    # outputs
+    moment_matrix: wp.array(dtype=wp.mat33),
+):
+    """Oriented-particle moment matrices ``mu_i R(q_i)`` (rest orientation: identity)."""
+    i = wp.tid()
+    moment_matrix[i] = particle_moment[i] * wp.quat_to_matrix(q[i])

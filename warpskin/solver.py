@@ -105,6 +105,7 @@ class SkinSolver:
             self.coupling_targets = wp.zeros(v, dtype=wp.vec3)
             self.joint_centres = wp.zeros(model.joint_count, dtype=wp.vec3)
             self.particle_moment = wp.array((b.masses * b.radii**2 / 5.0).astype(np.float32), dtype=wp.float32)
+            self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
             # joint constraints as a per-particle CSR (a particle near two joints has two)
             jc = b.joint_constraints
             order = np.argsort(jc.particles, kind="stable")
@@ -132,16 +133,24 @@ class SkinSolver:
         self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
 
     # ------------------------------------------------------------------ pieces of a step
+    def update_moments(self, q: wp.array) -> None:
+        """Oriented-particle moment matrices of orientations ``q`` (before a fit that follows
+        anything but the goal blend, which updates them itself)."""
+        wp.launch(k_sm.moment_matrices_kernel, dim=self.model.particle_count, inputs=[q, self.particle_moment],
+                  outputs=[self.moment_matrix], device=self.device)
+
     def region_fit(self, x: wp.array, q_in: wp.array, q_out: wp.array) -> None:
         """Region centres into :attr:`region_com` and rotations into ``q_out`` (warm-started from
-        ``q_in``), by fast summation or direct gather (``params.fast_summation``)."""
+        ``q_in``; the oriented-particle moments are :attr:`moment_matrix`, which must belong to
+        ``q_in``: see :meth:`update_moments`), by fast summation or direct gather
+        (``params.fast_summation``)."""
         m = self.model
         it = self.params.rotation_iterations
         if self.params.fast_summation:
             wp.launch(
                 k_sm.path_scan_kernel,
                 dim=4 * self.path_count,
-                inputs=[x, q_in, m.particle_q0, m.particle_mass, self.particle_moment, m.path_order, m.path_offsets,
+                inputs=[x, m.particle_q0, m.particle_mass, self.moment_matrix, m.path_order, m.path_offsets,
                         m.vertex_count, self.path_count],
                 outputs=[self.prefix_mx, self.prefix_mxx],
                 device=self.device,
@@ -149,7 +158,7 @@ class SkinSolver:
             wp.launch(
                 k_sm.region_fit_runs_kernel,
                 dim=m.particle_count,
-                inputs=[x, q_in, m.particle_q0, m.particle_mass, self.particle_moment, self.prefix_mx, self.prefix_mxx,
+                inputs=[x, q_in, m.particle_q0, m.particle_mass, self.moment_matrix, self.prefix_mx, self.prefix_mxx,
                         self.position_is_path_start, m.run_offsets, m.run_start, m.run_end, m.region_offsets,
                         m.region_members, m.region_sibling_count, m.region_mass, m.region_rest_com, m.vertex_count, it],
                 outputs=[self.region_com, q_out],
@@ -159,7 +168,7 @@ class SkinSolver:
             wp.launch(
                 k_sm.region_fit_gather_kernel,
                 dim=m.particle_count,
-                inputs=[x, q_in, m.particle_mass, self.particle_moment, m.region_offsets, m.region_members,
+                inputs=[x, q_in, m.particle_mass, self.moment_matrix, m.region_offsets, m.region_members,
                         m.region_rest_offsets, m.region_mass, it],
                 outputs=[self.region_com, q_out],
                 device=self.device,
@@ -173,8 +182,8 @@ class SkinSolver:
             inputs=[self.region_com, q_regions, m.region_rest_offsets, m.particle_region_offsets, m.particle_regions,
                     m.particle_region_slots, m.particle_stiffness, 3 * m.vertex_count, self.coupling_targets,
                     m.coupling_stiffness, self.joint_offsets, self.joint_ids, self.joint_rest_distance,
-                    self.joint_centres],
-            outputs=[x],
+                    self.joint_centres, self.particle_moment],
+            outputs=[x, self.moment_matrix],
             device=self.device,
         )
 
@@ -208,6 +217,7 @@ class SkinSolver:
         wp.launch(k_int.predict_kernel, dim=n, inputs=[state_in.x, state_in.v, state_in.q, state_in.omega, self._gravity, dt],
                   outputs=[state_out.x, state_out.v, state_out.q], device=dev)
         self._kinematics(control)
+        self.update_moments(state_out.q)
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
         for _ in range(p.iterations):

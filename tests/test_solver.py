@@ -1,0 +1,183 @@
+"""The solver (Algorithm 1): fast summation = direct gather, rigid invariance, rest stability,
+volume against LBS at the 150-degree arm, damping and jiggle, determinism, bad input. Every
+device."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from pxr import Usd, UsdGeom
+from scipy.spatial.transform import Rotation
+
+from warpskin.model import ModelParams, SkinModelBuilder
+from warpskin.rig import RigError
+from warpskin.scene import load_scene
+from warpskin.scenes.arm import make_arm
+from warpskin.simulate import initial_state, simulate
+from warpskin.solver import SimulationError, SkinSolver, SolverParams
+
+COARSE = "[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n"
+
+
+@pytest.fixture(scope="module")
+def coarse_builder():
+    return SkinModelBuilder(make_arm(rings=30, segments=20)).build()
+
+
+def _scene(tmp_path, extra=""):
+    p = tmp_path / "coarse_arm.toml"
+    p.write_text(COARSE + "[animation]\nclip = 'flex'\nfps = 30\n" + extra)
+    return load_scene(p)
+
+
+def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coarse_builder):
+    model = coarse_builder.finalize(device)
+    rig = coarse_builder.rig
+    solver = SkinSolver(model, SolverParams(iterations=5))
+    a, b, c = model.state(), model.state(), model.control()
+    initial_state(model, a, rig.skinning_matrices("flex", 0.0))
+    for k in range(12):  # a deforming, moving state
+        c.set_pose(rig.skinning_matrices("flex", 0.05 * (k + 1)))
+        solver.step(a, b, c, 0.005)
+        a, b = b, a
+    q_out = wp.zeros_like(a.q)
+    solver.update_moments(a.q)
+    solver.params.fast_summation = False
+    solver.region_fit(a.x, a.q, q_out)
+    com_gather, q_gather = solver.region_com.numpy().copy(), q_out.numpy().copy()
+    solver.params.fast_summation = True
+    solver.region_fit(a.x, a.q, q_out)
+    com_fast, q_fast = solver.region_com.numpy(), q_out.numpy()
+    size = rig.size()
+    assert np.abs(com_fast - com_gather).max() < 1e-5 * size
+    dot = np.abs(np.sum(q_fast * q_gather, axis=1))
+    assert (1.0 - dot).max() < 1e-6  # the same rotations (up to sign)
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_rigid_motion_keeps_the_rest_shape(device, coarse_builder, fast):
+    model = coarse_builder.finalize(device)
+    rot = Rotation.from_euler("xyz", [0.4, -0.3, 0.7])
+    m = np.eye(4)
+    m[:3, :3] = rot.as_matrix()
+    m[:3, 3] = [0.1, 0.2, -0.1]
+    mats = np.stack([m] * model.joint_count)
+    solver = SkinSolver(model, SolverParams(gravity=(0, 0, 0), fast_summation=fast))
+    a, b, c = model.state(), model.state(), model.control()
+    c.set_pose(mats)
+    initial_state(model, a, mats)
+    for _ in range(200):
+        solver.step(a, b, c, 0.005)
+        a, b = b, a
+    moved = coarse_builder.layers.flat() @ m[:3, :3].T + m[:3, 3]
+    assert np.abs(a.x.numpy() - moved).max() < 1e-4 * coarse_builder.rig.size()
+
+
+def test_nothing_drifts_at_rest_without_gravity(device, coarse_builder):
+    model = coarse_builder.finalize(device)
+    solver = SkinSolver(model, SolverParams(gravity=(0, 0, 0), iterations=5))
+    a, b, c = model.state(), model.state(), model.control()
+    for _ in range(1000):
+        solver.step(a, b, c, 0.005)
+        a, b = b, a
+    assert np.abs(a.x.numpy() - coarse_builder.layers.flat()).max() < 1e-5 * coarse_builder.rig.size()
+    assert np.abs(a.v.numpy()).max() < 1e-4
+
+
+def test_arm_at_150_degrees_keeps_volume_where_lbs_loses_it(device, tmp_path):
+    scene = _scene(tmp_path, "[solver]\niterations = 10\nvolume_iterations = 4\n")
+    out = tmp_path / "arm.usdc"
+    result = simulate(scene, out, device=device, frames=(0, 48), with_lbs=True, report_dir=tmp_path / "report", progress=False)
+    s = result.summary
+    t = np.array(result.metrics["time"])
+    assert t[-1] >= 1.5  # the elbow reached 150 degrees
+    print(f"150 deg: whole volume deviation warpskin {s['max_volume_deviation']:.2e}, LBS {s['max_volume_deviation_lbs']:.2e}; "
+          f"sub-volumes warpskin {s['max_subvolume_deviation']:.2e}, LBS {s['max_subvolume_deviation_lbs']:.2e}")
+    assert s["max_volume_deviation_lbs"] > 0.02  # LBS deflates the elbow
+    assert s["max_volume_deviation"] < 0.009  # the paper: within 0.9 %
+    assert s["max_volume_deviation"] < s["max_volume_deviation_lbs"] / 10
+    assert s["max_subvolume_deviation"] < s["max_subvolume_deviation_lbs"] / 10
+    report = (tmp_path / "report" / "report.json").read_text()
+    assert "max_volume_deviation" in report
+    stage = Usd.Stage.Open(str(out))
+    assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().GetTimeSamples()) == 49
+    assert stage.GetPrimAtPath("/warpskin/lbs").IsValid()
+
+
+def test_damping_and_jiggle_after_the_bones_stop(tmp_path):
+    # the elbow flexes quickly (0.3 s) and holds: the skin keeps moving after the bones stop,
+    # then settles
+    p = tmp_path / "quick.toml"
+    p.write_text(COARSE + "flex_degrees = 90.0\nflex_time = 0.3\nhold_time = 1.2\nrest_time = 0.0\n"
+                 "[animation]\nclip = 'flex'\nfps = 60\nframes = [0, 90]\n[solver]\niterations = 6\ndamping = 3.0\n")
+    result = simulate(load_scene(p), tmp_path / "q.usdc", device="cpu", progress=False)
+    t = np.array(result.metrics["time"])
+    ke = np.array(result.metrics["kinetic_energy"])
+    off = np.array(result.metrics["max_offset_from_lbs"])
+    stopped = t > 0.3 + 1e-9
+    # secondary motion: during the hold the offset from LBS (the bones are still) keeps changing
+    motion = np.abs(np.diff(off[stopped]))
+    print(f"after the stop: offset change per frame {motion[:5]}, kinetic energy {ke[stopped][:3]} -> {ke[-1]:.2e} J")
+    assert motion[:10].max() > 1e-4  # > 0.1 mm per frame right after the stop
+    assert motion[-10:].max() < 0.1 * motion[:10].max()
+    assert ke[-1] < 0.05 * ke[stopped][:5].max()  # damped
+
+
+def test_two_cpu_runs_are_identical_with_and_without_graph_capture(tmp_path):
+    scene = _scene(tmp_path, "[solver]\niterations = 4\n")
+    a = simulate(scene, tmp_path / "a.usdc", device="cpu", frames=(0, 8), progress=False)
+    b = simulate(_scene(tmp_path, "[solver]\niterations = 4\n"), tmp_path / "b.usdc", device="cpu", frames=(0, 8), progress=False,
+                 use_graph=False)
+    stage_a, stage_b = Usd.Stage.Open(str(a.path)), Usd.Stage.Open(str(b.path))  # keep the stages alive
+    sa = UsdGeom.Mesh(stage_a.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    sb = UsdGeom.Mesh(stage_b.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    for f in range(9):
+        assert np.array_equal(np.array(sa.Get(f)), np.array(sb.Get(f)))
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"iterations": 0}, "iterations must be an integer >= 1"),
+        ({"dt": 0.0}, "dt must be a positive"),
+        ({"dt": -0.01}, "dt must be a positive"),
+        ({"damping": -1.0}, "damping must be a rate >= 0"),
+        ({"volume_stiffness": 1.5}, "volume_stiffness must be in"),
+    ],
+)
+def test_unstable_settings_rejected(kwargs, message):
+    with pytest.raises(RigError, match=message):
+        SolverParams(**kwargs).check()
+
+
+def test_stiffness_outside_unit_interval_rejected(tmp_path):
+    scene = _scene(tmp_path, "[layers]\nstiffness = [0.8, 0.6, 1.2, 0.8]\n")
+    with pytest.raises(RigError, match=r"four numbers in \[0, 1\]"):
+        scene.model_params()
+    with pytest.raises(RigError, match="step needs two different states"):
+        model = SkinModelBuilder(make_arm(rings=12, segments=10), ModelParams(volume=False)).finalize("cpu")
+        s = model.state()
+        SkinSolver(model).step(s, s, model.control(), 0.005)
+
+
+def test_nan_stops_the_run_naming_frame_and_particle_and_keeps_a_valid_file(tmp_path, monkeypatch):
+    calls = {"n": 0}
+    original = SkinSolver.step
+
+    def poisoned(self, state_in, state_out, control, dt):
+        original(self, state_in, state_out, control, dt)
+        calls["n"] += 1
+        if calls["n"] == 7 * 3 + 2:  # a substep of frame 4
+            x = state_out.x.numpy()
+            x[1234] = np.nan
+            state_out.x.assign(x)
+
+    monkeypatch.setattr(SkinSolver, "step", poisoned)
+    out = tmp_path / "nan.usdc"
+    with pytest.raises(SimulationError, match=r"frame 4: particle \d+ \(\w+ layer, vertex \d+\) became NaN"):
+        simulate(_scene(tmp_path, "[solver]\niterations = 2\n"), out, device="cpu", frames=(0, 10), progress=False,
+                 use_graph=False)  # the fault injection reads the state on the host
+    stage = Usd.Stage.Open(str(out))
+    samples = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().GetTimeSamples()
+    assert samples == [0.0, 1.0, 2.0, 3.0]
