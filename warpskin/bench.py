@@ -113,3 +113,81 @@ def run_build_bench(targets: list[str]) -> dict:
         except Exception as exc:  # report and go on with the other scenes
             out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
     return out
+
+
+def run_solver_bench(targets: list[str], *, device: str | None = None, steps: int = 10, repeat: int = 3) -> dict:
+    """Milliseconds per solver step, split as the paper's Table 1, per scene.
+
+    Per scene: ``particles``, ``iterations``; ``elasticity_ms`` (the elasticity loop: region fit
+    and goal blend with coupling and joint constraints, direct gather) and
+    ``elasticity_fast_summation_ms`` (the same with prefix scans along the paths);
+    ``volume_ms`` (the volume loop); ``total_ms`` (a whole step, plain launches) and
+    ``total_graph_ms`` (a whole step replayed from a captured graph); ``lbs_ms`` (the LBS
+    kernel on the skin vertices, the kinematic baseline) and ``total_over_lbs``.
+    """
+    from .model import SkinModelBuilder
+    from .simulate import initial_state
+    from .skinning import Skinner
+    from .solver import SkinSolver
+
+    dev = resolve_device(device)
+    out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
+           "cpu_count": os.cpu_count(), "steps": steps, "repeat": repeat, "scenes": {}}
+    for target in targets:
+        try:
+            scene = _scene(target)
+            rig = scene.rig()
+            params = scene.solver_params()
+        except Exception as exc:  # e.g. cesium_man without the assets folder
+            out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
+            continue
+        clip = rig.clip(scene.clip)
+        model = SkinModelBuilder(rig, scene.model_params()).finalize(dev)
+        solver = SkinSolver(model, params)
+        a, b, c = model.state(), model.state(), model.control()
+        t_mid = clip.start + 0.5 * clip.duration
+        initial_state(model, a, rig.skinning_matrices(clip, t_mid))
+        c.set_pose(rig.skinning_matrices(clip, t_mid + 0.01))
+        dt = params.dt
+        solver.step(a, b, c, dt)  # compile / load outside the timed regions
+        solver.step(b, a, c, dt)
+
+        def elasticity(fast: bool):
+            solver.params.fast_summation = fast
+            q_src, q_dst = a.q, solver.q_scratch
+            for _ in range(params.iterations):
+                solver.region_fit(b.x, q_src, q_dst)
+                solver._blend(b.x, q_dst)
+                q_src, q_dst = q_dst, q_src
+
+        fast0 = params.fast_summation
+        row = {"particles": model.particle_count, "vertices": model.vertex_count, "iterations": params.iterations,
+               "volume_iterations": params.volume_iterations}
+        row["elasticity_ms"] = _best_ms(lambda f: elasticity(False), steps, repeat, dev)
+        elasticity(True)  # compile the scan kernels
+        row["elasticity_fast_summation_ms"] = _best_ms(lambda f: elasticity(True), steps, repeat, dev)
+        solver.params.fast_summation = fast0
+        if solver.volume is not None:
+            row["volume_ms"] = _best_ms(
+                lambda f: solver.volume.project(b.x, model.particle_inv_mass, solver.volume_weight_scale,
+                                                solver.volume_centres, params.volume_iterations, params.volume_stiffness),
+                steps, repeat, dev)
+        else:
+            row["volume_ms"] = 0.0
+        states = [a, b]
+        row["total_ms"] = _best_ms(lambda f: solver.step(states[f % 2], states[(f + 1) % 2], c, dt), steps, repeat, dev)
+        try:
+            with wp.ScopedCapture(device=dev) as cap:
+                solver.step(a, b, c, dt)
+                solver.step(b, a, c, dt)
+            row["total_graph_ms"] = _best_ms(lambda f: wp.capture_launch(cap.graph), steps, repeat, dev) / 2.0
+        except Exception as exc:
+            row["total_graph_ms"] = None
+            row["graph_error"] = str(exc)
+        lbs = Skinner(rig, method="lbs", device=str(dev))
+        lbs.skin(rig.skinning_matrices(clip, t_mid))
+        row["lbs_ms"] = _best_ms(lambda f: lbs.launch(), steps, repeat, dev)
+        best_total = row["total_graph_ms"] or row["total_ms"]
+        row["total_over_lbs"] = best_total / row["lbs_ms"] if row["lbs_ms"] > 0 else None
+        out["scenes"][scene.name] = row
+    return out

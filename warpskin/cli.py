@@ -192,12 +192,17 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_build_bench, run_skinning_bench
+    from .bench import run_build_bench, run_skinning_bench, run_solver_bench
 
     if args.build:
         result = run_build_bench(args.scenes or ["arm", "cesium_man", "arm35k"])
     else:
-        result = run_skinning_bench(args.scenes or ["arm"], device=args.device, frames=args.bench_frames, repeat=args.repeat)
+        scenes = args.scenes or ["arm", "cesium_man"]
+        result = {
+            "solver": run_solver_bench(scenes, device=args.device, steps=args.steps, repeat=args.repeat),
+            "skinning": run_skinning_bench([s for s in scenes if not _missing_asset(s)], device=args.device,
+                                           frames=args.bench_frames, repeat=args.repeat),
+        }
     text = json.dumps(result, indent=2)
     if args.json:
         Path(args.json).write_text(text + "\n")
@@ -206,18 +211,29 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _missing_asset(target: str) -> bool:
+    from .scene import find_assets_dir, load_scene
+
+    if _is_rig_file(target):
+        return False
+    try:
+        return "asset" in load_scene(target).rig_spec and find_assets_dir() is None
+    except Exception:
+        return False
+
+
 def cmd_warmup(args) -> int:
     import time
 
     import warp as wp
 
-    from . import kernels  # noqa: F401
     from .device import resolve_device
-    from .kernels import skinning as k_skinning
+    from .kernels import integrate, rotation, shape_matching, skinning, volume
 
     dev = resolve_device(args.device)
     t0 = time.perf_counter()
-    wp.load_module(k_skinning, device=dev)
+    for module in (skinning, rotation, integrate, shape_matching, volume):
+        wp.load_module(module, device=dev)
     print(f"kernels ready on {dev} in {time.perf_counter() - t0:.1f} s (cache: {wp.config.kernel_cache_dir})")
     return 0
 
@@ -288,9 +304,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_layers)
 
     s = sub.add_parser("bench", help="time skinning per frame (or the model build with --build); JSON out")
-    s.add_argument("scenes", nargs="*", metavar="SCENE", help="scenes or rig files (default: arm)")
+    s.add_argument("scenes", nargs="*", metavar="SCENE", help="scenes or rig files (default: arm, cesium_man)")
     s.add_argument("--device", help="cpu, cuda or cuda:N")
-    s.add_argument("--frames", dest="bench_frames", type=int, default=60, help="frames per measurement")
+    s.add_argument("--frames", dest="bench_frames", type=int, default=60, help="skinning frames per measurement")
+    s.add_argument("--steps", type=int, default=10, help="solver steps per measurement")
     s.add_argument("--repeat", type=int, default=3, help="measurements; the best is reported")
     s.add_argument("--json", metavar="FILE", help="also write the JSON to FILE")
     s.add_argument("--build", action="store_true",
