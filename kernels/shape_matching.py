@@ -215,9 +215,11 @@ def blend_and_constrain_kernel(
     joint_rest_distance: wp.array(dtype=wp.float32),
     joint_centres: wp.array(dtype=wp.vec3),
     particle_moment: wp.array(dtype=wp.float32),
+    iteration: int,
     # outputs
     x: wp.array(dtype=wp.vec3),
     moment_matrix: wp.array(dtype=wp.mat33),
+    residual: wp.array(dtype=wp.float32),
 ):
     i = wp.tid()
     # the oriented-particle moment of particle i for the next fit: mu_i R(q_i), q_i = region i's rotation
@@ -228,7 +230,8 @@ def blend_and_constrain_kernel(
     for e in range(start, end):
         r = particle_regions[e]
         g += wp.quat_rotate(region_q[r], region_rest_offsets[particle_region_slots[e]]) + region_com[r]
-    xi = x[i]
+    x_before = x[i]
+    xi = x_before
     if end > start:
         g = g / float(end - start)
         xi = xi + particle_stiffness[i] * (g - xi)
@@ -237,6 +240,8 @@ def blend_and_constrain_kernel(
     for c in range(joint_offsets[i], joint_offsets[i + 1]):
         xi = project_joint_lower_bound(xi, joint_centres[joint_ids[c]], joint_rest_distance[c])
     x[i] = xi
+    # the iteration's residual: the largest position correction [m]
+    wp.atomic_max(residual, iteration, wp.length(xi - x_before))
 
 
 @wp.kernel

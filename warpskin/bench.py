@@ -155,9 +155,9 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         def elasticity(fast: bool):
             solver.params.fast_summation = fast
             q_src, q_dst = a.q, solver.q_scratch
-            for _ in range(params.iterations):
+            for it in range(params.iterations):
                 solver.region_fit(b.x, q_src, q_dst)
-                solver._blend(b.x, q_dst)
+                solver._blend(b.x, q_dst, it)
                 q_src, q_dst = q_dst, q_src
 
         fast0 = params.fast_summation

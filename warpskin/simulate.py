@@ -126,6 +126,23 @@ def _report_plots(report_dir: Path, metrics: dict, names: list[str]) -> list[str
     fig.savefig(report_dir / "energy.png", dpi=110)
     plt.close(fig)
     written.append("energy.png")
+    res = [(k, r) for k, r in enumerate(metrics.get("residuals", [])) if r]
+    if res:
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        picks = res[:: max(1, len(res) // 8)]
+        cmap = plt.get_cmap("viridis")
+        for n_, (k, r) in enumerate(picks):
+            ax.semilogy(np.arange(1, len(r) + 1), np.maximum(np.array(r), 1e-12), color=cmap(n_ / max(len(picks) - 1, 1)),
+                        label=f"t = {t[k]:.2f} s")
+        ax.set_xlabel("elasticity iteration (last substep of the frame)")
+        ax.set_ylabel("largest position correction [m]")
+        ax.set_title("Iteration residuals")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+        fig.tight_layout()
+        fig.savefig(report_dir / "residuals.png", dpi=110)
+        plt.close(fig)
+        written.append("residuals.png")
     fig, ax = plt.subplots(figsize=(8, 4.5))
     ax.plot(t, 1e3 * np.array(metrics["max_offset_from_lbs"]))
     ax.set_xlabel("time [s]")
@@ -215,7 +232,7 @@ def simulate(
     masses = builder.masses
     ji, jw = rig.joint_indices, rig.joint_weights
     metrics: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
-                                      "max_offset_from_lbs", "step_ms")}
+                                      "max_offset_from_lbs", "step_ms", "residuals")}
     metrics["volume_rest"] = signed_volume(rig.vertices, tris)
     metrics["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
     bar = Progress(len(frame_list), f"simulate {scene.name} ({dev}, {model.particle_count} particles)", enabled=progress)
@@ -272,6 +289,7 @@ def simulate(
             metrics["kinetic_energy"].append(float(0.5 * np.sum(masses * np.einsum("ij,ij->i", vel, vel))))
             metrics["max_offset_from_lbs"].append(float(np.linalg.norm(skin - lbs, axis=1).max()))
             metrics["step_ms"].append(step_ms)
+            metrics["residuals"].append(solver.residuals.numpy().tolist() if fi > 0 else [])
             bar.update(extra=f"{1e3 / step_ms:6.1f} steps/s" if step_ms > 0 else "")
     except BaseException:
         writer.abort()

@@ -94,6 +94,8 @@ class SkinSolver:
         self.model = model
         self.params = params or SolverParams()
         self.params.check()
+        # iterations is fixed at construction (buffers are sized by it)
+        self._iterations = int(self.params.iterations)
         b = model.builder
         n = model.particle_count
         v = model.vertex_count
@@ -106,6 +108,8 @@ class SkinSolver:
             self.joint_centres = wp.zeros(model.joint_count, dtype=wp.vec3)
             self.particle_moment = wp.array((b.masses * b.radii**2 / 5.0).astype(np.float32), dtype=wp.float32)
             self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
+            # largest position correction of each elasticity iteration of the last step [m]
+            self.residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
             # joint constraints as a per-particle CSR (a particle near two joints has two)
             jc = b.joint_constraints
             order = np.argsort(jc.particles, kind="stable")
@@ -174,7 +178,7 @@ class SkinSolver:
                 device=self.device,
             )
 
-    def _blend(self, x: wp.array, q_regions: wp.array) -> None:
+    def _blend(self, x: wp.array, q_regions: wp.array, iteration: int = 0) -> None:
         m = self.model
         wp.launch(
             k_sm.blend_and_constrain_kernel,
@@ -182,8 +186,8 @@ class SkinSolver:
             inputs=[self.region_com, q_regions, m.region_rest_offsets, m.particle_region_offsets, m.particle_regions,
                     m.particle_region_slots, m.particle_stiffness, 3 * m.vertex_count, self.coupling_targets,
                     m.coupling_stiffness, self.joint_offsets, self.joint_ids, self.joint_rest_distance,
-                    self.joint_centres, self.particle_moment],
-            outputs=[x, self.moment_matrix],
+                    self.joint_centres, self.particle_moment, iteration],
+            outputs=[x, self.moment_matrix, self.residuals],
             device=self.device,
         )
 
@@ -210,6 +214,8 @@ class SkinSolver:
         if not (dt > 0.0):
             raise RigError(f"dt must be positive, got {dt}")
         p = self.params
+        if p.iterations != self._iterations:
+            raise RigError(f"iterations changed from {self._iterations} to {p.iterations} after the solver was built; build a new SkinSolver")
         m = self.model
         dev = self.device
         n = m.particle_count
@@ -220,9 +226,10 @@ class SkinSolver:
         self.update_moments(state_out.q)
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
-        for _ in range(p.iterations):
+        self.residuals.zero_()
+        for it in range(p.iterations):
             self.region_fit(state_out.x, q_src, q_dst)
-            self._blend(state_out.x, q_dst)
+            self._blend(state_out.x, q_dst, it)
             q_src, q_dst = q_dst, q_src
         if q_src is not state_out.q:
             wp.copy(state_out.q, q_src)
