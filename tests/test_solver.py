@@ -100,6 +100,10 @@ def test_arm_at_150_degrees_keeps_volume_where_lbs_loses_it(device, tmp_path):
     assert s["max_subvolume_deviation"] < s["max_subvolume_deviation_lbs"] / 10
     report = (tmp_path / "report" / "report.json").read_text()
     assert "max_volume_deviation" in report
+    for name in ("volume.png", "subvolumes.png", "energy.png", "residuals.png", "offset_from_lbs.png"):
+        assert (tmp_path / "report" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    residuals = result.metrics["residuals"][-1]
+    assert len(residuals) == 10 and residuals[-1] < residuals[0]  # the elasticity loop converges
     stage = Usd.Stage.Open(str(out))
     assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().GetTimeSamples()) == 49
     assert stage.GetPrimAtPath("/warpskin/lbs").IsValid()

@@ -22,6 +22,7 @@ from .io.usd_export import UsdSkinWriter
 from .metrics import signed_volume
 from .model import SkinModelBuilder
 from .progress import Progress
+from .report import write_plots
 from .rig import RigError
 from .scene import Scene
 from .solver import SimulationError, SkinSolver, SolverParams
@@ -74,86 +75,6 @@ def initial_state(model, state, skin_matrices: np.ndarray) -> None:
     state.q.assign(q.astype(np.float32))
     state.v.zero_()
     state.omega.zero_()
-
-
-def _report_plots(report_dir: Path, metrics: dict, names: list[str]) -> list[str]:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return []
-    t = np.array(metrics["time"])
-    written = []
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    v0 = metrics["volume_rest"]
-    ax.plot(t, 100 * (np.array(metrics["volume"]) / v0 - 1), label="warpskin", lw=2)
-    ax.plot(t, 100 * (np.array(metrics["volume_lbs"]) / v0 - 1), label="LBS", lw=2, ls="--")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("volume change [%]")
-    ax.set_title("Whole skin volume against the rest volume")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(report_dir / "volume.png", dpi=110)
-    plt.close(fig)
-    written.append("volume.png")
-    if metrics.get("subvolume"):
-        sub = np.array(metrics["subvolume"])
-        sub_lbs = np.array(metrics["subvolume_lbs"])
-        rest = np.array(metrics["subvolume_rest"])
-        fig, ax = plt.subplots(figsize=(8, 4.5))
-        for s, name in enumerate(names):
-            line, = ax.plot(t, 100 * (sub[:, s] / rest[s] - 1), label=name)
-            ax.plot(t, 100 * (sub_lbs[:, s] / rest[s] - 1), ls="--", color=line.get_color())
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("volume change [%]")
-        ax.set_title("Sub-volumes: warpskin (solid) and LBS (dashed)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, ncol=2)
-        fig.tight_layout()
-        fig.savefig(report_dir / "subvolumes.png", dpi=110)
-        plt.close(fig)
-        written.append("subvolumes.png")
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    ax.semilogy(t, np.maximum(np.array(metrics["kinetic_energy"]), 1e-12))
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("kinetic energy [J]")
-    ax.set_title("Kinetic energy of all particles")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(report_dir / "energy.png", dpi=110)
-    plt.close(fig)
-    written.append("energy.png")
-    res = [(k, r) for k, r in enumerate(metrics.get("residuals", [])) if r]
-    if res:
-        fig, ax = plt.subplots(figsize=(8, 4.5))
-        picks = res[:: max(1, len(res) // 8)]
-        cmap = plt.get_cmap("viridis")
-        for n_, (k, r) in enumerate(picks):
-            ax.semilogy(np.arange(1, len(r) + 1), np.maximum(np.array(r), 1e-12), color=cmap(n_ / max(len(picks) - 1, 1)),
-                        label=f"t = {t[k]:.2f} s")
-        ax.set_xlabel("elasticity iteration (last substep of the frame)")
-        ax.set_ylabel("largest position correction [m]")
-        ax.set_title("Iteration residuals")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, ncol=2)
-        fig.tight_layout()
-        fig.savefig(report_dir / "residuals.png", dpi=110)
-        plt.close(fig)
-        written.append("residuals.png")
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    ax.plot(t, 1e3 * np.array(metrics["max_offset_from_lbs"]))
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("largest skin offset from LBS [mm]")
-    ax.set_title("How far the physical skin departs from LBS")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(report_dir / "offset_from_lbs.png", dpi=110)
-    plt.close(fig)
-    written.append("offset_from_lbs.png")
-    return written
 
 
 def simulate(
@@ -326,7 +247,7 @@ def simulate(
     if report_dir is not None:
         report = Path(report_dir)
         report.mkdir(parents=True, exist_ok=True)
-        plots = _report_plots(report, metrics, list(subs.names) if subs is not None else [])
+        plots = write_plots(report, metrics, list(subs.names) if subs is not None else [])
         summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
         (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=1))
     if failure is not None:
