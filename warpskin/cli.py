@@ -174,8 +174,11 @@ def cmd_simulate(args) -> int:
         params.fast_summation = True
     if args.no_gravity:
         params.gravity = (0.0, 0.0, 0.0)
+    collision = scene.collision_params()
+    if args.no_collisions:
+        collision.enabled = False
     result = simulate(
-        scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params,
+        scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]),
     )
@@ -186,6 +189,9 @@ def cmd_simulate(args) -> int:
         f"volume deviation: warpskin {100 * s['max_volume_deviation']:.2f} %, LBS {100 * s['max_volume_deviation_lbs']:.2f} %"
     )
     print(line)
+    if "max_intersecting_pairs" in s:
+        print(f"intersecting skin triangle pairs (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
+              f"LBS {s['max_intersecting_pairs_lbs']}")
     if args.report:
         print(f"report: {Path(args.report) / 'report.json'}")
     return 0
@@ -220,6 +226,35 @@ def _missing_asset(target: str) -> bool:
         return "asset" in load_scene(target).rig_spec and find_assets_dir() is None
     except Exception:
         return False
+
+
+def cmd_pop(args) -> int:
+    from .popping import bench_popping, run_popping
+    from .rig import RigError
+
+    if args.bench:
+        result = bench_popping(args.device, steps=args.steps, repeat=args.repeat)
+        text = json.dumps(result, indent=2)
+        if args.json:
+            Path(args.json).write_text(text + "\n")
+            print(f"wrote {args.json}")
+        print(text)
+        return 0
+    if args.target is None or args.output is None:
+        raise RigError("pop needs a SCENE and -o OUT.usdc (or --bench)")
+    scene = _scene_of(args)
+    result = run_popping(
+        scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps,
+        alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
+        comment="warpskin " + " ".join(sys.argv[1:]),
+    )
+    s = result.summary
+    print(
+        f"wrote {result.path} ({result.frames} frames, {s['substeps']} steps of {s['dt_s'] * 1e3:.2f} ms per frame, "
+        f"{s['vertices']} vertices, groups {', '.join(s['groups'])}, {s['ms_per_frame']:.2f} ms per frame on {s['device']}); "
+        f"peak overshoot {s['peak_overshoot_m'] * 1e3:.2f} mm (alpha_min {s['alpha_min']:g})"
+    )
+    return 0
 
 
 def cmd_warmup(args) -> int:
@@ -291,6 +326,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--damping", type=float, help="velocity damping rate [1/s]")
     s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
     s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
+    s.add_argument("--no-collisions", action="store_true", help="switch skin self-collision off")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
 
@@ -313,6 +349,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--build", action="store_true",
                    help="time the model build (layers ... sub-volumes) instead; default scenes: arm, cesium_man, arm35k")
     s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("pop", help="popping dance (Son & Han 2007): example-based skinning plus skin vibration to USD")
+    s.add_argument("target", metavar="SCENE", nargs="?", help="a scene with popping examples (popping_arm) or its .toml file")
+    s.add_argument("-o", "--output", help="output .usdc (default format), .usda or .usd")
+    s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
+    s.add_argument("--fps", type=float, help="output frame rate (default: the scene's)")
+    s.add_argument("--device", help="cpu, cuda or cuda:N")
+    s.add_argument("--alpha-min", type=float, help="stiffness at the largest disparity, in (0, 1] (scene: [popping] alpha_min)")
+    s.add_argument("--beta", type=float, help="relaxation rate [1/s] (scene: [popping] beta)")
+    s.add_argument("--dt", type=float, help="step length [s] (scene: [popping] dt)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--bench", action="store_true",
+                   help="instead: time example-based skinning and the popping step per frame at 4322 vertices vs LBS (JSON)")
+    s.add_argument("--steps", type=int, default=200, help="with --bench: frames per measurement")
+    s.add_argument("--repeat", type=int, default=3, help="with --bench: measurements; the best is reported")
+    s.add_argument("--json", metavar="FILE", help="with --bench: also write the JSON to FILE")
+    s.set_defaults(func=cmd_pop)
 
     s = sub.add_parser("warmup", help="compile and cache the Warp kernels")
     s.add_argument("--device", help="cpu, cuda or cuda:N")

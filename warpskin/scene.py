@@ -48,7 +48,10 @@ class SceneError(RigError):
     """A scene file is wrong; the message names the file and the key."""
 
 
-GENERATORS = {"arm": "warpskin.scenes.arm:make_arm"}
+GENERATORS = {
+    "arm": "warpskin.scenes.arm:make_arm",
+    "popping_arm": "warpskin.scenes.popping_arm:make_popping_arm",
+}
 
 _SCHEMA: dict[str, set[str]] = {
     "scene": {"name", "description"},
@@ -61,6 +64,10 @@ _SCHEMA: dict[str, set[str]] = {
     # Algorithm 1 settings
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
                "fast_summation", "volume_stiffness"},
+    # skin self-collision (section 4.5)
+    "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes"},
+    # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
+    "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }
 
 
@@ -152,6 +159,25 @@ class Scene:
         if "gravity" in table:
             table["gravity"] = _numbers(where, "[solver] gravity", table["gravity"], 3)
         params = SolverParams(**table)
+        try:
+            params.check(where)
+        except RigError as exc:
+            raise SceneError(str(exc)) from None
+        return params
+
+    def collision_params(self):
+        """The :class:`~warpskin.collision.CollisionParams` of the ``[collision]`` section
+        (self-collision is on by default)."""
+        from .collision import CollisionParams
+
+        table = dict(self.extra.get("collision", {}))
+        where = _where(self.source)
+        if "enabled" in table and not isinstance(table["enabled"], bool):
+            raise SceneError(f"{where}: [collision] enabled must be true or false")
+        for key in ("thickness", "friction", "restitution", "detection_margin"):
+            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
+                raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
+        params = CollisionParams(**table)
         try:
             params.check(where)
         except RigError as exc:
@@ -274,7 +300,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{where}: not valid TOML: {exc}") from None
 
-    extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver") if k in data}
+    extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver", "collision", "popping") if k in data}
     for section, table in data.items():
         if section not in _SCHEMA:
             raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")

@@ -19,7 +19,7 @@ import warp as wp
 
 from .build.layers import LAYER_NAMES
 from .io.usd_export import UsdSkinWriter
-from .metrics import signed_volume
+from .metrics import self_intersections, signed_volume
 from .model import SkinModelBuilder
 from .progress import Progress
 from .report import write_plots
@@ -90,11 +90,18 @@ def simulate(
     progress: bool = True,
     comment: str = "",
     use_graph: bool = True,
+    collision=None,
+    check_intersections: bool | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
     ``use_graph`` records each frame's substeps once as a Warp graph (CPU and CUDA) and
     replays it, which removes the per-launch overhead; the results are bit-identical.
+    ``collision`` (:class:`~warpskin.collision.CollisionParams`) defaults to the scene's
+    ``[collision]`` section (on unless disabled). If a frame finds more contact candidates than
+    the buffers hold, the frame is run again with larger buffers. ``check_intersections`` counts
+    intersecting skin triangle pairs per frame with the exact, solver-independent check
+    (:func:`warpskin.metrics.self_intersections`); default: only when writing a report.
 
     Raises:
         SimulationError: a particle became NaN; the message names the frame, particle, layer
@@ -111,7 +118,11 @@ def simulate(
     builder = SkinModelBuilder(rig, scene.model_params())
     model = builder.finalize(device)
     build_s = time.perf_counter() - t_build
-    solver = SkinSolver(model, params)
+    collision = collision if collision is not None else scene.collision_params()
+    solver = SkinSolver(model, params, collision=collision)
+    col = solver.collision
+    if check_intersections is None:
+        check_intersections = report_dir is not None
     dev = model.device
     v = model.vertex_count
     frame_dt = 1.0 / scene.fps
@@ -137,15 +148,24 @@ def simulate(
         return sa, sb
 
     # one captured graph per frame (Warp captures on CPU too); two, for the two state parities
-    graphs = {}
-    if use_graph and len(frame_list) > 2:
-        try:
-            for start in ((state_a, state_b), (state_b, state_a)) if substeps % 2 else ((state_a, state_b),):
-                with wp.ScopedCapture(device=dev) as cap:  # records; runs nothing yet
-                    run_frame(*start)
-                graphs[id(start[0])] = cap.graph
-        except Exception:  # capture unsupported here: plain launches
-            graphs = {}
+    def capture_graphs():
+        out = {}
+        if use_graph and len(frame_list) > 2:
+            try:
+                for start in ((state_a, state_b), (state_b, state_a)) if substeps % 2 else ((state_a, state_b),):
+                    with wp.ScopedCapture(device=dev) as cap:  # records; runs nothing yet
+                        run_frame(*start)
+                    out[id(start[0])] = cap.graph
+            except Exception:  # capture unsupported here: plain launches
+                out = {}
+        return out
+
+    graphs = capture_graphs()
+    backup = model.state() if col is not None else None
+
+    def copy_state(dst, src):
+        for name in ("x", "v", "q", "omega"):
+            wp.copy(getattr(dst, name), getattr(src, name))
 
     subs = builder.subvolumes
     b_layers = builder.layers
@@ -153,7 +173,10 @@ def simulate(
     masses = builder.masses
     ji, jw = rig.joint_indices, rig.joint_weights
     metrics: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
-                                      "max_offset_from_lbs", "step_ms", "residuals")}
+                                      "max_offset_from_lbs", "step_ms", "residuals", "contacts_point_triangle",
+                                      "contacts_edge_edge", "constraints_active", "intersecting_pairs",
+                                      "intersecting_pairs_lbs")}
+    overflow_retries = 0
     metrics["volume_rest"] = signed_volume(rig.vertices, tris)
     metrics["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
     bar = Progress(len(frame_list), f"simulate {scene.name} ({dev}, {model.particle_count} particles)", enabled=progress)
@@ -171,13 +194,35 @@ def simulate(
             t0 = time.perf_counter()
             if fi > 0:
                 wp.copy(staging, poses_dev, dest_offset=0, src_offset=(fi - 1) * substeps * j, count=substeps * j)
-                graph = graphs.get(id(state_a))
-                if graph is not None:
-                    wp.capture_launch(graph)
+                if backup is not None:
+                    copy_state(backup, state_a)
+                frame_retries = 0
+                while True:
+                    graph = graphs.get(id(state_a))
+                    if graph is not None:
+                        wp.capture_launch(graph)
+                        if substeps % 2:
+                            state_a, state_b = state_b, state_a
+                    else:
+                        state_a, state_b = run_frame(state_a, state_b)
+                    if col is None or not col.overflowed():
+                        break
+                    if not np.isfinite(state_a.x.numpy()).all():
+                        col.clear_overflow()  # NaN boxes overlap everything: report the NaN below
+                        break
+                    if frame_retries >= 8:
+                        raise SimulationError(
+                            f"frame {f}: more than {col.capacity} contact candidates even after growing the buffers "
+                            "8 times; lower [collision] detection_margin or thickness"
+                        )
+                    # more contact candidates than the buffers hold: grow them and redo the frame
                     if substeps % 2:
                         state_a, state_b = state_b, state_a
-                else:
-                    state_a, state_b = run_frame(state_a, state_b)
+                    copy_state(state_a, backup)
+                    col.grow()
+                    overflow_retries += 1
+                    frame_retries += 1
+                    graphs = capture_graphs()
             x = state_a.x.numpy()
             step_ms = (time.perf_counter() - t0) * 1e3 / substeps if fi > 0 else 0.0
             finite = np.isfinite(x).all(axis=1)
@@ -211,6 +256,14 @@ def simulate(
             metrics["max_offset_from_lbs"].append(float(np.linalg.norm(skin - lbs, axis=1).max()))
             metrics["step_ms"].append(step_ms)
             metrics["residuals"].append(solver.residuals.numpy().tolist() if fi > 0 else [])
+            if col is not None:
+                counts = col.counts.numpy()
+                metrics["contacts_point_triangle"].append(int(counts[0]) if fi > 0 else 0)
+                metrics["contacts_edge_edge"].append(int(counts[1]) if fi > 0 else 0)
+                metrics["constraints_active"].append(int(col.active.numpy()[0]) if fi > 0 else 0)
+            if check_intersections:
+                metrics["intersecting_pairs"].append(int(len(self_intersections(skin, tris))))
+                metrics["intersecting_pairs_lbs"].append(int(len(self_intersections(lbs, tris))))
             bar.update(extra=f"{1e3 / step_ms:6.1f} steps/s" if step_ms > 0 else "")
     except BaseException:
         writer.abort()
@@ -237,7 +290,14 @@ def simulate(
         "mean_step_ms": float(np.mean(metrics["step_ms"][1:])) if len(written) > 1 else 0.0,
         "max_volume_deviation": float(np.abs(vol / v0 - 1).max()) if vol.size else 0.0,
         "max_volume_deviation_lbs": float(np.abs(vol_lbs / v0 - 1).max()) if vol.size else 0.0,
+        "collisions": col is not None,
+        "collision_thickness_m": col.thickness if col is not None else None,
+        "collision_capacity": col.capacity if col is not None else None,
+        "overflow_retries": overflow_retries,
     }
+    if check_intersections and metrics["intersecting_pairs"]:
+        summary["max_intersecting_pairs"] = max(metrics["intersecting_pairs"])
+        summary["max_intersecting_pairs_lbs"] = max(metrics["intersecting_pairs_lbs"])
     if subs is not None and metrics["subvolume"]:
         rest = np.array(metrics["subvolume_rest"])
         summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"]) / rest - 1).max())

@@ -86,11 +86,18 @@ class SkinSolver:
         extract the rotational part of deformations"; Diziol, Bender, Bayer 2011.
 
     Limitations:
-        Collisions are handled by a separate issue's contact constraints; until then the skin
-        may interpenetrate itself at strongly bent joints (volume constraints still hold).
+        Only the skin layer collides with itself (the paper's choice); detection is discrete,
+        once per step, so contacts that appear during the constraint loop wait for the next
+        step.
     """
 
-    def __init__(self, model: SkinModel, params: SolverParams | None = None) -> None:
+    def __init__(self, model: SkinModel, params: SolverParams | None = None, collision=None) -> None:
+        """Args:
+            model: The uploaded model.
+            params: Solver settings.
+            collision: :class:`~warpskin.collision.CollisionParams`; ``None`` switches skin
+                self-collision off.
+        """
         self.model = model
         self.params = params or SolverParams()
         self.params.check()
@@ -133,6 +140,11 @@ class SkinSolver:
 
                 self.volume = VolumeConstraints(model)
                 self.volume_centres = wp.zeros(len(b.subvolumes.center_rest), dtype=wp.vec3)
+            self.collision = None
+            if collision is not None and collision.enabled:
+                from .collision import SelfCollision
+
+                self.collision = SelfCollision(model, collision)
         g = self.params.gravity
         self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
 
@@ -224,20 +236,31 @@ class SkinSolver:
                   outputs=[state_out.x, state_out.v, state_out.q], device=dev)
         self._kinematics(control)
         self.update_moments(state_out.q)
+        # 5: collision detection, once, on the predicted positions
+        col = self.collision
+        if col is not None:
+            col.detect(state_in.x, state_out.x)
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
         self.residuals.zero_()
         for it in range(p.iterations):
             self.region_fit(state_out.x, q_src, q_dst)
             self._blend(state_out.x, q_dst, it)
+            if col is not None:
+                col.project(state_out.x, m.particle_inv_mass)
             q_src, q_dst = q_dst, q_src
         if q_src is not state_out.q:
             wp.copy(state_out.q, q_src)
         # 11-13: volume loop
         if self.volume is not None:
+            if col is not None:
+                col.volume_weights(self.volume_weight_scale)
             self.volume.project(state_out.x, m.particle_inv_mass, self.volume_weight_scale, self.volume_centres,
                                 p.volume_iterations, p.volume_stiffness)
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],
                   outputs=[state_out.v, state_out.omega], device=dev)
+        # 18: friction and restitution of the colliding particles
+        if col is not None:
+            col.friction_restitution(state_out.x, state_out.v, m.particle_inv_mass)

@@ -1,0 +1,529 @@
+"""Self-collision of the skin layer (Deul & Bender 2013, section 4.5): BVH detection on the
+predicted positions, point-triangle and edge-edge unilateral constraints projected inside the
+elasticity loop, friction and restitution after it.
+
+Detection writes into pre-sized buffers: a counter per kind and an overflow flag; a query that
+would write past the capacity sets the flag and drops nothing silently (the caller grows the
+buffers and runs the step again).
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+# --------------------------------------------------------------------------------------------
+# Bounds of every skin triangle over the step (old and predicted positions), inflated by the
+# thickness h: a contact can only involve triangles whose swept boxes overlap.
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def triangle_bounds_kernel(
+    x_old: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    thickness: float,
+    # outputs
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+):
+    t = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(3):
+        i = tri_indices[t, k]
+        lo = wp.min(lo, wp.min(x_old[i], x_pred[i]))
+        hi = wp.max(hi, wp.max(x_old[i], x_pred[i]))
+    pad = wp.vec3(thickness)
+    lowers[t] = lo - pad
+    uppers[t] = hi + pad
+
+
+@wp.func
+def excluded(a: int, b: int, rigid_bone: wp.array(dtype=wp.int32)) -> bool:
+    """Two skin vertices inside one bone's rigid neighbourhood (both move rigidly with the same
+    bone) can never collide with each other."""
+    ra = rigid_bone[a]
+    return ra >= 0 and ra == rigid_bone[b]
+
+
+@wp.func
+def same_patch(a: int, b: int, rest: wp.array(dtype=wp.vec3), rest_gap: float) -> bool:
+    """Two vertices of one surface patch (closer than ``rest_gap`` at rest). Side by side on a
+    smooth surface they are legitimately closer than the thickness, so such pairs only become
+    contacts when they actually cross during the step (a fold), never by proximity alone."""
+    return wp.length(rest[a] - rest[b]) < rest_gap
+
+
+@wp.func
+def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """Barycentric coordinates of the projection of p onto the plane of abc (may lie outside)."""
+    e0 = b - a
+    e1 = c - a
+    d = p - a
+    d00 = wp.dot(e0, e0)
+    d01 = wp.dot(e0, e1)
+    d11 = wp.dot(e1, e1)
+    d20 = wp.dot(d, e0)
+    d21 = wp.dot(d, e1)
+    den = d00 * d11 - d01 * d01
+    if den < 1.0e-30:
+        return wp.vec3(-1.0, -1.0, -1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return wp.vec3(1.0 - v - w, v, w)
+
+
+# --------------------------------------------------------------------------------------------
+# Point-triangle detection (one thread per skin vertex). A candidate is a triangle whose swept
+# box overlaps the vertex's swept box, that does not contain the vertex, and where either the
+# segment x_old -> x_pred crosses the triangle from its outer side (n . (p - a) goes from >= 0
+# to < 0), or the predicted point lies within the detection radius r in front of or behind it;
+# in both cases the projection must fall inside the triangle. r is a few times the thickness h:
+# detection runs once per step, and pairs that only come close during the constraint loop must
+# already be in the list (their constraint stays inactive while C >= 0). The constraint keeps the point on the
+# outer side of the skin: C(p, a, b, c) = n . (p - a) - h >= 0 (Mueller et al. 2007).
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def detect_point_triangle_kernel(
+    bvh: wp.uint64,
+    x_old: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    rigid_bone: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    rest_gap: float,
+    thickness: float,
+    radius: float,
+    capacity: int,
+    # outputs
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    overflow: wp.array(dtype=wp.int32),
+    colliding: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    p0 = x_old[i]
+    p1 = x_pred[i]
+    pad = wp.vec3(radius)
+    query = wp.bvh_query_aabb(bvh, wp.min(p0, p1) - pad, wp.max(p0, p1) + pad)
+    t = int(0)
+    while wp.bvh_query_next(query, t):
+        ia = tri_indices[t, 0]
+        ib = tri_indices[t, 1]
+        ic = tri_indices[t, 2]
+        if ia == i or ib == i or ic == i:
+            continue
+        if excluded(i, ia, rigid_bone) and excluded(i, ib, rigid_bone) and excluded(i, ic, rigid_bone):
+            continue
+        patch = same_patch(i, ia, rest, rest_gap) or same_patch(i, ib, rest, rest_gap) or same_patch(i, ic, rest, rest_gap)
+        a = x_pred[ia]
+        b = x_pred[ib]
+        c = x_pred[ic]
+        n = wp.cross(b - a, c - a)
+        ln = wp.length(n)
+        if ln < 1.0e-20:
+            continue
+        n = n / ln
+        d1 = wp.dot(p1 - a, n)
+        a0 = x_old[ia]
+        n0 = wp.cross(x_old[ib] - a0, x_old[ic] - a0)
+        d0 = wp.dot(p0 - a0, n0)
+        crossing = d0 >= 0.0 and d1 < 0.0
+        near = d1 < radius and d1 > -thickness  # ahead within the search radius, behind within h
+        if patch:
+            near = False
+        if not (crossing or near):
+            continue
+        bary = closest_on_triangle(p1, a, b, c)
+        if wp.min(wp.min(bary[0], bary[1]), bary[2]) < 0.0:
+            continue
+        slot = wp.atomic_add(pt_count, 0, 1)
+        if slot < capacity:
+            pt_vertex[slot] = i
+            pt_triangle[slot] = t
+            colliding[i] = 1
+            colliding[ia] = 1
+            colliding[ib] = 1
+            colliding[ic] = 1
+        else:
+            overflow[0] = 1
+
+
+# --------------------------------------------------------------------------------------------
+# Edge-edge detection (one thread per skin edge): edges of overlapping triangles (no shared
+# vertex) whose closest points are nearer than the thickness, or which cross each other's
+# triangle during the step. Each unordered pair is kept once (the edge with the smaller index).
+# --------------------------------------------------------------------------------------------
+@wp.func
+def segment_closest(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3) -> wp.vec2:
+    """Parameters (s, t) of the closest points p1 + s (p2 - p1) and p3 + t (p4 - p3)."""
+    d1 = p2 - p1
+    d2 = p4 - p3
+    r = p1 - p3
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    s = float(0.0)
+    t = float(0.0)
+    if a > 1.0e-30 and e > 1.0e-30:
+        c = wp.dot(d1, r)
+        b = wp.dot(d1, d2)
+        den = a * e - b * b
+        if den > 1.0e-30:
+            s = wp.clamp((b * f - c * e) / den, 0.0, 1.0)
+        t = (b * s + f) / e
+        if t < 0.0:
+            t = 0.0
+            s = wp.clamp(-c / a, 0.0, 1.0)
+        elif t > 1.0:
+            t = 1.0
+            s = wp.clamp((b - c) / a, 0.0, 1.0)
+    return wp.vec2(s, t)
+
+
+@wp.kernel
+def detect_edge_edge_kernel(
+    bvh: wp.uint64,
+    x_old: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    tri_edges: wp.array2d(dtype=wp.int32),
+    rigid_bone: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    rest_gap: float,
+    radius: float,
+    capacity: int,
+    # outputs
+    ee_count: wp.array(dtype=wp.int32),
+    ee_a: wp.array(dtype=wp.int32),
+    ee_b: wp.array(dtype=wp.int32),
+    ee_sign: wp.array(dtype=wp.float32),
+    overflow: wp.array(dtype=wp.int32),
+    colliding: wp.array(dtype=wp.int32),
+):
+    e = wp.tid()
+    i1 = edge_indices[e, 0]
+    i2 = edge_indices[e, 1]
+    p1 = x_pred[i1]
+    p2 = x_pred[i2]
+    pad = wp.vec3(radius)
+    lo = wp.min(wp.min(p1, p2), wp.min(x_old[i1], x_old[i2])) - pad
+    hi = wp.max(wp.max(p1, p2), wp.max(x_old[i1], x_old[i2])) + pad
+    query = wp.bvh_query_aabb(bvh, lo, hi)
+    t = int(0)
+    while wp.bvh_query_next(query, t):
+        for k in range(3):
+            f = tri_edges[t, k]
+            if f <= e:
+                continue  # each unordered pair once
+            i3 = edge_indices[f, 0]
+            i4 = edge_indices[f, 1]
+            if i3 == i1 or i3 == i2 or i4 == i1 or i4 == i2:
+                continue
+            if excluded(i1, i3, rigid_bone) and excluded(i2, i4, rigid_bone) and excluded(i1, i4, rigid_bone):
+                continue
+            patch = (same_patch(i1, i3, rest, rest_gap) or same_patch(i1, i4, rest, rest_gap)
+                     or same_patch(i2, i3, rest, rest_gap) or same_patch(i2, i4, rest, rest_gap))
+            p3 = x_pred[i3]
+            p4 = x_pred[i4]
+            st = segment_closest(p1, p2, p3, p4)
+            q1 = p1 + st[0] * (p2 - p1)
+            q2 = p3 + st[1] * (p4 - p3)
+            dist = wp.length(q2 - q1)
+            # side at the start of the step: sign of (p4 - p1) . n with n = (p2 - p1) x (p4 - p3)
+            o1 = x_old[i1]
+            n0 = wp.cross(x_old[i2] - o1, x_old[i4] - x_old[i3])
+            c0 = wp.dot(x_old[i4] - o1, n0)
+            n1 = wp.cross(p2 - p1, p4 - p3)
+            c1 = wp.dot(p4 - p1, n1)
+            flipped = c0 * c1 < 0.0 and st[0] > 0.0 and st[0] < 1.0 and st[1] > 0.0 and st[1] < 1.0
+            if (dist >= radius or patch) and not flipped:
+                continue
+            if wp.abs(c0) < 1.0e-30:
+                continue  # no reliable side: leave it to the point-triangle constraints
+            slot = wp.atomic_add(ee_count, 0, 1)
+            if slot < capacity:
+                ee_a[slot] = e
+                ee_b[slot] = f
+                sgn = float(1.0)
+                if c0 < 0.0:
+                    sgn = -1.0
+                ee_sign[slot] = sgn
+                colliding[i1] = 1
+                colliding[i2] = 1
+                colliding[i3] = 1
+                colliding[i4] = 1
+            else:
+                overflow[0] = 1
+
+
+# --------------------------------------------------------------------------------------------
+# Point-triangle projection, C = n . (p - a) - h >= 0, n the unit normal of abc. With the
+# normal held fixed (Mueller et al. 2007): grad_p = n, grad_a = -b0 n, grad_b = -b1 n,
+# grad_c = -b2 n (b the barycentric coordinates of the projection), and
+#   s = C / (w_p + w_a b0^2 + w_b b1^2 + w_c b2^2),  dx_k = -s w_k grad_k.
+# Corrections are accumulated (atomics) and averaged per particle by the apply kernel.
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def project_point_triangle_kernel(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    thickness: float,
+    # outputs
+    delta: wp.array(dtype=wp.vec3),
+    delta_count: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    if k >= wp.min(pt_count[0], pt_vertex.shape[0]):
+        return
+    i = pt_vertex[k]
+    t = pt_triangle[k]
+    ia = tri_indices[t, 0]
+    ib = tri_indices[t, 1]
+    ic = tri_indices[t, 2]
+    p = x[i]
+    a = x[ia]
+    b = x[ib]
+    c = x[ic]
+    n = wp.cross(b - a, c - a)
+    ln = wp.length(n)
+    if ln < 1.0e-20:
+        return
+    n = n / ln
+    cval = wp.dot(p - a, n) - thickness
+    if cval >= 0.0:
+        return
+    bary = closest_on_triangle(p, a, b, c)
+    bary = wp.vec3(wp.clamp(bary[0], 0.0, 1.0), wp.clamp(bary[1], 0.0, 1.0), wp.clamp(bary[2], 0.0, 1.0))
+    wp_ = inv_mass[i]
+    wa = inv_mass[ia]
+    wb = inv_mass[ib]
+    wc = inv_mass[ic]
+    den = wp_ + wa * bary[0] * bary[0] + wb * bary[1] * bary[1] + wc * bary[2] * bary[2]
+    if den < 1.0e-30:
+        return
+    s = cval / den
+    wp.atomic_add(delta, i, -s * wp_ * n)
+    wp.atomic_add(delta, ia, s * wa * bary[0] * n)
+    wp.atomic_add(delta, ib, s * wb * bary[1] * n)
+    wp.atomic_add(delta, ic, s * wc * bary[2] * n)
+    wp.atomic_add(delta_count, i, 1)
+    wp.atomic_add(delta_count, ia, 1)
+    wp.atomic_add(delta_count, ib, 1)
+    wp.atomic_add(delta_count, ic, 1)
+    wp.atomic_add(active, 0, 1)
+
+
+# --------------------------------------------------------------------------------------------
+# Edge-edge projection (Deul & Bender 2013, section 4.5):
+#   C = sgn (p4 - p1) . n / |n| - h >= 0,   n = (p2 - p1) x (p4 - p3),
+#   grad_p1 =  (e14 M e34* - n) / |n|,   grad_p2 = -(e14 M e34*) / |n|,
+#   grad_p3 = -(e14 M e12*) / |n|,       grad_p4 =  (e14 M e12* + n) / |n|,
+#   M = I - n n^T / |n|^2,  e_xy = p_y - p_x,  a* b = a x b   (times sgn).
+# Written as row vectors: e14 M e34* = (M e14)^T e34* = -(e34 x (M e14))... evaluated below as
+# (M e14) x e34 for e14^T M e34* (since u^T (v x .) = (u x v)^T), likewise for e12.
+# Parallel edges (|n| ~ 0): n is the perpendicular from edge 1 to edge 2, C = sgn |d| - h
+# with d the vector between the closest points, and the gradients of a point-point distance
+# distributed by the closest-point parameters.
+# --------------------------------------------------------------------------------------------
+@wp.func
+def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn: float, thickness: float):
+    """Returns (C, g1, g2, g3, g4) for the paper's edge-edge constraint."""
+    e12 = p2 - p1
+    e34 = p4 - p3
+    e14 = p4 - p1
+    n = wp.cross(e12, e34)
+    ln2 = wp.dot(n, n)
+    scale = wp.max(wp.dot(e12, e12), wp.dot(e34, e34))
+    if ln2 > 1.0e-12 * scale * scale:
+        ln = wp.sqrt(ln2)
+        me14 = e14 - n * (wp.dot(n, e14) / ln2)  # M e14
+        u34 = wp.cross(me14, e34)  # (e14^T M) e34*  as a vector: e14^T M (e34 x .)
+        u12 = wp.cross(me14, e12)
+        c = sgn * wp.dot(e14, n) / ln - thickness
+        g1 = sgn * (u34 - n) / ln
+        g2 = -sgn * u34 / ln
+        g3 = -sgn * u12 / ln
+        g4 = sgn * (u12 + n) / ln
+        return c, g1, g2, g3, g4
+    # parallel edges: the perpendicular between the closest points
+    st = segment_closest(p1, p2, p3, p4)
+    q1 = p1 + st[0] * e12
+    q2 = p3 + st[1] * e34
+    d = q2 - q1
+    ld = wp.length(d)
+    if ld < 1.0e-20:
+        z = wp.vec3(0.0)
+        return 0.0, z, z, z, z
+    u = d / ld
+    c = sgn * ld - thickness
+    g1 = -sgn * (1.0 - st[0]) * u
+    g2 = -sgn * st[0] * u
+    g3 = sgn * (1.0 - st[1]) * u
+    g4 = sgn * st[1] * u
+    return c, g1, g2, g3, g4
+
+
+@wp.kernel
+def project_edge_edge_kernel(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    ee_count: wp.array(dtype=wp.int32),
+    ee_a: wp.array(dtype=wp.int32),
+    ee_b: wp.array(dtype=wp.int32),
+    ee_sign: wp.array(dtype=wp.float32),
+    thickness: float,
+    # outputs
+    delta: wp.array(dtype=wp.vec3),
+    delta_count: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    if k >= wp.min(ee_count[0], ee_a.shape[0]):
+        return
+    i1 = edge_indices[ee_a[k], 0]
+    i2 = edge_indices[ee_a[k], 1]
+    i3 = edge_indices[ee_b[k], 0]
+    i4 = edge_indices[ee_b[k], 1]
+    c, g1, g2, g3, g4 = edge_edge_constraint(x[i1], x[i2], x[i3], x[i4], ee_sign[k], thickness)
+    if c >= 0.0:
+        return
+    w1 = inv_mass[i1]
+    w2 = inv_mass[i2]
+    w3 = inv_mass[i3]
+    w4 = inv_mass[i4]
+    den = w1 * wp.dot(g1, g1) + w2 * wp.dot(g2, g2) + w3 * wp.dot(g3, g3) + w4 * wp.dot(g4, g4)
+    if den < 1.0e-30:
+        return
+    s = -c / den
+    wp.atomic_add(delta, i1, s * w1 * g1)
+    wp.atomic_add(delta, i2, s * w2 * g2)
+    wp.atomic_add(delta, i3, s * w3 * g3)
+    wp.atomic_add(delta, i4, s * w4 * g4)
+    wp.atomic_add(delta_count, i1, 1)
+    wp.atomic_add(delta_count, i2, 1)
+    wp.atomic_add(delta_count, i3, 1)
+    wp.atomic_add(delta_count, i4, 1)
+    wp.atomic_add(active, 0, 1)
+
+
+@wp.kernel
+def apply_deltas_kernel(
+    delta: wp.array(dtype=wp.vec3),
+    delta_count: wp.array(dtype=wp.int32),
+    # outputs
+    x: wp.array(dtype=wp.vec3),
+):
+    """Jacobi averaging: x += sum of corrections / their count; resets the accumulators."""
+    i = wp.tid()
+    n = delta_count[i]
+    if n > 0:
+        x[i] = x[i] + delta[i] / float(n)
+        delta[i] = wp.vec3(0.0)
+        delta_count[i] = 0
+
+
+# --------------------------------------------------------------------------------------------
+# Friction and restitution (after the velocity update) for point-triangle contacts: with the
+# relative velocity u = v_p - (b0 v_a + b1 v_b + b2 v_c) and the contact normal n,
+#   approaching (u_n < 0):  dv_n = -(1 + e) u_n,
+#   tangential: u_t = u - u_n n, reduced by min(1, mu |dv_n| / |u_t|) (Coulomb),
+# the change split between the point and the triangle by inverse masses.
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def friction_restitution_kernel(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    friction: float,
+    restitution: float,
+    # outputs
+    dv: wp.array(dtype=wp.vec3),
+    dv_count: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    if k >= wp.min(pt_count[0], pt_vertex.shape[0]):
+        return
+    i = pt_vertex[k]
+    t = pt_triangle[k]
+    ia = tri_indices[t, 0]
+    ib = tri_indices[t, 1]
+    ic = tri_indices[t, 2]
+    a = x[ia]
+    b = x[ib]
+    c = x[ic]
+    n = wp.cross(b - a, c - a)
+    ln = wp.length(n)
+    if ln < 1.0e-20:
+        return
+    n = n / ln
+    bary = closest_on_triangle(x[i], a, b, c)
+    bary = wp.vec3(wp.clamp(bary[0], 0.0, 1.0), wp.clamp(bary[1], 0.0, 1.0), wp.clamp(bary[2], 0.0, 1.0))
+    u = v[i] - (bary[0] * v[ia] + bary[1] * v[ib] + bary[2] * v[ic])
+    un = wp.dot(u, n)
+    change = wp.vec3(0.0)
+    if un < 0.0:
+        change = -(1.0 + restitution) * un * n
+    ut = u - un * n
+    lt = wp.length(ut)
+    if lt > 1.0e-12:
+        change = change - wp.min(1.0, friction * wp.abs(un) / lt) * ut
+    wpp = inv_mass[i]
+    den = wpp + inv_mass[ia] * bary[0] * bary[0] + inv_mass[ib] * bary[1] * bary[1] + inv_mass[ic] * bary[2] * bary[2]
+    if den < 1.0e-30:
+        return
+    s = 1.0 / den
+    wp.atomic_add(dv, i, s * wpp * change)
+    wp.atomic_add(dv, ia, -s * inv_mass[ia] * bary[0] * change)
+    wp.atomic_add(dv, ib, -s * inv_mass[ib] * bary[1] * change)
+    wp.atomic_add(dv, ic, -s * inv_mass[ic] * bary[2] * change)
+    wp.atomic_add(dv_count, i, 1)
+    wp.atomic_add(dv_count, ia, 1)
+    wp.atomic_add(dv_count, ib, 1)
+    wp.atomic_add(dv_count, ic, 1)
+
+
+@wp.kernel
+def reset_collision_kernel(
+    # outputs
+    colliding: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    colliding[i] = 0
+
+
+@wp.kernel
+def volume_weights_kernel(
+    colliding: wp.array(dtype=wp.int32),
+    # outputs
+    weight_scale: wp.array(dtype=wp.float32),
+):
+    """Colliding particles get weight 0 in the volume loop (Diziol et al. 2011)."""
+    i = wp.tid()
+    if colliding[i] != 0:
+        weight_scale[i] = 0.0
+    else:
+        weight_scale[i] = 1.0
+
+
+@wp.kernel
+def zero_counts_kernel(
+    # outputs
+    counts: wp.array(dtype=wp.int32),
+):
+    """Reset the point-triangle and edge-edge counters; the overflow flag (counts[2]) stays
+    until the host has seen it."""
+    counts[0] = 0
+    counts[1] = 0

@@ -1,0 +1,240 @@
+"""Self-collision: constraint gradients against finite differences, single-projection
+separation, detection against brute force, buffer overflow and growth (every device)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpskin.kernels import collision as k
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def _edge_edge_eval(p: wp.array(dtype=wp.vec3), sgn: float, h: float, out_c: wp.array(dtype=float), out_g: wp.array(dtype=wp.vec3)):
+    c, g1, g2, g3, g4 = k.edge_edge_constraint(p[0], p[1], p[2], p[3], sgn, h)
+    out_c[0] = c
+    out_g[0] = g1
+    out_g[1] = g2
+    out_g[2] = g3
+    out_g[3] = g4
+
+
+def _ee(points, sgn, h, device):
+    p = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
+    c = wp.zeros(1, dtype=float, device=device)
+    g = wp.zeros(4, dtype=wp.vec3, device=device)
+    wp.launch(_edge_edge_eval, dim=1, inputs=[p, sgn, h, c, g], device=device)
+    return float(c.numpy()[0]), g.numpy().astype(np.float64)
+
+
+def _ee_reference(p, sgn, h):
+    n = np.cross(p[1] - p[0], p[3] - p[2])
+    return sgn * (p[3] - p[0]) @ n / np.linalg.norm(n) - h
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_edge_edge_gradient_equals_finite_differences(device, seed):
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(4, 3))
+    sgn, h = (1.0 if seed % 2 else -1.0), 0.01
+    c, g = _ee(p, sgn, h, device)
+    assert c == pytest.approx(_ee_reference(p, sgn, h), abs=1e-5)
+    eps = 1e-5
+    for i in range(4):
+        for d in range(3):
+            dp = np.zeros((4, 3))
+            dp[i, d] = eps
+            fd = (_ee_reference(p + dp, sgn, h) - _ee_reference(p - dp, sgn, h)) / (2 * eps)
+            assert g[i, d] == pytest.approx(fd, abs=2e-3 * max(1.0, abs(fd)))
+
+
+def test_edge_edge_parallel_branch(device):
+    # two parallel edges 0.02 apart along z: C = sgn |d| - h, gradient along the perpendicular
+    p = np.array([[0, 0, 0], [1, 0, 0], [0.2, 0, 0.02], [0.8, 0, 0.02]], dtype=float)
+    c, g = _ee(p, 1.0, 0.005, device)
+    assert c == pytest.approx(0.02 - 0.005, abs=1e-6)
+    # moving the second edge up by e changes C by e: finite differences of the distance
+    assert g[2, 2] + g[3, 2] == pytest.approx(1.0, abs=1e-5)
+    assert g[0, 2] + g[1, 2] == pytest.approx(-1.0, abs=1e-5)
+    assert np.abs(g[:, :2]).max() < 1e-6
+
+
+def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h=0.01):
+    x = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
+    w = wp.array(inv_mass.astype(np.float32), dtype=wp.float32, device=device)
+    tris = wp.array(np.asarray(tri, dtype=np.int32).reshape(-1, 3), dtype=wp.int32, device=device)
+    n = len(points)
+    delta = wp.zeros(n, dtype=wp.vec3, device=device)
+    count = wp.zeros(n, dtype=wp.int32, device=device)
+    active = wp.zeros(1, dtype=wp.int32, device=device)
+    if pt is not None:
+        cnt = wp.array([len(pt)], dtype=wp.int32, device=device)
+        wp.launch(k.project_point_triangle_kernel, dim=len(pt),
+                  inputs=[x, w, tris, cnt, wp.array([v for v, _ in pt], dtype=wp.int32, device=device),
+                          wp.array([t for _, t in pt], dtype=wp.int32, device=device), h],
+                  outputs=[delta, count, active], device=device)
+    if ee is not None:
+        cnt = wp.array([len(ee)], dtype=wp.int32, device=device)
+        e = wp.array(np.asarray(edges, dtype=np.int32), dtype=wp.int32, device=device)
+        wp.launch(k.project_edge_edge_kernel, dim=len(ee),
+                  inputs=[x, w, e, cnt, wp.array([a for a, _, _ in ee], dtype=wp.int32, device=device),
+                          wp.array([b for _, b, _ in ee], dtype=wp.int32, device=device),
+                          wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), h],
+                  outputs=[delta, count, active], device=device)
+    wp.launch(k.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
+    return x.numpy().astype(np.float64), int(active.numpy()[0])
+
+
+def test_point_pushed_through_a_triangle_is_separated_by_one_projection(device):
+    tri = [0, 1, 2]  # in the plane z = 0, normal +z (counter-clockwise from above)
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.25, 0.25, -0.03]], dtype=float)
+    inv_mass = np.array([1.0, 2.0, 0.5, 1.0])
+    h = 0.01
+    x, active = _project_once(device, points, inv_mass, tri, pt=[(3, 0)], h=h)
+    assert active == 1
+    n = np.cross(x[1] - x[0], x[2] - x[0])
+    n /= np.linalg.norm(n)
+    assert (x[3] - x[0]) @ n == pytest.approx(h, abs=1e-3 * h)  # exactly at the thickness, first order
+    # momentum is conserved: sum of m dx = 0
+    m = 1.0 / inv_mass
+    assert np.abs((m[:, None] * (x - points)).sum(0)).max() < 1e-6
+
+
+def test_crossing_edges_are_separated_by_one_projection(device):
+    # edge 1 along x at z = 0; edge 2 along y, pushed from z = +0.02 (its side at the start) to
+    # z = -0.01: one projection restores C = h on the original side
+    points = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, -0.01], [0, 1, -0.01]], dtype=float)
+    edges = [[0, 1], [2, 3]]
+    start = points.copy()
+    start[2:, 2] = 0.02
+    n0 = np.cross(start[1] - start[0], start[3] - start[2])
+    sgn = float(np.sign((start[3] - start[0]) @ n0))
+    h = 0.005
+    x, active = _project_once(device, points, np.ones(4), [0, 1, 2], ee=[(0, 1, sgn)], edges=edges, h=h)
+    assert active == 1
+    assert _ee_reference(x, sgn, 0.0) == pytest.approx(h, rel=1e-3)
+    assert x[2, 2] > x[0, 2]  # edge 2 is back above edge 1
+
+
+# ---------------------------------------------------------------- detection and the whole solver
+from warpskin.collision import CollisionParams, SelfCollision  # noqa: E402
+from warpskin.metrics import self_intersections  # noqa: E402
+from warpskin.model import ModelParams, SkinModelBuilder  # noqa: E402
+from warpskin.scene import load_scene  # noqa: E402
+from warpskin.scenes.arm import make_arm  # noqa: E402
+from warpskin.simulate import simulate  # noqa: E402
+
+COARSE = "[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n[animation]\nclip = 'flex'\nfps = 30\n"
+
+
+def _pairs(col):
+    c = col.counts.numpy()
+    pt = set(zip(col.pt_vertex.numpy()[: c[0]].tolist(), col.pt_triangle.numpy()[: c[0]].tolist()))
+    ee = set(zip(col.ee_a.numpy()[: c[1]].tolist(), col.ee_b.numpy()[: c[1]].tolist()))
+    return pt, ee
+
+
+def _pressed_arm(device, capacity):
+    """The coarse arm's skin at LBS 150 degrees (forearm pressed into the upper arm)."""
+    rig = make_arm(rings=30, segments=20)
+    model = SkinModelBuilder(rig, ModelParams(volume=False)).finalize(device)
+    col = SelfCollision(model, CollisionParams(capacity=capacity))
+    from warpskin.simulate import initial_state
+
+    a, b = model.state(), model.state()
+    initial_state(model, a, rig.skinning_matrices("flex", 1.2))
+    initial_state(model, b, rig.skinning_matrices("flex", 1.5))
+    col.detect(a.x, b.x)
+    return rig, col, a, b
+
+
+def test_overflow_grows_and_finds_the_same_pairs(device):
+    rig, big, a, b = _pressed_arm(device, 1 << 15)
+    assert not big.overflowed()
+    ref = _pairs(big)
+    assert len(ref[0]) > 10 and len(ref[1]) > 10
+    _, small, a2, b2 = _pressed_arm(device, 8)
+    assert small.overflowed()  # the flag, never a silent drop
+    while small.overflowed():
+        small.grow()
+        small.detect(a2.x, b2.x)
+    assert small.capacity > 8
+    assert _pairs(small) == ref
+
+
+def test_detected_point_triangle_pairs_match_brute_force(device):
+    # every (vertex, triangle) pair whose predicted point lies within the thickness in front of
+    # or behind the triangle, projecting inside it, and from different patches, is found
+    rig, col, a, b = _pressed_arm(device, 1 << 15)
+    pt, _ = _pairs(col)
+    x = b.x.numpy()[: rig.vertex_count].astype(np.float64)
+    rest = rig.vertices
+    tris = rig.triangles
+    h, gap = col.thickness, col.rest_gap
+    p0, p1, p2 = x[tris[:, 0]], x[tris[:, 1]], x[tris[:, 2]]
+    n = np.cross(p1 - p0, p2 - p0)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    missing = 0
+    for i in range(rig.vertex_count):
+        d = np.einsum("tj,tj->t", x[i] - p0, n)
+        cand = np.nonzero((d < h * 0.99) & (d > -h * 0.99))[0]
+        for t in cand:
+            if i in tris[t] or np.linalg.norm(rest[tris[t]] - rest[i], axis=1).min() < gap:
+                continue
+            # barycentric inside test
+            e0, e1, dd = p1[t] - p0[t], p2[t] - p0[t], x[i] - p0[t]
+            m = np.array([[e0 @ e0, e0 @ e1], [e0 @ e1, e1 @ e1]])
+            v, w = np.linalg.solve(m, [dd @ e0, dd @ e1])
+            if min(v, w, 1 - v - w) > 1e-3:
+                missing += (i, int(t)) not in pt
+    assert missing == 0
+
+
+def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path):
+    p = tmp_path / "arm.toml"
+    p.write_text(COARSE + "frames = [0, 60]\n[solver]\niterations = 10\n")
+    result = simulate(load_scene(p), tmp_path / "arm.usdc", device="cpu", with_lbs=True, check_intersections=True,
+                      progress=False)
+    m, s = result.metrics, result.summary
+    print(f"intersecting skin triangle pairs per frame: warpskin max {max(m['intersecting_pairs'])}, "
+          f"LBS max {max(m['intersecting_pairs_lbs'])}; volume deviation {s['max_volume_deviation']:.2e} "
+          f"(LBS {s['max_volume_deviation_lbs']:.2e}); sub-volumes {s['max_subvolume_deviation']:.2e}")
+    assert max(m["intersecting_pairs_lbs"]) > 20
+    assert max(m["intersecting_pairs"]) == 0  # every exported frame
+    assert s["max_volume_deviation"] < 0.009 and s["max_subvolume_deviation"] < s["max_subvolume_deviation_lbs"] / 10
+    assert max(m["contacts_point_triangle"]) > 0 and max(m["contacts_edge_edge"]) > 0
+    # an independent recount from the written file
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(result.path))
+    skin = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    lbs = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr()
+    rig = load_scene(p).rig()
+    last = np.array(skin.Get(60), dtype=np.float64)
+    assert len(self_intersections(last, rig.triangles)) == 0
+    # the contact region bulges: around the contact, the upper arm's skin moves out from the
+    # upper-arm bone further than LBS puts it (volume pushed out of the pressed patch)
+    lbs_last = np.array(lbs.Get(60), dtype=np.float64)
+    g = rig.joint_world_transforms("flex", rig.clip("flex").start + 60 / 30)
+    axis0, axis1 = g[0, :3, 3], g[1, :3, 3]
+    u = (axis1 - axis0) / np.linalg.norm(axis1 - axis0)
+
+    def radius(points):
+        d = points - axis0
+        return np.linalg.norm(d - np.outer(d @ u, u), axis=1)
+
+    upper = (rig.vertices[:, 0] > 0.12) & (rig.vertices[:, 0] < 0.26)
+    gain = radius(last)[upper] - radius(lbs_last)[upper]
+    print(f"upper arm: largest outward bulge against LBS {1e3 * gain.max():.1f} mm, largest inward (contact) {1e3 * gain.min():.1f} mm")
+    assert gain.min() < -1e-3  # the pressed patch is flattened
+    assert gain.max() > 1e-3  # and the flesh around it bulges out
+
+
+def test_collision_params_rejected():
+    with pytest.raises(Exception, match="thickness must be a positive"):
+        CollisionParams(thickness=-1.0).check()
+    with pytest.raises(Exception, match="restitution must be in"):
+        CollisionParams(restitution=2.0).check()
