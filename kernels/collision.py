@@ -105,8 +105,8 @@ def detect_point_triangle_kernel(
     i = wp.tid()
     p0 = x_old[i]
     p1 = x_pred[i]
-    pad = wp.vec3(radius)
-    query = wp.bvh_query_aabb(bvh, wp.min(p0, p1) - pad, wp.max(p0, p1) + pad)
+    # the triangle boxes are already inflated by the search radius: the query box is not
+    query = wp.bvh_query_aabb(bvh, wp.min(p0, p1), wp.max(p0, p1))
     t = int(0)
     while wp.bvh_query_next(query, t):
         ia = tri_indices[t, 0]
@@ -208,9 +208,8 @@ def detect_edge_edge_kernel(
     i2 = edge_indices[e, 1]
     p1 = x_pred[i1]
     p2 = x_pred[i2]
-    pad = wp.vec3(radius)
-    lo = wp.min(wp.min(p1, p2), wp.min(x_old[i1], x_old[i2])) - pad
-    hi = wp.max(wp.max(p1, p2), wp.max(x_old[i1], x_old[i2])) + pad
+    lo = wp.min(wp.min(p1, p2), wp.min(x_old[i1], x_old[i2]))  # triangle boxes carry the radius
+    hi = wp.max(wp.max(p1, p2), wp.max(x_old[i1], x_old[i2]))
     query = wp.bvh_query_aabb(bvh, lo, hi)
     t = int(0)
     while wp.bvh_query_next(query, t):

@@ -119,7 +119,9 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     """Milliseconds per solver step, split as the paper's Table 1, per scene.
 
     Per scene: ``particles``, ``iterations``; ``elasticity_ms`` (the elasticity loop: region fit
-    and goal blend with coupling and joint constraints, direct gather) and
+    and goal blend with coupling and joint constraints, direct gather); ``collision_ms`` (skin
+    self-collision: detection plus the contact passes of every iteration; ``collision_detect_ms``
+    the detection alone, ``contacts`` the candidates found, point-triangle and edge-edge) and
     ``elasticity_fast_summation_ms`` (the same with prefix scans along the paths);
     ``volume_ms`` (the volume loop); ``total_ms`` (a whole step, plain launches) and
     ``total_graph_ms`` (a whole step replayed from a captured graph); ``lbs_ms`` (the LBS
@@ -143,9 +145,11 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
             continue
         clip = rig.clip(scene.clip)
         model = SkinModelBuilder(rig, scene.model_params()).finalize(dev)
-        solver = SkinSolver(model, params)
+        collision = scene.collision_params()
+        solver = SkinSolver(model, params, collision=collision)
+        col = solver.collision
         a, b, c = model.state(), model.state(), model.control()
-        t_mid = clip.start + 0.5 * clip.duration
+        t_mid = clip.start + 0.4 * clip.duration  # the arm: 2 s, flexed, forearm pressing
         initial_state(model, a, rig.skinning_matrices(clip, t_mid))
         c.set_pose(rig.skinning_matrices(clip, t_mid + 0.01))
         dt = params.dt
@@ -160,10 +164,22 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
                 solver._blend(b.x, q_dst, it)
                 q_src, q_dst = q_dst, q_src
 
+        def collisions():
+            col.detect(a.x, b.x)
+            for _ in range(params.iterations):
+                col.project(b.x, model.particle_inv_mass)
+
         fast0 = params.fast_summation
         row = {"particles": model.particle_count, "vertices": model.vertex_count, "iterations": params.iterations,
                "volume_iterations": params.volume_iterations}
         row["elasticity_ms"] = _best_ms(lambda f: elasticity(False), steps, repeat, dev)
+        if col is not None:
+            collisions()
+            row["collision_ms"] = _best_ms(lambda f: collisions(), steps, repeat, dev)
+            row["collision_detect_ms"] = _best_ms(lambda f: col.detect(a.x, b.x), steps, repeat, dev)
+            row["contacts"] = [int(c) for c in col.counts.numpy()[:2]]
+        else:
+            row["collision_ms"] = 0.0
         elasticity(True)  # compile the scan kernels
         row["elasticity_fast_summation_ms"] = _best_ms(lambda f: elasticity(True), steps, repeat, dev)
         solver.params.fast_summation = fast0

@@ -117,7 +117,13 @@ class SkinModelBuilder:
 
         from .build.paths import build_path_layout, region_runs
 
-        self.paths = self._stage("paths", lambda: build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices))
+        # paths of at most 32 vertices: the scan runs one thread per path and layer, and the
+        # unbounded layout is one path per layer on a tube (4 threads; 36 ms on an H100 against
+        # 1.6 ms for the direct gather). Runs per region rise only slightly.
+        self.paths = self._stage(
+            "paths",
+            lambda: build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices, max_path_length=32),
+        )
         self.runs = self._stage("runs", lambda: region_runs(self.paths, self.regions.ring_offsets, self.regions.ring_members))
         if p.volume:
             from .build.subvolumes import build_subvolumes
