@@ -186,12 +186,16 @@ def cmd_simulate(args) -> int:
     line = (
         f"wrote {result.path} ({s['frames']} frames, {s['particles']} particles, {s['substeps_per_frame']} substeps "
         f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']}); "
-        f"volume deviation: warpskin {100 * s['max_volume_deviation']:.2f} %, LBS {100 * s['max_volume_deviation_lbs']:.2f} %"
+        f"largest volume deviation after the first frame: warpskin {100 * s['max_volume_deviation']:.2f} %, "
+        f"LBS {100 * s['max_volume_deviation_lbs']:.2f} %"
     )
     print(line)
     if "max_intersecting_pairs" in s:
         print(f"intersecting skin triangle pairs (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
               f"LBS {s['max_intersecting_pairs_lbs']}")
+        if s["intersecting_pairs_first_frame"]:
+            print(f"note: the first frame's pose already self-intersects ({s['intersecting_pairs_first_frame']} pairs); "
+                  "contacts keep surfaces apart but cannot undo intersections they start with")
     if args.report:
         print(f"report: {Path(args.report) / 'report.json'}")
     return 0

@@ -272,8 +272,9 @@ def simulate(
         bar.close()
     writer.close()  # on a NaN the frames before it stay, in a valid file
 
-    vol = np.array(metrics["volume"])
-    vol_lbs = np.array(metrics["volume_lbs"])
+    # frame 0 is the LBS pose by construction (the simulation starts there): measure after it
+    vol = np.array(metrics["volume"][1:])
+    vol_lbs = np.array(metrics["volume_lbs"][1:])
     v0 = metrics["volume_rest"]
     summary = {
         "scene": scene.name,
@@ -298,10 +299,12 @@ def simulate(
     if check_intersections and metrics["intersecting_pairs"]:
         summary["max_intersecting_pairs"] = max(metrics["intersecting_pairs"])
         summary["max_intersecting_pairs_lbs"] = max(metrics["intersecting_pairs_lbs"])
+        summary["intersecting_pairs_first_frame"] = metrics["intersecting_pairs"][0]
     if subs is not None and metrics["subvolume"]:
         rest = np.array(metrics["subvolume_rest"])
-        summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"]) / rest - 1).max())
-        summary["max_subvolume_deviation_lbs"] = float(np.abs(np.array(metrics["subvolume_lbs"]) / rest - 1).max())
+        if len(metrics["subvolume"]) > 1:
+            summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"][1:]) / rest - 1).max())
+            summary["max_subvolume_deviation_lbs"] = float(np.abs(np.array(metrics["subvolume_lbs"][1:]) / rest - 1).max())
         summary["subvolume_names"] = list(subs.names)
     result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
     if report_dir is not None:
