@@ -254,3 +254,25 @@ def moment_matrices_kernel(
     """Oriented-particle moment matrices ``mu_i R(q_i)`` (rest orientation: identity)."""
     i = wp.tid()
     moment_matrix[i] = particle_moment[i] * wp.quat_to_matrix(q[i])
+
+
+# --------------------------------------------------------------------------------------------
+# Rest-shape drive (muscle activation in the layered model): the region rest offsets are
+#   o_e(a) = o_e + sum_g a_g d_ge
+# where d_ge is entry e's offset change when group g clenches fully (precomputed on the host
+# from the clenched examples: the muscle layer's rest positions move, the regions' rest centres
+# follow), and a_g in [0, 1] the group's activation.
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def rest_offsets_drive_kernel(
+    base_offsets: wp.array(dtype=wp.vec3),
+    delta_offsets: wp.array2d(dtype=wp.vec3),
+    activation: wp.array(dtype=wp.float32),
+    # outputs
+    region_rest_offsets: wp.array(dtype=wp.vec3),
+):
+    e = wp.tid()
+    o = base_offsets[e]
+    for g in range(delta_offsets.shape[0]):
+        o += activation[g] * delta_offsets[g, e]
+    region_rest_offsets[e] = o

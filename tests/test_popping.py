@@ -336,7 +336,7 @@ def test_bad_parameters_are_clear_errors(arm_scene, tmp_path):
     text = (load_scene("popping_arm").source.read_text()
             .replace('generator = "popping_arm"', 'generator = "popping_arm"\n'))
     for old, new, message in [
-        ('mode = "goal"', 'mode = "layered"', "layered mode.*not available yet"),
+        ('mode = "goal"', 'mode = "dance"', "mode must be .goal. .*or .layered."),
         ("alpha_min = 0.1", "alpha_min = 0.0", r"alpha_min must be in \(0, 1\]"),
         ("beta = 30.0", "betta = 30.0", r"unknown key\(s\) \['betta'\]"),
         ("hold = 0.6", "hold = 1.2", "overlaps the beat at 1.25 s"),

@@ -250,9 +250,16 @@ def cmd_pop(args) -> int:
     result = run_popping(
         scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps,
         alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
-        comment="warpskin " + " ".join(sys.argv[1:]),
+        comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode,
     )
     s = result.summary
+    if s.get("mode") == "layered":
+        print(
+            f"wrote {result.path} ({result.frames} frames, layered: the muscle layer of {s['particles']} particles driven "
+            f"by groups {', '.join(s['groups'])}, {s['mean_step_ms']:.1f} ms per step on {s['device']}); largest volume "
+            f"deviation after the first frame {100 * s['max_volume_deviation']:.2f} %"
+        )
+        return 0
     print(
         f"wrote {result.path} ({result.frames} frames, {s['substeps']} steps of {s['dt_s'] * 1e3:.2f} ms per frame, "
         f"{s['vertices']} vertices, groups {', '.join(s['groups'])}, {s['ms_per_frame']:.2f} ms per frame on {s['device']}); "
@@ -364,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--beta", type=float, help="relaxation rate [1/s] (scene: [popping] beta)")
     s.add_argument("--dt", type=float, help="step length [s] (scene: [popping] dt)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--mode", choices=["goal", "layered"],
+                   help="goal: the paper's goal-driven skin; layered: the activation drives the multi-layer model's muscle layer")
     s.add_argument("--bench", action="store_true",
                    help="instead: time example-based skinning and the popping step per frame at 4322 vertices vs LBS (JSON)")
     s.add_argument("--steps", type=int, default=200, help="with --bench: frames per measurement")

@@ -92,11 +92,16 @@ def simulate(
     use_graph: bool = True,
     collision=None,
     check_intersections: bool | None = None,
+    rest_shape: tuple | None = None,
+    builder: SkinModelBuilder | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
     ``use_graph`` records each frame's substeps once as a Warp graph (CPU and CUDA) and
     replays it, which removes the per-launch overhead; the results are bit-identical.
+    ``rest_shape = (delta_offsets [G, M, 3], activation(t) -> [G])`` drives the rest shape by
+    activations (layered popping; see :func:`warpskin.popping.muscle_rest_offset_deltas`);
+    the activation of every substep is precomputed and uploaded once, like the poses.
     ``collision`` (:class:`~warpskin.collision.CollisionParams`) defaults to the scene's
     ``[collision]`` section (on unless disabled). If a frame finds more contact candidates than
     the buffers hold, the frame is run again with larger buffers. ``check_intersections`` counts
@@ -115,7 +120,7 @@ def simulate(
     if first < 0 or last < first:
         raise RigError(f"bad frame range {first}:{last}")
     t_build = time.perf_counter()
-    builder = SkinModelBuilder(rig, scene.model_params())
+    builder = builder or SkinModelBuilder(rig, scene.model_params())
     model = builder.finalize(device)
     build_s = time.perf_counter() - t_build
     collision = collision if collision is not None else scene.collision_params()
@@ -136,6 +141,18 @@ def simulate(
     frame_poses = np.stack([rig.skinning_matrices(clip, scene.frame_time(f)) for f in frame_list])
     poses_dev = wp.array(poses.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
     staging = wp.zeros(substeps * j, dtype=wp.mat44, device=dev)  # this frame's substep poses
+    act_dev = act_staging = None
+    n_groups = 0
+    if rest_shape is not None:
+        deltas, activation_of = rest_shape
+        activation_dev = solver.set_rest_shape_drive(deltas)
+        n_groups = activation_dev.shape[0]
+        acts = np.array([np.asarray(activation_of(t), dtype=np.float32).reshape(n_groups) for t in step_times]) \
+            if step_times else np.zeros((0, n_groups), np.float32)
+        act_dev = wp.array(acts.reshape(-1), dtype=wp.float32, device=dev)
+        act_staging = wp.zeros(max(substeps * n_groups, 1), dtype=wp.float32, device=dev)
+        wp.copy(activation_dev, wp.array(np.asarray(activation_of(scene.frame_time(frame_list[0])), np.float32).reshape(n_groups),
+                                         dtype=wp.float32, device=dev))
     state_a, state_b, control = model.state(), model.state(), model.control()
     initial_state(model, state_a, frame_poses[0])
 
@@ -143,6 +160,8 @@ def simulate(
         """All substeps of one frame from ``sa``; returns the state holding the result."""
         for s_ in range(substeps):
             wp.copy(control.skin_matrices, staging, dest_offset=0, src_offset=s_ * j, count=j)
+            if act_staging is not None:
+                wp.copy(solver.rest_activation, act_staging, dest_offset=0, src_offset=s_ * n_groups, count=n_groups)
             solver.step(sa, sb, control, dt)
             sa, sb = sb, sa
         return sa, sb
@@ -194,6 +213,9 @@ def simulate(
             t0 = time.perf_counter()
             if fi > 0:
                 wp.copy(staging, poses_dev, dest_offset=0, src_offset=(fi - 1) * substeps * j, count=substeps * j)
+                if act_staging is not None:
+                    wp.copy(act_staging, act_dev, dest_offset=0, src_offset=(fi - 1) * substeps * n_groups,
+                            count=substeps * n_groups)
                 if backup is not None:
                     copy_state(backup, state_a)
                 frame_retries = 0

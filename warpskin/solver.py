@@ -148,6 +148,32 @@ class SkinSolver:
         g = self.params.gravity
         self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
 
+    # ------------------------------------------------------------------ rest-shape drive
+    def set_rest_shape_drive(self, delta_offsets: np.ndarray) -> wp.array:
+        """Let activations move the rest shape (muscle activation in the layered model).
+
+        Args:
+            delta_offsets: Change of every region rest offset when group g is fully active,
+                ``[G, M, 3]`` [m] (M = region entries; see
+                :func:`warpskin.popping.muscle_rest_offset_deltas`).
+
+        Returns:
+            The activation array ``[G]`` (float32, on the device), read by every step; write it
+            (or copy into it) between steps. Requires the direct gather (the fast summation
+            reads the rest positions themselves).
+        """
+        d = np.asarray(delta_offsets, dtype=np.float32)
+        m = self.model
+        if d.ndim != 3 or d.shape[1:] != (m.region_members.shape[0], 3):
+            raise RigError(f"rest-shape deltas must have shape [G, {m.region_members.shape[0]}, 3], got {d.shape}")
+        if self.params.fast_summation:
+            raise RigError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
+        with wp.ScopedDevice(self.device):
+            self.rest_base_offsets = wp.clone(m.region_rest_offsets)
+            self.rest_delta_offsets = wp.array(d, dtype=wp.vec3)
+            self.rest_activation = wp.zeros(d.shape[0], dtype=wp.float32)
+        return self.rest_activation
+
     # ------------------------------------------------------------------ pieces of a step
     def update_moments(self, q: wp.array) -> None:
         """Oriented-particle moment matrices of orientations ``q`` (before a fit that follows
@@ -231,6 +257,10 @@ class SkinSolver:
         m = self.model
         dev = self.device
         n = m.particle_count
+        if getattr(self, "rest_activation", None) is not None:
+            wp.launch(k_sm.rest_offsets_drive_kernel, dim=m.region_members.shape[0],
+                      inputs=[self.rest_base_offsets, self.rest_delta_offsets, self.rest_activation],
+                      outputs=[m.region_rest_offsets], device=dev)
         # 1-4: prediction
         wp.launch(k_int.predict_kernel, dim=n, inputs=[state_in.x, state_in.v, state_in.q, state_in.omega, self._gravity, dt],
                   outputs=[state_out.x, state_out.v, state_out.q], device=dev)
