@@ -208,10 +208,13 @@ def cmd_bench(args) -> int:
         result = run_build_bench(args.scenes or ["arm", "cesium_man", "arm35k"])
     else:
         scenes = args.scenes or ["arm", "cesium_man"]
+        from .popping import bench_popping
+
         result = {
             "solver": run_solver_bench(scenes, device=args.device, steps=args.steps, repeat=args.repeat),
             "skinning": run_skinning_bench([s for s in scenes if not _missing_asset(s)], device=args.device,
                                            frames=args.bench_frames, repeat=args.repeat),
+            "popping": bench_popping(args.device, steps=max(args.steps, 50), repeat=args.repeat),
         }
     text = json.dumps(result, indent=2)
     if args.json:
