@@ -1235,3 +1235,65 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     summary["mode"] = "layered"
     summary["groups"] = groups
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
+
+
+def examples_from_morph_targets(
+    rig: Rig,
+    targets: Mapping[str, np.ndarray],
+    *,
+    normal: Sequence[tuple[str | None, object]],
+    clenched: Mapping[str, Sequence[tuple[str, object]]],
+    clip: Clip | str | None = None,
+) -> PoppingExamples:
+    """Popping examples from morph targets of the rig's mesh (for instance from
+    :func:`warpskin.io.gltf.read_gltf_morph_targets`).
+
+    Each example is the rest mesh plus a target's offsets (``None``: the rest mesh itself),
+    skinned at the example's pose; then :func:`examples_from_meshes` (which checks topology
+    and pairing) turns them into rest-frame displacements.
+
+    Args:
+        rig: The rig whose mesh carries the targets.
+        targets: ``{name: offsets}``, offsets per *file* vertex ``[N, 3]`` (or per welded
+            vertex ``[V, 3]``) in the rest (bind) space.
+        normal: ``[(target or None, pose), ...]``: the normal examples.
+        clenched: ``{group: [(target, pose), ...]}``: the clenched examples of each muscle group,
+            each at the pose of a normal example.
+        clip: Clip for poses given as times.
+
+    Raises:
+        RigError: an unknown target (listing the known ones), offsets of the wrong size.
+    """
+    def welded(name: str | None, label: str) -> np.ndarray:
+        if name is None:
+            return np.zeros_like(rig.vertices)
+        if name not in targets:
+            raise RigError(f"{label}: no morph target {name!r}; targets: {sorted(targets)}")
+        d = np.asarray(targets[name], dtype=np.float64)
+        if d.shape == (rig.file_vertex_count, 3):
+            first = np.zeros(rig.vertex_count, dtype=np.int64)
+            first[rig.weld_map[::-1]] = np.arange(rig.file_vertex_count)[::-1]  # first file vertex of each
+            return d[first]
+        if d.shape == (rig.vertex_count, 3):
+            return d
+        raise RigError(f"{label}: morph target {name!r} has offsets of shape {d.shape}; the rig has "
+                       f"{rig.file_vertex_count} file vertices ({rig.vertex_count} welded)")
+
+    def mesh_at(name, pose, label):
+        mats = _pose_matrices(rig, pose, clip, label)
+        pts = rig.vertices + welded(name, label)
+        return _lbs_points(rig, pts, mats), mats
+
+    normal_meshes = [mesh_at(n, pose, f"normal example {k}") for k, (n, pose) in enumerate(normal)]
+    clenched_meshes = {
+        group: [mesh_at(n, pose, f"clenched example {k} of {group!r}") for k, (n, pose) in enumerate(items)]
+        for group, items in clenched.items()
+    }
+    return examples_from_meshes(rig, normal_meshes, clenched_meshes)
+
+
+def _lbs_points(rig: Rig, points: np.ndarray, mats: np.ndarray) -> np.ndarray:
+    ji = np.clip(rig.joint_indices, 0, rig.joint_count - 1)
+    jw = np.where((rig.joint_indices >= 0) & (rig.joint_indices < rig.joint_count), rig.joint_weights, 0.0)
+    blend = np.einsum("vk,vkij->vij", jw, mats[ji])
+    return np.einsum("vij,vj->vi", blend[:, :3, :3], points) + blend[:, :3, 3]

@@ -1048,3 +1048,54 @@ def load_gltf(path: str | Path, *, mesh: str | None = None, weld: bool = True) -
     """
     p = Path(path)
     return _wrapped(p, lambda: _load(p, mesh, weld))
+
+
+def read_gltf_morph_targets(path: str | Path, *, mesh: str | None = None) -> dict[str, np.ndarray]:
+    """Morph targets (blend shapes) of one skinned mesh: position offsets per file vertex.
+
+    Used for example meshes (for instance the clenched examples of the popping dance) stored as
+    morph targets of the rig's own mesh, in its rest (bind) space.
+
+    Args:
+        path: ``.glb`` or ``.gltf`` file.
+        mesh: The mesh instance, as for :func:`load_gltf` (default: the largest skinned mesh).
+
+    Returns:
+        ``{name: deltas [N, 3]}`` in the file's vertex order (the order of :func:`load_gltf`
+        before welding; map with ``Rig.weld_map``). Names come from the mesh's
+        ``extras.targetNames`` (the common exporter convention), else ``target_<i>``.
+
+    Raises:
+        RigError: primitives with different target counts, a target without POSITION, or
+            an accessor whose count differs from the primitive's POSITION.
+    """
+    p = Path(path)
+
+    def read() -> dict[str, np.ndarray]:
+        doc = _Document(p)
+        entry = _select(doc, _mesh_entries(doc), mesh)
+        m = doc.meshes[entry["mesh"]]
+        prims = list(m.primitives or [])
+        counts = {len(pr.targets or []) for pr in prims}
+        if len(counts) > 1:
+            raise doc.error(f"mesh {entry['name']!r}: primitives have different numbers of morph targets {sorted(counts)}")
+        n_targets = counts.pop() if counts else 0
+        extras = m.extras if isinstance(m.extras, dict) else {}
+        names = extras.get("targetNames") if isinstance(extras.get("targetNames"), list) else None
+        if names is None or len(names) != n_targets:
+            names = [f"target_{k}" for k in range(n_targets)]
+        out = {str(name): [] for name in names}
+        for pi, pr in enumerate(prims):
+            what = f"mesh {entry['name']!r} primitive {pi}"
+            n = doc.accessor_count(_attributes(pr)["POSITION"], f"{what} POSITION")
+            for k, target in enumerate(pr.targets or []):
+                t = target if isinstance(target, dict) else dict(target.__dict__)
+                if t.get("POSITION") is None:
+                    raise doc.error(f"{what} morph target {names[k]!r} has no POSITION offsets")
+                d = doc.accessor(t["POSITION"], f"{what} morph target {names[k]!r} POSITION")
+                if d.shape != (n, 3):
+                    raise doc.error(f"{what} morph target {names[k]!r}: {d.shape[0]} offsets for {n} vertices")
+                out[str(names[k])].append(d)
+        return {k: np.concatenate(v).astype(np.float64) for k, v in out.items()}
+
+    return _wrapped(p, read)
