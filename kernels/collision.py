@@ -55,6 +55,23 @@ def same_patch(a: int, b: int, rest: wp.array(dtype=wp.vec3), rest_gap: float) -
 
 
 @wp.func
+def unit_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """Unit normal of triangle abc (counter-clockwise: outward); zero for a degenerate one."""
+    n = wp.cross(b - a, c - a)
+    ln = wp.length(n)
+    if ln < 1.0e-20:
+        return wp.vec3(0.0)
+    return n / ln
+
+
+@wp.func
+def clamped_bary(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """Barycentric coordinates of p's projection, each clamped to [0, 1]."""
+    w = closest_on_triangle(p, a, b, c)
+    return wp.vec3(wp.clamp(w[0], 0.0, 1.0), wp.clamp(w[1], 0.0, 1.0), wp.clamp(w[2], 0.0, 1.0))
+
+
+@wp.func
 def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
     """Barycentric coordinates of the projection of p onto the plane of abc (may lie outside)."""
     e0 = b - a
@@ -80,8 +97,9 @@ def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.ve
 # to < 0), or the predicted point lies within the detection radius r in front of or behind it;
 # in both cases the projection must fall inside the triangle. r is a few times the thickness h:
 # detection runs once per step, and pairs that only come close during the constraint loop must
-# already be in the list (their constraint stays inactive while C >= 0). The constraint keeps the point on the
-# outer side of the skin: C(p, a, b, c) = n . (p - a) - h >= 0 (Mueller et al. 2007).
+# already be in the list (their constraint stays inactive while C >= 0). The constraint keeps
+# the point on the outer side of the skin: C(p, a, b, c) = n . (p - a) - h >= 0 (Mueller et al.
+# 2007).
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def detect_point_triangle_kernel(
@@ -120,11 +138,9 @@ def detect_point_triangle_kernel(
         a = x_pred[ia]
         b = x_pred[ib]
         c = x_pred[ic]
-        n = wp.cross(b - a, c - a)
-        ln = wp.length(n)
-        if ln < 1.0e-20:
+        n = unit_normal(a, b, c)
+        if wp.length(n) == 0.0:
             continue
-        n = n / ln
         d1 = wp.dot(p1 - a, n)
         a0 = x_old[ia]
         n0 = wp.cross(x_old[ib] - a0, x_old[ic] - a0)
@@ -291,16 +307,13 @@ def project_point_triangle_kernel(
     a = x[ia]
     b = x[ib]
     c = x[ic]
-    n = wp.cross(b - a, c - a)
-    ln = wp.length(n)
-    if ln < 1.0e-20:
+    n = unit_normal(a, b, c)
+    if wp.length(n) == 0.0:
         return
-    n = n / ln
     cval = wp.dot(p - a, n) - thickness
     if cval >= 0.0:
         return
-    bary = closest_on_triangle(p, a, b, c)
-    bary = wp.vec3(wp.clamp(bary[0], 0.0, 1.0), wp.clamp(bary[1], 0.0, 1.0), wp.clamp(bary[2], 0.0, 1.0))
+    bary = clamped_bary(p, a, b, c)
     wp_ = inv_mass[i]
     wa = inv_mass[ia]
     wb = inv_mass[ib]
@@ -463,13 +476,10 @@ def friction_restitution_kernel(
     a = x[ia]
     b = x[ib]
     c = x[ic]
-    n = wp.cross(b - a, c - a)
-    ln = wp.length(n)
-    if ln < 1.0e-20:
+    n = unit_normal(a, b, c)
+    if wp.length(n) == 0.0:
         return
-    n = n / ln
-    bary = closest_on_triangle(x[i], a, b, c)
-    bary = wp.vec3(wp.clamp(bary[0], 0.0, 1.0), wp.clamp(bary[1], 0.0, 1.0), wp.clamp(bary[2], 0.0, 1.0))
+    bary = clamped_bary(x[i], a, b, c)
     u = v[i] - (bary[0] * v[ia] + bary[1] * v[ib] + bary[2] * v[ic])
     un = wp.dot(u, n)
     change = wp.vec3(0.0)

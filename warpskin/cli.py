@@ -216,10 +216,15 @@ def cmd_bench(args) -> int:
                                            frames=args.bench_frames, repeat=args.repeat),
             "popping": bench_popping(args.device, steps=max(args.steps, 50), repeat=args.repeat),
         }
+    return _emit_json(result, args.json)
+
+
+def _emit_json(result: dict, path: str | None) -> int:
+    """Print a benchmark's JSON and, with ``--json FILE``, write it there too."""
     text = json.dumps(result, indent=2)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
-        print(f"wrote {args.json}")
+    if path:
+        Path(path).write_text(text + "\n")
+        print(f"wrote {path}")
     print(text)
     return 0
 
@@ -240,13 +245,7 @@ def cmd_pop(args) -> int:
     from .rig import RigError
 
     if args.bench:
-        result = bench_popping(args.device, steps=args.steps, repeat=args.repeat)
-        text = json.dumps(result, indent=2)
-        if args.json:
-            Path(args.json).write_text(text + "\n")
-            print(f"wrote {args.json}")
-        print(text)
-        return 0
+        return _emit_json(bench_popping(args.device, steps=args.steps, repeat=args.repeat), args.json)
     if args.target is None or args.output is None:
         raise RigError("pop needs a SCENE and -o OUT.usdc (or --bench)")
     scene = _scene_of(args)
