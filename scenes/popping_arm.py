@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from warpskin.rig import Clip, Rig, RigError, Track
+from warpskin.transforms import linear_blend_skin
 from warpskin.scenes.arm import ARM_DEFAULTS, make_arm
 
 __all__ = ["make_popping_arm", "popping_arm_examples", "popping_arm_meshes", "POPPING_ARM_DEFAULTS", "elbow_pose"]
@@ -123,11 +124,7 @@ def _bump(rest: np.ndarray, span, side: float, height: float) -> np.ndarray:
 
 
 def _skin(rig: Rig, points: np.ndarray, mats: np.ndarray) -> np.ndarray:
-    p = np.concatenate([points, np.ones((points.shape[0], 1))], axis=1)
-    out = np.zeros_like(points)
-    for k in range(rig.joint_indices.shape[1]):
-        out += rig.joint_weights[:, k, None] * np.einsum("vij,vj->vi", mats[rig.joint_indices[:, k]], p)[:, :3]
-    return out
+    return linear_blend_skin(points, rig.joint_indices, rig.joint_weights, mats)
 
 
 def popping_arm_meshes(rig: Rig, **params) -> dict:

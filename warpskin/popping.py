@@ -72,6 +72,7 @@ from .device import resolve_device
 from .kernels import popping as _k
 from .rig import Clip, Rig, RigError
 from .skinning import Skinner
+from .transforms import blend_skinning_matrices, linear_blend_skin
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -153,9 +154,7 @@ class PoppingExamples:
 
 def _lbs_parts(rig: Rig, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex blended linear part ``L`` ``[V, 3, 3]`` and the skinned rest mesh ``[V, 3]``."""
-    ji = np.clip(rig.joint_indices, 0, rig.joint_count - 1)
-    jw = np.where((rig.joint_indices >= 0) & (rig.joint_indices < rig.joint_count), rig.joint_weights, 0.0)
-    blend = np.einsum("vk,vkij->vij", jw, mats[ji])  # [V, 4, 4]
+    blend = blend_skinning_matrices(rig.joint_indices, rig.joint_weights, mats)  # [V, 4, 4]
     lin = blend[:, :3, :3]
     skinned = np.einsum("vij,vj->vi", lin, rig.vertices) + blend[:, :3, 3]
     return lin, skinned
@@ -1282,7 +1281,7 @@ def examples_from_morph_targets(
     def mesh_at(name, pose, label):
         mats = _pose_matrices(rig, pose, clip, label)
         pts = rig.vertices + welded(name, label)
-        return _lbs_points(rig, pts, mats), mats
+        return linear_blend_skin(pts, rig.joint_indices, rig.joint_weights, mats), mats
 
     normal_meshes = [mesh_at(n, pose, f"normal example {k}") for k, (n, pose) in enumerate(normal)]
     clenched_meshes = {
@@ -1291,9 +1290,3 @@ def examples_from_morph_targets(
     }
     return examples_from_meshes(rig, normal_meshes, clenched_meshes)
 
-
-def _lbs_points(rig: Rig, points: np.ndarray, mats: np.ndarray) -> np.ndarray:
-    ji = np.clip(rig.joint_indices, 0, rig.joint_count - 1)
-    jw = np.where((rig.joint_indices >= 0) & (rig.joint_indices < rig.joint_count), rig.joint_weights, 0.0)
-    blend = np.einsum("vk,vkij->vij", jw, mats[ji])
-    return np.einsum("vij,vj->vi", blend[:, :3, :3], points) + blend[:, :3, 3]

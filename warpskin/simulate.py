@@ -26,7 +26,8 @@ from .report import write_plots
 from .rig import RigError
 from .scene import Scene
 from .solver import SimulationError, SkinSolver, SolverParams
-from .transforms import matrix_to_quat
+from .skinning import dual_quaternions
+from .transforms import linear_blend_skin
 
 __all__ = ["SimulationResult", "simulate", "initial_state"]
 
@@ -49,14 +50,6 @@ class SimulationResult:
     summary: dict = field(default_factory=dict)
 
 
-def _lbs(points: np.ndarray, ji: np.ndarray, jw: np.ndarray, mats: np.ndarray) -> np.ndarray:
-    p = np.concatenate([points, np.ones((points.shape[0], 1))], axis=1)
-    out = np.zeros_like(points)
-    for k in range(ji.shape[1]):
-        out += jw[:, k, None] * np.einsum("vij,vj->vi", mats[ji[:, k]], p)[:, :3]
-    return out
-
-
 def initial_state(model, state, skin_matrices: np.ndarray) -> None:
     """Put ``state`` at the pose ``skin_matrices`` ``[J, 4, 4]``: every particle skinned with
     its vertex's weights (LBS), at rest (zero velocities), oriented like its dominant bone."""
@@ -64,12 +57,8 @@ def initial_state(model, state, skin_matrices: np.ndarray) -> None:
     rig = b.rig
     ji = np.tile(rig.joint_indices, (4, 1))
     jw = np.tile(rig.joint_weights, (4, 1))
-    x = _lbs(b.layers.flat(), ji, jw, skin_matrices)
-    a = skin_matrices[:, :3, :3]
-    u, _, vt = np.linalg.svd(a)
-    d = np.sign(np.linalg.det(u @ vt))
-    u[:, :, 2] *= d[:, None]
-    q_joint = matrix_to_quat(u @ vt)
+    x = linear_blend_skin(b.layers.flat(), ji, jw, skin_matrices)
+    q_joint, _, _ = dual_quaternions(skin_matrices)  # rotation part of every joint
     q = np.tile(q_joint[b.layers.bone], (4, 1))
     state.x.assign(x.astype(np.float32))
     state.q.assign(q.astype(np.float32))
@@ -257,7 +246,7 @@ def simulate(
                 )
                 break
             skin = x[:v]
-            lbs = _lbs(rig.vertices, ji, jw, frame_poses[fi])
+            lbs = linear_blend_skin(rig.vertices, ji, jw, frame_poses[fi])
             frame_points = {"skin": skin}
             if with_lbs:
                 frame_points["lbs"] = lbs

@@ -21,6 +21,8 @@ __all__ = [
     "compose_trs",
     "decompose_trs",
     "invert_rigid_or_affine",
+    "blend_skinning_matrices",
+    "linear_blend_skin",
 ]
 
 
@@ -124,3 +126,26 @@ def decompose_trs(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def invert_rigid_or_affine(m: np.ndarray) -> np.ndarray:
     """Inverse of affine 4x4 matrices ``(..., 4, 4)``."""
     return np.linalg.inv(np.asarray(m, dtype=np.float64))
+
+
+def blend_skinning_matrices(joint_indices: np.ndarray, joint_weights: np.ndarray, skin_matrices: np.ndarray) -> np.ndarray:
+    """Per-vertex blended skinning matrices ``sum_k w_k M_{j_k}``, ``[V, 4, 4]`` (host reference).
+
+    Influences whose joint index is out of range count with weight 0 (padding).
+    """
+    mats = np.asarray(skin_matrices, dtype=np.float64)
+    ji = np.asarray(joint_indices)
+    valid = (ji >= 0) & (ji < mats.shape[0])
+    jw = np.where(valid, np.asarray(joint_weights, dtype=np.float64), 0.0)
+    return np.einsum("vk,vkij->vij", jw, mats[np.clip(ji, 0, mats.shape[0] - 1)])
+
+
+def linear_blend_skin(points: np.ndarray, joint_indices: np.ndarray, joint_weights: np.ndarray,
+                      skin_matrices: np.ndarray) -> np.ndarray:
+    """Linear blend skinning on the host: ``p_i' = (sum_k w_ik M_{j_ik}) [p_i, 1]``, ``[V, 3]``.
+
+    The NumPy counterpart of the Warp LBS kernel, for one-off poses (initial states, examples,
+    per-frame measurements); the Warp kernel is the one to use per frame on many vertices.
+    """
+    blend = blend_skinning_matrices(joint_indices, joint_weights, skin_matrices)
+    return np.einsum("vij,vj->vi", blend[:, :3, :3], np.asarray(points, dtype=np.float64)) + blend[:, :3, 3]

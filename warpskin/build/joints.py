@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..rig import Rig, RigError
+from ..transforms import linear_blend_skin
 from .layers import LAYER_NAMES, Layers
 
 __all__ = ["JointParams", "KinematicCoupling", "JointConstraints", "build_kinematic_coupling", "build_joint_constraints"]
@@ -41,12 +42,7 @@ class KinematicCoupling:
 
     def targets(self, skin_matrices: np.ndarray) -> np.ndarray:
         """LBS targets [m], ``[V, 3]``, for skinning matrices ``[J, 4, 4]`` (host reference)."""
-        p = np.concatenate([self.rest, np.ones((self.rest.shape[0], 1))], axis=1)
-        out = np.zeros_like(self.rest)
-        for k in range(self.joint_indices.shape[1]):
-            m = skin_matrices[self.joint_indices[:, k]]
-            out += self.joint_weights[:, k, None] * np.einsum("vij,vj->vi", m, p)[:, :3]
-        return out
+        return linear_blend_skin(self.rest, self.joint_indices, self.joint_weights, skin_matrices)
 
 
 @dataclass
