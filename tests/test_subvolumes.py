@@ -15,7 +15,7 @@ import trimesh
 from warpskin.build.bones import dominant_bone
 from warpskin.build.subvolumes import SubVolumeParams, SubVolumes, build_subvolumes
 from warpskin.rig import Rig, RigError, Skeleton
-from warpskin.scenes.arm import make_arm
+from warpskin.scenes.arm import ARM_DEFAULTS, make_arm
 from warpskin.skinning import Skinner
 
 REL = 1e-6
@@ -106,7 +106,7 @@ def test_arm_default_is_upper_arm_forearm_and_hand_cap(arm, arm_sv):
     # every loop: one simple cycle around the arm, within one edge length below its plane
     edge = np.linalg.norm(arm.vertices[arm.triangles[:, 0]] - arm.vertices[arm.triangles[:, 1]], axis=1).max()
     for k, loop in enumerate(sv.loops):
-        assert loop.size == 54 and np.unique(loop).size == 54
+        assert loop.size == ARM_DEFAULTS["segments"] and np.unique(loop).size == loop.size
         s = (arm.vertices[loop] - sv.center_rest[k]) @ sv.plane_normal[k]
         assert (s <= 0).all() and (s > -edge).all()
         nxt = np.roll(loop, -1)
