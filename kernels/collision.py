@@ -90,6 +90,31 @@ def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.ve
     return wp.vec3(1.0 - v - w, v, w)
 
 
+@wp.kernel
+def vertex_normals_kernel(
+    x: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    # outputs
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Area-weighted vertex normals (not normalised), accumulated per triangle; zero first."""
+    t = wp.tid()
+    ia = tri_indices[t, 0]
+    ib = tri_indices[t, 1]
+    ic = tri_indices[t, 2]
+    n = wp.cross(x[ib] - x[ia], x[ic] - x[ia])
+    wp.atomic_add(normals, ia, n)
+    wp.atomic_add(normals, ib, n)
+    wp.atomic_add(normals, ic, n)
+
+
+@wp.func
+def folded(u: wp.vec3, w: wp.vec3, fold_cos: float) -> bool:
+    """Two surface directions more than acos(fold_cos) apart: the surface between two nearby
+    features is folded over (a crease or a wrinkle), so they face each other."""
+    return wp.dot(u, w) < fold_cos * wp.length(u) * wp.length(w)
+
+
 # --------------------------------------------------------------------------------------------
 # Point-triangle detection (one thread per skin vertex). A candidate is a triangle whose swept
 # box overlaps the vertex's swept box, that does not contain the vertex, and where either the
@@ -99,7 +124,9 @@ def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.ve
 # detection runs once per step, and pairs that only come close during the constraint loop must
 # already be in the list (their constraint stays inactive while C >= 0). The constraint keeps
 # the point on the outer side of the skin: C(p, a, b, c) = n . (p - a) - h >= 0 (Mueller et al.
-# 2007).
+# 2007). Pairs of one surface patch (close at rest) collide only by crossing, unless the skin
+# between them has folded over (the vertex normal and the triangle normal more than
+# acos(fold_cos) apart): in a wrinkle or a crease they face each other and collide by proximity.
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def detect_point_triangle_kernel(
@@ -110,6 +137,8 @@ def detect_point_triangle_kernel(
     rigid_bone: wp.array(dtype=wp.int32),
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
+    vertex_normals: wp.array(dtype=wp.vec3),
+    fold_cos: float,
     thickness: float,
     radius: float,
     capacity: int,
@@ -147,7 +176,7 @@ def detect_point_triangle_kernel(
         d0 = wp.dot(p0 - a0, n0)
         crossing = d0 >= 0.0 and d1 < 0.0
         near = d1 < radius and d1 > -thickness  # ahead within the search radius, behind within h
-        if patch:
+        if patch and not folded(vertex_normals[i], n, fold_cos):
             near = False
         if not (crossing or near):
             continue
@@ -209,6 +238,8 @@ def detect_edge_edge_kernel(
     rigid_bone: wp.array(dtype=wp.int32),
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
+    vertex_normals: wp.array(dtype=wp.vec3),
+    fold_cos: float,
     radius: float,
     capacity: int,
     # outputs
@@ -241,6 +272,8 @@ def detect_edge_edge_kernel(
                 continue
             patch = (same_patch(i1, i3, rest, rest_gap) or same_patch(i1, i4, rest, rest_gap)
                      or same_patch(i2, i3, rest, rest_gap) or same_patch(i2, i4, rest, rest_gap))
+            if patch and folded(vertex_normals[i1] + vertex_normals[i2], vertex_normals[i3] + vertex_normals[i4], fold_cos):
+                patch = False  # folded over: the two edges face each other
             p3 = x_pred[i3]
             p4 = x_pred[i4]
             st = segment_closest(p1, p2, p3, p4)

@@ -124,3 +124,16 @@ def test_scene_generator_params_apply(tmp_path):
     scene = load_scene(_write(tmp_path, "[rig]\ngenerator='arm'\n[rig.params]\nrings=20\nsegments=16\n[animation]\nfps=10\nframes=[2, 7]\n"))
     assert scene.rig().vertex_count == 20 * 16 + 2
     assert scene.frame_range() == (2, 7)
+
+
+def test_scene_collision_section(tmp_path):
+    base = "[rig]\ngenerator='arm'\n[collision]\n"
+    p = load_scene(_write(tmp_path, base + "friction=0.5\nfold_cos=-0.2\npasses=2\n")).collision_params()
+    assert (p.friction, p.fold_cos, p.passes, p.enabled) == (0.5, -0.2, 2, True)
+    assert load_scene("arm").collision_params().fold_cos == 0.0  # the default: folded past 90 degrees
+    with pytest.raises(SceneError, match=r"s.toml.*fold_cos must be in \[-1, 1\]"):
+        load_scene(_write(tmp_path, base + "fold_cos=2.0\n")).collision_params()
+    with pytest.raises(SceneError, match=r"\[collision\] fold_cos must be a number"):
+        load_scene(_write(tmp_path, base + "fold_cos='x'\n")).collision_params()
+    with pytest.raises(SceneError, match=r"unknown key\(s\) \['fold'\] in \[collision\]"):
+        load_scene(_write(tmp_path, base + "fold=1\n"))

@@ -240,3 +240,85 @@ def test_collision_params_rejected():
         CollisionParams(thickness=-1.0).check()
     with pytest.raises(Exception, match="restitution must be in"):
         CollisionParams(restitution=2.0).check()
+    with pytest.raises(Exception, match=r"fold_cos must be in \[-1, 1\]"):
+        CollisionParams(fold_cos=1.5).check()
+
+
+def _folded_strip(angle_deg: float):
+    """A flat strip (3 rows of 6 vertices, unit spacing) folded about its middle row by angle."""
+    xs = np.arange(6, dtype=np.float64)
+    a = np.radians(angle_deg)
+    rows = [np.stack([xs, np.full(6, y), np.zeros(6)], 1) for y in (-1.0, 0.0)]
+    rows.append(np.stack([xs, np.full(6, np.cos(a)), np.full(6, np.sin(a))], 1))  # row 2 turned about y = 0
+    x = np.concatenate(rows)
+    tris = []
+    for r in range(2):
+        for c in range(5):
+            v00, v01, v10, v11 = r * 6 + c, r * 6 + c + 1, (r + 1) * 6 + c, (r + 1) * 6 + c + 1
+            tris += [[v00, v01, v11], [v00, v11, v10]]
+    return x, np.array(tris)
+
+
+def _detect_pt(x, tris, fold_cos, h, radius, device):
+    n = len(x)
+    rest = np.stack([x[:, 0], np.repeat([-1.0, 0.0, 1.0], 6), np.zeros(n)], 1)  # the flat strip
+    with wp.ScopedDevice(device):
+        xw = wp.array(x.astype(np.float32), dtype=wp.vec3)
+        tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
+        lo = wp.zeros(len(tris), dtype=wp.vec3)
+        hi = wp.zeros(len(tris), dtype=wp.vec3)
+        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, radius], outputs=[lo, hi])
+        bvh = wp.Bvh(lo, hi)
+        vn = wp.zeros(n, dtype=wp.vec3)
+        wp.launch(k.vertex_normals_kernel, dim=len(tris), inputs=[xw, tw], outputs=[vn])
+        count = wp.zeros(1, dtype=wp.int32)
+        pv = wp.zeros(256, dtype=wp.int32)
+        pt = wp.zeros(256, dtype=wp.int32)
+        wp.launch(k.detect_point_triangle_kernel, dim=n,
+                  inputs=[bvh.id, xw, xw, tw, wp.full(n, -1, dtype=wp.int32), wp.array(rest.astype(np.float32), dtype=wp.vec3),
+                          100.0, vn, fold_cos, h, radius, 256],
+                  outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)])
+        c = int(count.numpy()[0])
+        return set(zip(pv.numpy()[:c].tolist(), pt.numpy()[:c].tolist()))
+
+
+def _fold_reference(x, tris, fold_cos, h, radius):
+    """Brute force: (vertex, triangle) pairs of a patch that face each other across a fold."""
+    tn = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
+    vn = np.zeros_like(x)
+    for t, f in enumerate(tris):
+        vn[f] += tn[t]
+    out = set()
+    for i in range(len(x)):
+        for t, f in enumerate(tris):
+            if i in f:
+                continue
+            n = tn[t] / np.linalg.norm(tn[t])
+            d = (x[i] - x[f[0]]) @ n
+            if not (-h < d < radius) or vn[i] @ n >= fold_cos * np.linalg.norm(vn[i]):
+                continue
+            e0, e1, dd = x[f[1]] - x[f[0]], x[f[2]] - x[f[0]], x[i] - x[f[0]]
+            m = np.array([[e0 @ e0, e0 @ e1], [e0 @ e1, e1 @ e1]])
+            v, w = np.linalg.solve(m, [dd @ e0, dd @ e1])
+            if min(v, w, 1 - v - w) >= 0:
+                out.add((i, t))
+    return out
+
+
+def test_folded_patch_pairs_collide_by_proximity(device):
+    # one surface patch (every vertex within the rest gap of every other) folded over by 170
+    # degrees: the turned-over row faces the first band 0.17 above it; those pairs must become
+    # contacts (brute-force reference), while the flat strip and the switched-off rule give none
+    h, radius = 0.2, 0.6
+    x, tris = _folded_strip(170.0)
+    got = _detect_pt(x, tris, 0.0, h, radius, device)
+    ref = _fold_reference(x, tris, 0.0, h, radius)
+    assert len(ref) >= 5 and got == ref
+    # the turned-over row against the first band, and the first row against the turned-over band
+    assert all((i >= 12 and tris[t].max() < 12) or (i < 6 and tris[t].min() >= 6) for i, t in got)
+    assert _detect_pt(x, tris, -1.0, h, radius, device) == set()  # fold rule off: patch pairs only by crossing
+    flat, _ = _folded_strip(0.0)
+    assert _detect_pt(flat, tris, 0.0, h, radius, device) == set()
+    # a gentle bend (60 degrees) is not a fold
+    bent, _ = _folded_strip(60.0)
+    assert _detect_pt(bent, tris, 0.0, h, radius, device) == set()

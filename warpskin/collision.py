@@ -46,6 +46,9 @@ class CollisionParams:
             surface patch: their pairs become contacts only when they cross during a step (a
             fold), never by proximity (side by side on a smooth surface they are closer than
             the thickness).
+        fold_cos: Pairs of one surface patch whose normals are more than ``acos(fold_cos)``
+            apart face each other across a fold (a crease or wrinkle) and collide by proximity
+            like any other pair; default 0 (90 degrees).
         passes: Jacobi passes over the contacts per elasticity iteration (averaged corrections
             converge slowly where a particle is in several contacts).
     """
@@ -58,6 +61,7 @@ class CollisionParams:
     rigid_weight: float = 0.999
     detection_margin: float = 3.0
     rest_gap_margin: float = 2.0
+    fold_cos: float = 0.0
     passes: int = 4
 
     def check(self, where: str = "collision") -> None:
@@ -69,6 +73,8 @@ class CollisionParams:
             raise RigError(f"{where}: restitution must be in [0, 1], got {self.restitution!r}")
         if not (math.isfinite(self.detection_margin) and self.detection_margin >= 1.0):
             raise RigError(f"{where}: detection_margin must be >= 1 (times the thickness), got {self.detection_margin!r}")
+        if not (math.isfinite(self.fold_cos) and -1.0 <= self.fold_cos <= 1.0):
+            raise RigError(f"{where}: fold_cos must be in [-1, 1], got {self.fold_cos!r}")
         if isinstance(self.passes, bool) or int(self.passes) != self.passes or self.passes < 1:
             raise RigError(f"{where}: passes must be an integer >= 1, got {self.passes!r}")
         if isinstance(self.capacity, bool) or int(self.capacity) != self.capacity or self.capacity < 1:
@@ -113,6 +119,7 @@ class SelfCollision:
             self.uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
             self.bvh = wp.Bvh(self.lowers, self.uppers)
             self.colliding = wp.zeros(4 * v, dtype=wp.int32)
+            self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
             self.counts = wp.zeros(3, dtype=wp.int32)  # point-triangle, edge-edge, overflow flag
@@ -169,15 +176,20 @@ class SelfCollision:
         wp.launch(k.triangle_bounds_kernel, dim=self.triangle_count,
                   inputs=[x_old, x_pred, self.model.tri_indices, self.radius], outputs=[self.lowers, self.uppers], device=dev)
         self.bvh.refit()
+        self.vertex_normals.zero_()
+        wp.launch(k.vertex_normals_kernel, dim=self.triangle_count, inputs=[x_pred, self.model.tri_indices],
+                  outputs=[self.vertex_normals], device=dev)
+        fold = float(self.params.fold_cos)
         # zero the two counters, keep the overflow flag (cleared by the caller after checking)
         wp.launch(k.zero_counts_kernel, dim=1, outputs=[self.counts], device=dev)
         wp.launch(k.detect_point_triangle_kernel, dim=self.model.vertex_count,
                   inputs=[self.bvh.id, x_old, x_pred, self.model.tri_indices, self.rigid_bone, self.model.particle_q0,
-                          self.rest_gap, self.thickness, self.radius, self.capacity],
+                          self.rest_gap, self.vertex_normals, fold, self.thickness, self.radius, self.capacity],
                   outputs=[self.pt_count, self.pt_vertex, self.pt_triangle, self.overflow_flag, self.colliding], device=dev)
         wp.launch(k.detect_edge_edge_kernel, dim=self.edge_count,
                   inputs=[self.bvh.id, x_old, x_pred, self.model.tri_indices, self.edge_indices, self.tri_edges,
-                          self.rigid_bone, self.model.particle_q0, self.rest_gap, self.radius, self.capacity],
+                          self.rigid_bone, self.model.particle_q0, self.rest_gap, self.vertex_normals, fold, self.radius,
+                          self.capacity],
                   outputs=[self.ee_count, self.ee_a, self.ee_b, self.ee_sign, self.overflow_flag, self.colliding], device=dev)
 
     def project(self, x: wp.array, inv_mass: wp.array) -> None:

@@ -65,7 +65,8 @@ _SCHEMA: dict[str, set[str]] = {
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
                "fast_summation", "volume_stiffness"},
     # skin self-collision (section 4.5)
-    "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes"},
+    "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
+                  "fold_cos"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }
@@ -174,7 +175,7 @@ class Scene:
         where = _where(self.source)
         if "enabled" in table and not isinstance(table["enabled"], bool):
             raise SceneError(f"{where}: [collision] enabled must be true or false")
-        for key in ("thickness", "friction", "restitution", "detection_margin"):
+        for key in ("thickness", "friction", "restitution", "detection_margin", "fold_cos"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
         params = CollisionParams(**table)
