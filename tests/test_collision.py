@@ -322,3 +322,16 @@ def test_folded_patch_pairs_collide_by_proximity(device):
     # a gentle bend (60 degrees) is not a fold
     bent, _ = _folded_strip(60.0)
     assert _detect_pt(bent, tris, 0.0, h, radius, device) == set()
+
+
+def test_bvh_rebuilt_once_the_skin_has_deformed_and_finds_the_same_pairs(device):
+    # the tree is built on the straight arm; at 150 degrees the forearm has swung ~0.25 m (more
+    # than 10 % of the arm's diagonal): maybe_rebuild rebuilds it, detection finds the same pairs
+    rig, col, a, b = _pressed_arm(device, 1 << 15)
+    before = _pairs(col)
+    skin = b.x.numpy()[: rig.vertex_count]
+    assert col.maybe_rebuild(skin) and col.rebuilds == 1
+    col.detect(a.x, b.x)
+    assert _pairs(col) == before and len(before[0]) > 10
+    assert not col.maybe_rebuild(skin + 0.01)  # a translation is no deformation
+    assert col.rebuilds == 1

@@ -49,6 +49,10 @@ class CollisionParams:
         fold_cos: Pairs of one surface patch whose normals are more than ``acos(fold_cos)``
             apart face each other across a fold (a crease or wrinkle) and collide by proximity
             like any other pair; default 0 (90 degrees).
+        rebuild_spread: The BVH is refit every step and rebuilt (in place, between frames) once
+            the skin has deformed by more than this fraction of its rest bounding-box diagonal
+            since the last build (vertex displacements minus their mean); a refit keeps the
+            tree's rest-pose topology, whose boxes overlap more and more as limbs swing.
         passes: Jacobi passes over the contacts per elasticity iteration (averaged corrections
             converge slowly where a particle is in several contacts).
     """
@@ -62,6 +66,7 @@ class CollisionParams:
     detection_margin: float = 3.0
     rest_gap_margin: float = 2.0
     fold_cos: float = 0.0
+    rebuild_spread: float = 0.1
     passes: int = 4
 
     def check(self, where: str = "collision") -> None:
@@ -73,6 +78,8 @@ class CollisionParams:
             raise RigError(f"{where}: restitution must be in [0, 1], got {self.restitution!r}")
         if not (math.isfinite(self.detection_margin) and self.detection_margin >= 1.0):
             raise RigError(f"{where}: detection_margin must be >= 1 (times the thickness), got {self.detection_margin!r}")
+        if not (math.isfinite(self.rebuild_spread) and self.rebuild_spread > 0):
+            raise RigError(f"{where}: rebuild_spread must be > 0, got {self.rebuild_spread!r}")
         if not (math.isfinite(self.fold_cos) and -1.0 <= self.fold_cos <= 1.0):
             raise RigError(f"{where}: fold_cos must be in [-1, 1], got {self.fold_cos!r}")
         if isinstance(self.passes, bool) or int(self.passes) != self.passes or self.passes < 1:
@@ -124,6 +131,9 @@ class SelfCollision:
             self.delta_count = wp.zeros(v, dtype=wp.int32)
             self.counts = wp.zeros(3, dtype=wp.int32)  # point-triangle, edge-edge, overflow flag
             self.active = wp.zeros(1, dtype=wp.int32)  # violated constraints in the last iteration
+        self._built_at = np.asarray(rig.vertices, dtype=np.float64)  # skin the tree was built for
+        self._diagonal = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
+        self.rebuilds = 0
         self.edge_count = int(edges.shape[0])
         self.triangle_count = int(tris.shape[0])
         self._alloc(int(self.params.capacity))
@@ -167,6 +177,19 @@ class SelfCollision:
             cap *= 2
         self._alloc(cap)
         self.counts.zero_()
+
+    def maybe_rebuild(self, skin: np.ndarray) -> bool:
+        """Host check between frames (never inside a captured graph): rebuild the BVH in place
+        when the skin positions ``skin`` ``[V, 3]`` have deformed by more than
+        ``rebuild_spread`` x the rest diagonal since the last build. Returns whether it did."""
+        d = np.asarray(skin, dtype=np.float64) - self._built_at
+        spread = float(np.linalg.norm(d - d.mean(axis=0), axis=1).max())
+        if spread <= self.params.rebuild_spread * self._diagonal:
+            return False
+        self.bvh.rebuild()  # in place: graphs captured with this BVH stay valid
+        self._built_at = np.array(skin, dtype=np.float64)
+        self.rebuilds += 1
+        return True
 
     # ------------------------------------------------------------------ per step
     def detect(self, x_old: wp.array, x_pred: wp.array) -> None:

@@ -66,7 +66,7 @@ _SCHEMA: dict[str, set[str]] = {
                "fast_summation", "volume_stiffness"},
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
-                  "fold_cos"},
+                  "fold_cos", "rebuild_spread"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }
@@ -175,7 +175,7 @@ class Scene:
         where = _where(self.source)
         if "enabled" in table and not isinstance(table["enabled"], bool):
             raise SceneError(f"{where}: [collision] enabled must be true or false")
-        for key in ("thickness", "friction", "restitution", "detection_margin", "fold_cos"):
+        for key in ("thickness", "friction", "restitution", "detection_margin", "fold_cos", "rebuild_spread"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
         params = CollisionParams(**table)

@@ -207,6 +207,7 @@ def simulate(
                             count=substeps * n_groups)
                 if backup is not None:
                     copy_state(backup, state_a)
+                    col.maybe_rebuild(skin)  # the previous frame's skin (host copy)
                 frame_retries = 0
                 while True:
                     graph = graphs.get(id(state_a))
@@ -306,6 +307,7 @@ def simulate(
         "collision_thickness_m": col.thickness if col is not None else None,
         "collision_capacity": col.capacity if col is not None else None,
         "overflow_retries": overflow_retries,
+        "bvh_rebuilds": col.rebuilds if col is not None else 0,
     }
     if check_intersections and metrics["intersecting_pairs"]:
         summary["max_intersecting_pairs"] = max(metrics["intersecting_pairs"])
