@@ -98,6 +98,7 @@ def _write(tmp_path, text):
         ("[rig]\ngenerator='arm'\n[animation]\nfsp=3\n", r"unknown key\(s\) \['fsp'\] in \[animation\]"),
         ("[rig]\ngenerator='arm'\n[animation]\nfps=-3\n", "fps must be a positive number"),
         ("[rig]\ngenerator='arm'\n[animation]\nframes=[5, 2]\n", "frames must be"),
+        ("[rig]\ngenerator='arm'\n[animation]\npreroll=-0.5\n", r"\[animation\] preroll must be a number of seconds >= 0"),
         ("[animation]\nfps=30\n", r"missing \[rig\]"),
         ("[rig\n", "not valid TOML"),
     ],

@@ -335,3 +335,34 @@ def test_bvh_rebuilt_once_the_skin_has_deformed_and_finds_the_same_pairs(device)
     assert _pairs(col) == before and len(before[0]) > 10
     assert not col.maybe_rebuild(skin + 0.01)  # a translation is no deformation
     assert col.rebuilds == 1
+
+
+def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path):
+    # the coarse arm's LBS at 150 degrees passes through itself; started there, the skin keeps
+    # part of it; a pre-roll from the bind pose (straight, clean) reaches the pose by collision
+    p = tmp_path / "arm.toml"
+    p.write_text(COARSE + "frames = [45, 46]\n[solver]\niterations = 10\n")
+    scene = load_scene(p)
+    kw = dict(device="cpu", with_lbs=True, check_intersections=True, progress=False)
+    cold = simulate(scene, tmp_path / "cold.usdc", **kw)
+    warm = simulate(scene, tmp_path / "warm.usdc", preroll=0.5, **kw)
+    assert cold.metrics["intersecting_pairs_lbs"][0] > 20
+    assert cold.metrics["intersecting_pairs"][0] == cold.metrics["intersecting_pairs_lbs"][0]  # started there
+    assert warm.summary["preroll_steps"] == 100
+    assert max(warm.metrics["intersecting_pairs"]) == 0
+    with pytest.raises(Exception, match="preroll must be"):
+        simulate(scene, tmp_path / "bad.usdc", preroll=-1.0, **kw)
+
+
+def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets):
+    # CesiumMan's first walk pose passes the skin through itself under LBS; the scene's 0.5 s
+    # pre-roll from the (clean) bind pose reaches it by collision
+    scene = load_scene("cesium_man")
+    rig = scene.rig()
+    assert scene.preroll == 0.5 and len(self_intersections(rig.vertices, rig.triangles)) == 0
+    result = simulate(scene, tmp_path / "walk.usdc", device="cpu", frames=(0, 1), with_lbs=True,
+                      check_intersections=True, progress=False)
+    m = result.metrics
+    print(f"CesiumMan frames 0-1: intersecting pairs {m['intersecting_pairs']}, LBS {m['intersecting_pairs_lbs']}")
+    assert min(m["intersecting_pairs_lbs"]) > 40
+    assert max(m["intersecting_pairs"]) == 0

@@ -155,3 +155,21 @@ def test_skinner_rejects_bad_input(arm):
     bad[1, 0, 3] = np.nan
     with pytest.raises(RigError, match="elbow"):
         s.skin(bad)
+
+
+def test_skinning_matrices_from_bind_interpolate_the_joints():
+    # the arm's clip at 1.5 s bends the elbow 150 degrees about z: half-way from the bind pose
+    # the elbow's skinning matrix is a 75 degree rotation about the elbow's bind position
+    rig = make_arm(rings=12, segments=8)
+    clip = rig.clip("flex")
+    np.testing.assert_allclose(rig.skinning_matrices_from_bind(clip, 1.5, 0.0), np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
+    np.testing.assert_allclose(rig.skinning_matrices_from_bind(clip, 1.5, 1.0), rig.skinning_matrices(clip, 1.5), atol=1e-12)
+    half = rig.skinning_matrices_from_bind(clip, 1.5, 0.5)
+    a = np.radians(75.0)
+    rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    np.testing.assert_allclose(half[1, :3, :3], rot, atol=1e-9)
+    elbow = rig.bind_world_transforms()[1, :3, 3]
+    np.testing.assert_allclose(half[1, :3, :3] @ elbow + half[1, :3, 3], elbow, atol=1e-12)  # it pivots there
+    np.testing.assert_allclose(half[0], np.eye(4), atol=1e-12)  # the shoulder does not move
+    with pytest.raises(Exception, match=r"u must be in \[0, 1\]"):
+        rig.skinning_matrices_from_bind(clip, 1.5, 1.5)

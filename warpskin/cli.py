@@ -180,7 +180,7 @@ def cmd_simulate(args) -> int:
     result = simulate(
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
-        comment="warpskin " + " ".join(sys.argv[1:]),
+        comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll,
     )
     s = result.summary
     line = (
@@ -194,8 +194,9 @@ def cmd_simulate(args) -> int:
         print(f"intersecting skin triangle pairs (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
               f"LBS {s['max_intersecting_pairs_lbs']}")
         if s["intersecting_pairs_first_frame"]:
-            print(f"note: the first frame's pose already self-intersects ({s['intersecting_pairs_first_frame']} pairs); "
-                  "contacts keep surfaces apart but cannot undo intersections they start with")
+            hint = "" if s["preroll_steps"] else "; --preroll 0.5 reaches it from the bind pose instead"
+            print(f"note: the first frame already self-intersects ({s['intersecting_pairs_first_frame']} pairs); "
+                  f"contacts keep surfaces apart but cannot undo intersections they start with{hint}")
     if args.report:
         print(f"report: {Path(args.report) / 'report.json'}")
     return 0
@@ -340,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
     s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
     s.add_argument("--no-collisions", action="store_true", help="switch skin self-collision off")
+    s.add_argument("--preroll", type=float, default=None, metavar="SECONDS",
+                   help="simulate this long from the bind pose into the first frame's pose before writing "
+                        "(scene: [animation] preroll; default 0)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
 

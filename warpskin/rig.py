@@ -732,6 +732,22 @@ class Rig:
         """``G_j(t) @ inverse_bind[j]`` for every joint, ``[J, 4, 4]``."""
         return self.joint_world_transforms(clip, t) @ self.inverse_bind
 
+    def skinning_matrices_from_bind(self, clip: Clip | str | None, t: float, u: float) -> np.ndarray:
+        """Skinning matrices ``[J, 4, 4]`` of the pose ``u`` of the way from the bind pose
+        (``u = 0``: identities, the mesh as modelled) to the clip's pose at ``t`` (``u = 1``):
+        every joint's local translation and scale interpolated, its rotation slerped, then
+        forward kinematics, so bones stay connected all the way (a pre-roll into a pose)."""
+        if not (0.0 <= u <= 1.0):
+            raise RigError(f"blend factor u must be in [0, 1], got {u!r}")
+        c = clip if isinstance(clip, Clip) else self.clip(clip)
+        sk = self.skeleton
+        bind = self.bind_world_transforms()
+        parent_world = np.stack([sk.root_transform[j] if p < 0 else bind[p] for j, p in enumerate(sk.parents)])
+        t0, r0, s0 = decompose_trs(np.linalg.solve(parent_world, bind))
+        t1, r1, s1 = c.sample_local_trs(sk, t)
+        local = compose_trs(t0 + u * (t1 - t0), quat_slerp(r0, r1, u), s0 + u * (s1 - s0))
+        return sk.world_from_local(local) @ self.inverse_bind
+
     def bind_world_transforms(self) -> np.ndarray:
         """Joint transforms in rest space at bind time, ``inverse(inverse_bind)``, ``[J, 4, 4]``."""
         return np.linalg.inv(self.inverse_bind)

@@ -56,7 +56,7 @@ GENERATORS = {
 _SCHEMA: dict[str, set[str]] = {
     "scene": {"name", "description"},
     "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights"},
-    "animation": {"clip", "fps", "frames"},
+    "animation": {"clip", "fps", "frames", "preroll"},
     # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
     "layers": {"fat", "muscle", "bone", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
     "joints": {"radius_factor", "layers", "joints"},
@@ -97,6 +97,8 @@ class Scene:
         clip: Clip name (``None``: the rig's first clip).
         fps: Frames per second of the output.
         frames: Inclusive frame range ``(first, last)`` or ``None`` for the whole clip.
+        preroll: Seconds of simulation before the first frame, moving from the bind pose into
+            the first frame's pose (0: start at the first frame's LBS pose).
         description: Free text.
         extra: Sections for later stages (layers, solver), kept verbatim.
     """
@@ -107,6 +109,7 @@ class Scene:
     clip: str | None = None
     fps: float = 30.0
     frames: tuple[int, int] | None = None
+    preroll: float = 0.0
     description: str = ""
     extra: dict = field(default_factory=dict)
     _rig: Rig | None = None
@@ -329,6 +332,9 @@ def load_scene(name_or_path: str | Path) -> Scene:
     clip = anim.get("clip")
     if clip is not None and not isinstance(clip, str):
         raise SceneError(f"{where}: [animation] clip must be a string")
+    preroll = anim.get("preroll", 0.0)
+    if isinstance(preroll, bool) or not isinstance(preroll, (int, float)) or not math.isfinite(preroll) or preroll < 0:
+        raise SceneError(f"{where}: [animation] preroll must be a number of seconds >= 0, got {preroll!r}")
     return Scene(
         name=str(meta.get("name", name)),
         source=text_path,
@@ -336,6 +342,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
         clip=clip,
         fps=fps,
         frames=frames,
+        preroll=float(preroll),
         description=str(meta.get("description", "")),
         extra=extra,
     )

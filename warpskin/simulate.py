@@ -83,6 +83,7 @@ def simulate(
     check_intersections: bool | None = None,
     rest_shape: tuple | None = None,
     builder: SkinModelBuilder | None = None,
+    preroll: float | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -96,6 +97,11 @@ def simulate(
     the buffers hold, the frame is run again with larger buffers. ``check_intersections`` counts
     intersecting skin triangle pairs per frame with the exact, solver-independent check
     (:func:`warpskin.metrics.self_intersections`); default: only when writing a report.
+    ``preroll`` [s] (default: the scene's ``[animation] preroll``) simulates that long before
+    the first frame, from the bind pose (the mesh as modelled) into the first frame's pose
+    (local joint transforms interpolated, eased in and out); velocities are zeroed after it.
+    A first pose whose LBS skin already passes through itself is then reached by collision
+    instead of started from; nothing of the pre-roll is written.
 
     Raises:
         SimulationError: a particle became NaN; the message names the frame, particle, layer
@@ -144,6 +150,10 @@ def simulate(
                                          dtype=wp.float32, device=dev))
     state_a, state_b, control = model.state(), model.state(), model.control()
     initial_state(model, state_a, frame_poses[0])
+    preroll = scene.preroll if preroll is None else float(preroll)
+    if not (math.isfinite(preroll) and preroll >= 0):
+        raise RigError(f"preroll must be a number of seconds >= 0, got {preroll!r}")
+    preroll_steps = math.ceil(preroll / params.dt - 1e-9) if preroll > 0 else 0
 
     def run_frame(sa, sb):
         """All substeps of one frame from ``sa``; returns the state holding the result."""
@@ -167,6 +177,36 @@ def simulate(
             except Exception:  # capture unsupported here: plain launches
                 out = {}
         return out
+
+    def run_preroll():
+        """From the bind pose into the first frame's pose (plain launches, once)."""
+        initial_state(model, state_a, np.tile(np.eye(4), (j, 1, 1)))
+        u = (np.arange(1, preroll_steps + 1) / preroll_steps)
+        u = u * u * (3.0 - 2.0 * u)  # ease in and out
+        pre = np.stack([rig.skinning_matrices_from_bind(clip, scene.frame_time(first), float(x)) for x in u])
+        pre_dev = wp.array(pre.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=dev)
+        sa, sb = state_a, state_b
+        for s_ in range(preroll_steps):
+            wp.copy(control.skin_matrices, pre_dev, dest_offset=0, src_offset=s_ * j, count=j)
+            solver.step(sa, sb, control, preroll / preroll_steps)
+            sa, sb = sb, sa
+        if sa is not state_a:
+            for name in ("x", "q"):
+                wp.copy(getattr(state_a, name), getattr(sa, name))
+        state_a.v.zero_()
+        state_a.omega.zero_()
+
+    if preroll_steps:
+        for attempt in range(9):
+            run_preroll()
+            if col is None or not col.overflowed():
+                break
+            if attempt == 8:
+                raise SimulationError(f"pre-roll: more than {col.capacity} contact candidates even after growing the buffers "
+                                      "8 times; lower [collision] detection_margin or thickness")
+            col.grow()
+        if not np.isfinite(state_a.x.numpy()).all():
+            raise SimulationError("pre-roll: a particle became NaN or inf; lower dt or shorten the pre-roll's motion")
 
     graphs = capture_graphs()
     backup = model.state() if col is not None else None
@@ -307,6 +347,8 @@ def simulate(
         "collision_thickness_m": col.thickness if col is not None else None,
         "collision_capacity": col.capacity if col is not None else None,
         "overflow_retries": overflow_retries,
+        "preroll_s": preroll,
+        "preroll_steps": preroll_steps,
         "bvh_rebuilds": col.rebuilds if col is not None else 0,
     }
     if check_intersections and metrics["intersecting_pairs"]:
