@@ -366,3 +366,21 @@ def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets):
     print(f"CesiumMan frames 0-1: intersecting pairs {m['intersecting_pairs']}, LBS {m['intersecting_pairs_lbs']}")
     assert min(m["intersecting_pairs_lbs"]) > 40
     assert max(m["intersecting_pairs"]) == 0
+
+
+def test_preroll_from_a_self_intersecting_bind_pose_warns(tmp_path):
+    # a bind pose that passes through itself cannot be cleaned by a pre-roll that starts there:
+    # the coarse arm modelled in its LBS pose at 0.8 s (the elbow folded through itself)
+    from dataclasses import replace
+
+    from warpskin.transforms import linear_blend_skin
+
+    arm = make_arm(rings=30, segments=20)
+    folded = linear_blend_skin(arm.vertices, arm.joint_indices, arm.joint_weights, arm.skinning_matrices("flex", 0.8))
+    assert len(self_intersections(folded, arm.triangles)) > 0
+    p = tmp_path / "thin.toml"  # thin layers, so that they do not fold over in the folded pose
+    p.write_text(COARSE + "[layers]\nfat = 0.02\nmuscle = 0.05\nbone = 0.1\n")
+    scene = load_scene(p)
+    scene._rig = replace(arm, vertices=folded)
+    with pytest.warns(UserWarning, match=r"bind pose itself has \d+ intersecting"):
+        simulate(scene, tmp_path / "w.usdc", device="cpu", frames=(0, 0), preroll=0.01, progress=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -197,6 +198,10 @@ def simulate(
         state_a.omega.zero_()
 
     if preroll_steps:
+        bind_pairs = len(self_intersections(rig.vertices, rig.triangles))
+        if bind_pairs:
+            warnings.warn(f"{scene.name}: the bind pose itself has {bind_pairs} intersecting skin triangle pairs; the "
+                          "pre-roll starts from them and cannot undo them", stacklevel=2)
         for attempt in range(9):
             run_preroll()
             if col is None or not col.overflowed():
