@@ -198,7 +198,8 @@ def detect_point_triangle_kernel(
 # --------------------------------------------------------------------------------------------
 # Edge-edge detection (one thread per skin edge): edges of overlapping triangles (no shared
 # vertex) whose closest points are nearer than the thickness, or which cross each other's
-# triangle during the step. Each unordered pair is kept once (the edge with the smaller index).
+# triangle during the step. Each unordered pair is kept once: from the edge with the smaller
+# index, through the first of the other edge's two triangles whose box overlaps the query.
 # --------------------------------------------------------------------------------------------
 @wp.func
 def segment_closest(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3) -> wp.vec2:
@@ -227,14 +228,22 @@ def segment_closest(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3) -> wp.ve
     return wp.vec2(s, t)
 
 
+@wp.func
+def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) -> bool:
+    return (lo_a[0] <= hi_b[0] and lo_b[0] <= hi_a[0] and lo_a[1] <= hi_b[1] and lo_b[1] <= hi_a[1]
+            and lo_a[2] <= hi_b[2] and lo_b[2] <= hi_a[2])
+
+
 @wp.kernel
 def detect_edge_edge_kernel(
     bvh: wp.uint64,
     x_old: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
-    tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
     tri_edges: wp.array2d(dtype=wp.int32),
+    edge_owner: wp.array(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
     rigid_bone: wp.array(dtype=wp.int32),
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
@@ -264,6 +273,13 @@ def detect_edge_edge_kernel(
             f = tri_edges[t, k]
             if f <= e:
                 continue  # each unordered pair once
+            # f lies in two triangles, both returned for a near pair: take it through the first
+            # (its owner) whose box overlaps the query, so the pair is listed once
+            if not boxes_overlap(lowers[t], uppers[t], lo, hi):
+                continue
+            o = edge_owner[f]
+            if o != t and boxes_overlap(lowers[o], uppers[o], lo, hi):
+                continue
             i3 = edge_indices[f, 0]
             i4 = edge_indices[f, 1]
             if i3 == i1 or i3 == i2 or i4 == i1 or i4 == i2:

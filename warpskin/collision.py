@@ -121,6 +121,9 @@ class SelfCollision:
         with wp.ScopedDevice(dev):
             self.edge_indices = wp.array(edges.astype(np.int32), dtype=wp.int32)
             self.tri_edges = wp.array(tri_edges.astype(np.int32), dtype=wp.int32)
+            owner = np.full(edges.shape[0], tris.shape[0], dtype=np.int64)  # first triangle of each edge
+            np.minimum.at(owner, tri_edges.ravel(), np.repeat(np.arange(tris.shape[0]), 3))
+            self.edge_owner = wp.array(owner.astype(np.int32), dtype=wp.int32)
             self.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
             self.lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
             self.uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
@@ -130,6 +133,8 @@ class SelfCollision:
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
             self.counts = wp.zeros(3, dtype=wp.int32)  # point-triangle, edge-edge, overflow flag
+            # views of the counters (never reallocated), made once
+            self.pt_count, self.ee_count, self.overflow_flag = self.counts[0:1], self.counts[1:2], self.counts[2:3]
             self.active = wp.zeros(1, dtype=wp.int32)  # violated constraints in the last iteration
         self._built_at = np.asarray(rig.vertices, dtype=np.float64)  # skin the tree was built for
         self._diagonal = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
@@ -146,20 +151,6 @@ class SelfCollision:
             self.ee_a = wp.zeros(capacity, dtype=wp.int32)
             self.ee_b = wp.zeros(capacity, dtype=wp.int32)
             self.ee_sign = wp.zeros(capacity, dtype=wp.float32)
-        self.generation = getattr(self, "generation", 0) + 1  # graphs captured before must be rebuilt
-
-    # views of the counters (device arrays, no host sync)
-    @property
-    def pt_count(self) -> wp.array:
-        return self.counts[0:1]
-
-    @property
-    def ee_count(self) -> wp.array:
-        return self.counts[1:2]
-
-    @property
-    def overflow_flag(self) -> wp.array:
-        return self.counts[2:3]
 
     def overflowed(self) -> bool:
         """Host check (syncs): did a detection since the last :meth:`clear_overflow` overflow?"""
@@ -210,8 +201,8 @@ class SelfCollision:
                           self.rest_gap, self.vertex_normals, fold, self.thickness, self.radius, self.capacity],
                   outputs=[self.pt_count, self.pt_vertex, self.pt_triangle, self.overflow_flag, self.colliding], device=dev)
         wp.launch(k.detect_edge_edge_kernel, dim=self.edge_count,
-                  inputs=[self.bvh.id, x_old, x_pred, self.model.tri_indices, self.edge_indices, self.tri_edges,
-                          self.rigid_bone, self.model.particle_q0, self.rest_gap, self.vertex_normals, fold, self.radius,
+                  inputs=[self.bvh.id, x_old, x_pred, self.edge_indices, self.tri_edges, self.edge_owner, self.lowers,
+                          self.uppers, self.rigid_bone, self.model.particle_q0, self.rest_gap, self.vertex_normals, fold, self.radius,
                           self.capacity],
                   outputs=[self.ee_count, self.ee_a, self.ee_b, self.ee_sign, self.overflow_flag, self.colliding], device=dev)
 
