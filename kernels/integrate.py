@@ -77,17 +77,3 @@ def joint_centres_kernel(
 ):
     j = wp.tid()
     centres[j] = wp.transform_point(skin_matrices[j], joint_rest[j])
-
-
-@wp.kernel
-def find_nonfinite_kernel(
-    x: wp.array(dtype=wp.vec3),
-    # outputs
-    first_bad: wp.array(dtype=wp.int32),
-):
-    """``first_bad[0]`` = smallest particle index whose position is NaN/inf (atomic min;
-    initialise to a value >= the particle count)."""
-    i = wp.tid()
-    p = x[i]
-    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
-        wp.atomic_min(first_bad, 0, i)

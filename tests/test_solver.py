@@ -133,6 +133,7 @@ def test_two_cpu_runs_are_identical_with_and_without_graph_capture(tmp_path):
     a = simulate(scene, tmp_path / "a.usdc", device="cpu", frames=(0, 8), progress=False)
     b = simulate(_scene(tmp_path, "[solver]\niterations = 4\n"), tmp_path / "b.usdc", device="cpu", frames=(0, 8), progress=False,
                  use_graph=False)
+    assert a.summary["graph_capture"] and not b.summary["graph_capture"]  # two different paths compared
     stage_a, stage_b = Usd.Stage.Open(str(a.path)), Usd.Stage.Open(str(b.path))  # keep the stages alive
     sa = UsdGeom.Mesh(stage_a.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
     sb = UsdGeom.Mesh(stage_b.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()

@@ -182,8 +182,8 @@ class SkinModel:
     inspection.
 
     Array names follow the entity they index: ``particle_*`` ``[4V]``, ``region_*`` (CSR over
-    regions, ``[4V+1]`` offsets), ``ring_*`` (CSR over vertices), ``path_*``, ``run_*``,
-    ``coupling_*`` ``[V]``, ``joint_constraint_*`` ``[C]``, ``subvolume_*``.
+    regions, ``[4V+1]`` offsets), ``path_*``, ``run_*``, ``coupling_*`` ``[V]``; only what the
+    kernels read is uploaded.
     """
 
     def __init__(self, builder: SkinModelBuilder, device) -> None:
@@ -203,7 +203,6 @@ class SkinModel:
             self.particle_q0 = v3(b.layers.flat())
             self.particle_mass = f32(b.masses)
             self.particle_inv_mass = f32(1.0 / b.masses)
-            self.particle_radius = f32(b.radii)
             self.particle_stiffness = f32(b.stiffness)
             self.region_offsets = i32(reg.region_offsets)
             self.region_members = i32(reg.region_members)
@@ -214,37 +213,21 @@ class SkinModel:
             self.particle_region_offsets = i32(reg.particle_offsets)
             self.particle_regions = i32(reg.particle_regions)
             self.particle_region_slots = i32(reg.particle_slots)
-            self.ring_offsets = i32(reg.ring_offsets)
-            self.ring_members = i32(reg.ring_members)
             self.path_order = i32(b.paths.order)
             self.path_offsets = i32(b.paths.path_offsets)
-            self.path_position = i32(b.paths.position_of)
             self.run_offsets = i32(b.runs.run_offsets)
             self.run_start = i32(b.runs.run_start)
             self.run_end = i32(b.runs.run_end)
             c = b.coupling
-            self.coupling_particles = i32(c.particles)
             self.coupling_rest = v3(c.rest)
             self.coupling_joint_indices = i32(np.clip(c.joint_indices, 0, self.joint_count - 1))
             self.coupling_joint_weights = f32(c.joint_weights)
             self.coupling_stiffness = float(c.stiffness)
             jc = b.joint_constraints
-            self.joint_constraint_particles = i32(jc.particles)
-            self.joint_constraint_joints = i32(jc.joints)
-            self.joint_constraint_rest_distance = f32(jc.rest_distance)
             self.joint_rest = v3(jc.joint_rest)
-            sv = b.subvolumes
-            if sv is not None:
-                self.subvolume_count = len(sv.names)
-                self.subvolume_tri_offsets = i32(sv.tri_offsets)
-                self.subvolume_tri_indices = i32(sv.tri_indices)
-                self.subvolume_fan_offsets = i32(sv.fan_offsets)
-                self.subvolume_fan_triangles = i32(sv.fan_triangles)
-                self.subvolume_center_rest = v3(sv.center_rest)
-                self.subvolume_center_joint = i32(sv.center_joint)
-                self.subvolume_rest_volume = f32(sv.rest_volume)
-            else:
-                self.subvolume_count = 0
+            # the joint constraints' and sub-volumes' device data live with the solver and
+            # VolumeConstraints, which build their own layouts from the builder
+            self.subvolume_count = len(b.subvolumes.names) if b.subvolumes is not None else 0
 
     def state(self) -> State:
         """A rest state: positions at rest, zero velocities, identity orientations."""

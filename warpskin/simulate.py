@@ -344,6 +344,7 @@ def simulate(
         "iterations": params.iterations,
         "volume_iterations": params.volume_iterations,
         "fast_summation": params.fast_summation,
+        "graph_capture": bool(graphs),  # frames replayed from captured graphs (else plain launches)
         "build_s": build_s,
         "mean_step_ms": float(np.mean(metrics["step_ms"][1:])) if len(written) > 1 else 0.0,
         "max_volume_deviation": float(np.abs(vol / v0 - 1).max()) if vol.size else 0.0,

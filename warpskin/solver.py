@@ -139,7 +139,7 @@ class SkinSolver:
                 from .volume import VolumeConstraints
 
                 self.volume = VolumeConstraints(model)
-                self.volume_centres = wp.zeros(len(b.subvolumes.center_rest), dtype=wp.vec3)
+                self.volume_centres = self.volume.centers  # its fan centres, posed every step
             self.collision = None
             if collision is not None and collision.enabled:
                 from .collision import SelfCollision
