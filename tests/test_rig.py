@@ -164,6 +164,21 @@ def test_weld_by_position_keeps_order_and_maps_back():
     assert np.array_equal(split[first][wmap], split)
 
 
+def test_bad_weights_on_a_welded_seam_copy_are_named():
+    # file vertices 8 and 9 duplicate vertices 0 and 3 (a seam); welding keeps 0 and 3, so
+    # validate() never sees the copies: their NaN / negative weights must still be rejected
+    v, f = _box()
+    pts = np.concatenate([v, v[[0, 3]]])
+    ji = np.tile([0, 1], (10, 1))
+    jw = np.tile([0.75, 0.25], (10, 1))
+    jw[8] = [np.nan, 1.0]
+    jw[9] = [1.5, -0.5]
+    with pytest.raises(RigError, match=r"box\.test: file vertices 8, 9 \(welded into others\) have NaN"):
+        _rig(points=pts, joint_indices=ji, joint_weights=jw)
+    jw[8] = jw[9] = [0.75, 0.25]
+    assert _rig(points=pts, joint_indices=ji, joint_weights=jw).vertex_count == 8
+
+
 def test_rescaled_scales_skinned_positions():
     move = Clip("move", {
         (1, "rotation"): Track("rotation", [0.0, 1.0], [[0, 0, 0, 1.0], [0, 0, 0.6, 0.8]]),

@@ -331,8 +331,7 @@ def mesh_edge_report(triangles: np.ndarray, vertex_count: int) -> dict:
     tri = np.asarray(triangles, dtype=np.int64)
     directed = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
     undirected = np.sort(directed, axis=1)
-    uniq, inv, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    uniq, counts = np.unique(undirected, axis=0, return_counts=True)
     boundary = uniq[counts == 1]
     nonmanifold = uniq[counts > 2]
     # winding: for an edge shared by two triangles, the directed copies must be opposite
@@ -347,7 +346,6 @@ def mesh_edge_report(triangles: np.ndarray, vertex_count: int) -> dict:
     bnd_deg = np.bincount(boundary.ravel(), minlength=vertex_count)
     expected = tri_deg + bnd_deg // 2
     bad_vertices = np.nonzero(used & (edge_deg != expected))[0]
-    del inv
     return {
         "boundary_edges": boundary,
         "nonmanifold_edges": nonmanifold,
@@ -481,6 +479,15 @@ class Rig:
             first, wmap = weld_by_position(points, weld_tolerance)
         else:
             first, wmap = np.arange(n), np.arange(n)
+        if first.size != n:
+            # validate() sees the welded vertices only: a seam copy dropped by welding must not
+            # hide bad weights
+            dropped = np.setdiff1d(np.arange(n), first)
+            w = jw[dropped]
+            bad = dropped[~np.all(np.isfinite(w), axis=1) | (w < 0).any(axis=1) | ~(w.sum(axis=1) > 1e-12)]
+            if bad.size:
+                raise RigError(f"{source or name}: file vertices {_fmt_indices(bad)} (welded into others) have NaN, inf, "
+                               "negative or all-zero joint weights")
         rig = cls(
             name=name,
             vertices=points[first],
@@ -562,7 +569,6 @@ class Rig:
         (normalised). Reported: degenerate triangles, and whether the surface is closed and
         manifold (:meth:`require_closed` raises if not; LBS does not need it).
         """
-        where = self.source or self.name
         rep = ValidationReport(warnings=list(self.report.warnings) if self.report else [])
         errors = rep.errors
         v = self.vertices
