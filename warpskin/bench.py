@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from .device import resolve_device
+from .scene import resolve_scene
 
 __all__ = ["run_skinning_bench"]
 
@@ -29,13 +30,6 @@ def _best_ms(fn, frames: int, repeat: int, device) -> float:
         wp.synchronize_device(device)
         best = min(best, (time.perf_counter() - t0) * 1e3 / frames)
     return best
-
-
-def _scene(target: str):
-    from .io import RIG_EXTENSIONS
-    from .scene import Scene, load_scene
-
-    return Scene.from_rig_file(target) if target.lower().endswith(RIG_EXTENSIONS) else load_scene(target)
 
 
 def run_skinning_bench(targets: list[str], *, device: str | None = None, frames: int = 60, repeat: int = 3) -> dict:
@@ -62,7 +56,7 @@ def run_skinning_bench(targets: list[str], *, device: str | None = None, frames:
         "scenes": {},
     }
     for target in targets:
-        scene = _scene(target)
+        scene = resolve_scene(target)
         rig = scene.rig()
         clip = rig.clip(scene.clip)
         first, last = scene.frame_range()
@@ -102,7 +96,7 @@ def run_build_bench(targets: list[str]) -> dict:
             if target == "arm35k":
                 rig, params = make_arm(rings=190, segments=184), None
             else:
-                scene = _scene(target)
+                scene = resolve_scene(target)
                 rig, params = scene.rig(), scene.model_params()
             t0 = time.perf_counter()
             builder = SkinModelBuilder(rig, params).build()
@@ -137,7 +131,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
            "cpu_count": os.cpu_count(), "steps": steps, "repeat": repeat, "scenes": {}}
     for target in targets:
         try:
-            scene = _scene(target)
+            scene = resolve_scene(target)
             rig = scene.rig()
             params = scene.solver_params()
         except Exception as exc:  # e.g. cesium_man without the assets folder

@@ -20,16 +20,10 @@ from pathlib import Path
 __all__ = ["main"]
 
 
-def _is_rig_file(target: str) -> bool:
-    from .io import RIG_EXTENSIONS
-
-    return target.lower().endswith(RIG_EXTENSIONS)
-
-
 def _scene_of(args):
-    from .scene import Scene, load_scene
+    from .scene import Scene, is_rig_file, load_scene
 
-    if _is_rig_file(args.target):
+    if is_rig_file(args.target):
         scene = Scene.from_rig_file(
             args.target, clip=getattr(args, "clip", None), fps=getattr(args, "fps", None),
             mesh=getattr(args, "mesh", None), unit_scale=getattr(args, "unit_scale", None),
@@ -73,9 +67,10 @@ def cmd_scenes(args) -> int:
 
 def cmd_info(args) -> int:
     from .rig import RigError
+    from .scene import is_rig_file
 
     out: dict = {}
-    if _is_rig_file(args.target):
+    if is_rig_file(args.target):
         from .io import list_meshes
 
         out["meshes"] = list_meshes(args.target)
@@ -231,9 +226,9 @@ def _emit_json(result: dict, path: str | None) -> int:
 
 
 def _missing_asset(target: str) -> bool:
-    from .scene import find_assets_dir, load_scene
+    from .scene import find_assets_dir, is_rig_file, load_scene
 
-    if _is_rig_file(target):
+    if is_rig_file(target):
         return False
     try:
         return "asset" in load_scene(target).rig_spec and find_assets_dir() is None
@@ -272,17 +267,19 @@ def cmd_pop(args) -> int:
 
 
 def cmd_warmup(args) -> int:
+    import importlib
+    import pkgutil
     import time
 
     import warp as wp
 
+    from . import kernels
     from .device import resolve_device
-    from .kernels import integrate, rotation, shape_matching, skinning, volume
 
     dev = resolve_device(args.device)
     t0 = time.perf_counter()
-    for module in (skinning, rotation, integrate, shape_matching, volume):
-        wp.load_module(module, device=dev)
+    for info in pkgutil.iter_modules(kernels.__path__):  # every kernel module, none forgotten
+        wp.load_module(importlib.import_module(f"{kernels.__name__}.{info.name}"), device=dev)
     print(f"kernels ready on {dev} in {time.perf_counter() - t0:.1f} s (cache: {wp.config.kernel_cache_dir})")
     return 0
 

@@ -37,13 +37,9 @@ def write_model_usd(builder: SkinModelBuilder, path: str | Path, *, comment: str
         sv = b.subvolumes
         if sv is not None:
             out.add_group("subvolumes")
-            v = rig.vertex_count
             pts_all = np.concatenate([rig.vertices, sv.center_rest])
             for s, name in enumerate(sv.names):
-                surf = tris[sv.tri_indices[sv.tri_offsets[s]:sv.tri_offsets[s + 1]]]
-                fans = sv.fan_triangles[sv.fan_offsets[s]:sv.fan_offsets[s + 1]].copy()
-                fans[:, 2] += v
-                faces = np.concatenate([surf, fans])
+                faces = sv.closed_triangles(s)
                 used, inverse = np.unique(faces.ravel(), return_inverse=True)
                 out.add_mesh(f"subvolumes/{name}", inverse.reshape(-1, 3), rest_points=pts_all[used], animated=False, color=_palette(s))
         jc = b.joint_constraints

@@ -71,6 +71,7 @@ import warp as wp
 from .device import resolve_device
 from .kernels import popping as _k
 from .rig import Clip, Rig, RigError
+from .scene import resolve_scene
 from .skinning import Skinner
 from .transforms import blend_skinning_matrices, linear_blend_skin
 
@@ -967,17 +968,6 @@ class PoppingRun:
     summary: dict = field(default_factory=dict)
 
 
-def _resolve_scene(scene):
-    from .scene import Scene, load_scene
-
-    if isinstance(scene, Scene):
-        return scene
-    from .io import RIG_EXTENSIONS
-
-    s = str(scene)
-    return Scene.from_rig_file(s) if s.lower().endswith(RIG_EXTENSIONS) else load_scene(s)
-
-
 def run_popping(
     scene,
     out_path,
@@ -1019,7 +1009,7 @@ def run_popping(
     from .io.usd_export import UsdSkinWriter
     from .progress import Progress
 
-    scene = _resolve_scene(scene)
+    scene = resolve_scene(scene)
     if fps is not None:
         if not (fps > 0):
             raise RigError(f"fps must be positive, got {fps}")

@@ -41,7 +41,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-__all__ = ["Scene", "SceneError", "load_scene", "list_scenes", "find_assets_dir", "GENERATORS"]
+__all__ = ["Scene", "SceneError", "load_scene", "resolve_scene", "is_rig_file", "list_scenes", "find_assets_dir",
+           "GENERATORS"]
 
 
 class SceneError(RigError):
@@ -273,6 +274,20 @@ def _positive(where: str, key: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise SceneError(f"{where}: {key} must be a positive number, got {value!r}")
     return float(value)
+
+
+def is_rig_file(target: str | Path) -> bool:
+    """Is ``target`` a rig file (glTF or USD, by its extension) rather than a scene?"""
+    from .io import RIG_EXTENSIONS
+
+    return str(target).lower().endswith(RIG_EXTENSIONS)
+
+
+def resolve_scene(target: Scene | str | Path) -> Scene:
+    """A :class:`Scene` as it is; a rig file played as it is; otherwise a scene name or TOML path."""
+    if isinstance(target, Scene):
+        return target
+    return Scene.from_rig_file(target) if is_rig_file(target) else load_scene(target)
 
 
 def load_scene(name_or_path: str | Path) -> Scene:

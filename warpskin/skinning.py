@@ -22,25 +22,11 @@ import warp as wp
 from .kernels import skinning as _k
 from .device import resolve_device
 from .rig import Clip, Rig, RigError
-from .transforms import matrix_to_quat
+from .transforms import matrix_to_quat, quat_multiply
 
 __all__ = ["Skinner", "SKINNING_METHODS", "dual_quaternions"]
 
 SKINNING_METHODS = ("lbs", "dqs")
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
 
 
 def dual_quaternions(skin_matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,7 +48,7 @@ def dual_quaternions(skin_matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     stretch = np.einsum("jki,jk,jkl->jil", vt, sig, vt)  # V^T diag(sig) V
     real = matrix_to_quat(rot)
     t = np.concatenate([m[:, :3, 3], np.zeros((m.shape[0], 1))], axis=1)
-    dual = 0.5 * _quat_mul(t, real)
+    dual = 0.5 * quat_multiply(t, real)
     return real, dual, stretch
 
 
@@ -191,13 +177,9 @@ def skin_to_usd(
     """
     from .io.usd_export import UsdSkinWriter
     from .progress import Progress
-    from .scene import Scene, load_scene
+    from .scene import resolve_scene
 
-    if not isinstance(scene, Scene):
-        from .io import RIG_EXTENSIONS
-
-        s = str(scene)
-        scene = Scene.from_rig_file(s) if s.lower().endswith(RIG_EXTENSIONS) else load_scene(s)
+    scene = resolve_scene(scene)
     if fps is not None:
         if not (fps > 0):
             raise RigError(f"fps must be positive, got {fps}")

@@ -17,10 +17,10 @@ __all__ = [
     "quat_normalize",
     "quat_to_matrix",
     "matrix_to_quat",
+    "quat_multiply",
     "quat_slerp",
     "compose_trs",
     "decompose_trs",
-    "invert_rigid_or_affine",
     "blend_skinning_matrices",
     "linear_blend_skin",
 ]
@@ -75,6 +75,21 @@ def matrix_to_quat(m: np.ndarray) -> np.ndarray:
     return out.reshape(m.shape[:-2] + (4,))
 
 
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` of quaternions ``(..., 4)`` in (x, y, z, w) order."""
+    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
 def quat_slerp(q0: np.ndarray, q1: np.ndarray, u: float | np.ndarray) -> np.ndarray:
     """Spherical linear interpolation along the shorter arc (the glTF 2.0 rule), ``(..., 4)``."""
     q0 = quat_normalize(q0)
@@ -121,11 +136,6 @@ def decompose_trs(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     u, _, vt = np.linalg.svd(rot)
     rot = u @ vt
     return t, matrix_to_quat(rot), s
-
-
-def invert_rigid_or_affine(m: np.ndarray) -> np.ndarray:
-    """Inverse of affine 4x4 matrices ``(..., 4, 4)``."""
-    return np.linalg.inv(np.asarray(m, dtype=np.float64))
 
 
 def blend_skinning_matrices(joint_indices: np.ndarray, joint_weights: np.ndarray, skin_matrices: np.ndarray) -> np.ndarray:

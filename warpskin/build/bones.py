@@ -38,11 +38,6 @@ class Bones:
     def length(self) -> np.ndarray:
         return np.linalg.norm(self.end - self.start, axis=1)
 
-    @property
-    def direction(self) -> np.ndarray:
-        d = self.end - self.start
-        n = np.linalg.norm(d, axis=1, keepdims=True)
-        return d / np.where(n > 0, n, 1.0)
 
 
 def dominant_bone(rig: Rig) -> np.ndarray:

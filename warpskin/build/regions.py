@@ -21,18 +21,9 @@ import scipy.sparse as sp
 
 from ..rig import RigError
 from .layers import Layers
+from .paths import vertex_adjacency
 
-__all__ = ["Regions", "omega_rings", "build_regions", "vertex_adjacency", "particle_radii"]
-
-
-def vertex_adjacency(triangles: np.ndarray, vertex_count: int) -> sp.csr_matrix:
-    """Symmetric 0/1 vertex adjacency ``[V, V]`` from the triangle edges."""
-    t = np.asarray(triangles, dtype=np.int64)
-    i = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
-    j = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
-    a = sp.csr_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(vertex_count, vertex_count))
-    a.data[:] = 1
-    return a
+__all__ = ["Regions", "omega_rings", "build_regions", "particle_radii"]
 
 
 def omega_rings(triangles: np.ndarray, vertex_count: int, omega: int = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -33,7 +33,7 @@ import numpy as np
 import pygltflib
 
 from ..rig import PATHS, Clip, Rig, RigError, RigWarning, Skeleton, Track
-from ..transforms import compose_trs, decompose_trs
+from ..transforms import compose_trs, decompose_trs, quat_multiply
 
 __all__ = ["list_gltf_meshes", "load_gltf"]
 
@@ -769,21 +769,6 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray,
 # --------------------------------------------------------------------------------------------
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of quaternions ``(..., 4)`` in (x, y, z, w) order."""
-    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
-
-
 class _SkinInfo:
     """The skin's joints mapped onto a :class:`Skeleton`, plus what the tracks need."""
 
@@ -844,7 +829,7 @@ class _SkinInfo:
         c3 = chain_m[:3, :3]
         if similarity:
             sc = float(cs.mean())
-            return c3 @ t + chain_m[:3, 3], _quat_mul(cr, r), sc * s, (chain_m, cr, sc, True)
+            return c3 @ t + chain_m[:3, 3], quat_multiply(cr, r), sc * s, (chain_m, cr, sc, True)
         t2, r2, s2 = decompose_trs(chain_m @ compose_trs(t, r, s))
         return t2, r2, s2, (chain_m, cr, float(np.cbrt(abs(np.linalg.det(c3)))), False)
 
@@ -861,7 +846,7 @@ class _SkinInfo:
                 out += chain_m[:3, 3]
             return out
         if path == "rotation":
-            return _quat_mul(cr, values)  # linear in the key: valid for tangents too
+            return quat_multiply(cr, values)  # linear in the key: valid for tangents too
         return values * sc
 
 
