@@ -91,3 +91,21 @@ def test_console_process_exit_code_and_message(tmp_path):
                         "--frames", "9:3"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert "--frames 9:3" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_warmup_loads_every_kernel_module(capsys):
+    import pkgutil
+
+    import warp as wp
+
+    import warpskin.kernels as kernels
+
+    names = [f"{kernels.__name__}.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
+    assert {"warpskin.kernels.collision", "warpskin.kernels.popping", "warpskin.kernels.constraints"} <= set(names)
+    for n in names:  # forget what earlier tests loaded
+        __import__(n)
+        wp.get_module(n).unload()
+    assert main(["warmup", "--device", "cpu"]) == 0
+    assert "kernels ready on cpu" in capsys.readouterr().out
+    for n in names:
+        assert wp.get_module(n).execs, f"{n} not loaded"
