@@ -143,7 +143,7 @@ def path_scan_kernel(
 # --------------------------------------------------------------------------------------------
 # Fast summation, part 2: region sums from run differences plus sibling terms, then the fit:
 #   S1 = sum over runs (P1[end] - P1[start - 1]) + siblings,  likewise S2,
-#   c = S1 / M,   A = S2 - M c c0^T
+#   c = S1 / M,   A = S2 - S1 c0^T  (= S2 - M c c0^T; c0 in float64 from the float32 rest data)
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def region_fit_runs_kernel(
@@ -162,7 +162,7 @@ def region_fit_runs_kernel(
     region_members: wp.array(dtype=wp.int32),
     region_sibling_count: wp.array(dtype=wp.int32),
     region_mass: wp.array(dtype=wp.float32),
-    region_rest_com: wp.array(dtype=wp.vec3),
+    region_rest_com: wp.array(dtype=wp.vec3d),
     vertex_count: int,
     rotation_iterations: int,
     # outputs
@@ -188,7 +188,7 @@ def region_fit_runs_kernel(
         s1, s2 = particle_terms(region_members[e], x, x0, particle_mass, moment_matrix, s1, s2)
     m = wp.float64(region_mass[r])
     c = s1 / m
-    a_mat = s2 - m * wp.outer(c, to_vec3d(region_rest_com[r]))
+    a_mat = s2 - wp.outer(s1, region_rest_com[r])  # = S2 - M c c0^T, without M's float32 rounding
     region_com[r] = wp.vec3(wp.float32(c[0]), wp.float32(c[1]), wp.float32(c[2]))
     region_q[r] = extract_rotation(to_mat33(a_mat), q[r], rotation_iterations)
 

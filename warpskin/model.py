@@ -208,7 +208,16 @@ class SkinModel:
             self.region_members = i32(reg.region_members)
             self.region_sibling_count = i32(reg.sibling_count)
             self.region_rest_offsets = v3(reg.rest_offsets)
-            self.region_rest_com = v3(reg.rest_com)
+            # rest centres for the fast summation, in float64 from the float32 rest positions
+            # and masses the kernels read: A = S2 - S1 c0^T cancels large terms, and a float32
+            # c0 (or one from unrounded data) left up to 2e-3 rotation error in small regions
+            q0 = np.asarray(b.layers.flat(), dtype=np.float32).astype(np.float64)
+            m32 = np.asarray(b.masses, dtype=np.float32).astype(np.float64)
+            seg = reg.region_offsets
+            mem = reg.region_members
+            mx0 = np.add.reduceat(m32[mem, None] * q0[mem], seg[:-1], axis=0)
+            msum = np.add.reduceat(m32[mem], seg[:-1])
+            self.region_rest_com = wp.array(mx0 / msum[:, None], dtype=wp.vec3d, device=device)
             self.region_mass = f32(reg.region_mass)
             self.particle_region_offsets = i32(reg.particle_offsets)
             self.particle_regions = i32(reg.particle_regions)
