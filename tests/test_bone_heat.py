@@ -7,8 +7,8 @@ import pytest
 import scipy.spatial
 import trimesh
 
-from warpskin.build.bones import bone_segments, dominant_bone
-from warpskin.build.weights import (
+from warpskin.preprocess.bones import bone_segments, dominant_bone
+from warpskin.preprocess.bone_heat import (
     _segment_triangle_hits,
     bone_heat_weights,
     cotangent_laplacian,

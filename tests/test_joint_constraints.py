@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpskin.build.joints import JointParams, build_joint_constraints, build_kinematic_coupling
-from warpskin.build.layers import build_layers
+from warpskin.preprocess.joint_constraints import JointParams, build_joint_constraints
+from warpskin.preprocess.kinematic_coupling import build_kinematic_coupling
+from warpskin.preprocess.layers import build_layers
 from warpskin.rig import RigError
 from warpskin.scene import SceneError, load_scene
 from warpskin.scenes.arm import make_arm

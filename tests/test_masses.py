@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from warpskin.build.layers import LayerParams, build_layers
-from warpskin.build.masses import layer_heights, mixed_voronoi_areas, particle_masses
+from warpskin.preprocess.layers import LayerParams, build_layers
+from warpskin.preprocess.masses import layer_heights, mixed_voronoi_areas, particle_masses
 from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
 

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from pxr import Usd, UsdGeom
 
-from warpskin.build.layers import LayerParams, build_layers, check_layer_folds
+from warpskin.preprocess.layers import LayerParams, build_layers, check_layer_folds
 from warpskin.cli import main
 from warpskin.metrics import self_intersections, signed_volume, triangle_pairs_intersect
 from warpskin.model import ModelParams, SkinModelBuilder
@@ -150,7 +150,7 @@ def test_open_mesh_rejected_by_builder():
 
 
 def test_joint_without_bone_length_is_named():
-    from warpskin.build.bones import bone_segments
+    from warpskin.preprocess.bones import bone_segments
 
     rig = make_arm(rings=12, segments=10)
     # a lone root joint that coincides with nothing: give it vertices and no children

@@ -1,7 +1,7 @@
 """Fast-summation path layout (Deul & Bender 2013, section 4.3; Diziol, Bender & Bayer 2011).
 
 The omega-rings are built here with a plain breadth-first search over the triangle edges,
-independently of :mod:`warpskin.build.paths`, and every fast region sum is compared with the
+independently of :mod:`warpskin.preprocess.fast_summation`, and every fast region sum is compared with the
 direct sum. Float32 bounds (errors relative to ``sum |v|`` over the region, values in [0, 1)):
 ``kahan`` (the float32 default) within ``8 eps``; ``plain`` and ``relative`` within ``1e-3``
 (measured up to 1.4e-4 on the arm's single 2918-vertex path). Float64: ``1e-12`` relative.
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from warpskin.build.paths import (
+from warpskin.preprocess.fast_summation import (
     ACCUMULATE,
     HEURISTICS,
     PathLayout,

@@ -7,9 +7,9 @@ from collections import deque
 import numpy as np
 import pytest
 
-from warpskin.build.layers import build_layers
-from warpskin.build.masses import particle_masses
-from warpskin.build.regions import build_regions, omega_rings, particle_radii
+from warpskin.preprocess.layers import build_layers
+from warpskin.preprocess.masses import particle_masses
+from warpskin.preprocess.regions import build_regions, omega_rings, particle_radii
 from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from warpskin.build.bones import dominant_bone
-from warpskin.build.subvolumes import SubVolumeParams, SubVolumes, build_subvolumes
+from warpskin.preprocess.bones import dominant_bone
+from warpskin.preprocess.sub_volumes import SubVolumeParams, SubVolumes, build_subvolumes
 from warpskin.rig import Rig, RigError, Skeleton
 from warpskin.scenes.arm import ARM_DEFAULTS, make_arm
 from warpskin.skinning import Skinner

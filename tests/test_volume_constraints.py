@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpskin.build.subvolumes import SubVolumeParams, SubVolumes
+from warpskin.preprocess.sub_volumes import SubVolumeParams, SubVolumes
 from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm

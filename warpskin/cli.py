@@ -132,7 +132,7 @@ def cmd_skin(args) -> int:
 
 
 def cmd_layers(args) -> int:
-    from .inspect import write_model_usd
+    from .io.model_usd import write_model_usd
     from .model import SkinModelBuilder
 
     scene = _scene_of(args)

@@ -17,17 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .build.bones import Bones, bone_segments
-from .build.joints import (
-    JointConstraints,
-    JointParams,
-    KinematicCoupling,
-    build_joint_constraints,
-    build_kinematic_coupling,
-)
-from .build.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds
-from .build.masses import particle_masses
-from .build.regions import Regions, build_regions, particle_radii
+from .preprocess.bones import Bones, bone_segments
+from .preprocess.joint_constraints import JointConstraints, JointParams, build_joint_constraints
+from .preprocess.kinematic_coupling import KinematicCoupling, build_kinematic_coupling
+from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds
+from .preprocess.masses import particle_masses
+from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
 from .rig import Rig, RigError
 
@@ -47,7 +42,7 @@ class ModelParams:
         omega: Region size (omega-ring).
         coupling_stiffness: Bone layer to LBS distance-constraint stiffness in [0, 1].
         joints: Joint-constraint selection.
-        subvolumes: Sub-volume cutting planes (``warpskin.build.subvolumes.SubVolumeParams``);
+        subvolumes: Sub-volume cutting planes (``warpskin.preprocess.sub_volumes.SubVolumeParams``);
             ``None`` for the defaults.
         volume: False skips the sub-volumes (no volume constraints).
     """
@@ -115,7 +110,7 @@ class SkinModelBuilder:
         self.radii = self._stage("radii", lambda: particle_radii(self.layers, rig.triangles))
         self.regions: Regions = self._stage("regions", lambda: build_regions(self.layers, rig.triangles, self.masses, omega=p.omega))
 
-        from .build.paths import build_path_layout, region_runs
+        from .preprocess.fast_summation import build_path_layout, region_runs
 
         # paths of at most 32 vertices: the scan runs one thread per path and layer, and the
         # unbounded layout is one path per layer on a tube (4 threads; 36 ms on an H100 against
@@ -126,7 +121,7 @@ class SkinModelBuilder:
         )
         self.runs = self._stage("runs", lambda: region_runs(self.paths, self.regions.ring_offsets, self.regions.ring_members))
         if p.volume:
-            from .build.subvolumes import build_subvolumes
+            from .preprocess.sub_volumes import build_subvolumes
 
             self.subvolumes = self._stage("subvolumes", lambda: build_subvolumes(rig, p.subvolumes, bones=self.bones))
         else:

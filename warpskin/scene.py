@@ -202,7 +202,7 @@ def _build_rig(scene: Scene) -> Rig:
     rig = _load_rig_of(scene)
     weights = scene.rig_spec.get("weights", "file")
     if weights == "bone_heat":
-        from .build.weights import with_bone_heat_weights
+        from .preprocess.bone_heat import with_bone_heat_weights
 
         rig = with_bone_heat_weights(rig)
     elif weights != "file":
@@ -374,8 +374,8 @@ def _numbers(where: str, key: str, value, count: int) -> tuple[float, ...]:
 
 
 def _model_params(extra: dict, where: str):
-    from .build.joints import JointParams
-    from .build.layers import LayerParams
+    from .preprocess.joint_constraints import JointParams
+    from .preprocess.layers import LayerParams
     from .model import ModelParams
 
     lay = extra.get("layers", {})
@@ -410,7 +410,7 @@ def _model_params(extra: dict, where: str):
     sv = extra.get("subvolumes", {})
     sub_params = None
     if "planes" in sv:
-        from .build.subvolumes import SubVolumeParams
+        from .preprocess.sub_volumes import SubVolumeParams
 
         planes = {}
         for joint, value in sv["planes"].items():

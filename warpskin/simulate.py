@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from .build.layers import LAYER_NAMES
+from .preprocess.layers import LAYER_NAMES
 from .io.usd_export import UsdSkinWriter
 from .metrics import self_intersections, signed_volume
 from .model import SkinModelBuilder

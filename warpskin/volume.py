@@ -1,7 +1,7 @@
 """Volume conservation: one position-based volume constraint per sub-volume.
 
 Deul & Bender 2013, section 4.6, adopting Diziol, Bender & Bayer 2011: every closed sub-volume
-``s`` of the skin (:mod:`warpskin.build.subvolumes`, its surface triangles closed by fans to
+``s`` of the skin (:mod:`warpskin.preprocess.sub_volumes`, its surface triangles closed by fans to
 kinematic bone centers) carries one constraint
 
     C_s(x) = V_s(x) - V_s^rest,
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .build.subvolumes import SubVolumes
+from .preprocess.sub_volumes import SubVolumes
 from .device import resolve_device
 from .kernels import volume as _k
 from .rig import RigError
@@ -203,7 +203,7 @@ class VolumeConstraints:
 
     Args:
         source: A :class:`~warpskin.model.SkinModel` (its builder's sub-volumes, on its
-            device), or a :class:`~warpskin.build.subvolumes.SubVolumes`.
+            device), or a :class:`~warpskin.preprocess.sub_volumes.SubVolumes`.
         device: Warp device when ``source`` is a ``SubVolumes``; ignored for a model.
         block_dim: Threads per sub-volume in the block reductions on CUDA devices.
 

@@ -1,10 +1,6 @@
-"""Kinematic coupling and joint constraints (Deul & Bender 2013, section 4.4).
-
-* **Kinematic coupling**: every bone-layer particle is pulled to its LBS position by a
-  zero-length distance constraint; its LBS target uses the weights of its skin vertex.
-* **Joint constraints**: particles near a joint keep at least their rest distance to the joint
-  centre (a unilateral, lower-bound distance constraint), so tissue does not sink into the bones
-  at a bent joint while it may still move away from it.
+"""Joint constraints (Deul & Bender 2013, section 4.4): particles near a joint keep at least
+their rest distance to the joint centre (a unilateral, lower-bound distance constraint), so
+tissue does not sink into the bones at a bent joint while it may still move away from it.
 
 Joint centres are kinematic: the centre of joint ``j`` at time ``t`` is
 ``(G_j(t) @ inverse_bind_j) @ bind_position_j``.
@@ -17,32 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..rig import Rig, RigError
-from ..transforms import linear_blend_skin
 from .layers import LAYER_NAMES, Layers
 
-__all__ = ["JointParams", "KinematicCoupling", "JointConstraints", "build_kinematic_coupling", "build_joint_constraints"]
-
-
-@dataclass
-class KinematicCoupling:
-    """Bone-layer particles and their LBS targets.
-
-    Attributes:
-        particles: Global indices of the coupled particles, ``[V]`` (the bone layer).
-        rest: Their rest positions [m], ``[V, 3]``.
-        joint_indices, joint_weights: LBS influences, ``[V, K]``.
-        stiffness: Constraint stiffness in [0, 1] (the paper uses 1).
-    """
-
-    particles: np.ndarray
-    rest: np.ndarray
-    joint_indices: np.ndarray
-    joint_weights: np.ndarray
-    stiffness: float = 1.0
-
-    def targets(self, skin_matrices: np.ndarray) -> np.ndarray:
-        """LBS targets [m], ``[V, 3]``, for skinning matrices ``[J, 4, 4]`` (host reference)."""
-        return linear_blend_skin(self.rest, self.joint_indices, self.joint_weights, skin_matrices)
+__all__ = ["JointParams", "JointConstraints", "build_joint_constraints"]
 
 
 @dataclass
@@ -87,20 +60,6 @@ class JointConstraints:
     def centres(self, skin_matrices: np.ndarray) -> np.ndarray:
         """Joint centres [m], ``[J, 3]``, for skinning matrices ``[J, 4, 4]``."""
         return np.einsum("jab,jb->ja", skin_matrices[:, :3, :3], self.joint_rest) + skin_matrices[:, :3, 3]
-
-
-def build_kinematic_coupling(rig: Rig, layers: Layers, *, stiffness: float = 1.0) -> KinematicCoupling:
-    """Couple every bone-layer particle to its LBS position."""
-    if not (0.0 <= stiffness <= 1.0):
-        raise RigError(f"coupling stiffness must be in [0, 1], got {stiffness}")
-    v = layers.vertex_count
-    return KinematicCoupling(
-        particles=3 * v + np.arange(v),
-        rest=layers.positions[3].copy(),
-        joint_indices=rig.joint_indices.copy(),
-        joint_weights=rig.joint_weights.copy(),
-        stiffness=float(stiffness),
-    )
 
 
 def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None = None) -> JointConstraints:

@@ -43,7 +43,7 @@ Fan centers are kinematic: they move rigidly with the joint whose bone carries t
 Default planes (:func:`default_plane_positions`). A plane is named by a joint ``j`` with a
 parent ``p``; its position ``t`` runs along the bone chain through ``j``: ``t`` in ``[0, 1]``
 is on the parent bone ``p -> j`` (``t = 1`` is the joint, normal along ``p -> j``), ``t`` in
-``(1, 2]`` is on joint ``j``'s own bone (:func:`~warpskin.build.bones.bone_segments`, normal
+``(1, 2]`` is on joint ``j``'s own bone (:func:`~warpskin.preprocess.bones.bone_segments`, normal
 along it); values beyond extrapolate along the last segment. The default rule, with
 ``merge=True``:
 
@@ -521,7 +521,7 @@ def build_subvolumes(rig: Rig, params: SubVolumeParams | None = None, *, bones: 
     Args:
         rig: A rig with a closed, manifold, consistently wound surface.
         params: Plane placement; the default rule when ``None``.
-        bones: Bone segments (:func:`~warpskin.build.bones.bone_segments`), computed when
+        bones: Bone segments (:func:`~warpskin.preprocess.bones.bone_segments`), computed when
             ``None``; the joint positions and the own-bone segments come from them.
 
     Returns:

@@ -592,7 +592,7 @@ def _prune(w: np.ndarray, k: int, min_weight: float) -> tuple[np.ndarray, np.nda
 def with_bone_heat_weights(rig: Rig, **kw) -> Rig:
     """A copy of ``rig`` whose skin weights come from :func:`bone_heat_weights`.
 
-    Bones are :func:`~warpskin.build.bones.bone_segments` of the rig (whose leaf-bone extension
+    Bones are :func:`~warpskin.preprocess.bones.bone_segments` of the rig (whose leaf-bone extension
     reads the rig's current weights); only bones of positive length get weight (a ``bone_mask``
     in ``kw`` further restricts them).
 

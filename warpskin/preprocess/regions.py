@@ -21,7 +21,7 @@ import scipy.sparse as sp
 
 from ..rig import RigError
 from .layers import Layers
-from .paths import vertex_adjacency
+from .fast_summation import vertex_adjacency
 
 __all__ = ["Regions", "omega_rings", "build_regions", "particle_radii"]
 

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .build.layers import LAYER_NAMES
-from .io.usd_export import UsdSkinWriter
-from .model import SkinModelBuilder
+from ..preprocess.layers import LAYER_NAMES
+from .usd_export import UsdSkinWriter
+from ..model import SkinModelBuilder
 
 __all__ = ["write_model_usd"]
 

@@ -1,0 +1,231 @@
+"""Muscle activation over time (clench/relax per group, keyed to beats) and a scene's
+``[popping]`` settings."""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..rig import RigError
+from .dynamics import _check_dynamics
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+# --------------------------------------------------------------------------------------------
+# Activation timeline
+# --------------------------------------------------------------------------------------------
+class ActivationTimeline:
+    """Muscle activation per group over time: piecewise-linear keys, steps where two keys share
+    a time (the later one holds from that instant on).
+
+    Args:
+        keys: Group name -> ``[(time [s], activation in [0, 1]), ...]`` with non-decreasing
+            times. Before the first key the first value holds, after the last the last.
+
+    Example:
+        >>> tl = ActivationTimeline({"biceps": ActivationTimeline.beats([0.5, 1.5], hold=0.4)})
+        >>> tl.sample(0.6, ["biceps"])
+        array([1.])
+    """
+
+    def __init__(self, keys: Mapping[str, Sequence[tuple[float, float]]] | None = None, *, where: str = "activation") -> None:
+        self.times: dict[str, np.ndarray] = {}
+        self.values: dict[str, np.ndarray] = {}
+        for name, pairs in (keys or {}).items():
+            arr = np.asarray(pairs, dtype=np.float64)
+            if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
+                raise RigError(f"{where}: group {name!r}: keys must be a non-empty list of [time, activation] pairs")
+            t, a = arr[:, 0], arr[:, 1]
+            if not np.all(np.isfinite(arr)):
+                raise RigError(f"{where}: group {name!r}: keys hold NaN or inf")
+            if np.any(np.diff(t) < 0.0):
+                k = int(np.nonzero(np.diff(t) < 0.0)[0][0])
+                raise RigError(f"{where}: group {name!r}: key times must not decrease (key {k + 1} at {t[k + 1]} s "
+                               f"comes after {t[k]} s)")
+            if np.any((a < 0.0) | (a > 1.0)):
+                raise RigError(f"{where}: group {name!r}: activations must be in [0, 1], got {a[(a < 0) | (a > 1)][:4].tolist()}")
+            self.times[str(name)] = t
+            self.values[str(name)] = a
+
+    @staticmethod
+    def beats(beats: Sequence[float], *, hold: float, attack: float = 0.0, release: float = 0.0,
+              where: str = "activation") -> list[tuple[float, float]]:
+        """Keys of one pop per beat: rise 0 -> 1 over ``attack`` [s] from the beat, stay
+        clenched until ``hold`` [s] after it, fall to 0 over ``release`` [s].
+
+        Raises:
+            RigError: negative durations, ``attack > hold``, or pops that overlap the next beat.
+        """
+        b = np.sort(np.asarray(beats, dtype=np.float64).ravel())
+        if b.size == 0 or not np.all(np.isfinite(b)):
+            raise RigError(f"{where}: beats must be a non-empty list of times [s]")
+        for label, value in (("hold", hold), ("attack", attack), ("release", release)):
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0.0):
+                raise RigError(f"{where}: {label} must be a duration >= 0 [s], got {value!r}")
+        if hold <= 0.0:
+            raise RigError(f"{where}: hold must be positive [s], got {hold!r}")
+        if attack > hold:
+            raise RigError(f"{where}: attack ({attack} s) must not exceed hold ({hold} s)")
+        gaps = np.diff(b)
+        if gaps.size and gaps.min() < hold + release - 1e-12:
+            k = int(np.argmin(gaps))
+            raise RigError(f"{where}: the pop on the beat at {b[k]} s (hold {hold} s + release {release} s) overlaps "
+                           f"the beat at {b[k + 1]} s")
+        keys = []
+        for t in b:
+            keys += [(t, 0.0), (t + attack, 1.0), (t + hold, 1.0), (t + hold + release, 0.0)]
+        return keys
+
+    @classmethod
+    def from_table(cls, table: Mapping, *, where: str = "[popping.activation]") -> ActivationTimeline:
+        """From a scene's ``[popping.activation]`` table: per group either ``keys = [[t, a], ...]``
+        or ``beats = [t, ...]`` with ``hold`` (and optional ``attack``, ``release``) [s]."""
+        if not isinstance(table, Mapping):
+            raise RigError(f"{where} must be a table of muscle groups")
+        keys = {}
+        for name, spec in table.items():
+            w = f"{where} {name}"
+            if not isinstance(spec, Mapping):
+                raise RigError(f"{w}: must be a table with 'keys' or 'beats'")
+            unknown = sorted(set(spec) - {"keys", "beats", "hold", "attack", "release"})
+            if unknown:
+                raise RigError(f"{w}: unknown key(s) {unknown}; known: ['attack', 'beats', 'hold', 'keys', 'release']")
+            if ("keys" in spec) == ("beats" in spec):
+                raise RigError(f"{w}: give exactly one of 'keys' or 'beats'")
+            if "keys" in spec:
+                if set(spec) - {"keys"}:
+                    raise RigError(f"{w}: hold, attack and release only apply to 'beats'")
+                keys[name] = spec["keys"]
+            else:
+                if "hold" not in spec:
+                    raise RigError(f"{w}: 'beats' needs 'hold' (how long each pop stays clenched [s])")
+                keys[name] = cls.beats(spec["beats"], hold=spec["hold"], attack=spec.get("attack", 0.0),
+                                       release=spec.get("release", 0.0), where=w)
+        return cls(keys, where=where)
+
+    @property
+    def groups(self) -> list[str]:
+        return list(self.times)
+
+    @property
+    def end(self) -> float:
+        """Time of the last key over all groups [s] (0 when empty)."""
+        return max((float(t[-1]) for t in self.times.values()), default=0.0)
+
+    def check_groups(self, names: Sequence[str], where: str = "activation") -> None:
+        """Raise :class:`RigError` if the timeline drives a group that ``names`` lacks."""
+        unknown = [g for g in self.times if g not in names]
+        if unknown:
+            raise RigError(f"{where}: muscle groups {unknown} have no clenched examples; groups are {list(names)}")
+
+    def value(self, group: str, t: float) -> float:
+        """Activation of ``group`` at time ``t`` [s] (0 for a group without keys)."""
+        times = self.times.get(group)
+        if times is None:
+            return 0.0
+        vals = self.values[group]
+        k = int(np.searchsorted(times, t, side="right")) - 1
+        if k < 0:
+            return float(vals[0])
+        if k >= times.size - 1:
+            return float(vals[-1])
+        u = (t - times[k]) / (times[k + 1] - times[k])
+        return float(vals[k] + u * (vals[k + 1] - vals[k]))
+
+    def sample(self, t: float, groups: Sequence[str]) -> np.ndarray:
+        """Activations of ``groups`` at time ``t`` [s], ``[G]``."""
+        return np.array([self.value(g, t) for g in groups])
+
+
+# --------------------------------------------------------------------------------------------
+# Scenes
+# --------------------------------------------------------------------------------------------
+@dataclass
+class PoppingSettings:
+    """The ``[popping]`` section of a scene.
+
+    Attributes:
+        mode: ``"goal"``: the paper's goal-seeking skin; ``"layered"``: the activation moves the
+            muscle layer's rest shape of the multi-layer model toward the clenched example and
+            the physical skin (shape matching, volume, collisions) makes the pop.
+        alpha_min: Stiffness at the largest disparity, in (0, 1] (eq. 3).
+        beta: Relaxation rate [1/s] (eq. 4).
+        threshold: Snap distance of relaxing vertices [m].
+        dt: Step length [s]; ``None``: one step per frame.
+        rbf_width: Gaussian width in pose space [rad]; ``None``: automatic.
+        joints: Joints spanning pose space; ``None``: the joints the examples vary.
+        activation: Activation per muscle group over clip time.
+    """
+
+    mode: str = "goal"
+    alpha_min: float = 0.1
+    beta: float = 30.0
+    threshold: float = 1e-4
+    dt: float | None = None
+    rbf_width: float | None = None
+    joints: list[str] | None = None
+    activation: ActivationTimeline = field(default_factory=ActivationTimeline)
+
+    def check(self, where: str = "[popping]") -> None:
+        if self.mode not in ("goal", "layered"):
+            raise RigError(f"{where}: mode must be 'goal' (the paper's goal-driven skin) or 'layered' (the activation "
+                           f"drives the muscle layer of the multi-layer model), got {self.mode!r}")
+        _check_dynamics(self.alpha_min, self.beta, self.threshold, where)
+        if self.dt is not None and not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
+            raise RigError(f"{where}: dt must be a positive step length [s], got {self.dt!r}")
+        if self.dt is not None and self.beta * self.dt > 1.0 + 1e-12:
+            raise RigError(f"{where}: beta * dt = {self.beta * self.dt:.4g} must be <= 1 (no overshoot on relax); "
+                           f"lower beta or dt")
+        if self.rbf_width is not None and not (isinstance(self.rbf_width, (int, float)) and self.rbf_width > 0):
+            raise RigError(f"{where}: rbf_width must be a positive angle [rad], got {self.rbf_width!r}")
+
+
+_SETTING_KEYS = {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"}
+
+
+def popping_settings(scene) -> PoppingSettings:
+    """Parse a scene's ``[popping]`` section (defaults where absent).
+
+    Raises:
+        RigError: a value of the wrong kind or range, naming the file and key.
+    """
+    where = str(scene.source) if getattr(scene, "source", None) else "scene"
+    table = scene.extra.get("popping") if isinstance(getattr(scene, "extra", None), dict) else None
+    if table is None and getattr(scene, "source", None) is not None and str(scene.source).endswith(".toml"):
+        try:
+            table = tomllib.loads(Path(scene.source).read_text()).get("popping")
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise RigError(f"{where}: cannot read the [popping] section: {exc}") from None
+    table = dict(table or {})
+    unknown = sorted(set(table) - _SETTING_KEYS)
+    if unknown:
+        raise RigError(f"{where}: unknown key(s) {unknown} in [popping]; known: {sorted(_SETTING_KEYS)}")
+    for key in ("alpha_min", "beta", "threshold", "dt", "rbf_width"):
+        if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
+            raise RigError(f"{where}: [popping] {key} must be a number, got {table[key]!r}")
+    if "mode" in table and not isinstance(table["mode"], str):
+        raise RigError(f"{where}: [popping] mode must be a string")
+    joints = table.get("joints")
+    if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
+        raise RigError(f"{where}: [popping] joints must be a list of joint names")
+    settings = PoppingSettings(
+        mode=table.get("mode", "goal"),
+        alpha_min=table.get("alpha_min", PoppingSettings.alpha_min),
+        beta=table.get("beta", PoppingSettings.beta),
+        threshold=table.get("threshold", PoppingSettings.threshold),
+        dt=table.get("dt"),
+        rbf_width=table.get("rbf_width"),
+        joints=joints,
+        activation=ActivationTimeline.from_table(table.get("activation", {}), where=f"{where}: [popping.activation]"),
+    )
+    settings.check(f"{where}: [popping]")
+    return settings

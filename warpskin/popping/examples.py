@@ -1,0 +1,284 @@
+"""Popping examples (Son & Han 2007, section 3): pairs of normal and clenched meshes at a few
+skeleton poses, as rest-frame displacements; from meshes, glTF morph targets or a scene's generator."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..kernels import popping as _k
+from ..rig import Clip, Rig, RigError
+from ..transforms import blend_skinning_matrices, linear_blend_skin
+
+
+Activation = float | Sequence[float] | Mapping[str, float] | np.ndarray
+"""Muscle activations in [0, 1]: one number for every group, one per group in order, or by
+group name (missing groups: 0)."""
+
+MAX_GROUPS = _k.GROUP_CAPACITY
+"""Most muscle groups one :class:`PoppingDynamics` drives (activations travel as a kernel
+argument, a fixed-size vector, so a step uploads nothing)."""
+
+EXAMPLE_GENERATORS = {"popping_arm": "warpskin.scenes.popping_arm:popping_arm_examples"}
+"""Rig generators (``[rig] generator`` of a scene) that also build popping examples: name ->
+``module:function(rig, **params) -> PoppingExamples``."""
+_SAME_POSE = 1e-6  # relative max-abs difference of skinning matrices that counts as one pose
+
+
+# --------------------------------------------------------------------------------------------
+# Examples
+# --------------------------------------------------------------------------------------------
+@dataclass
+class PoppingExamples:
+    """Example pairs in the rest frame, ready for pose space deformation.
+
+    Every example is stored as the displacement that, added to the rest mesh before linear
+    blend skinning with the example's pose, reproduces the example mesh exactly:
+    ``d_i = L_i^-1 (x_i - LBS(r)_i)`` with ``L_i = sum_j w_ij A_j`` the blended linear part of
+    the skinning matrices (LBS is affine in the rest position for fixed weights).
+
+    Attributes:
+        vertex_count: ``V``, the rig's vertex count.
+        normal_matrices: Skinning matrices of the normal examples' poses, ``[E, J, 4, 4]``.
+        normal_displacements: Rest-frame displacements of the normal examples [m], ``[E, V, 3]``.
+        group_names: Muscle group names, ``[G]`` (one activation signal each).
+        clenched_matrices: Per group, skinning matrices of its clenched examples,
+            ``[E_g, J, 4, 4]``.
+        clenched_disparities: Per group, rest-frame ``clenched - normal`` displacements of its
+            examples [m], ``[E_g, V, 3]`` (each clenched example minus the normal example at the
+            same pose, its *partner*).
+    """
+
+    vertex_count: int
+    normal_matrices: np.ndarray
+    normal_displacements: np.ndarray
+    group_names: list[str]
+    clenched_matrices: list[np.ndarray]
+    clenched_disparities: list[np.ndarray]
+
+    @property
+    def group_count(self) -> int:
+        return len(self.group_names)
+
+    @property
+    def normal_count(self) -> int:
+        return int(self.normal_matrices.shape[0])
+
+
+def _lbs_parts(rig: Rig, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex blended linear part ``L`` ``[V, 3, 3]`` and the skinned rest mesh ``[V, 3]``."""
+    blend = blend_skinning_matrices(rig.joint_indices, rig.joint_weights, mats)  # [V, 4, 4]
+    lin = blend[:, :3, :3]
+    skinned = np.einsum("vij,vj->vi", lin, rig.vertices) + blend[:, :3, 3]
+    return lin, skinned
+
+
+def _pose_matrices(rig: Rig, pose, clip: Clip | str | None, label: str) -> np.ndarray:
+    if isinstance(pose, (int, float, np.integer, np.floating)) and not isinstance(pose, bool):
+        t = float(pose)
+        if not math.isfinite(t):
+            raise RigError(f"{label}: pose time {pose!r} is not a finite number")
+        return rig.skinning_matrices(clip, t)
+    m = np.asarray(pose, dtype=np.float64)
+    if m.shape != (rig.joint_count, 4, 4):
+        raise RigError(
+            f"{label}: the pose must be a clip time [s] or skinning matrices of shape "
+            f"({rig.joint_count}, 4, 4), got {type(pose).__name__} of shape {np.shape(pose)}"
+        )
+    if not np.all(np.isfinite(m)):
+        raise RigError(f"{label}: the pose's skinning matrices hold NaN or inf")
+    return m
+
+
+def _rest_displacement(rig: Rig, points, mats: np.ndarray, label: str) -> np.ndarray:
+    x = np.asarray(points, dtype=np.float64)
+    v = rig.vertex_count
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise RigError(f"{label}: points must have shape [V, 3], got {x.shape}")
+    if x.shape[0] != v:
+        raise RigError(
+            f"{label}: {x.shape[0]} vertices, but the rig {rig.name!r} has {v}; an example must have "
+            "the rig's topology (the same vertices in the same order)"
+        )
+    bad = np.nonzero(~np.all(np.isfinite(x), axis=1))[0]
+    if bad.size:
+        raise RigError(f"{label}: vertices {bad[:8].tolist()} have NaN or inf positions")
+    lin, skinned = _lbs_parts(rig, mats)
+    det = np.linalg.det(lin)
+    sing = np.nonzero(np.abs(det) < 1e-12)[0]
+    if sing.size:
+        raise RigError(
+            f"{label}: the blended skinning matrix is singular at vertices {sing[:8].tolist()}; "
+            "the example pose cannot be undone there"
+        )
+    return np.linalg.solve(lin, (x - skinned)[:, :, None])[:, :, 0]
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    return float(np.abs(a - b).max()) <= _SAME_POSE * (1.0 + float(np.abs(a).max()))
+
+
+def examples_from_meshes(
+    rig: Rig,
+    normal: Sequence[tuple[np.ndarray, object]],
+    clenched: Sequence[tuple[np.ndarray, object]] | Mapping[str, Sequence[tuple[np.ndarray, object]]],
+    *,
+    clip: Clip | str | None = None,
+) -> PoppingExamples:
+    """Turn example meshes into rest-frame displacements (undo each example pose's skinning).
+
+    Args:
+        rig: The rig the examples belong to; every example must have its vertex count and order.
+        normal: Normal examples, ``(points, pose)`` pairs: points ``[V, 3]`` [m] in the skinned
+            (world) space of the pose; pose a time [s] of ``clip`` or skinning matrices
+            ``[J, 4, 4]`` (``G_j @ inverse_bind_j``).
+        clenched: Clenched examples, the same pairs: a list (one muscle group, ``"muscle"``) or
+            a mapping from group name to its list. Each clenched example needs a normal example
+            at the same pose (its partner).
+        clip: Clip whose times the poses are (default: the rig's first clip).
+
+    Returns:
+        The examples, with per-group disparities ``clenched - normal`` in the rest frame.
+
+    Raises:
+        RigError: naming the example: wrong vertex count (topology), wrong shapes, NaN, a
+            clenched example without a normal partner, two examples of a set at one pose, or
+            no examples at all.
+    """
+    groups = dict(clenched) if isinstance(clenched, Mapping) else {"muscle": list(clenched)}
+    if len(normal) == 0:
+        raise RigError("popping examples: no normal examples; give at least one (points, pose) pair")
+    if not groups or all(len(v) == 0 for v in groups.values()):
+        raise RigError("popping examples: no clenched examples; give at least one (points, pose) pair")
+    if len(groups) > MAX_GROUPS:
+        raise RigError(f"popping examples: {len(groups)} muscle groups; at most {MAX_GROUPS} are supported")
+
+    def unpack(item, label):
+        if not isinstance(item, (tuple, list)) or len(item) != 2:
+            raise RigError(f"{label}: expected a (points, pose) pair, got {type(item).__name__}")
+        return item
+
+    n_mats, n_disp = [], []
+    for k, item in enumerate(normal):
+        label = f"normal example {k}"
+        pts, pose = unpack(item, label)
+        m = _pose_matrices(rig, pose, clip, label)
+        for k2, m2 in enumerate(n_mats):
+            if _same_pose(m, m2):
+                raise RigError(f"{label} is at the same pose as normal example {k2}; keep one example per pose")
+        n_mats.append(m)
+        n_disp.append(_rest_displacement(rig, pts, m, label))
+
+    names, c_mats, c_disp = [], [], []
+    for name, items in groups.items():
+        if not isinstance(name, str) or not name:
+            raise RigError(f"popping examples: muscle group names must be non-empty strings, got {name!r}")
+        if len(items) == 0:
+            raise RigError(f"popping examples: muscle group {name!r} has no clenched examples")
+        gm, gd = [], []
+        for k, item in enumerate(items):
+            label = f"clenched example {k} of group {name!r}"
+            pts, pose = unpack(item, label)
+            m = _pose_matrices(rig, pose, clip, label)
+            partner = next((e for e, m2 in enumerate(n_mats) if _same_pose(m, m2)), None)
+            if partner is None:
+                raise RigError(
+                    f"{label} has no normal partner: none of the {len(n_mats)} normal examples is at its pose; "
+                    "give the normal mesh at the same pose"
+                )
+            for k2, m2 in enumerate(gm):
+                if _same_pose(m, m2):
+                    raise RigError(f"{label} is at the same pose as clenched example {k2} of the same group")
+            gm.append(m)
+            gd.append(_rest_displacement(rig, pts, m, label) - n_disp[partner])
+        names.append(name)
+        c_mats.append(np.stack(gm))
+        c_disp.append(np.stack(gd))
+    return PoppingExamples(
+        vertex_count=rig.vertex_count,
+        normal_matrices=np.stack(n_mats),
+        normal_displacements=np.stack(n_disp),
+        group_names=names,
+        clenched_matrices=c_mats,
+        clenched_disparities=c_disp,
+    )
+
+
+def examples_for_scene(scene) -> PoppingExamples:
+    """The popping examples of a scene whose rig generator makes them (:data:`EXAMPLE_GENERATORS`).
+
+    Raises:
+        RigError: the scene's rig has no examples (a file, or another generator); build them
+            with :func:`examples_from_meshes` and pass them to :func:`run_popping`.
+    """
+    gen = scene.rig_spec.get("generator")
+    if gen not in EXAMPLE_GENERATORS:
+        what = f"generator {gen!r}" if gen else "a rig file"
+        raise RigError(
+            f"scene {scene.name!r} ({what}) has no popping examples; use a generator that makes them "
+            f"({sorted(EXAMPLE_GENERATORS)}) or build them with warpskin.popping.examples_from_meshes and pass "
+            "examples= to run_popping"
+        )
+    import importlib
+
+    module, func = EXAMPLE_GENERATORS[gen].split(":")
+    make = getattr(importlib.import_module(module), func)
+    return make(scene.rig(), **scene.rig_spec.get("params", {}))
+
+
+def examples_from_morph_targets(
+    rig: Rig,
+    targets: Mapping[str, np.ndarray],
+    *,
+    normal: Sequence[tuple[str | None, object]],
+    clenched: Mapping[str, Sequence[tuple[str, object]]],
+    clip: Clip | str | None = None,
+) -> PoppingExamples:
+    """Popping examples from morph targets of the rig's mesh (for instance from
+    :func:`warpskin.io.gltf.read_gltf_morph_targets`).
+
+    Each example is the rest mesh plus a target's offsets (``None``: the rest mesh itself),
+    skinned at the example's pose; then :func:`examples_from_meshes` (which checks topology
+    and pairing) turns them into rest-frame displacements.
+
+    Args:
+        rig: The rig whose mesh carries the targets.
+        targets: ``{name: offsets}``, offsets per *file* vertex ``[N, 3]`` (or per welded
+            vertex ``[V, 3]``) in the rest (bind) space.
+        normal: ``[(target or None, pose), ...]``: the normal examples.
+        clenched: ``{group: [(target, pose), ...]}``: the clenched examples of each muscle group,
+            each at the pose of a normal example.
+        clip: Clip for poses given as times.
+
+    Raises:
+        RigError: an unknown target (listing the known ones), offsets of the wrong size.
+    """
+    def welded(name: str | None, label: str) -> np.ndarray:
+        if name is None:
+            return np.zeros_like(rig.vertices)
+        if name not in targets:
+            raise RigError(f"{label}: no morph target {name!r}; targets: {sorted(targets)}")
+        d = np.asarray(targets[name], dtype=np.float64)
+        if d.shape == (rig.file_vertex_count, 3):
+            first = np.zeros(rig.vertex_count, dtype=np.int64)
+            first[rig.weld_map[::-1]] = np.arange(rig.file_vertex_count)[::-1]  # first file vertex of each
+            return d[first]
+        if d.shape == (rig.vertex_count, 3):
+            return d
+        raise RigError(f"{label}: morph target {name!r} has offsets of shape {d.shape}; the rig has "
+                       f"{rig.file_vertex_count} file vertices ({rig.vertex_count} welded)")
+
+    def mesh_at(name, pose, label):
+        mats = _pose_matrices(rig, pose, clip, label)
+        pts = rig.vertices + welded(name, label)
+        return linear_blend_skin(pts, rig.joint_indices, rig.joint_weights, mats), mats
+
+    normal_meshes = [mesh_at(n, pose, f"normal example {k}") for k, (n, pose) in enumerate(normal)]
+    clenched_meshes = {
+        group: [mesh_at(n, pose, f"clenched example {k} of {group!r}") for k, (n, pose) in enumerate(items)]
+        for group, items in clenched.items()
+    }
+    return examples_from_meshes(rig, normal_meshes, clenched_meshes)

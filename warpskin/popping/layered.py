@@ -1,0 +1,68 @@
+"""Layered popping: the activation drives the rest shape of the multi-layer model's muscle,
+fat and skin layers, so the physical skin makes the pop (collisions and volume included)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..rig import RigError
+from .examples import PoppingExamples
+from .pose_space import PoseSpaceDeformer
+
+
+# ----------------------------------------------------------------------------------------------
+# Layered mode: the activation drives the muscle layer of the multi-layer model
+# ----------------------------------------------------------------------------------------------
+def muscle_rest_offset_deltas(builder, examples: PoppingExamples, skin_matrices: np.ndarray, *,
+                              layers: Sequence[str] = ("skin", "fat", "muscle"), device=None) -> np.ndarray:
+    """How every region rest offset of the multi-layer model changes when a group clenches.
+
+    The clenched-minus-normal rest-frame displacement of group g at the pose (the examples'
+    disparities interpolated with the pose space weights) moves the rest positions of the
+    particles of ``layers``; each region's rest centre follows (mass weighted), so the change of
+    the rest offset of entry e (member j of region r) is ``dx0_j - dc0_r``.
+
+    By default the swelling muscle carries the tissue above it (muscle, fat and skin rest shapes
+    move together; the bone layer stays): shape matching only sees shapes relative to each
+    region's centre, so moving the muscle layer alone just thins the fat above it and the skin
+    does not move (measured: 0.0 mm against 4.4 mm on the popping arm's biceps). The pinned bone
+    layer's regions then push the whole column out; the volume constraints keep each
+    sub-volume's volume by letting the rest of it give.
+
+    Args:
+        builder: A built :class:`~warpskin.model.SkinModelBuilder` of the examples' rig.
+        examples: The popping examples.
+        skin_matrices: The pose, ``[J, 4, 4]`` (the popping scenes hold the bones still).
+        layers: Layers whose rest shape the muscles move.
+
+    Returns:
+        ``[G, M, 3]`` [m], M the number of region entries.
+    """
+    from ..preprocess.layers import LAYER_NAMES
+
+    builder.build()
+    bad = [n for n in layers if n not in LAYER_NAMES[:3]]
+    if bad:
+        raise RigError(f"layered popping: layers {bad} cannot be moved by the muscles; choose from {list(LAYER_NAMES[:3])}")
+    v = builder.rig.vertex_count
+    if examples.vertex_count != v:
+        raise RigError(f"layered popping: the examples have {examples.vertex_count} vertices, the model {v}")
+    deformer = PoseSpaceDeformer(builder.rig, examples, device="cpu")
+    _, group_w = deformer.weights(skin_matrices)
+    reg = builder.regions
+    region_of = reg.region_of_entry()
+    m = builder.masses[reg.region_members]
+    out = np.zeros((examples.group_count, reg.region_members.size, 3))
+    for g in range(examples.group_count):
+        disp = np.einsum("e,evc->vc", group_w[g], examples.clenched_disparities[g])  # [V, 3]
+        dx0 = np.zeros((4 * v, 3))
+        for name in layers:
+            k = LAYER_NAMES.index(name)
+            dx0[k * v:(k + 1) * v] = disp
+        dmember = dx0[reg.region_members]
+        dcom = np.stack([np.bincount(region_of, m * dmember[:, c], minlength=reg.region_count) for c in range(3)], axis=1)
+        dcom /= reg.region_mass[:, None]
+        out[g] = dmember - dcom[region_of]
+    return out
