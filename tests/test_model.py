@@ -8,6 +8,7 @@ import pytest
 import trimesh
 from pxr import Usd, UsdGeom
 
+from warpskin.errors import SceneError
 from warpskin.preprocess.layers import LayerParams, build_layers, check_layer_folds
 from warpskin.cli import main
 from warpskin.metrics import self_intersections, signed_volume, triangle_pairs_intersect
@@ -125,7 +126,7 @@ def test_fold_check_names_the_layer_when_a_setting_makes_it_cross():
 
 
 def test_projection_parameters_out_of_order():
-    with pytest.raises(RigError, match="must satisfy 0 < fat < muscle < bone < 1, got fat=0.5, muscle=0.4"):
+    with pytest.raises(SceneError, match="must satisfy 0 < fat < muscle < bone < 1, got fat=0.5, muscle=0.4"):
         LayerParams(0.5, 0.4, 0.8).check("scene.toml")
     rig = make_arm(rings=12, segments=10)
     with pytest.raises(RigError, match="no joint named 'belly'"):
@@ -163,9 +164,9 @@ def test_joint_without_bone_length_is_named():
 
 
 def test_bad_model_params(arm):
-    with pytest.raises(RigError, match="stiffness of 'default' must be four numbers in"):
+    with pytest.raises(SceneError, match="stiffness of 'default' must be four numbers in"):
         SkinModelBuilder(arm, ModelParams(stiffness=(0.8, 0.6, 1.5, 0.8))).build()
-    with pytest.raises(RigError, match="omega must be an integer"):
+    with pytest.raises(SceneError, match="omega must be an integer"):
         SkinModelBuilder(arm, ModelParams(omega=0)).build()
 
 

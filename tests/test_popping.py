@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
+from warpskin.errors import SceneError
 from warpskin.cli import main
 from warpskin.popping import (
     ActivationTimeline,
@@ -319,16 +320,16 @@ def test_bad_parameters_are_clear_errors(arm_scene, tmp_path):
     scene, rig, ex, _ = arm_scene
     deformer = PoseSpaceDeformer(rig, ex, device="cpu")
     for bad in (0.0, -0.2, 1.5, float("nan")):
-        with pytest.raises(RigError, match=r"alpha_min must be in \(0, 1\]"):
+        with pytest.raises(SceneError, match=r"alpha_min must be in \(0, 1\]"):
             PoppingDynamics(deformer, alpha_min=bad)
     dyn = PoppingDynamics(deformer, alpha_min=0.5, beta=30.0)
-    with pytest.raises(RigError, match=r"beta \* dt <= 1"):
+    with pytest.raises(SceneError, match=r"beta \* dt <= 1"):
         dyn.step(0.05, 1.0)
-    with pytest.raises(RigError, match=r"unknown muscle group 'deltoid'"):
+    with pytest.raises(SceneError, match=r"unknown muscle group 'deltoid'"):
         dyn.step(H, {"deltoid": 1.0})
-    with pytest.raises(RigError, match=r"activations must be in \[0, 1\]"):
+    with pytest.raises(SceneError, match=r"activations must be in \[0, 1\]"):
         dyn.step(H, [1.5, 0.0])
-    with pytest.raises(RigError, match=r"muscle groups \['calf'\] have no clenched examples"):
+    with pytest.raises(SceneError, match=r"muscle groups \['calf'\] have no clenched examples"):
         ActivationTimeline({"calf": [(0.0, 1.0)]}).check_groups(deformer.group_names)
     other = make_popping_arm(rings=30)
     with pytest.raises(RigError, match=r"examples have 2918 vertices but the rig 'popping_arm' has"):
@@ -343,7 +344,7 @@ def test_bad_parameters_are_clear_errors(arm_scene, tmp_path):
     ]:
         path = tmp_path / "pop.toml"
         path.write_text(text.replace(old, new))
-        with pytest.raises(RigError, match=message):
+        with pytest.raises(SceneError, match=message):
             popping_settings(load_scene(path))
     arm = load_scene("arm")
     with pytest.raises(RigError, match=r"scene 'arm' \(generator 'arm'\) has no popping examples"):
@@ -360,9 +361,9 @@ def test_activation_timeline():
     assert tl.value("triceps", 0.4999) == 0.0 and tl.value("triceps", 0.5) == 1.0  # a step: right-continuous
     assert tl.value("triceps", 0.8) == 0.0 and tl.value("deltoid", 0.6) == 0.0
     assert np.allclose(tl.sample(0.6, ["triceps", "biceps"]), [1.0, 0.0])
-    with pytest.raises(RigError, match="must not decrease"):
+    with pytest.raises(SceneError, match="must not decrease"):
         ActivationTimeline({"b": [(1.0, 0.0), (0.5, 1.0)]})
-    with pytest.raises(RigError, match="attack"):
+    with pytest.raises(SceneError, match="attack"):
         ActivationTimeline.beats([0.0], hold=0.1, attack=0.2)
 
 

@@ -7,6 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from warpskin.errors import InputError, SceneError
 from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
 from warpskin.skinning import Skinner
@@ -146,14 +147,14 @@ def test_candy_wrapper_dqs_keeps_volume_lbs_collapses(device, arm):
 
 
 def test_skinner_rejects_bad_input(arm):
-    with pytest.raises(RigError, match="unknown skinning method"):
+    with pytest.raises(SceneError, match="unknown skinning method"):
         Skinner(arm, method="cor")
     s = Skinner(arm, method="lbs", device="cpu")
-    with pytest.raises(RigError, match="expected 3 skinning matrices"):
+    with pytest.raises(InputError, match="expected 3 skinning matrices"):
         s.skin(np.tile(np.eye(4), (2, 1, 1)))
     bad = np.tile(np.eye(4), (3, 1, 1))
     bad[1, 0, 3] = np.nan
-    with pytest.raises(RigError, match="elbow"):
+    with pytest.raises(InputError, match="elbow"):
         s.skin(bad)
 
 

@@ -10,6 +10,7 @@ import warp as wp
 from pxr import Usd, UsdGeom
 from scipy.spatial.transform import Rotation
 
+from warpskin.errors import InputError, SceneError
 from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.rig import RigError
 from warpskin.scene import load_scene
@@ -152,15 +153,15 @@ def test_two_cpu_runs_are_identical_with_and_without_graph_capture(tmp_path):
     ],
 )
 def test_unstable_settings_rejected(kwargs, message):
-    with pytest.raises(RigError, match=message):
+    with pytest.raises(SceneError, match=message):
         SolverParams(**kwargs).check()
 
 
 def test_stiffness_outside_unit_interval_rejected(tmp_path):
     scene = _scene(tmp_path, "[layers]\nstiffness = [0.8, 0.6, 1.2, 0.8]\n")
-    with pytest.raises(RigError, match=r"four numbers in \[0, 1\]"):
+    with pytest.raises(SceneError, match=r"four numbers in \[0, 1\]"):
         scene.model_params()
-    with pytest.raises(RigError, match="step needs two different states"):
+    with pytest.raises(InputError, match="step needs two different states"):
         model = SkinModelBuilder(make_arm(rings=12, segments=10), ModelParams(volume=False)).finalize("cpu")
         s = model.state()
         SkinSolver(model).step(s, s, model.control(), 0.005)

@@ -1,8 +1,22 @@
 """warpskin: physically-based character skinning on NVIDIA Warp."""
 
-from .rig import Clip, Rig, RigError, RigWarning, Skeleton, Track
+from .errors import InputError, OutputError, RigError, RigWarning, SceneError, SimulationError, WarpskinError
+from .rig import Clip, Rig, Skeleton, Track
 
 __version__ = "0.1.0"
 
-__all__ = ["Clip", "Rig", "RigError", "RigWarning", "Skeleton", "Track", "__version__"]
+__all__ = [
+    "Clip",
+    "Rig",
+    "Skeleton",
+    "Track",
+    "WarpskinError",
+    "InputError",
+    "RigError",
+    "SceneError",
+    "OutputError",
+    "SimulationError",
+    "RigWarning",
+    "__version__",
+]
 

@@ -66,7 +66,7 @@ def cmd_scenes(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from .rig import RigError
+    from .errors import InputError
     from .scene import is_rig_file
 
     out: dict = {}
@@ -77,7 +77,7 @@ def cmd_info(args) -> int:
     scene = _scene_of(args)
     try:
         rig = scene.rig()
-    except RigError as exc:
+    except InputError as exc:
         if args.json:
             out["error"] = str(exc)
             print(json.dumps(out, indent=2))
@@ -238,12 +238,12 @@ def _missing_asset(target: str) -> bool:
 
 def cmd_pop(args) -> int:
     from .popping import bench_popping, run_popping
-    from .rig import RigError
+    from .errors import SceneError
 
     if args.bench:
         return _emit_json(bench_popping(args.device, steps=args.steps, repeat=args.repeat), args.json)
     if args.target is None or args.output is None:
-        raise RigError("pop needs a SCENE and -o OUT.usdc (or --bench)")
+        raise SceneError("pop needs a SCENE and -o OUT.usdc (or --bench)")
     scene = _scene_of(args)
     result = run_popping(
         scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps,
@@ -402,29 +402,28 @@ def main(argv: list[str] | None = None) -> int:
         import warp as wp
 
         wp.config.log_level = wp.LOG_ERROR  # no banner, no "no CUDA driver" notice
-    from .io.usd_export import ExportError
-    from .rig import RigError
-    from .solver import SimulationError
+    from .errors import InputError, SimulationError
 
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("warpskin: interrupted", file=sys.stderr)
         return 130
-    except SimulationError as exc:
+    except SimulationError as exc:  # the run failed or left its valid range; earlier frames kept
         if args.debug:
             raise
         print(f"warpskin: simulation failed: {exc}", file=sys.stderr)
-        return 3
-    except (RigError, ExportError, argparse.ArgumentTypeError) as exc:
+        return SimulationError.exit_code
+    except (InputError, argparse.ArgumentTypeError) as exc:  # bad input or usage
         if args.debug:
             raise
         print(f"warpskin: error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:  # one clear line; --debug for the traceback
+        return InputError.exit_code
+    except Exception as exc:  # a bug: one clear line; --debug for the traceback
         if args.debug:
             raise
-        print(f"warpskin: error: {type(exc).__name__}: {exc} (run with --debug for the traceback)", file=sys.stderr)
+        print(f"warpskin: internal error: {type(exc).__name__}: {exc} (this is a bug; run with --debug for the "
+              "traceback)", file=sys.stderr)
         return 1
 
 

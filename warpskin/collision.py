@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .errors import SceneError
 from .kernels import collision as k
-from .rig import RigError
 
 __all__ = ["CollisionParams", "SelfCollision", "skin_edges"]
 
@@ -71,21 +71,21 @@ class CollisionParams:
 
     def check(self, where: str = "collision") -> None:
         if self.thickness is not None and not (math.isfinite(self.thickness) and self.thickness > 0):
-            raise RigError(f"{where}: thickness must be a positive length [m], got {self.thickness!r}")
+            raise SceneError(f"{where}: thickness must be a positive length [m], got {self.thickness!r}")
         if not (math.isfinite(self.friction) and self.friction >= 0):
-            raise RigError(f"{where}: friction must be >= 0, got {self.friction!r}")
+            raise SceneError(f"{where}: friction must be >= 0, got {self.friction!r}")
         if not (0.0 <= self.restitution <= 1.0):
-            raise RigError(f"{where}: restitution must be in [0, 1], got {self.restitution!r}")
+            raise SceneError(f"{where}: restitution must be in [0, 1], got {self.restitution!r}")
         if not (math.isfinite(self.detection_margin) and self.detection_margin >= 1.0):
-            raise RigError(f"{where}: detection_margin must be >= 1 (times the thickness), got {self.detection_margin!r}")
+            raise SceneError(f"{where}: detection_margin must be >= 1 (times the thickness), got {self.detection_margin!r}")
         if not (math.isfinite(self.rebuild_spread) and self.rebuild_spread > 0):
-            raise RigError(f"{where}: rebuild_spread must be > 0, got {self.rebuild_spread!r}")
+            raise SceneError(f"{where}: rebuild_spread must be > 0, got {self.rebuild_spread!r}")
         if not (math.isfinite(self.fold_cos) and -1.0 <= self.fold_cos <= 1.0):
-            raise RigError(f"{where}: fold_cos must be in [-1, 1], got {self.fold_cos!r}")
+            raise SceneError(f"{where}: fold_cos must be in [-1, 1], got {self.fold_cos!r}")
         if isinstance(self.passes, bool) or int(self.passes) != self.passes or self.passes < 1:
-            raise RigError(f"{where}: passes must be an integer >= 1, got {self.passes!r}")
+            raise SceneError(f"{where}: passes must be an integer >= 1, got {self.passes!r}")
         if isinstance(self.capacity, bool) or int(self.capacity) != self.capacity or self.capacity < 1:
-            raise RigError(f"{where}: capacity must be a positive integer, got {self.capacity!r}")
+            raise SceneError(f"{where}: capacity must be a positive integer, got {self.capacity!r}")
 
 
 def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

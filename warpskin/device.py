@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .rig import RigError
+from .errors import SceneError
 
 __all__ = ["resolve_device", "available_devices"]
 
@@ -26,8 +26,8 @@ def resolve_device(device=None):
         return wp.get_device(device)
     name = str(device)
     if name.startswith("cuda") and not wp.is_cuda_available():
-        raise RigError(f"device {name!r} requested but no CUDA device is available here; devices: {available_devices()}")
+        raise SceneError(f"device {name!r} requested but no CUDA device is available here; devices: {available_devices()}")
     try:
         return wp.get_device(name)
     except Exception:
-        raise RigError(f"unknown device {name!r}; devices: {available_devices()}") from None
+        raise SceneError(f"unknown device {name!r}; devices: {available_devices()}") from None

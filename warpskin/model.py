@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from .errors import SceneError
 from .preprocess.bones import Bones, bone_segments
 from .preprocess.joint_constraints import JointConstraints, JointParams, build_joint_constraints
 from .preprocess.kinematic_coupling import KinematicCoupling, build_kinematic_coupling
@@ -62,13 +63,13 @@ class ModelParams:
         for name, s in [("default", self.stiffness)] + list(self.stiffness_per_bone.items()):
             s = tuple(s)
             if len(s) != 4 or not all(0.0 <= float(x) <= 1.0 for x in s):
-                raise RigError(f"{where}: stiffness of {name!r} must be four numbers in [0, 1] (skin, fat, muscle, bone), got {s}")
+                raise SceneError(f"{where}: stiffness of {name!r} must be four numbers in [0, 1] (skin, fat, muscle, bone), got {s}")
         if not (np.isfinite(self.density) and self.density > 0):
-            raise RigError(f"{where}: density must be a positive number [kg/m^3], got {self.density}")
+            raise SceneError(f"{where}: density must be a positive number [kg/m^3], got {self.density}")
         if int(self.omega) != self.omega or self.omega < 1:
-            raise RigError(f"{where}: omega must be an integer >= 1, got {self.omega}")
+            raise SceneError(f"{where}: omega must be an integer >= 1, got {self.omega}")
         if not (0.0 <= self.coupling_stiffness <= 1.0):
-            raise RigError(f"{where}: coupling stiffness must be in [0, 1], got {self.coupling_stiffness}")
+            raise SceneError(f"{where}: coupling stiffness must be in [0, 1], got {self.coupling_stiffness}")
 
 
 class SkinModelBuilder:

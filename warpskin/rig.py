@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import RigError, RigWarning
+
 from .transforms import compose_trs, decompose_trs, quat_normalize, quat_slerp
 
 __all__ = [
@@ -36,14 +38,6 @@ __all__ = [
 
 INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
 PATHS = {"translation": 3, "rotation": 4, "scale": 3}
-
-
-class RigError(ValueError):
-    """A rig (or a file it came from) cannot be used; the message names the bad part."""
-
-
-class RigWarning(UserWarning):
-    """A rig problem that warpskin repaired (for example weights normalised)."""
 
 
 def _fmt_indices(idx: np.ndarray, limit: int = 8) -> str:

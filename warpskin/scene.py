@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from .errors import SceneError
 from .rig import Rig, RigError
 
 if sys.version_info >= (3, 11):
@@ -43,10 +44,6 @@ else:  # pragma: no cover
 
 __all__ = ["Scene", "SceneError", "load_scene", "resolve_scene", "is_rig_file", "list_scenes", "find_assets_dir",
            "GENERATORS"]
-
-
-class SceneError(RigError):
-    """A scene file is wrong; the message names the file and the key."""
 
 
 GENERATORS = {

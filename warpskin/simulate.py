@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from .errors import SceneError
 from .preprocess.layers import LAYER_NAMES
 from .io.usd_export import UsdSkinWriter
 from .metrics import self_intersections, signed_volume
 from .model import SkinModelBuilder
 from .progress import Progress
 from .report import write_plots
-from .rig import RigError
 from .scene import Scene
 from .solver import SimulationError, SkinSolver, SolverParams
 from .skinning import dual_quaternions
@@ -114,7 +114,7 @@ def simulate(
     clip = rig.clip(scene.clip)
     first, last = frames if frames is not None else scene.frame_range()
     if first < 0 or last < first:
-        raise RigError(f"bad frame range {first}:{last}")
+        raise SceneError(f"bad frame range {first}:{last}")
     t_build = time.perf_counter()
     builder = builder or SkinModelBuilder(rig, scene.model_params())
     model = builder.finalize(device)
@@ -153,7 +153,7 @@ def simulate(
     initial_state(model, state_a, frame_poses[0])
     preroll = scene.preroll if preroll is None else float(preroll)
     if not (math.isfinite(preroll) and preroll >= 0):
-        raise RigError(f"preroll must be a number of seconds >= 0, got {preroll!r}")
+        raise SceneError(f"preroll must be a number of seconds >= 0, got {preroll!r}")
     preroll_steps = math.ceil(preroll / params.dt - 1e-9) if preroll > 0 else 0
 
     def run_frame(sa, sb):

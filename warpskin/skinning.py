@@ -19,9 +19,10 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .errors import InputError, SceneError
 from .kernels import skinning as _k
 from .device import resolve_device
-from .rig import Clip, Rig, RigError
+from .rig import Clip, Rig
 from .transforms import matrix_to_quat, quat_multiply
 
 __all__ = ["Skinner", "SKINNING_METHODS", "dual_quaternions"]
@@ -66,7 +67,7 @@ class Skinner:
 
     def __init__(self, rig: Rig, *, method: str = "lbs", device: str | None = None) -> None:
         if method not in SKINNING_METHODS:
-            raise RigError(f"unknown skinning method {method!r}; choose one of {SKINNING_METHODS}")
+            raise SceneError(f"unknown skinning method {method!r}; choose one of {SKINNING_METHODS}")
         self.rig = rig
         self.method = method
         self.device = resolve_device(device)
@@ -89,13 +90,13 @@ class Skinner:
         """Upload per-joint skinning matrices ``G_j @ inverse_bind_j``, ``[J, 4, 4]``."""
         m = np.asarray(skin_matrices)
         if m.shape != (self.rig.joint_count, 4, 4):
-            raise RigError(
+            raise InputError(
                 f"expected {self.rig.joint_count} skinning matrices of shape 4x4, got array of shape {m.shape}"
             )
         if not np.all(np.isfinite(m)):
             bad = np.nonzero(~np.all(np.isfinite(m.reshape(m.shape[0], -1)), axis=1))[0]
             names = [self.rig.skeleton.joint_names[k] for k in bad[:8]]
-            raise RigError(f"skinning matrices of joints {names} hold NaN or inf")
+            raise InputError(f"skinning matrices of joints {names} hold NaN or inf")
         if self.method == "lbs":
             self._h_mats[:] = m
             self.skin_matrices.assign(self._h_mats)
@@ -182,15 +183,15 @@ def skin_to_usd(
     scene = resolve_scene(scene)
     if fps is not None:
         if not (fps > 0):
-            raise RigError(f"fps must be positive, got {fps}")
+            raise SceneError(f"fps must be positive, got {fps}")
         scene.fps = float(fps)
     if topology not in ("welded", "file"):
-        raise RigError(f"topology must be 'welded' or 'file', got {topology!r}")
+        raise SceneError(f"topology must be 'welded' or 'file', got {topology!r}")
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     first, last = frames if frames is not None else scene.frame_range()
     if first < 0 or last < first:
-        raise RigError(f"bad frame range {first}:{last}")
+        raise SceneError(f"bad frame range {first}:{last}")
     skinner = Skinner(rig, method=method, device=device)
     lbs = Skinner(rig, method="lbs", device=device) if (with_lbs and method != "lbs") else None
     if topology == "file":

@@ -17,17 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .errors import InputError, SceneError, SimulationError
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
 from .model import SkinModel, State, Control
-from .rig import RigError
 
 __all__ = ["SolverParams", "SkinSolver", "SimulationError"]
-
-
-class SimulationError(RuntimeError):
-    """The simulation became invalid (NaN); the message names the frame and the particle."""
 
 
 @dataclass
@@ -58,19 +54,19 @@ class SolverParams:
         def integer(name, lo):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < lo:
-                raise RigError(f"{where}: {name} must be an integer >= {lo}, got {v!r}")
+                raise SceneError(f"{where}: {name} must be an integer >= {lo}, got {v!r}")
 
         integer("iterations", 1)
         integer("volume_iterations", 0)
         integer("rotation_iterations", 1)
         if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
-            raise RigError(f"{where}: dt must be a positive number of seconds, got {self.dt!r}")
+            raise SceneError(f"{where}: dt must be a positive number of seconds, got {self.dt!r}")
         if len(self.gravity) != 3 or not all(math.isfinite(float(g)) for g in self.gravity):
-            raise RigError(f"{where}: gravity must be three finite numbers, got {self.gravity!r}")
+            raise SceneError(f"{where}: gravity must be three finite numbers, got {self.gravity!r}")
         if not (math.isfinite(self.damping) and self.damping >= 0):
-            raise RigError(f"{where}: damping must be a rate >= 0 [1/s], got {self.damping!r}")
+            raise SceneError(f"{where}: damping must be a rate >= 0 [1/s], got {self.damping!r}")
         if not (0.0 <= self.volume_stiffness <= 1.0):
-            raise RigError(f"{where}: volume_stiffness must be in [0, 1], got {self.volume_stiffness!r}")
+            raise SceneError(f"{where}: volume_stiffness must be in [0, 1], got {self.volume_stiffness!r}")
 
 
 class SkinSolver:
@@ -165,9 +161,9 @@ class SkinSolver:
         d = np.asarray(delta_offsets, dtype=np.float32)
         m = self.model
         if d.ndim != 3 or d.shape[1:] != (m.region_members.shape[0], 3):
-            raise RigError(f"rest-shape deltas must have shape [G, {m.region_members.shape[0]}, 3], got {d.shape}")
+            raise InputError(f"rest-shape deltas must have shape [G, {m.region_members.shape[0]}, 3], got {d.shape}")
         if self.params.fast_summation:
-            raise RigError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
+            raise SceneError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
         with wp.ScopedDevice(self.device):
             self.rest_base_offsets = wp.clone(m.region_rest_offsets)
             self.rest_delta_offsets = wp.array(d, dtype=wp.vec3)
@@ -248,12 +244,12 @@ class SkinSolver:
         """Advance ``state_in`` by ``dt`` [s] into ``state_out`` (Algorithm 1). The caller swaps
         the two states."""
         if state_in is state_out:
-            raise RigError("step needs two different states (state_in, state_out); swap them after each step")
+            raise InputError("step needs two different states (state_in, state_out); swap them after each step")
         if not (dt > 0.0):
-            raise RigError(f"dt must be positive, got {dt}")
+            raise SceneError(f"dt must be positive, got {dt}")
         p = self.params
         if p.iterations != self._iterations:
-            raise RigError(f"iterations changed from {self._iterations} to {p.iterations} after the solver was built; build a new SkinSolver")
+            raise InputError(f"iterations changed from {self._iterations} to {p.iterations} after the solver was built; build a new SkinSolver")
         m = self.model
         dev = self.device
         n = m.particle_count

@@ -38,10 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .errors import InputError
 from .preprocess.sub_volumes import SubVolumes
 from .device import resolve_device
 from .kernels import volume as _k
-from .rig import RigError
 
 __all__ = ["VolumeLayout", "volume_layout", "VolumeConstraints"]
 
@@ -115,7 +115,7 @@ def _offsets(counts: np.ndarray) -> np.ndarray:
 def _int32(a: np.ndarray, what: str) -> np.ndarray:
     a = np.asarray(a, dtype=np.int64)
     if a.size and a.max() > np.iinfo(np.int32).max:
-        raise RigError(f"volume layout: {what} exceeds 32-bit indices; the mesh is too large")
+        raise InputError(f"volume layout: {what} exceeds 32-bit indices; the mesh is too large")
     return np.ascontiguousarray(a, dtype=np.int32)
 
 
@@ -238,18 +238,18 @@ class VolumeConstraints:
         else:
             builder = getattr(source, "builder", None)
             if builder is None:
-                raise RigError(
+                raise InputError(
                     f"VolumeConstraints needs a SkinModel or SubVolumes, got {type(source).__name__}"
                 )
             subvolumes = getattr(builder, "subvolumes", None)
             if subvolumes is None:
-                raise RigError(
+                raise InputError(
                     "the model has no sub-volumes (built with ModelParams(volume=False)); build it with "
                     "volume=True to use volume constraints"
                 )
             self.device = source.device
         if int(block_dim) < 1:
-            raise RigError(f"block_dim must be a positive thread count, got {block_dim}")
+            raise InputError(f"block_dim must be a positive thread count, got {block_dim}")
         self.block_dim = int(block_dim)
         self.subvolumes = subvolumes
         self.layout = lay = volume_layout(subvolumes)
@@ -286,15 +286,15 @@ class VolumeConstraints:
 
     def _check(self, name: str, a, dtype, min_len: int, exact: bool = False) -> None:
         if not isinstance(a, wp.array):
-            raise RigError(f"VolumeConstraints: {name} must be a wp.array, got {type(a).__name__}")
+            raise InputError(f"VolumeConstraints: {name} must be a wp.array, got {type(a).__name__}")
         if a.dtype != dtype:
-            raise RigError(f"VolumeConstraints: {name} must have dtype {dtype.__name__}, got {a.dtype.__name__}")
+            raise InputError(f"VolumeConstraints: {name} must have dtype {dtype.__name__}, got {a.dtype.__name__}")
         n = a.shape[0]
         if (exact and n != min_len) or n < min_len:
             want = f"{min_len}" if exact else f"at least {min_len}"
-            raise RigError(f"VolumeConstraints: {name} must have {want} entries, got {n}")
+            raise InputError(f"VolumeConstraints: {name} must have {want} entries, got {n}")
         if a.device != self.device:
-            raise RigError(f"VolumeConstraints: {name} lives on {a.device}, the constraints on {self.device}")
+            raise InputError(f"VolumeConstraints: {name} lives on {a.device}, the constraints on {self.device}")
 
     def _check_points(self, x, centers) -> None:
         self._check("x (particle positions)", x, wp.vec3, self.vertex_count)
@@ -369,9 +369,9 @@ class VolumeConstraints:
             stiffness: ``k`` in [0, 1]; 1 removes the linearised error in one iteration.
         """
         if int(iterations) != iterations or iterations < 0:
-            raise RigError(f"VolumeConstraints.project: iterations must be an integer >= 0, got {iterations}")
+            raise InputError(f"VolumeConstraints.project: iterations must be an integer >= 0, got {iterations}")
         if not (0.0 <= float(stiffness) <= 1.0):
-            raise RigError(f"VolumeConstraints.project: stiffness must be in [0, 1], got {stiffness}")
+            raise InputError(f"VolumeConstraints.project: stiffness must be in [0, 1], got {stiffness}")
         self._check_all(x, inv_mass, weight_scale, centers)
         if iterations == 0 or self.subvolume_count == 0:
             return

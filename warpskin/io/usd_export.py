@@ -19,13 +19,14 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from ..errors import OutputError
 
 __all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
 
-class ExportError(RuntimeError):
+class ExportError(OutputError):
     """Writing the USD file failed; nothing was left under the target name."""
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..rig import RigError
+from ..errors import SceneError
 from .dynamics import _check_dynamics
 
 if sys.version_info >= (3, 11):
@@ -43,16 +43,16 @@ class ActivationTimeline:
         for name, pairs in (keys or {}).items():
             arr = np.asarray(pairs, dtype=np.float64)
             if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
-                raise RigError(f"{where}: group {name!r}: keys must be a non-empty list of [time, activation] pairs")
+                raise SceneError(f"{where}: group {name!r}: keys must be a non-empty list of [time, activation] pairs")
             t, a = arr[:, 0], arr[:, 1]
             if not np.all(np.isfinite(arr)):
-                raise RigError(f"{where}: group {name!r}: keys hold NaN or inf")
+                raise SceneError(f"{where}: group {name!r}: keys hold NaN or inf")
             if np.any(np.diff(t) < 0.0):
                 k = int(np.nonzero(np.diff(t) < 0.0)[0][0])
-                raise RigError(f"{where}: group {name!r}: key times must not decrease (key {k + 1} at {t[k + 1]} s "
+                raise SceneError(f"{where}: group {name!r}: key times must not decrease (key {k + 1} at {t[k + 1]} s "
                                f"comes after {t[k]} s)")
             if np.any((a < 0.0) | (a > 1.0)):
-                raise RigError(f"{where}: group {name!r}: activations must be in [0, 1], got {a[(a < 0) | (a > 1)][:4].tolist()}")
+                raise SceneError(f"{where}: group {name!r}: activations must be in [0, 1], got {a[(a < 0) | (a > 1)][:4].tolist()}")
             self.times[str(name)] = t
             self.values[str(name)] = a
 
@@ -67,18 +67,18 @@ class ActivationTimeline:
         """
         b = np.sort(np.asarray(beats, dtype=np.float64).ravel())
         if b.size == 0 or not np.all(np.isfinite(b)):
-            raise RigError(f"{where}: beats must be a non-empty list of times [s]")
+            raise SceneError(f"{where}: beats must be a non-empty list of times [s]")
         for label, value in (("hold", hold), ("attack", attack), ("release", release)):
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0.0):
-                raise RigError(f"{where}: {label} must be a duration >= 0 [s], got {value!r}")
+                raise SceneError(f"{where}: {label} must be a duration >= 0 [s], got {value!r}")
         if hold <= 0.0:
-            raise RigError(f"{where}: hold must be positive [s], got {hold!r}")
+            raise SceneError(f"{where}: hold must be positive [s], got {hold!r}")
         if attack > hold:
-            raise RigError(f"{where}: attack ({attack} s) must not exceed hold ({hold} s)")
+            raise SceneError(f"{where}: attack ({attack} s) must not exceed hold ({hold} s)")
         gaps = np.diff(b)
         if gaps.size and gaps.min() < hold + release - 1e-12:
             k = int(np.argmin(gaps))
-            raise RigError(f"{where}: the pop on the beat at {b[k]} s (hold {hold} s + release {release} s) overlaps "
+            raise SceneError(f"{where}: the pop on the beat at {b[k]} s (hold {hold} s + release {release} s) overlaps "
                            f"the beat at {b[k + 1]} s")
         keys = []
         for t in b:
@@ -90,24 +90,24 @@ class ActivationTimeline:
         """From a scene's ``[popping.activation]`` table: per group either ``keys = [[t, a], ...]``
         or ``beats = [t, ...]`` with ``hold`` (and optional ``attack``, ``release``) [s]."""
         if not isinstance(table, Mapping):
-            raise RigError(f"{where} must be a table of muscle groups")
+            raise SceneError(f"{where} must be a table of muscle groups")
         keys = {}
         for name, spec in table.items():
             w = f"{where} {name}"
             if not isinstance(spec, Mapping):
-                raise RigError(f"{w}: must be a table with 'keys' or 'beats'")
+                raise SceneError(f"{w}: must be a table with 'keys' or 'beats'")
             unknown = sorted(set(spec) - {"keys", "beats", "hold", "attack", "release"})
             if unknown:
-                raise RigError(f"{w}: unknown key(s) {unknown}; known: ['attack', 'beats', 'hold', 'keys', 'release']")
+                raise SceneError(f"{w}: unknown key(s) {unknown}; known: ['attack', 'beats', 'hold', 'keys', 'release']")
             if ("keys" in spec) == ("beats" in spec):
-                raise RigError(f"{w}: give exactly one of 'keys' or 'beats'")
+                raise SceneError(f"{w}: give exactly one of 'keys' or 'beats'")
             if "keys" in spec:
                 if set(spec) - {"keys"}:
-                    raise RigError(f"{w}: hold, attack and release only apply to 'beats'")
+                    raise SceneError(f"{w}: hold, attack and release only apply to 'beats'")
                 keys[name] = spec["keys"]
             else:
                 if "hold" not in spec:
-                    raise RigError(f"{w}: 'beats' needs 'hold' (how long each pop stays clenched [s])")
+                    raise SceneError(f"{w}: 'beats' needs 'hold' (how long each pop stays clenched [s])")
                 keys[name] = cls.beats(spec["beats"], hold=spec["hold"], attack=spec.get("attack", 0.0),
                                        release=spec.get("release", 0.0), where=w)
         return cls(keys, where=where)
@@ -125,7 +125,7 @@ class ActivationTimeline:
         """Raise :class:`RigError` if the timeline drives a group that ``names`` lacks."""
         unknown = [g for g in self.times if g not in names]
         if unknown:
-            raise RigError(f"{where}: muscle groups {unknown} have no clenched examples; groups are {list(names)}")
+            raise SceneError(f"{where}: muscle groups {unknown} have no clenched examples; groups are {list(names)}")
 
     def value(self, group: str, t: float) -> float:
         """Activation of ``group`` at time ``t`` [s] (0 for a group without keys)."""
@@ -177,16 +177,16 @@ class PoppingSettings:
 
     def check(self, where: str = "[popping]") -> None:
         if self.mode not in ("goal", "layered"):
-            raise RigError(f"{where}: mode must be 'goal' (the paper's goal-driven skin) or 'layered' (the activation "
+            raise SceneError(f"{where}: mode must be 'goal' (the paper's goal-driven skin) or 'layered' (the activation "
                            f"drives the muscle layer of the multi-layer model), got {self.mode!r}")
         _check_dynamics(self.alpha_min, self.beta, self.threshold, where)
         if self.dt is not None and not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
-            raise RigError(f"{where}: dt must be a positive step length [s], got {self.dt!r}")
+            raise SceneError(f"{where}: dt must be a positive step length [s], got {self.dt!r}")
         if self.dt is not None and self.beta * self.dt > 1.0 + 1e-12:
-            raise RigError(f"{where}: beta * dt = {self.beta * self.dt:.4g} must be <= 1 (no overshoot on relax); "
+            raise SceneError(f"{where}: beta * dt = {self.beta * self.dt:.4g} must be <= 1 (no overshoot on relax); "
                            f"lower beta or dt")
         if self.rbf_width is not None and not (isinstance(self.rbf_width, (int, float)) and self.rbf_width > 0):
-            raise RigError(f"{where}: rbf_width must be a positive angle [rad], got {self.rbf_width!r}")
+            raise SceneError(f"{where}: rbf_width must be a positive angle [rad], got {self.rbf_width!r}")
 
 
 _SETTING_KEYS = {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"}
@@ -204,19 +204,19 @@ def popping_settings(scene) -> PoppingSettings:
         try:
             table = tomllib.loads(Path(scene.source).read_text()).get("popping")
         except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise RigError(f"{where}: cannot read the [popping] section: {exc}") from None
+            raise SceneError(f"{where}: cannot read the [popping] section: {exc}") from None
     table = dict(table or {})
     unknown = sorted(set(table) - _SETTING_KEYS)
     if unknown:
-        raise RigError(f"{where}: unknown key(s) {unknown} in [popping]; known: {sorted(_SETTING_KEYS)}")
+        raise SceneError(f"{where}: unknown key(s) {unknown} in [popping]; known: {sorted(_SETTING_KEYS)}")
     for key in ("alpha_min", "beta", "threshold", "dt", "rbf_width"):
         if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
-            raise RigError(f"{where}: [popping] {key} must be a number, got {table[key]!r}")
+            raise SceneError(f"{where}: [popping] {key} must be a number, got {table[key]!r}")
     if "mode" in table and not isinstance(table["mode"], str):
-        raise RigError(f"{where}: [popping] mode must be a string")
+        raise SceneError(f"{where}: [popping] mode must be a string")
     joints = table.get("joints")
     if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
-        raise RigError(f"{where}: [popping] joints must be a list of joint names")
+        raise SceneError(f"{where}: [popping] joints must be a list of joint names")
     settings = PoppingSettings(
         mode=table.get("mode", "goal"),
         alpha_min=table.get("alpha_min", PoppingSettings.alpha_min),

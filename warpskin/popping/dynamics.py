@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
+from ..errors import SceneError
 from ..kernels import popping as _k
-from ..rig import RigError
 from .examples import Activation
 
 if TYPE_CHECKING:
@@ -23,11 +23,11 @@ if TYPE_CHECKING:
 # --------------------------------------------------------------------------------------------
 def _check_dynamics(alpha_min: float, beta: float, threshold: float, where: str = "popping") -> None:
     if isinstance(alpha_min, bool) or not isinstance(alpha_min, (int, float)) or not (0.0 < alpha_min <= 1.0):
-        raise RigError(f"{where}: alpha_min must be in (0, 1] (the stiffness at the largest disparity), got {alpha_min!r}")
+        raise SceneError(f"{where}: alpha_min must be in (0, 1] (the stiffness at the largest disparity), got {alpha_min!r}")
     if isinstance(beta, bool) or not isinstance(beta, (int, float)) or not (math.isfinite(beta) and beta > 0.0):
-        raise RigError(f"{where}: beta must be a positive relaxation rate [1/s], got {beta!r}")
+        raise SceneError(f"{where}: beta must be a positive relaxation rate [1/s], got {beta!r}")
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (math.isfinite(threshold) and threshold >= 0.0):
-        raise RigError(f"{where}: threshold must be a distance >= 0 [m], got {threshold!r}")
+        raise SceneError(f"{where}: threshold must be a distance >= 0 [m], got {threshold!r}")
 
 
 class PoppingDynamics:
@@ -114,7 +114,7 @@ class PoppingDynamics:
             act[:] = 0.0
             for name, value in activation.items():
                 if name not in self._index:
-                    raise RigError(f"popping: unknown muscle group {name!r}; groups are {list(self._index)}")
+                    raise SceneError(f"popping: unknown muscle group {name!r}; groups are {list(self._index)}")
                 act[self._index[name]] = value
         elif np.ndim(activation) == 0:
             act[:g] = activation
@@ -122,11 +122,11 @@ class PoppingDynamics:
         else:
             values = np.asarray(activation, dtype=np.float32).ravel()
             if values.size != g:
-                raise RigError(f"popping: {values.size} activations given for {g} muscle groups {list(self._index)}")
+                raise SceneError(f"popping: {values.size} activations given for {g} muscle groups {list(self._index)}")
             act[:g] = values
             act[g:] = 0.0
         if not (np.all(act >= 0.0) and np.all(act <= 1.0)):  # also rejects NaN
-            raise RigError(f"popping: activations must be in [0, 1], got {act[:g].tolist()}")
+            raise SceneError(f"popping: activations must be in [0, 1], got {act[:g].tolist()}")
         # clench/relax latch per group: rising -> clench (eqs. 1-2), falling -> relax (eq. 4)
         self._clench[act > self._prev] = 1.0
         self._clench[act < self._prev] = 0.0
@@ -145,7 +145,7 @@ class PoppingDynamics:
             :attr:`points`, the skinned dynamic skin, ``[V]`` vec3 [m].
         """
         if not (dt > 0.0 and self.beta * dt <= 1.0 + 1e-12):
-            raise RigError(
+            raise SceneError(
                 f"popping: step dt={dt!r} s must be positive with beta * dt <= 1 (beta = {self.beta} /s); "
                 f"use dt <= {1.0 / self.beta:.6g} s"
             )

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from ..errors import SceneError
 from ..device import resolve_device
-from ..rig import RigError
 from ..scene import resolve_scene
 from ..skinning import Skinner
 from .activation import PoppingSettings, popping_settings
@@ -83,7 +83,7 @@ def run_popping(
     scene = resolve_scene(scene)
     if fps is not None:
         if not (fps > 0):
-            raise RigError(f"fps must be positive, got {fps}")
+            raise SceneError(f"fps must be positive, got {fps}")
         scene.fps = float(fps)
     settings = popping_settings(scene)
     where = str(scene.source or scene.name)
@@ -100,7 +100,7 @@ def run_popping(
     clip = rig.clip(scene.clip)
     first, last = frames if frames is not None else scene.frame_range()
     if first < 0 or last < first:
-        raise RigError(f"bad frame range {first}:{last}")
+        raise SceneError(f"bad frame range {first}:{last}")
     if examples is None:
         examples = examples_for_scene(scene)
     deformer = PoseSpaceDeformer(rig, examples, device=device, joints=settings.joints, rbf_width=settings.rbf_width)
@@ -110,7 +110,7 @@ def run_popping(
     substeps = 1 if settings.dt is None else max(1, math.ceil(frame_dt / settings.dt - 1e-9))
     h = frame_dt / substeps
     if settings.beta * h > 1.0 + 1e-12:
-        raise RigError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
+        raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
     groups = deformer.group_names
     tris = rig.triangles
     bar = Progress(last - first + 1, f"pop {scene.name} ({deformer.device}, {rig.vertex_count} vertices)", enabled=progress)

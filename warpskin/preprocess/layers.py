@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import SceneError
 from ..rig import Rig, RigError
 from .bones import Bones, bone_segments, closest_point_on_segments, dominant_bone
 
@@ -43,9 +44,9 @@ class LayerParams:
         for name, p in [("default", (self.fat, self.muscle, self.bone))] + list(self.per_bone.items()):
             p = tuple(float(x) for x in p)
             if len(p) != 3 or not all(np.isfinite(p)):
-                raise RigError(f"{where}: projection parameters of {name!r} must be three numbers, got {p}")
+                raise SceneError(f"{where}: projection parameters of {name!r} must be three numbers, got {p}")
             if not (0.0 < p[0] < p[1] < p[2] < 1.0):
-                raise RigError(
+                raise SceneError(
                     f"{where}: projection parameters of {name!r} must satisfy 0 < fat < muscle < bone < 1, "
                     f"got fat={p[0]}, muscle={p[1]}, bone={p[2]}"
                 )
