@@ -118,7 +118,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_skin(args) -> int:
-    from .skinning import skin_to_usd
+    from .run import skin_to_usd
 
     scene = _scene_of(args)
     out = Path(args.output)
@@ -155,7 +155,7 @@ def cmd_layers(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from .simulate import simulate
+    from .run import simulate
 
     scene = _scene_of(args)
     if args.fps:
@@ -204,13 +204,13 @@ def cmd_bench(args) -> int:
         result = run_build_bench(args.scenes or ["arm", "cesium_man", "arm35k"])
     else:
         scenes = args.scenes or ["arm", "cesium_man"]
-        from .popping import bench_popping
+        from .bench import run_popping_bench
 
         result = {
             "solver": run_solver_bench(scenes, device=args.device, steps=args.steps, repeat=args.repeat),
             "skinning": run_skinning_bench([s for s in scenes if not _missing_asset(s)], device=args.device,
                                            frames=args.bench_frames, repeat=args.repeat),
-            "popping": bench_popping(args.device, steps=max(args.steps, 50), repeat=args.repeat),
+            "popping": run_popping_bench(args.device, steps=max(args.steps, 50), repeat=args.repeat),
         }
     return _emit_json(result, args.json)
 
@@ -237,11 +237,12 @@ def _missing_asset(target: str) -> bool:
 
 
 def cmd_pop(args) -> int:
-    from .popping import bench_popping, run_popping
+    from .bench import run_popping_bench
+    from .run import run_popping
     from .errors import SceneError
 
     if args.bench:
-        return _emit_json(bench_popping(args.device, steps=args.steps, repeat=args.repeat), args.json)
+        return _emit_json(run_popping_bench(args.device, steps=args.steps, repeat=args.repeat), args.json)
     if args.target is None or args.output is None:
         raise SceneError("pop needs a SCENE and -o OUT.usdc (or --bench)")
     scene = _scene_of(args)

@@ -5,13 +5,16 @@ shape matching (their regions contain the skin particles' siblings), so they are
 indirectly; at a strongly bent joint the bone layers, pinned to LBS, still interpenetrate, which
 nobody sees.
 
+The topology (edges, their triangles, rigid vertices) is made on the host by the model builder
+(:func:`collision_topology`) and uploaded with the model (:func:`upload_collision`); the
+contact buffers are a :class:`~warpskin.model.Contacts` (``model.contacts()``).
+
 Per step (Algorithm 1): :meth:`SelfCollision.detect` once on the predicted positions (BVH over
 the skin triangles' swept boxes, refit every step), :meth:`project` inside every elasticity
 iteration, :meth:`volume_weights` before the volume loop (colliding particles get weight 0) and
-:meth:`friction_restitution` after the velocity update. Detection fills pre-sized buffers; if a
-step finds more candidates than fit, :attr:`overflow` is raised and the caller calls
-:meth:`grow` and repeats the step (``warpskin simulate`` does this per frame), so no contact is
-ever dropped silently.
+:meth:`friction_restitution` after the velocity update. Detection fills the pre-sized contact
+buffers; if a step finds more candidates than fit, the contacts' overflow flag is raised and
+the frame runner grows them and repeats the frame, so no contact is ever dropped silently.
 """
 
 from __future__ import annotations
@@ -22,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .errors import SceneError
+from .errors import InputError, SceneError
 from .kernels import collision as k
 
-__all__ = ["CollisionParams", "SelfCollision", "skin_edges"]
+__all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges"]
 
 
 @dataclass
@@ -97,77 +100,114 @@ def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return edges, inverse.reshape(-1, 3)
 
 
-class SelfCollision:
-    """Skin self-collision for one model (all buffers allocated here)."""
+@dataclass
+class CollisionTopology:
+    """Host topology of the skin self-collision (made by the model builder).
 
-    def __init__(self, model, params: CollisionParams | None = None) -> None:
-        self.params = params or CollisionParams()
-        self.params.check()
+    Attributes:
+        edges: Unique skin edges ``[E, 2]``.
+        tri_edges: The three edge indices of every triangle ``[T, 3]``.
+        edge_owner: First triangle of every edge ``[E]`` (an edge-edge pair is listed once,
+            through it).
+        dominant_joint: Joint of each vertex's largest weight ``[V]``.
+        dominant_weight: That weight ``[V]``.
+        mean_edge: Mean skin edge length [m].
+        diagonal: Rest bounding-box diagonal [m].
+    """
+
+    edges: np.ndarray
+    tri_edges: np.ndarray
+    edge_owner: np.ndarray
+    dominant_joint: np.ndarray
+    dominant_weight: np.ndarray
+    mean_edge: float
+    diagonal: float
+
+
+def collision_topology(rig) -> CollisionTopology:
+    """The :class:`CollisionTopology` of a rig's closed skin surface."""
+    tris = rig.triangles
+    edges, tri_edges = skin_edges(tris)
+    mean_edge = float(np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1).mean())
+    owner = np.full(edges.shape[0], tris.shape[0], dtype=np.int64)  # first triangle of each edge
+    np.minimum.at(owner, tri_edges.ravel(), np.repeat(np.arange(tris.shape[0]), 3))
+    w = rig.joint_weights
+    rows = np.arange(len(w))
+    best = np.argmax(w, axis=1)
+    return CollisionTopology(
+        edges=edges,
+        tri_edges=tri_edges,
+        edge_owner=owner,
+        dominant_joint=rig.joint_indices[rows, best],
+        dominant_weight=w[rows, best],
+        mean_edge=mean_edge,
+        diagonal=float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0))),
+    )
+
+
+class CollisionData:
+    """The collision part of a :class:`~warpskin.model.SkinModel`: device topology and the
+    contact scalars of its :class:`CollisionParams`.
+
+    Attributes:
+        edge_indices ``[E, 2]``, tri_edges ``[T, 3]``, edge_owner ``[E]``, rigid_bone ``[V]``
+        (the bone a vertex moves rigidly with, else -1), rest_lowers/rest_uppers ``[T]`` (rest
+        triangle boxes); thickness [m], radius [m] (search radius), rest_gap [m], fold_cos,
+        friction, restitution, passes, rebuild_spread; edge_count, triangle_count; diagonal [m].
+    """
+
+
+def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, device) -> CollisionData:
+    """Upload a :class:`CollisionTopology` with the scalars of ``params`` (host work in NumPy
+    first, then one upload per array)."""
+    params.check()
+    d = CollisionData()
+    tris = rig.triangles
+    d.thickness = float(params.thickness) if params.thickness is not None else 0.15 * topo.mean_edge
+    d.radius = d.thickness * float(params.detection_margin)
+    d.rest_gap = d.radius * float(params.rest_gap_margin)
+    d.fold_cos = float(params.fold_cos)
+    d.friction = float(params.friction)
+    d.restitution = float(params.restitution)
+    d.passes = int(params.passes)
+    d.rebuild_spread = float(params.rebuild_spread)
+    d.diagonal = topo.diagonal
+    d.edge_count = int(topo.edges.shape[0])
+    d.triangle_count = int(tris.shape[0])
+    rigid = np.where(topo.dominant_weight >= params.rigid_weight, topo.dominant_joint, -1)
+    with wp.ScopedDevice(device):
+        d.edge_indices = wp.array(topo.edges.astype(np.int32), dtype=wp.int32)
+        d.tri_edges = wp.array(topo.tri_edges.astype(np.int32), dtype=wp.int32)
+        d.edge_owner = wp.array(topo.edge_owner.astype(np.int32), dtype=wp.int32)
+        d.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
+        d.rest_lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
+        d.rest_uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
+    d.rest_skin = np.asarray(rig.vertices, dtype=np.float64)  # host: the skin the first BVH is built for
+    return d
+
+
+class SelfCollision:
+    """Skin self-collision of one model: the BVH and the scratch buffers (allocated here), the
+    launches of detection, projection, volume weights and friction; the pairs go into a
+    :class:`~warpskin.model.Contacts`."""
+
+    def __init__(self, model) -> None:
+        if model.collision is None:
+            raise InputError("the model was built with [collision] enabled = false; it has no collision data")
         self.model = model
-        rig = model.rig
+        self.data = c = model.collision
         self.device = model.device
-        tris = rig.triangles
-        edges, tri_edges = skin_edges(tris)
-        mean_edge = float(np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1).mean())
-        self.thickness = float(self.params.thickness) if self.params.thickness is not None else 0.15 * mean_edge
-        self.radius = self.thickness * float(self.params.detection_margin)
-        self.rest_gap = self.radius * float(self.params.rest_gap_margin)
-        w = rig.joint_weights
-        best = np.argmax(w, axis=1)
-        rigid = np.where(w[np.arange(len(w)), best] >= self.params.rigid_weight,
-                         rig.joint_indices[np.arange(len(w)), best], -1)
-        v = rig.vertex_count
-        dev = self.device
-        with wp.ScopedDevice(dev):
-            self.edge_indices = wp.array(edges.astype(np.int32), dtype=wp.int32)
-            self.tri_edges = wp.array(tri_edges.astype(np.int32), dtype=wp.int32)
-            owner = np.full(edges.shape[0], tris.shape[0], dtype=np.int64)  # first triangle of each edge
-            np.minimum.at(owner, tri_edges.ravel(), np.repeat(np.arange(tris.shape[0]), 3))
-            self.edge_owner = wp.array(owner.astype(np.int32), dtype=wp.int32)
-            self.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
-            self.lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
-            self.uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
+        v = model.vertex_count
+        with wp.ScopedDevice(self.device):
+            self.lowers = wp.clone(c.rest_lowers)
+            self.uppers = wp.clone(c.rest_uppers)
             self.bvh = wp.Bvh(self.lowers, self.uppers)
-            self.colliding = wp.zeros(4 * v, dtype=wp.int32)
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
-            self.counts = wp.zeros(3, dtype=wp.int32)  # point-triangle, edge-edge, overflow flag
-            # views of the counters (never reallocated), made once
-            self.pt_count, self.ee_count, self.overflow_flag = self.counts[0:1], self.counts[1:2], self.counts[2:3]
-            self.active = wp.zeros(1, dtype=wp.int32)  # violated constraints in the last iteration
-        self._built_at = np.asarray(rig.vertices, dtype=np.float64)  # skin the tree was built for
-        self._diagonal = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
+        self._built_at = c.rest_skin  # skin the tree was built for
         self.rebuilds = 0
-        self.edge_count = int(edges.shape[0])
-        self.triangle_count = int(tris.shape[0])
-        self._alloc(int(self.params.capacity))
-
-    def _alloc(self, capacity: int) -> None:
-        self.capacity = capacity
-        with wp.ScopedDevice(self.device):
-            self.pt_vertex = wp.zeros(capacity, dtype=wp.int32)
-            self.pt_triangle = wp.zeros(capacity, dtype=wp.int32)
-            self.ee_a = wp.zeros(capacity, dtype=wp.int32)
-            self.ee_b = wp.zeros(capacity, dtype=wp.int32)
-            self.ee_sign = wp.zeros(capacity, dtype=wp.float32)
-
-    def overflowed(self) -> bool:
-        """Host check (syncs): did a detection since the last :meth:`clear_overflow` overflow?"""
-        return bool(self.counts.numpy()[2])
-
-    def clear_overflow(self) -> None:
-        self.counts.zero_()
-
-    def grow(self) -> None:
-        """Double the candidate buffers until the last detection's counts fit."""
-        c = self.counts.numpy()
-        need = int(max(c[0], c[1]))
-        cap = self.capacity
-        while cap < need or cap == self.capacity:
-            cap *= 2
-        self._alloc(cap)
-        self.counts.zero_()
+        self.thickness, self.radius, self.rest_gap = c.thickness, c.radius, c.rest_gap
 
     def maybe_rebuild(self, skin: np.ndarray) -> bool:
         """Host check between frames (never inside a captured graph): rebuild the BVH in place
@@ -175,7 +215,7 @@ class SelfCollision:
         ``rebuild_spread`` x the rest diagonal since the last build. Returns whether it did."""
         d = np.asarray(skin, dtype=np.float64) - self._built_at
         spread = float(np.linalg.norm(d - d.mean(axis=0), axis=1).max())
-        if spread <= self.params.rebuild_spread * self._diagonal:
+        if spread <= self.data.rebuild_spread * self.data.diagonal:
             return False
         self.bvh.rebuild()  # in place: graphs captured with this BVH stay valid
         self._built_at = np.array(skin, dtype=np.float64)
@@ -183,55 +223,64 @@ class SelfCollision:
         return True
 
     # ------------------------------------------------------------------ per step
-    def detect(self, x_old: wp.array, x_pred: wp.array) -> None:
-        """Candidates on the predicted positions (swept from ``x_old``); skin layer only."""
+    def detect(self, x_old: wp.array, x_pred: wp.array, contacts) -> None:
+        """Candidates on the predicted positions (swept from ``x_old``) into ``contacts``; skin
+        layer only."""
         dev = self.device
-        wp.launch(k.reset_collision_kernel, dim=self.colliding.shape[0], outputs=[self.colliding], device=dev)
-        wp.launch(k.triangle_bounds_kernel, dim=self.triangle_count,
-                  inputs=[x_old, x_pred, self.model.tri_indices, self.radius], outputs=[self.lowers, self.uppers], device=dev)
+        c = self.data
+        m = self.model
+        wp.launch(k.reset_collision_kernel, dim=contacts.colliding.shape[0], outputs=[contacts.colliding], device=dev)
+        wp.launch(k.triangle_bounds_kernel, dim=c.triangle_count,
+                  inputs=[x_old, x_pred, m.tri_indices, c.radius], outputs=[self.lowers, self.uppers], device=dev)
         self.bvh.refit()
         self.vertex_normals.zero_()
-        wp.launch(k.vertex_normals_kernel, dim=self.triangle_count, inputs=[x_pred, self.model.tri_indices],
+        wp.launch(k.vertex_normals_kernel, dim=c.triangle_count, inputs=[x_pred, m.tri_indices],
                   outputs=[self.vertex_normals], device=dev)
-        fold = float(self.params.fold_cos)
         # zero the two counters, keep the overflow flag (cleared by the caller after checking)
-        wp.launch(k.zero_counts_kernel, dim=1, outputs=[self.counts], device=dev)
-        wp.launch(k.detect_point_triangle_kernel, dim=self.model.vertex_count,
-                  inputs=[self.bvh.id, x_old, x_pred, self.model.tri_indices, self.rigid_bone, self.model.particle_q0,
-                          self.rest_gap, self.vertex_normals, fold, self.thickness, self.radius, self.capacity],
-                  outputs=[self.pt_count, self.pt_vertex, self.pt_triangle, self.overflow_flag, self.colliding], device=dev)
-        wp.launch(k.detect_edge_edge_kernel, dim=self.edge_count,
-                  inputs=[self.bvh.id, x_old, x_pred, self.edge_indices, self.tri_edges, self.edge_owner, self.lowers,
-                          self.uppers, self.rigid_bone, self.model.particle_q0, self.rest_gap, self.vertex_normals, fold, self.radius,
-                          self.capacity],
-                  outputs=[self.ee_count, self.ee_a, self.ee_b, self.ee_sign, self.overflow_flag, self.colliding], device=dev)
+        wp.launch(k.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
+        wp.launch(k.detect_point_triangle_kernel, dim=m.vertex_count,
+                  inputs=[self.bvh.id, x_old, x_pred, m.tri_indices, c.rigid_bone, m.particle_q0,
+                          c.rest_gap, self.vertex_normals, c.fold_cos, c.thickness, c.radius, contacts.capacity],
+                  outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.overflow_flag,
+                           contacts.colliding], device=dev)
+        wp.launch(k.detect_edge_edge_kernel, dim=c.edge_count,
+                  inputs=[self.bvh.id, x_old, x_pred, c.edge_indices, c.tri_edges, c.edge_owner, self.lowers,
+                          self.uppers, c.rigid_bone, m.particle_q0, c.rest_gap, self.vertex_normals, c.fold_cos, c.radius,
+                          contacts.capacity],
+                  outputs=[contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign, contacts.overflow_flag,
+                           contacts.colliding], device=dev)
 
-    def project(self, x: wp.array, inv_mass: wp.array) -> None:
-        """``params.passes`` Jacobi passes over all point-triangle and edge-edge constraints;
-        :attr:`active` counts the constraints still violated in the last pass."""
-        for _ in range(int(self.params.passes)):
-            self._project_pass(x, inv_mass)
+    def project(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
+        """``passes`` Jacobi passes over all point-triangle and edge-edge constraints;
+        ``contacts.active`` counts the constraints still violated in the last pass."""
+        for _ in range(self.data.passes):
+            self._project_pass(x, inv_mass, contacts)
 
-    def _project_pass(self, x: wp.array, inv_mass: wp.array) -> None:
+    def _project_pass(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
         dev = self.device
-        self.active.zero_()
-        wp.launch(k.project_point_triangle_kernel, dim=self.capacity,
-                  inputs=[x, inv_mass, self.model.tri_indices, self.pt_count, self.pt_vertex, self.pt_triangle, self.thickness],
-                  outputs=[self.delta, self.delta_count, self.active], device=dev)
-        wp.launch(k.project_edge_edge_kernel, dim=self.capacity,
-                  inputs=[x, inv_mass, self.edge_indices, self.ee_count, self.ee_a, self.ee_b, self.ee_sign, self.thickness],
-                  outputs=[self.delta, self.delta_count, self.active], device=dev)
-        wp.launch(k.apply_deltas_kernel, dim=self.model.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
+        c = self.data
+        m = self.model
+        contacts.active.zero_()
+        wp.launch(k.project_point_triangle_kernel, dim=contacts.capacity,
+                  inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
+                          c.thickness],
+                  outputs=[self.delta, self.delta_count, contacts.active], device=dev)
+        wp.launch(k.project_edge_edge_kernel, dim=contacts.capacity,
+                  inputs=[x, inv_mass, c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
+                          c.thickness],
+                  outputs=[self.delta, self.delta_count, contacts.active], device=dev)
+        wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
-    def volume_weights(self, weight_scale: wp.array) -> None:
-        wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0], inputs=[self.colliding], outputs=[weight_scale],
+    def volume_weights(self, contacts, weight_scale: wp.array) -> None:
+        wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0], inputs=[contacts.colliding], outputs=[weight_scale],
                   device=self.device)
 
-    def friction_restitution(self, x: wp.array, v: wp.array, inv_mass: wp.array) -> None:
+    def friction_restitution(self, x: wp.array, v: wp.array, inv_mass: wp.array, contacts) -> None:
         dev = self.device
-        wp.launch(k.friction_restitution_kernel, dim=self.capacity,
-                  inputs=[x, v, inv_mass, self.model.tri_indices, self.pt_count, self.pt_vertex, self.pt_triangle,
-                          float(self.params.friction), float(self.params.restitution)],
+        c = self.data
+        m = self.model
+        wp.launch(k.friction_restitution_kernel, dim=contacts.capacity,
+                  inputs=[x, v, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
+                          c.friction, c.restitution],
                   outputs=[self.delta, self.delta_count], device=dev)
-        wp.launch(k.apply_deltas_kernel, dim=self.model.vertex_count, inputs=[self.delta, self.delta_count], outputs=[v], device=dev)
-
+        wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[v], device=dev)

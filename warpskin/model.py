@@ -3,7 +3,8 @@
 ``SkinModelBuilder(rig, params).finalize(device)`` runs every preprocessing stage of Deul &
 Bender 2013 (layers, masses, regions, fast-summation paths and runs, sub-volumes, joint
 constraints, kinematic coupling) and returns a :class:`SkinModel` of static ``wp.array``s.
-``model.state()`` and ``model.control()`` make the time-varying arrays the solver advances.
+``model.state()``, ``model.control()`` and ``model.contacts()`` make the time-varying arrays:
+what the solver advances, what drives a frame and the collision buffers (Newton's pattern).
 
 Particles are numbered layer-major: ``k * V + i`` for vertex ``i`` on layer ``k`` in
 (skin, fat, muscle, bone).
@@ -17,7 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .errors import SceneError
+from .errors import InputError, SceneError
+from .collision import CollisionParams
 from .preprocess.bones import Bones, bone_segments
 from .preprocess.joint_constraints import JointConstraints, JointParams, build_joint_constraints
 from .preprocess.kinematic_coupling import KinematicCoupling, build_kinematic_coupling
@@ -25,9 +27,9 @@ from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, c
 from .preprocess.masses import particle_masses
 from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
-from .rig import Rig, RigError
+from .rig import Rig
 
-__all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control"]
+__all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts"]
 
 
 @dataclass
@@ -46,6 +48,9 @@ class ModelParams:
         subvolumes: Sub-volume cutting planes (``warpskin.preprocess.sub_volumes.SubVolumeParams``);
             ``None`` for the defaults.
         volume: False skips the sub-volumes (no volume constraints).
+        collision: The skin self-collision model (thickness, friction, margins); with
+            ``enabled = False`` the model has no contact data and ``model.contacts()`` is
+            ``None``.
     """
 
     layers: LayerParams = field(default_factory=LayerParams)
@@ -57,6 +62,7 @@ class ModelParams:
     joints: JointParams = field(default_factory=JointParams)
     subvolumes: object | None = None
     volume: bool = True
+    collision: CollisionParams = field(default_factory=CollisionParams)
 
     def check(self, where: str = "model") -> None:
         self.layers.check(where)
@@ -70,6 +76,7 @@ class ModelParams:
             raise SceneError(f"{where}: omega must be an integer >= 1, got {self.omega}")
         if not (0.0 <= self.coupling_stiffness <= 1.0):
             raise SceneError(f"{where}: coupling stiffness must be in [0, 1], got {self.coupling_stiffness}")
+        self.collision.check(where)
 
 
 class SkinModelBuilder:
@@ -80,8 +87,15 @@ class SkinModelBuilder:
         params: Model parameters; defaults are the paper's Arm values.
 
     Attributes (after :meth:`build`): ``bones``, ``layers``, ``masses``, ``radii``, ``regions``,
-    ``paths``, ``runs``, ``subvolumes``, ``coupling``, ``joint_constraints``, ``timings`` (seconds
-    per stage).
+    ``paths``, ``runs``, ``subvolumes``, ``coupling``, ``joint_constraints``, and the solver's
+    host layouts ``solver_layout`` (joint-constraint CSR, fast-summation path starts,
+    oriented-particle moments, float64 region rest centres), ``volume_layout``
+    (:class:`~warpskin.volume.VolumeLayout` or ``None``), ``collision_topology``
+    (:class:`~warpskin.collision.CollisionTopology`); ``rest_drive`` (rest-offset deltas of the
+    muscle drive, ``[G, M, 3]``, or ``None``); ``timings`` (seconds per stage).
+
+    Every host array the solver, the volume constraints and the self-collision read is made
+    here; :meth:`finalize` is the only upload.
     """
 
     def __init__(self, rig: Rig, params: ModelParams | None = None) -> None:
@@ -89,6 +103,7 @@ class SkinModelBuilder:
         self.params = params or ModelParams()
         self.where = rig.source or rig.name
         self.timings: dict[str, float] = {}
+        self.rest_drive: np.ndarray | None = None
         self._built = False
 
     def _stage(self, name: str, fn):
@@ -134,7 +149,69 @@ class SkinModelBuilder:
             "joint_constraints", lambda: build_joint_constraints(rig, self.layers, p.joints)
         )
         self.stiffness = self._particle_stiffness()
+        self.solver_layout = self._stage("solver_layout", self._solver_layout)
+        if self.subvolumes is not None:
+            from .volume import volume_layout
+
+            self.volume_layout = self._stage("volume_layout", lambda: volume_layout(self.subvolumes))
+        else:
+            self.volume_layout = None
+        from .collision import collision_topology
+
+        self.collision_topology = self._stage("collision_topology", lambda: collision_topology(rig))
         self._built = True
+        return self
+
+    def _solver_layout(self) -> dict[str, np.ndarray]:
+        """Host arrays of :class:`~warpskin.solver.SkinSolver` (see :class:`SkinModel`)."""
+        n = 4 * self.rig.vertex_count
+        v = self.rig.vertex_count
+        out: dict[str, np.ndarray] = {}
+        out["particle_moment"] = (self.masses * self.radii**2 / 5.0).astype(np.float32)
+        # joint constraints as a per-particle CSR (a particle near two joints has two)
+        jc = self.joint_constraints
+        order = np.argsort(jc.particles, kind="stable")
+        offsets = np.zeros(n + 1, dtype=np.int32)
+        np.cumsum(np.bincount(jc.particles, minlength=n), out=offsets[1:])
+        out["joint_offsets"] = offsets
+        out["joint_ids"] = jc.joints[order].astype(np.int32)
+        out["joint_rest_distance"] = jc.rest_distance[order].astype(np.float32)
+        # fast summation: first position of every non-empty path
+        starts = np.zeros(v, dtype=np.int32)
+        starts[self.paths.path_offsets[:-1][np.diff(self.paths.path_offsets) > 0]] = 1
+        out["position_is_path_start"] = starts
+        # rest centres for the fast summation, in float64 from the float32 rest positions
+        # and masses the kernels read: A = S2 - S1 c0^T cancels large terms, and a float32
+        # c0 (or one from unrounded data) left up to 2e-3 rotation error in small regions
+        reg = self.regions
+        q0 = np.asarray(self.layers.flat(), dtype=np.float32).astype(np.float64)
+        m32 = np.asarray(self.masses, dtype=np.float32).astype(np.float64)
+        seg, mem = reg.region_offsets, reg.region_members
+        mx0 = np.add.reduceat(m32[mem, None] * q0[mem], seg[:-1], axis=0)
+        msum = np.add.reduceat(m32[mem], seg[:-1])
+        out["region_rest_com"] = mx0 / msum[:, None]
+        return out
+
+    def set_rest_drive(self, delta_offsets: np.ndarray) -> SkinModelBuilder:
+        """Let activations move the rest shape (muscle activation in the layered model).
+
+        Args:
+            delta_offsets: Change of every region rest offset when group g is fully active,
+                ``[G, M, 3]`` [m] (M = region entries; see
+                :func:`warpskin.popping.muscle_rest_offset_deltas`). ``Control.muscle_activation``
+                ``[G]`` then drives it every step; the model's rest offsets stay as built.
+
+        Returns:
+            The builder (call before :meth:`finalize`).
+        """
+        self.build()
+        d = np.asarray(delta_offsets, dtype=np.float32)
+        m = self.regions.region_members.shape[0]
+        if d.ndim != 3 or d.shape[1:] != (m, 3) or d.shape[0] < 1:
+            raise InputError(f"rest-shape deltas must have shape [G, {m}, 3] with G >= 1, got {d.shape}")
+        if not np.isfinite(d).all():
+            raise InputError("rest-shape deltas hold NaN or inf")
+        self.rest_drive = d
         return self
 
     def _particle_stiffness(self) -> np.ndarray:
@@ -169,57 +246,57 @@ class SkinModelBuilder:
 def _i32(a) -> np.ndarray:
     a = np.asarray(a)
     if a.size and (a.max() > np.iinfo(np.int32).max):
-        raise RigError("model too large for 32-bit indices")
+        raise InputError("model too large for 32-bit indices")
     return a.astype(np.int32)
 
 
 class SkinModel:
-    """Static simulation data on one device (``wp.array``s), plus the host builder for
-    inspection.
+    """Static simulation data on one device: ``wp.array``s, sizes and scalars, no host arrays.
 
     Array names follow the entity they index: ``particle_*`` ``[4V]``, ``region_*`` (CSR over
-    regions, ``[4V+1]`` offsets), ``path_*``, ``run_*``, ``coupling_*`` ``[V]``; only what the
-    kernels read is uploaded.
+    regions, ``[4V+1]`` offsets), ``path_*``, ``run_*``, ``coupling_*`` ``[V]``, ``joint_*``
+    (per-particle CSR of the joint constraints), ``subvolume_*``/``volume_*`` (the volume
+    projection's layout, see :class:`~warpskin.volume.VolumeLayout`), ``edge_*``/``tri_*``
+    (collision topology); ``rest_drive_offsets`` ``[G, M]`` for a muscle-driven rest shape.
+    Built only by :meth:`SkinModelBuilder.finalize`; the builder stays the host view.
     """
 
     def __init__(self, builder: SkinModelBuilder, device) -> None:
         b = builder
-        self.builder = b
+        rig = b.rig
         self.device = device
-        self.rig = b.rig
-        self.vertex_count = b.rig.vertex_count
+        self.name = rig.name
+        self.vertex_count = rig.vertex_count
         self.particle_count = 4 * self.vertex_count
-        self.joint_count = b.rig.joint_count
+        self.joint_count = rig.joint_count
+        self.triangle_count = int(rig.triangles.shape[0])
         reg = b.regions
+        lay = b.solver_layout
         v3 = lambda a: wp.array(np.asarray(a, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=device)
         f32 = lambda a: wp.array(np.asarray(a, dtype=np.float32), dtype=wp.float32, device=device)
         i32 = lambda a: wp.array(_i32(a), dtype=wp.int32, device=device)
         with wp.ScopedDevice(device):
-            self.tri_indices = wp.array(_i32(b.rig.triangles), dtype=wp.int32, device=device)
+            self.tri_indices = wp.array(_i32(rig.triangles), dtype=wp.int32, device=device)
             self.particle_q0 = v3(b.layers.flat())
             self.particle_mass = f32(b.masses)
             self.particle_inv_mass = f32(1.0 / b.masses)
             self.particle_stiffness = f32(b.stiffness)
+            self.particle_moment = f32(lay["particle_moment"])
+            self.particle_bone = i32(b.layers.bone)  # dominant bone of every vertex, [V]
             self.region_offsets = i32(reg.region_offsets)
             self.region_members = i32(reg.region_members)
+            self.region_entry_count = int(reg.region_members.shape[0])
             self.region_sibling_count = i32(reg.sibling_count)
             self.region_rest_offsets = v3(reg.rest_offsets)
-            # rest centres for the fast summation, in float64 from the float32 rest positions
-            # and masses the kernels read: A = S2 - S1 c0^T cancels large terms, and a float32
-            # c0 (or one from unrounded data) left up to 2e-3 rotation error in small regions
-            q0 = np.asarray(b.layers.flat(), dtype=np.float32).astype(np.float64)
-            m32 = np.asarray(b.masses, dtype=np.float32).astype(np.float64)
-            seg = reg.region_offsets
-            mem = reg.region_members
-            mx0 = np.add.reduceat(m32[mem, None] * q0[mem], seg[:-1], axis=0)
-            msum = np.add.reduceat(m32[mem], seg[:-1])
-            self.region_rest_com = wp.array(mx0 / msum[:, None], dtype=wp.vec3d, device=device)
+            self.region_rest_com = wp.array(lay["region_rest_com"], dtype=wp.vec3d, device=device)
             self.region_mass = f32(reg.region_mass)
             self.particle_region_offsets = i32(reg.particle_offsets)
             self.particle_regions = i32(reg.particle_regions)
             self.particle_region_slots = i32(reg.particle_slots)
             self.path_order = i32(b.paths.order)
             self.path_offsets = i32(b.paths.path_offsets)
+            self.path_count = int(b.paths.path_count)
+            self.position_is_path_start = i32(lay["position_is_path_start"])
             self.run_offsets = i32(b.runs.run_offsets)
             self.run_start = i32(b.runs.run_start)
             self.run_end = i32(b.runs.run_end)
@@ -230,17 +307,41 @@ class SkinModel:
             self.coupling_stiffness = float(c.stiffness)
             jc = b.joint_constraints
             self.joint_rest = v3(jc.joint_rest)
-            # the joint constraints' and sub-volumes' device data live with the solver and
-            # VolumeConstraints, which build their own layouts from the builder
-            self.subvolume_count = len(b.subvolumes.names) if b.subvolumes is not None else 0
+            self.joint_offsets = i32(lay["joint_offsets"])
+            self.joint_ids = i32(lay["joint_ids"])
+            self.joint_rest_distance = f32(lay["joint_rest_distance"])
+            # muscle-driven rest shape (layered popping)
+            self.rest_drive_group_count = 0 if b.rest_drive is None else int(b.rest_drive.shape[0])
+            self.rest_drive_offsets = wp.array(b.rest_drive, dtype=wp.vec3) if b.rest_drive is not None else None
+        from .volume import upload_volume_layout
+
+        self.subvolume_count = len(b.subvolumes.names) if b.subvolumes is not None else 0
+        self.volume = upload_volume_layout(b.volume_layout, b.subvolumes, device) if b.subvolumes is not None else None
+        from .collision import upload_collision
+
+        self.collision_params = b.params.collision
+        self.collision = upload_collision(b.collision_topology, rig, b.params.collision, device) \
+            if b.params.collision.enabled else None
 
     def state(self) -> State:
         """A rest state: positions at rest, zero velocities, identity orientations."""
         return State(self)
 
     def control(self) -> Control:
-        """Per-frame drive: skinning matrices of the joints (identity = bind pose)."""
+        """Per-frame drive: skinning matrices of the joints (identity = bind pose) and the
+        muscle activation of a rest-shape drive (zero)."""
         return Control(self)
+
+    def contacts(self, capacity: int | None = None) -> Contacts | None:
+        """Collision buffers (``None`` when the model has self-collision switched off).
+
+        Args:
+            capacity: Candidate pairs per kind (default ``[collision] capacity``); they grow
+                on overflow with :meth:`Contacts.grow`.
+        """
+        if self.collision is None:
+            return None
+        return Contacts(self, int(capacity if capacity is not None else self.collision_params.capacity))
 
 
 class State:
@@ -255,24 +356,89 @@ class State:
             self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
             self.omega = wp.zeros(n, dtype=wp.vec3)
 
+    def assign(self, other: State) -> None:
+        """Copy ``other`` into this state (device copies, no allocation)."""
+        for name in ("x", "v", "q", "omega"):
+            wp.copy(getattr(self, name), getattr(other, name))
+
 
 class Control:
-    """What drives a frame: the joints' skinning matrices ``G_j(t) inverse_bind_j``, ``[J]``."""
+    """What drives a frame: the joints' skinning matrices ``G_j(t) inverse_bind_j`` ``[J]`` and,
+    for a model with a rest-shape drive, the muscle activation ``[G]`` in [0, 1]."""
 
     def __init__(self, model: SkinModel) -> None:
-        self.model = model
-        self.skin_matrices = wp.array(np.tile(np.eye(4, dtype=np.float32), (model.joint_count, 1, 1)), dtype=wp.mat44, device=model.device)
+        dev = model.device
+        self.skin_matrices = wp.array(np.tile(np.eye(4, dtype=np.float32), (model.joint_count, 1, 1)), dtype=wp.mat44, device=dev)
+        self.muscle_activation = wp.zeros(model.rest_drive_group_count, dtype=wp.float32, device=dev)
         self._host = np.zeros((model.joint_count, 4, 4), dtype=np.float32)
 
     def set_pose(self, skin_matrices: np.ndarray) -> None:
         """Upload skinning matrices ``[J, 4, 4]`` (from ``rig.skinning_matrices(clip, t)``)."""
         m = np.asarray(skin_matrices)
         if m.shape != self._host.shape:
-            raise RigError(f"expected skinning matrices of shape {self._host.shape}, got {m.shape}")
+            raise InputError(f"expected skinning matrices of shape {self._host.shape}, got {m.shape}")
         if not np.all(np.isfinite(m)):
-            raise RigError("skinning matrices hold NaN or inf")
+            raise InputError("skinning matrices hold NaN or inf")
         self._host[:] = m
         self.skin_matrices.assign(self._host)
+
+    def set_activation(self, activation) -> None:
+        """Upload muscle activations ``[G]`` (the rest-shape drive's groups, in [0, 1])."""
+        a = np.asarray(activation, dtype=np.float32).reshape(-1)
+        g = self.muscle_activation.shape[0]
+        if a.shape[0] != g:
+            raise InputError(f"expected {g} muscle activations, got {a.shape[0]}")
+        self.muscle_activation.assign(a)
+
+
+class Contacts:
+    """Skin self-collision buffers: candidate point-triangle and edge-edge pairs found by the
+    detection of a step, their counts, the overflow flag and the per-particle colliding flags.
+
+    ``counts`` is ``[point-triangle, edge-edge, overflow]``; detection never writes past
+    :attr:`capacity` but raises the flag, and the caller (the frame runner) checks
+    :meth:`overflowed`, calls :meth:`grow` and repeats the frame, so no contact is dropped
+    silently. Growing reallocates the pair buffers: graphs captured with the old ones must be
+    captured again.
+    """
+
+    def __init__(self, model: SkinModel, capacity: int) -> None:
+        if isinstance(capacity, bool) or int(capacity) != capacity or capacity < 1:
+            raise InputError(f"contact capacity must be a positive integer, got {capacity!r}")
+        self.device = model.device
+        with wp.ScopedDevice(self.device):
+            self.counts = wp.zeros(3, dtype=wp.int32)  # point-triangle, edge-edge, overflow flag
+            # views of the counters (never reallocated), made once
+            self.pt_count, self.ee_count, self.overflow_flag = self.counts[0:1], self.counts[1:2], self.counts[2:3]
+            self.colliding = wp.zeros(model.particle_count, dtype=wp.int32)
+            self.active = wp.zeros(1, dtype=wp.int32)  # violated constraints in the last pass
+        self._alloc(int(capacity))
+
+    def _alloc(self, capacity: int) -> None:
+        self.capacity = capacity
+        with wp.ScopedDevice(self.device):
+            self.pt_vertex = wp.zeros(capacity, dtype=wp.int32)
+            self.pt_triangle = wp.zeros(capacity, dtype=wp.int32)
+            self.ee_a = wp.zeros(capacity, dtype=wp.int32)
+            self.ee_b = wp.zeros(capacity, dtype=wp.int32)
+            self.ee_sign = wp.zeros(capacity, dtype=wp.float32)
+
+    def overflowed(self) -> bool:
+        """Host check (syncs): did a detection since the last :meth:`clear_overflow` overflow?"""
+        return bool(self.counts.numpy()[2])
+
+    def clear_overflow(self) -> None:
+        self.counts.zero_()
+
+    def grow(self) -> None:
+        """Double the candidate buffers until the last detection's counts fit."""
+        c = self.counts.numpy()
+        need = int(max(c[0], c[1]))
+        cap = self.capacity
+        while cap < need or cap == self.capacity:
+            cap *= 2
+        self._alloc(cap)
+        self.counts.zero_()
 
 
 __all__ += ["LAYER_NAMES"]

@@ -140,9 +140,11 @@ class Scene:
         return 0, int(math.floor(clip.duration * self.fps + 1e-6))
 
     def model_params(self):
-        """The :class:`~warpskin.model.ModelParams` of the ``[layers]``, ``[joints]`` and
-        ``[subvolumes]`` sections (defaults: the paper's Arm values)."""
-        return _model_params(self.extra, _where(self.source))
+        """The :class:`~warpskin.model.ModelParams` of the ``[layers]``, ``[joints]``,
+        ``[subvolumes]`` and ``[collision]`` sections (defaults: the paper's Arm values)."""
+        params = _model_params(self.extra, _where(self.source))
+        params.collision = self.collision_params()
+        return params
 
     def solver_params(self):
         """The :class:`~warpskin.solver.SolverParams` of the ``[solver]`` section."""
@@ -161,10 +163,7 @@ class Scene:
         if "gravity" in table:
             table["gravity"] = _numbers(where, "[solver] gravity", table["gravity"], 3)
         params = SolverParams(**table)
-        try:
-            params.check(where)
-        except RigError as exc:
-            raise SceneError(str(exc)) from None
+        params.check(where)
         return params
 
     def collision_params(self):
@@ -180,10 +179,7 @@ class Scene:
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
         params = CollisionParams(**table)
-        try:
-            params.check(where)
-        except RigError as exc:
-            raise SceneError(str(exc)) from None
+        params.check(where)
         return params
 
     def frame_time(self, frame: int) -> float:
@@ -227,7 +223,7 @@ def _load_rig_of(scene: Scene) -> Rig:
             raise SceneError(f"{where}: [rig.params] must be a table")
         try:
             rig = make(**params)
-        except RigError as exc:
+        except (RigError, SceneError) as exc:
             raise SceneError(f"{where}: {exc}") from None
         return rig.rescaled(unit_scale) if unit_scale else rig
     if "params" in spec:
@@ -432,8 +428,5 @@ def _model_params(extra: dict, where: str):
         subvolumes=sub_params,
         volume=enabled,
     )
-    try:
-        params.check(where)
-    except RigError as exc:
-        raise SceneError(str(exc)) from None
+    params.check(where)
     return params

@@ -3,9 +3,9 @@
 Example:
     >>> model = SkinModelBuilder(rig, params).finalize("cpu")
     >>> solver = SkinSolver(model, SolverParams(iterations=20))
-    >>> state_in, state_out, control = model.state(), model.state(), model.control()
+    >>> state_in, state_out, control, contacts = model.state(), model.state(), model.control(), model.contacts()
     >>> control.set_pose(rig.skinning_matrices(clip, t))
-    >>> solver.step(state_in, state_out, control, 0.005)
+    >>> solver.step(state_in, state_out, control, contacts, 0.005)
     >>> state_in, state_out = state_out, state_in
 """
 
@@ -14,14 +14,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import warp as wp
 
 from .errors import InputError, SceneError, SimulationError
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
-from .model import SkinModel, State, Control
+from .model import Contacts, Control, SkinModel, State
 
 __all__ = ["SolverParams", "SkinSolver", "SimulationError"]
 
@@ -87,19 +86,17 @@ class SkinSolver:
         step.
     """
 
-    def __init__(self, model: SkinModel, params: SolverParams | None = None, collision=None) -> None:
+    def __init__(self, model: SkinModel, params: SolverParams | None = None) -> None:
         """Args:
-            model: The uploaded model.
+            model: The uploaded model. Self-collision runs when the model has collision data
+                (``ModelParams.collision.enabled``) and :meth:`step` is given contacts.
             params: Solver settings.
-            collision: :class:`~warpskin.collision.CollisionParams`; ``None`` switches skin
-                self-collision off.
         """
         self.model = model
         self.params = params or SolverParams()
         self.params.check()
         # iterations is fixed at construction (buffers are sized by it)
         self._iterations = int(self.params.iterations)
-        b = model.builder
         n = model.particle_count
         v = model.vertex_count
         dev = model.device
@@ -109,25 +106,18 @@ class SkinSolver:
             self.q_scratch = wp.zeros(n, dtype=wp.quat)
             self.coupling_targets = wp.zeros(v, dtype=wp.vec3)
             self.joint_centres = wp.zeros(model.joint_count, dtype=wp.vec3)
-            self.particle_moment = wp.array((b.masses * b.radii**2 / 5.0).astype(np.float32), dtype=wp.float32)
             self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
             # largest position correction of each elasticity iteration of the last step [m]
             self.residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
-            # joint constraints as a per-particle CSR (a particle near two joints has two)
-            jc = b.joint_constraints
-            order = np.argsort(jc.particles, kind="stable")
-            offsets = np.zeros(n + 1, dtype=np.int32)
-            np.cumsum(np.bincount(jc.particles, minlength=n), out=offsets[1:])
-            self.joint_offsets = wp.array(offsets, dtype=wp.int32)
-            self.joint_ids = wp.array(jc.joints[order].astype(np.int32), dtype=wp.int32)
-            self.joint_rest_distance = wp.array(jc.rest_distance[order].astype(np.float32), dtype=wp.float32)
             # fast summation buffers
             self.prefix_mx = wp.zeros(n, dtype=wp.vec3d)
             self.prefix_mxx = wp.zeros(n, dtype=wp.mat33d)
-            starts = np.zeros(v, dtype=np.int32)
-            starts[b.paths.path_offsets[:-1][np.diff(b.paths.path_offsets) > 0]] = 1
-            self.position_is_path_start = wp.array(starts, dtype=wp.int32)
-            self.path_count = int(b.paths.path_count)
+            # the rest offsets the shape matching reads: the model's, or a muscle-driven copy
+            self.region_rest_offsets = model.region_rest_offsets
+            if model.rest_drive_group_count:
+                if self.params.fast_summation:
+                    raise SceneError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
+                self.region_rest_offsets = wp.clone(model.region_rest_offsets)
             # volume constraints
             self.volume = None
             self.volume_weight_scale = wp.ones(n, dtype=wp.float32)
@@ -137,44 +127,18 @@ class SkinSolver:
                 self.volume = VolumeConstraints(model)
                 self.volume_centres = self.volume.centers  # its fan centres, posed every step
             self.collision = None
-            if collision is not None and collision.enabled:
+            if model.collision is not None:
                 from .collision import SelfCollision
 
-                self.collision = SelfCollision(model, collision)
+                self.collision = SelfCollision(model)
         g = self.params.gravity
         self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
-
-    # ------------------------------------------------------------------ rest-shape drive
-    def set_rest_shape_drive(self, delta_offsets: np.ndarray) -> wp.array:
-        """Let activations move the rest shape (muscle activation in the layered model).
-
-        Args:
-            delta_offsets: Change of every region rest offset when group g is fully active,
-                ``[G, M, 3]`` [m] (M = region entries; see
-                :func:`warpskin.popping.muscle_rest_offset_deltas`).
-
-        Returns:
-            The activation array ``[G]`` (float32, on the device), read by every step; write it
-            (or copy into it) between steps. Requires the direct gather (the fast summation
-            reads the rest positions themselves).
-        """
-        d = np.asarray(delta_offsets, dtype=np.float32)
-        m = self.model
-        if d.ndim != 3 or d.shape[1:] != (m.region_members.shape[0], 3):
-            raise InputError(f"rest-shape deltas must have shape [G, {m.region_members.shape[0]}, 3], got {d.shape}")
-        if self.params.fast_summation:
-            raise SceneError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
-        with wp.ScopedDevice(self.device):
-            self.rest_base_offsets = wp.clone(m.region_rest_offsets)
-            self.rest_delta_offsets = wp.array(d, dtype=wp.vec3)
-            self.rest_activation = wp.zeros(d.shape[0], dtype=wp.float32)
-        return self.rest_activation
 
     # ------------------------------------------------------------------ pieces of a step
     def update_moments(self, q: wp.array) -> None:
         """Oriented-particle moment matrices of orientations ``q`` (before a fit that follows
         anything but the goal blend, which updates them itself)."""
-        wp.launch(k_sm.moment_matrices_kernel, dim=self.model.particle_count, inputs=[q, self.particle_moment],
+        wp.launch(k_sm.moment_matrices_kernel, dim=self.model.particle_count, inputs=[q, self.model.particle_moment],
                   outputs=[self.moment_matrix], device=self.device)
 
     def region_fit(self, x: wp.array, q_in: wp.array, q_out: wp.array) -> None:
@@ -187,9 +151,9 @@ class SkinSolver:
         if self.params.fast_summation:
             wp.launch(
                 k_sm.path_scan_kernel,
-                dim=4 * self.path_count,
+                dim=4 * m.path_count,
                 inputs=[x, m.particle_q0, m.particle_mass, self.moment_matrix, m.path_order, m.path_offsets,
-                        m.vertex_count, self.path_count],
+                        m.vertex_count, m.path_count],
                 outputs=[self.prefix_mx, self.prefix_mxx],
                 device=self.device,
             )
@@ -197,7 +161,7 @@ class SkinSolver:
                 k_sm.region_fit_runs_kernel,
                 dim=m.particle_count,
                 inputs=[x, q_in, m.particle_q0, m.particle_mass, self.moment_matrix, self.prefix_mx, self.prefix_mxx,
-                        self.position_is_path_start, m.run_offsets, m.run_start, m.run_end, m.region_offsets,
+                        m.position_is_path_start, m.run_offsets, m.run_start, m.run_end, m.region_offsets,
                         m.region_members, m.region_sibling_count, m.region_mass, m.region_rest_com, m.vertex_count, it],
                 outputs=[self.region_com, q_out],
                 device=self.device,
@@ -207,20 +171,23 @@ class SkinSolver:
                 k_sm.region_fit_gather_kernel,
                 dim=m.particle_count,
                 inputs=[x, q_in, m.particle_mass, self.moment_matrix, m.region_offsets, m.region_members,
-                        m.region_rest_offsets, m.region_mass, it],
+                        self.region_rest_offsets, m.region_mass, it],
                 outputs=[self.region_com, q_out],
                 device=self.device,
             )
 
-    def _blend(self, x: wp.array, q_regions: wp.array, iteration: int = 0) -> None:
+    def blend_and_constrain(self, x: wp.array, q_regions: wp.array, iteration: int = 0) -> None:
+        """One elasticity iteration's per-particle goal blend of the region fits (into ``x``),
+        with the kinematic coupling and the joint constraints; updates the moment matrices and
+        :attr:`residuals` ``[iteration]``."""
         m = self.model
         wp.launch(
             k_sm.blend_and_constrain_kernel,
             dim=m.particle_count,
-            inputs=[self.region_com, q_regions, m.region_rest_offsets, m.particle_region_offsets, m.particle_regions,
+            inputs=[self.region_com, q_regions, self.region_rest_offsets, m.particle_region_offsets, m.particle_regions,
                     m.particle_region_slots, m.particle_stiffness, 3 * m.vertex_count, self.coupling_targets,
-                    m.coupling_stiffness, self.joint_offsets, self.joint_ids, self.joint_rest_distance,
-                    self.joint_centres, self.particle_moment, iteration],
+                    m.coupling_stiffness, m.joint_offsets, m.joint_ids, m.joint_rest_distance,
+                    self.joint_centres, m.particle_moment, iteration],
             outputs=[x, self.moment_matrix, self.residuals],
             device=self.device,
         )
@@ -240,9 +207,18 @@ class SkinSolver:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
     # ------------------------------------------------------------------ the step
-    def step(self, state_in: State, state_out: State, control: Control, dt: float) -> None:
+    def step(self, state_in: State, state_out: State, control: Control, contacts: Contacts | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] into ``state_out`` (Algorithm 1). The caller swaps
-        the two states."""
+        the two states.
+
+        Args:
+            state_in: The state at the start of the step (read only).
+            state_out: The state at its end.
+            control: Skinning matrices (and muscle activation) of this step.
+            contacts: Collision buffers from ``model.contacts()``; ``None`` switches
+                self-collision off for the step.
+            dt: Step length [s].
+        """
         if state_in is state_out:
             raise InputError("step needs two different states (state_in, state_out); swap them after each step")
         if not (dt > 0.0):
@@ -253,34 +229,36 @@ class SkinSolver:
         m = self.model
         dev = self.device
         n = m.particle_count
-        if getattr(self, "rest_activation", None) is not None:
-            wp.launch(k_sm.rest_offsets_drive_kernel, dim=m.region_members.shape[0],
-                      inputs=[self.rest_base_offsets, self.rest_delta_offsets, self.rest_activation],
-                      outputs=[m.region_rest_offsets], device=dev)
+        col = self.collision if contacts is not None else None
+        if contacts is not None and self.collision is None:
+            raise InputError("contacts given, but the model was built with [collision] enabled = false")
+        if m.rest_drive_group_count:
+            wp.launch(k_sm.rest_offsets_drive_kernel, dim=m.region_entry_count,
+                      inputs=[m.region_rest_offsets, m.rest_drive_offsets, control.muscle_activation],
+                      outputs=[self.region_rest_offsets], device=dev)
         # 1-4: prediction
         wp.launch(k_int.predict_kernel, dim=n, inputs=[state_in.x, state_in.v, state_in.q, state_in.omega, self._gravity, dt],
                   outputs=[state_out.x, state_out.v, state_out.q], device=dev)
         self._kinematics(control)
         self.update_moments(state_out.q)
         # 5: collision detection, once, on the predicted positions
-        col = self.collision
         if col is not None:
-            col.detect(state_in.x, state_out.x)
+            col.detect(state_in.x, state_out.x, contacts)
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
         self.residuals.zero_()
         for it in range(p.iterations):
             self.region_fit(state_out.x, q_src, q_dst)
-            self._blend(state_out.x, q_dst, it)
+            self.blend_and_constrain(state_out.x, q_dst, it)
             if col is not None:
-                col.project(state_out.x, m.particle_inv_mass)
+                col.project(state_out.x, m.particle_inv_mass, contacts)
             q_src, q_dst = q_dst, q_src
         if q_src is not state_out.q:
             wp.copy(state_out.q, q_src)
         # 11-13: volume loop
         if self.volume is not None:
             if col is not None:
-                col.volume_weights(self.volume_weight_scale)
+                col.volume_weights(contacts, self.volume_weight_scale)
             self.volume.project(state_out.x, m.particle_inv_mass, self.volume_weight_scale, self.volume_centres,
                                 p.volume_iterations, p.volume_stiffness)
         # 14-17: velocities, angular velocities, damping
@@ -289,4 +267,4 @@ class SkinSolver:
                   outputs=[state_out.v, state_out.omega], device=dev)
         # 18: friction and restitution of the colliding particles
         if col is not None:
-            col.friction_restitution(state_out.x, state_out.v, m.particle_inv_mass)
+            col.friction_restitution(state_out.x, state_out.v, m.particle_inv_mass, contacts)

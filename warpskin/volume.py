@@ -43,7 +43,7 @@ from .preprocess.sub_volumes import SubVolumes
 from .device import resolve_device
 from .kernels import volume as _k
 
-__all__ = ["VolumeLayout", "volume_layout", "VolumeConstraints"]
+__all__ = ["VolumeLayout", "volume_layout", "VolumeData", "upload_volume_layout", "VolumeConstraints"]
 
 #: Threads per sub-volume in the block reductions (volume, denominator) on CUDA devices; Warp
 #: runs tiled kernels with one thread per block on the CPU.
@@ -198,12 +198,53 @@ def volume_layout(subvolumes: SubVolumes) -> VolumeLayout:
     )
 
 
+_VOLUME_ARRAYS = (
+    "closed_offsets", "closed_triangles", "subvolume_origin", "pair_vertex", "pair_subvolume", "subvolume_pair_offsets",
+    "pair_entry_offsets", "entry_points", "vertex_pair_offsets", "vertex_pairs", "center_rest", "center_joint",
+    "rest_volume",
+)
+
+
+class VolumeData:
+    """The volume part of a :class:`~warpskin.model.SkinModel`: the :class:`VolumeLayout` as
+    device arrays (same names), the fan centres' rest positions ``center_rest`` ``[C]`` and
+    joints ``center_joint``, ``rest_volume`` ``[S]`` (float64), and the counts. ``layout`` keeps
+    the host layout for inspection."""
+
+
+def upload_volume_layout(layout: VolumeLayout, subvolumes: SubVolumes, device) -> VolumeData:
+    """One upload of a volume layout and the sub-volumes' kinematic centres."""
+    d = VolumeData()
+    d.layout = layout
+    d.vertex_count = layout.vertex_count
+    d.center_count = layout.center_count
+    d.subvolume_count = layout.subvolume_count
+    d.pair_count = layout.pair_count
+    with wp.ScopedDevice(device):
+        i32 = lambda a: wp.array(a, dtype=wp.int32)
+        d.closed_offsets = i32(layout.closed_offsets)
+        d.closed_triangles = wp.array(layout.closed_triangles.reshape(-1, 3), dtype=wp.int32)
+        d.subvolume_origin = i32(layout.subvolume_origin)
+        d.pair_vertex = i32(layout.pair_vertex)
+        d.pair_subvolume = i32(layout.pair_subvolume)
+        d.subvolume_pair_offsets = i32(layout.subvolume_pair_offsets)
+        d.pair_entry_offsets = i32(layout.pair_entry_offsets)
+        d.entry_points = wp.array(layout.entry_points.reshape(-1, 2), dtype=wp.int32)
+        d.vertex_pair_offsets = i32(layout.vertex_pair_offsets)
+        d.vertex_pairs = i32(layout.vertex_pairs)
+        d.center_rest = wp.array(np.asarray(subvolumes.center_rest, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3)
+        d.center_joint = i32(np.asarray(subvolumes.center_joint, dtype=np.int32))
+        d.rest_volume = wp.array(np.asarray(subvolumes.rest_volume, dtype=np.float64), dtype=wp.float64)
+    return d
+
+
 class VolumeConstraints:
     """Per-sub-volume volume constraints on one Warp device, every array preallocated.
 
     Args:
-        source: A :class:`~warpskin.model.SkinModel` (its builder's sub-volumes, on its
-            device), or a :class:`~warpskin.preprocess.sub_volumes.SubVolumes`.
+        source: A :class:`~warpskin.model.SkinModel` (its uploaded volume layout, on its
+            device), or a :class:`~warpskin.preprocess.sub_volumes.SubVolumes` (laid out and
+            uploaded here).
         device: Warp device when ``source`` is a ``SubVolumes``; ignored for a model.
         block_dim: Threads per sub-volume in the block reductions on CUDA devices.
 
@@ -233,16 +274,15 @@ class VolumeConstraints:
 
     def __init__(self, source, *, device=None, block_dim: int = BLOCK_DIM) -> None:
         if isinstance(source, SubVolumes):
-            subvolumes = source
             self.device = resolve_device(device)
+            data = upload_volume_layout(volume_layout(source), source, self.device)
         else:
-            builder = getattr(source, "builder", None)
-            if builder is None:
+            if not hasattr(source, "particle_q0") or not hasattr(source, "volume"):
                 raise InputError(
                     f"VolumeConstraints needs a SkinModel or SubVolumes, got {type(source).__name__}"
                 )
-            subvolumes = getattr(builder, "subvolumes", None)
-            if subvolumes is None:
+            data = source.volume
+            if data is None:
                 raise InputError(
                     "the model has no sub-volumes (built with ModelParams(volume=False)); build it with "
                     "volume=True to use volume constraints"
@@ -251,27 +291,15 @@ class VolumeConstraints:
         if int(block_dim) < 1:
             raise InputError(f"block_dim must be a positive thread count, got {block_dim}")
         self.block_dim = int(block_dim)
-        self.subvolumes = subvolumes
-        self.layout = lay = volume_layout(subvolumes)
-        self.vertex_count = lay.vertex_count
-        self.center_count = lay.center_count
-        self.subvolume_count = lay.subvolume_count
-        self.pair_count = lay.pair_count
+        self.layout = data.layout
+        self.vertex_count = data.vertex_count
+        self.center_count = data.center_count
+        self.subvolume_count = data.subvolume_count
+        self.pair_count = data.pair_count
+        # the static layout (shared with the model), then this object's own buffers
+        for name in _VOLUME_ARRAYS:
+            setattr(self, name, getattr(data, name))
         with wp.ScopedDevice(self.device):
-            i32 = lambda a: wp.array(a, dtype=wp.int32)
-            self.closed_offsets = i32(lay.closed_offsets)
-            self.closed_triangles = wp.array(lay.closed_triangles.reshape(-1, 3), dtype=wp.int32)
-            self.subvolume_origin = i32(lay.subvolume_origin)
-            self.pair_vertex = i32(lay.pair_vertex)
-            self.pair_subvolume = i32(lay.pair_subvolume)
-            self.subvolume_pair_offsets = i32(lay.subvolume_pair_offsets)
-            self.pair_entry_offsets = i32(lay.pair_entry_offsets)
-            self.entry_points = wp.array(lay.entry_points.reshape(-1, 2), dtype=wp.int32)
-            self.vertex_pair_offsets = i32(lay.vertex_pair_offsets)
-            self.vertex_pairs = i32(lay.vertex_pairs)
-            self.center_rest = wp.array(np.asarray(subvolumes.center_rest, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3)
-            self.center_joint = i32(np.asarray(subvolumes.center_joint, dtype=np.int32))
-            self.rest_volume = wp.array(np.asarray(subvolumes.rest_volume, dtype=np.float64), dtype=wp.float64)
             self.centers = wp.clone(self.center_rest)
             self.subvolume_volume = wp.zeros(self.subvolume_count, dtype=wp.float64)
             self.subvolume_lambda = wp.zeros(self.subvolume_count, dtype=wp.float64)

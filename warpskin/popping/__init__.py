@@ -13,7 +13,8 @@ and slide back without vibration when the dancer relaxes:
   mesh while relaxing (eq. 4). :class:`PoppingDynamics`, one Warp kernel per step.
 * **Activation**: a clench/relax signal per muscle group over time, keyed to music beats.
   :class:`ActivationTimeline`.
-* :func:`run_popping` plays a scene to USD (``warpskin pop``), :func:`bench_popping` times it.
+* :func:`warpskin.run.run_popping` plays a scene to USD (``warpskin pop``) through the frame
+  runner, :func:`warpskin.bench.run_popping_bench` times it.
 
 Where this differs from the paper, and why:
 
@@ -63,7 +64,6 @@ from .activation import ActivationTimeline, PoppingSettings, popping_settings
 from .dynamics import PoppingDynamics
 from .examples import EXAMPLE_GENERATORS, MAX_GROUPS, Activation, PoppingExamples, examples_for_scene, examples_from_meshes, examples_from_morph_targets
 from .layered import muscle_rest_offset_deltas
-from .play import PoppingRun, bench_popping, run_popping
 from .pose_space import PoseSpaceDeformer, pose_rotations
 
 __all__ = [
@@ -75,12 +75,9 @@ __all__ = [
     "PoppingDynamics",
     "ActivationTimeline",
     "PoppingSettings",
-    "PoppingRun",
     "popping_settings",
     "examples_for_scene",
     "muscle_rest_offset_deltas",
-    "run_popping",
-    "bench_popping",
     "Activation",
     "MAX_GROUPS",
     "EXAMPLE_GENERATORS",

@@ -1,0 +1,209 @@
+"""``warpskin pop``: a popping scene to USD through the frame runner, in the paper's goal mode
+(example-based skinning plus the goal-driven skin vibration) or the layered mode (the
+activation drives the multi-layer model's rest shape; the physical skin makes the pop)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SceneError
+from ..io.usd_export import UsdSkinWriter
+from ..popping.activation import PoppingSettings, popping_settings
+from ..popping.dynamics import PoppingDynamics
+from ..popping.examples import PoppingExamples, examples_for_scene
+from ..popping.layered import muscle_rest_offset_deltas
+from ..popping.pose_space import PoseSpaceDeformer
+from ..scene import resolve_scene
+from .plan import FramePlan
+from .runner import FrameRunner
+
+__all__ = ["PoppingRun", "PoppingStepper", "run_popping"]
+
+
+@dataclass
+class PoppingRun:
+    """What :func:`run_popping` wrote.
+
+    Attributes:
+        path: The USD file.
+        frames: Number of frames written.
+        summary: Scalars: device, vertices, groups, substeps, dt [s], ``peak_overshoot_m`` (the
+            farthest any vertex passed its goal, measured along its goal's disparity direction),
+            ``max_goal_distance_m``, ``ms_per_frame`` (example-based skinning plus dynamics,
+            without the USD writing).
+    """
+
+    path: Path
+    frames: int
+    summary: dict = field(default_factory=dict)
+
+
+class PoppingStepper:
+    """The goal mode as a stepper: every frame poses the example-based skinning at the frame's
+    pose and advances the dynamics by the plan's substeps ending at the frame's time, with the
+    activation sampled at each step."""
+
+    def __init__(self, rig, clip, plan: FramePlan, deformer: PoseSpaceDeformer, dynamics: PoppingDynamics,
+                 settings: PoppingSettings, *, name: str = "") -> None:
+        self.rig, self.clip, self.plan = rig, clip, plan
+        self.deformer, self.dynamics, self.settings = deformer, dynamics, settings
+        self.groups = deformer.group_names
+        self.step_times = plan.substep_times(leading=True)
+        self.label = f"pop {name or rig.name} ({deformer.device}, {rig.vertex_count} vertices)"
+        self._points: dict[str, np.ndarray] = {}
+
+    def meshes(self) -> list:
+        tris, rest = self.rig.triangles, self.rig.vertices
+        return [
+            ("popping", tris, rest, {"color": (0.85, 0.64, 0.52)}),
+            ("normal", tris, rest, {"color": (0.55, 0.75, 0.55)}),
+            ("goal", tris, rest, {"color": (0.8, 0.4, 0.4), "purpose": "guide"}),
+            ("lbs", tris, rest, {"color": (0.4, 0.55, 0.85), "purpose": "guide"}),
+        ]
+
+    def advance(self, i: int) -> None:
+        p = self.plan
+        self.deformer.set_pose(self.rig.skinning_matrices(self.clip, p.times[i]))
+        for s in range(p.substeps):
+            self.dynamics.step(p.dt, self.settings.activation.sample(self.step_times[i * p.substeps + s], self.groups))
+        self._points = {
+            "popping": self.dynamics.points.numpy(),
+            "normal": self.deformer.normal_points.numpy(),
+            "goal": self.dynamics.goal_points.numpy(),
+            "lbs": self.deformer.lbs().numpy(),
+        }
+
+    def frame(self, i: int) -> dict[str, np.ndarray]:
+        return self._points
+
+
+class _Overshoot:
+    """How far past its goal a vertex gets, along the goal's disparity direction."""
+
+    def __init__(self) -> None:
+        self.peak_over = 0.0
+        self.max_goal = 0.0
+
+    def __call__(self, i, f, pts, step_ms) -> None:
+        x, goal, normal = pts["popping"], pts["goal"], pts["normal"]
+        d = goal - normal
+        dl = np.linalg.norm(d, axis=1)
+        moved = dl > 1e-6
+        if moved.any():
+            over = np.einsum("ij,ij->i", (x - goal)[moved], d[moved] / dl[moved, None])
+            self.peak_over = max(self.peak_over, float(over.max()))
+        self.max_goal = max(self.max_goal, float(np.linalg.norm(x - goal, axis=1).max()))
+
+
+def run_popping(
+    scene,
+    out_path,
+    *,
+    examples: PoppingExamples | None = None,
+    device=None,
+    frames: tuple[int, int] | None = None,
+    fps: float | None = None,
+    alpha_min: float | None = None,
+    beta: float | None = None,
+    dt: float | None = None,
+    progress: bool = True,
+    comment: str = "",
+    mode: str | None = None,
+) -> PoppingRun:
+    """Play a popping scene and write it to USD (the ``warpskin pop`` command).
+
+    Prims under ``/warpskin``: ``popping`` (the dynamic skin), ``normal`` (example-based
+    normal mesh, no popping), ``goal`` (the activated clenched goal, a guide) and ``lbs``
+    (plain linear blend skinning, a guide), side by side for review. Every frame advances the
+    dynamics by ``substeps`` steps ending at the frame's time, with the activation sampled at
+    each step; the pose is the frame's. In layered mode the file holds the physical skin and
+    LBS, as ``warpskin simulate --lbs`` writes them.
+
+    Args:
+        scene: A :class:`~warpskin.scene.Scene`, a shipped scene name or a TOML path.
+        out_path: ``.usdc`` (default format), ``.usda`` or ``.usd``; written atomically.
+        examples: The examples; default :func:`~warpskin.popping.examples_for_scene`.
+        device: Warp device.
+        frames: Inclusive frame range; default the scene's.
+        fps: Output frame rate; default the scene's.
+        alpha_min, beta, dt: Overrides of the scene's ``[popping]`` values.
+        mode: ``"goal"`` or ``"layered"``; default the scene's ``[popping] mode``.
+        progress: Progress bar on stderr.
+        comment: Stage comment.
+
+    Returns:
+        A :class:`PoppingRun`.
+    """
+    scene = resolve_scene(scene)
+    if fps is not None:
+        if not (fps > 0):
+            raise SceneError(f"fps must be positive, got {fps}")
+        scene.fps = float(fps)
+    settings = popping_settings(scene)
+    where = str(scene.source or scene.name)
+    for key, value in (("alpha_min", alpha_min), ("beta", beta), ("dt", dt)):
+        if value is not None:
+            setattr(settings, key, value)
+    if mode is not None:
+        settings.mode = mode
+    settings.check(f"{where}: [popping]")
+    if settings.mode == "layered":
+        return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
+                            progress=progress, comment=comment)
+    rig = scene.rig()
+    clip = rig.clip(scene.clip)
+    plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt)
+    if examples is None:
+        examples = examples_for_scene(scene)
+    deformer = PoseSpaceDeformer(rig, examples, device=device, joints=settings.joints, rbf_width=settings.rbf_width)
+    settings.activation.check_groups(deformer.group_names, f"{where}: [popping.activation]")
+    dynamics = PoppingDynamics(deformer, alpha_min=settings.alpha_min, beta=settings.beta, threshold=settings.threshold)
+    h = plan.dt
+    if settings.beta * h > 1.0 + 1e-12:
+        raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
+    stepper = PoppingStepper(rig, clip, plan, deformer, dynamics, settings, name=scene.name)
+    over = _Overshoot()
+    writer = UsdSkinWriter(out_path, fps=scene.fps, up_axis=rig.up_axis, comment=comment)
+    record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=progress,
+                         steps_in_first_frame=True).run()
+    count = len(record.frames)
+    return PoppingRun(
+        path=Path(writer.path),
+        frames=count,
+        summary={
+            "device": str(deformer.device),
+            "vertices": rig.vertex_count,
+            "groups": deformer.group_names,
+            "substeps": plan.substeps,
+            "dt_s": h,
+            "alpha_min": settings.alpha_min,
+            "beta": settings.beta,
+            "peak_overshoot_m": over.peak_over,
+            "max_goal_distance_m": over.max_goal,
+            "ms_per_frame": float(np.sum(record.step_ms)) * plan.substeps / count,
+        },
+    )
+
+
+def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment) -> PoppingRun:
+    from ..model import SkinModelBuilder
+    from .simulate import simulate
+
+    examples = examples if examples is not None else examples_for_scene(scene)
+    rig = scene.rig()
+    clip = rig.clip(scene.clip)
+    first = (frames or scene.frame_range())[0]
+    builder = SkinModelBuilder(rig, scene.model_params())
+    deltas = muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, scene.frame_time(first)))
+    groups = list(examples.group_names)
+    settings.activation.check_groups(groups, "[popping.activation]")
+    builder.set_rest_drive(deltas)
+    result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress, comment=comment,
+                      builder=builder, activation=lambda t: settings.activation.sample(t, groups))
+    summary = dict(result.summary)
+    summary["mode"] = "layered"
+    summary["groups"] = groups
+    return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)

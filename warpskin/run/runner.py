@@ -1,0 +1,122 @@
+"""The one frame loop every command runs: ``simulate``, ``pop`` (both modes), ``skin`` and the
+benchmarks.
+
+A *stepper* advances the character to each frame and hands back the points to write; the
+:class:`FrameRunner` plans nothing itself but owns the loop around it: the progress bar, the
+per-frame timing, the USD writer (opened, filled, closed, or aborted on an error so nothing
+half-written is left) and the measurements. A :class:`~warpskin.errors.SimulationError` raised
+by a stepper stops the loop and keeps every frame before it in a valid file; the error is
+raised again, naming how many frames were kept and where.
+
+A stepper has:
+
+* ``label``: what the progress bar says;
+* ``meshes()``: ``[(name, triangles, rest_points, kwargs)]`` for
+  :meth:`~warpskin.io.usd_export.UsdSkinWriter.add_mesh`;
+* ``advance(i)``: step to the plan's frame ``i`` and read the result back to the host (the
+  work that is timed);
+* ``frame(i)``: the points of frame ``i`` to write, ``{mesh name: [N, 3]}`` (host arrays).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import SimulationError
+from ..progress import Progress
+from .plan import FramePlan
+
+__all__ = ["FrameRunner", "RunRecord"]
+
+
+@dataclass
+class RunRecord:
+    """What a :meth:`FrameRunner.run` did.
+
+    Attributes:
+        frames: Frame numbers written.
+        step_ms: Milliseconds per step of every frame (advance and read-back, divided by the
+            substeps; 0 for a frame that needed no step).
+        failure: The error that stopped the run early, if one did (already re-raised by
+            :meth:`FrameRunner.run` unless ``keep_failure``).
+    """
+
+    frames: list[int] = field(default_factory=list)
+    step_ms: list[float] = field(default_factory=list)
+    failure: SimulationError | None = None
+
+
+class FrameRunner:
+    """Runs a stepper over a :class:`FramePlan` into a writer and measurement callbacks.
+
+    Args:
+        plan: The frames and substeps.
+        stepper: See the module docstring.
+        writer: An open :class:`~warpskin.io.usd_export.UsdSkinWriter` (or ``None``: no file).
+        measures: Callbacks ``f(i, frame, points, step_ms)`` called after a frame is written.
+        progress: Show a progress bar on stderr.
+        steps_in_first_frame: Whether the first frame is reached by stepping (popping) or is
+            the initial state (the physical skin), for the per-step timing.
+    """
+
+    def __init__(self, plan: FramePlan, stepper, *, writer=None, measures: list[Callable] | None = None,
+                 progress: bool = True, steps_in_first_frame: bool = False) -> None:
+        self.plan = plan
+        self.stepper = stepper
+        self.writer = writer
+        self.measures = list(measures or [])
+        self.progress = progress
+        self.steps_in_first_frame = steps_in_first_frame
+
+    def run(self, *, keep_failure: bool = False) -> RunRecord:
+        """Run every frame. Returns the :class:`RunRecord`; a stepper's SimulationError is
+        raised after the file is closed with the frames before it (or stored in the record
+        with ``keep_failure``)."""
+        plan, st, writer = self.plan, self.stepper, self.writer
+        rec = RunRecord()
+        bar = Progress(plan.count, st.label, enabled=self.progress)
+        try:
+            if writer is not None:
+                for name, tris, rest, kw in st.meshes():
+                    writer.add_mesh(name, tris, rest_points=rest, **kw)
+            for i, f in enumerate(plan.frames):
+                t0 = time.perf_counter()
+                try:
+                    st.advance(i)
+                    stepped = i > 0 or self.steps_in_first_frame
+                    step_ms = (time.perf_counter() - t0) * 1e3 / plan.substeps if stepped else 0.0
+                    points = st.frame(i)
+                except SimulationError as exc:
+                    where = f" to {writer.path}" if writer is not None else ""
+                    rec.failure = SimulationError(f"{exc} ({len(rec.frames)} frames before it were written{where})")
+                    break
+                if writer is not None:
+                    writer.write_frame(f, points)
+                rec.frames.append(f)
+                rec.step_ms.append(step_ms)
+                for measure in self.measures:
+                    measure(i, f, points, step_ms)
+                bar.update(extra=f"{1e3 / step_ms:6.1f} steps/s" if step_ms > 0 else "")
+        except BaseException:
+            if writer is not None:
+                writer.abort()
+            raise
+        finally:
+            bar.close()
+        if writer is not None:
+            writer.close()  # on a failure the frames before it stay, in a valid file
+        if rec.failure is not None and not keep_failure:
+            raise rec.failure
+        return rec
+
+
+def first_non_finite(x: np.ndarray) -> int | None:
+    """Index of the first row of ``x`` ``[N, 3]`` holding NaN or inf, else ``None``."""
+    finite = np.isfinite(x).all(axis=1)
+    if finite.all():
+        return None
+    return int(np.nonzero(~finite)[0][0])

@@ -1,0 +1,244 @@
+"""``warpskin simulate``: the physical skin over a scene's frames to USD, with per-frame
+measurements (volumes, sub-volumes, energy, offset from LBS, contacts, intersections) and an
+optional report."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..io.usd_export import UsdSkinWriter
+from ..metrics import self_intersections, signed_volume
+from ..model import SkinModelBuilder
+from ..preprocess.layers import LAYER_NAMES
+from ..scene import Scene
+from ..solver import SolverParams
+from ..transforms import linear_blend_skin
+from .physics import PhysicsStepper
+from .plan import FramePlan
+from .runner import FrameRunner
+
+__all__ = ["SimulationResult", "simulate"]
+
+_SKIN_COLOR = (0.85, 0.64, 0.52)
+_LBS_COLOR = (0.4, 0.55, 0.85)
+
+
+@dataclass
+class SimulationResult:
+    """What a run produced.
+
+    Attributes:
+        path: The USD file.
+        frames: Frame numbers written.
+        metrics: Per-frame series (``time``, ``volume``, ``volume_lbs``, ``subvolume``,
+            ``subvolume_lbs``, ``kinetic_energy``, ``max_offset_from_lbs``, ``step_ms``).
+        summary: Scalars: particle count, substeps, dt, volume deviations, timing.
+    """
+
+    path: Path
+    frames: list[int]
+    metrics: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+
+
+class _Measurements:
+    """Per-frame measurements of the physical skin against LBS (host, after the frame)."""
+
+    def __init__(self, builder, stepper: PhysicsStepper, plan: FramePlan, check_intersections: bool) -> None:
+        self.b, self.st, self.plan = builder, stepper, plan
+        self.check_intersections = check_intersections
+        rig = builder.rig
+        subs = builder.subvolumes
+        self.m: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
+                                         "max_offset_from_lbs", "step_ms", "residuals", "contacts_point_triangle",
+                                         "contacts_edge_edge", "constraints_active", "intersecting_pairs",
+                                         "intersecting_pairs_lbs")}
+        self.m["volume_rest"] = signed_volume(rig.vertices, rig.triangles)
+        self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
+        self.lbs: np.ndarray | None = None
+
+    def lbs_points(self, i: int) -> np.ndarray:
+        rig = self.b.rig
+        return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, self.st.frame_poses[i])
+
+    def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
+        m, b, st = self.m, self.b, self.st
+        subs, tris = b.subvolumes, b.rig.triangles
+        skin = points["skin"]
+        lbs = points.get("lbs")
+        if lbs is None:
+            lbs = self.lbs_points(i)
+        vel = st.velocities()
+        m["time"].append(self.plan.times[i])
+        m["volume"].append(signed_volume(skin, tris))
+        m["volume_lbs"].append(signed_volume(lbs, tris))
+        if subs is not None:
+            centres = subs.center_positions(st.frame_poses[i])
+            m["subvolume"].append(subs.volumes(skin.astype(np.float64), centres).tolist())
+            m["subvolume_lbs"].append(subs.volumes(lbs, centres).tolist())
+        m["kinetic_energy"].append(float(0.5 * np.sum(b.masses * np.einsum("ij,ij->i", vel, vel))))
+        m["max_offset_from_lbs"].append(float(np.linalg.norm(skin - lbs, axis=1).max()))
+        m["step_ms"].append(step_ms)
+        m["residuals"].append(st.solver.residuals.numpy().tolist() if i > 0 else [])
+        c = st.contacts
+        if c is not None:
+            counts = c.counts.numpy()
+            m["contacts_point_triangle"].append(int(counts[0]) if i > 0 else 0)
+            m["contacts_edge_edge"].append(int(counts[1]) if i > 0 else 0)
+            m["constraints_active"].append(int(c.active.numpy()[0]) if i > 0 else 0)
+        if self.check_intersections:
+            m["intersecting_pairs"].append(int(len(self_intersections(skin, tris))))
+            m["intersecting_pairs_lbs"].append(int(len(self_intersections(lbs, tris))))
+
+
+def simulate(
+    scene: Scene,
+    out_path,
+    *,
+    device=None,
+    frames: tuple[int, int] | None = None,
+    solver_params: SolverParams | None = None,
+    with_lbs: bool = False,
+    with_layers: bool = False,
+    report_dir=None,
+    progress: bool = True,
+    comment: str = "",
+    use_graph: bool = True,
+    collision=None,
+    check_intersections: bool | None = None,
+    builder: SkinModelBuilder | None = None,
+    activation: Callable | None = None,
+    preroll: float | None = None,
+) -> SimulationResult:
+    """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
+
+    ``use_graph`` records each frame's substeps once as a Warp graph (CPU and CUDA) and
+    replays it, which removes the per-launch overhead; the results are bit-identical.
+    ``builder`` is a model builder to use instead of the scene's (for example one with a
+    rest-shape drive, :meth:`~warpskin.model.SkinModelBuilder.set_rest_drive`); then
+    ``activation(t) -> [G]`` gives the muscle activation at clip time ``t`` (every substep's is
+    precomputed and uploaded once, like the poses). ``collision``
+    (:class:`~warpskin.collision.CollisionParams`) defaults to the scene's ``[collision]``
+    section (on unless disabled). If a frame finds more contact candidates than the buffers
+    hold, the frame is run again with larger buffers. ``check_intersections`` counts
+    intersecting skin triangle pairs per frame with the exact, solver-independent check
+    (:func:`warpskin.metrics.self_intersections`); default: only when writing a report.
+    ``preroll`` [s] (default: the scene's ``[animation] preroll``) simulates that long before
+    the first frame, from the bind pose (the mesh as modelled) into the first frame's pose
+    (local joint transforms interpolated, eased in and out); velocities are zeroed after it.
+    A first pose whose LBS skin already passes through itself is then reached by collision
+    instead of started from; nothing of the pre-roll is written.
+
+    Raises:
+        SimulationError: a particle became NaN; the message names the frame, particle, layer
+            and vertex; the USD file keeps the frames before it (valid, closed).
+    """
+    import time
+
+    params = solver_params or scene.solver_params()
+    params.check(str(scene.source or scene.name))
+    rig = scene.rig()
+    clip = rig.clip(scene.clip)
+    plan = FramePlan.for_scene(scene, frames, max_dt=params.dt)
+    preroll = scene.preroll if preroll is None else float(preroll)
+    t_build = time.perf_counter()
+    builder = builder or SkinModelBuilder(rig, scene.model_params())
+    builder.params.collision = collision if collision is not None else scene.collision_params()
+    model = builder.finalize(device)
+    build_s = time.perf_counter() - t_build
+    if check_intersections is None:
+        check_intersections = report_dir is not None
+    stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
+                             activation=activation, label="simulate")
+    stepper.label = f"simulate {scene.name} ({model.device}, {model.particle_count} particles)"
+    measures = _Measurements(builder, stepper, plan, check_intersections)
+    tris = rig.triangles
+    meshes = [("skin", tris, rig.vertices, {"color": _SKIN_COLOR})]
+    if with_lbs:
+        meshes.append(("lbs", tris, rig.vertices, {"color": _LBS_COLOR, "purpose": "guide"}))
+    if with_layers:
+        for k in range(1, 4):
+            meshes.append((f"layer_{LAYER_NAMES[k]}", tris, builder.layers.positions[k], {"purpose": "guide"}))
+
+    class _Writes:
+        """What ``simulate`` writes of a physics frame."""
+
+        label = stepper.label
+
+        def meshes(self):
+            return meshes
+
+        def advance(self, i):
+            stepper.advance(i)
+
+        def frame(self, i):
+            pts = stepper.frame(i)
+            out = {"skin": pts["skin"]}
+            if with_lbs:
+                out["lbs"] = measures.lbs_points(i)
+            if with_layers:
+                for k in range(1, 4):
+                    out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
+            return out
+
+    writer = UsdSkinWriter(out_path, fps=scene.fps, up_axis=rig.up_axis, comment=comment)
+    record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress).run(keep_failure=True)
+    metrics = measures.m
+    written = record.frames
+    subs = builder.subvolumes
+    col = stepper.collision
+    # frame 0 is the LBS pose by construction (the simulation starts there): measure after it
+    vol = np.array(metrics["volume"][1:])
+    vol_lbs = np.array(metrics["volume_lbs"][1:])
+    v0 = metrics["volume_rest"]
+    summary = {
+        "scene": scene.name,
+        "device": str(model.device),
+        "particles": model.particle_count,
+        "vertices": model.vertex_count,
+        "frames": len(written),
+        "substeps_per_frame": plan.substeps,
+        "dt_s": plan.dt,
+        "iterations": params.iterations,
+        "volume_iterations": params.volume_iterations,
+        "fast_summation": params.fast_summation,
+        "graph_capture": bool(stepper.graphs),  # frames replayed from captured graphs (else plain launches)
+        "build_s": build_s,
+        "mean_step_ms": float(np.mean(metrics["step_ms"][1:])) if len(written) > 1 else 0.0,
+        "max_volume_deviation": float(np.abs(vol / v0 - 1).max()) if vol.size else 0.0,
+        "max_volume_deviation_lbs": float(np.abs(vol_lbs / v0 - 1).max()) if vol.size else 0.0,
+        "collisions": col is not None,
+        "collision_thickness_m": col.thickness if col is not None else None,
+        "collision_capacity": stepper.contacts.capacity if col is not None else None,
+        "overflow_retries": stepper.overflow_retries,
+        "preroll_s": stepper.preroll,
+        "preroll_steps": stepper.preroll_steps,
+        "bvh_rebuilds": col.rebuilds if col is not None else 0,
+    }
+    if check_intersections and metrics["intersecting_pairs"]:
+        summary["max_intersecting_pairs"] = max(metrics["intersecting_pairs"])
+        summary["max_intersecting_pairs_lbs"] = max(metrics["intersecting_pairs_lbs"])
+        summary["intersecting_pairs_first_frame"] = metrics["intersecting_pairs"][0]
+    if subs is not None and metrics["subvolume"]:
+        rest = np.array(metrics["subvolume_rest"])
+        if len(metrics["subvolume"]) > 1:
+            summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"][1:]) / rest - 1).max())
+            summary["max_subvolume_deviation_lbs"] = float(np.abs(np.array(metrics["subvolume_lbs"][1:]) / rest - 1).max())
+        summary["subvolume_names"] = list(subs.names)
+    result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
+    if report_dir is not None:
+        from ..report import write_plots
+
+        report = Path(report_dir)
+        report.mkdir(parents=True, exist_ok=True)
+        plots = write_plots(report, metrics, list(subs.names) if subs is not None else [])
+        summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
+        (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=1))
+    if record.failure is not None:
+        raise record.failure
+    return result
