@@ -1,4 +1,5 @@
-"""Shared fixtures: the devices to run on and the third-party assets folder."""
+"""Shared fixtures: the devices to run on, the procedural arm and the third-party assets folder.
+Independent reference implementations live in ``oracles.py``."""
 
 from __future__ import annotations
 
@@ -45,3 +46,19 @@ def assets() -> Path:
     if ASSETS is None:
         pytest.skip("third-party assets not found: ../shared/assets is absent and WARPSKIN_ASSETS is unset")
     return ASSETS
+
+
+@pytest.fixture(scope="module")
+def arm():
+    """The shipped procedural arm (2918 vertices), built once per test module."""
+    from warpskin.scenes.arm import make_arm
+
+    return make_arm()
+
+
+@pytest.fixture(scope="module")
+def coarse_arm():
+    """The arm at the coarse resolution of :data:`oracles.COARSE`, once per test module."""
+    from oracles import coarse_arm as make
+
+    return make()

@@ -13,11 +13,6 @@ from warpskin.scene import SceneError, list_scenes, load_scene
 from warpskin.scenes.arm import ARM_DEFAULTS, flex_angle, make_arm
 
 
-@pytest.fixture(scope="module")
-def arm():
-    return make_arm()
-
-
 def test_arm_is_a_closed_manifold_outward_tube(arm):
     assert arm.vertex_count == 2918  # the paper's arm has 2916
     m = trimesh.Trimesh(arm.vertices, arm.triangles, process=False)

@@ -4,7 +4,6 @@ same asset read from glTF and from USD skinned to the same surface (every device
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from warpskin.io import load_rig
 from warpskin.skinning import Skinner

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from oracles import coarse_arm
 from warpskin.kernels import collision as k
 
 wp.set_module_options({"enable_backward": False})
@@ -124,8 +125,7 @@ from warpskin.collision import CollisionParams, SelfCollision  # noqa: E402
 from warpskin.metrics import self_intersections  # noqa: E402
 from warpskin.model import ModelParams, SkinModelBuilder  # noqa: E402
 from warpskin.scene import load_scene  # noqa: E402
-from warpskin.scenes.arm import make_arm  # noqa: E402
-from warpskin.simulate import simulate  # noqa: E402
+from warpskin.run import initial_state, simulate  # noqa: E402
 
 COARSE = "[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n[animation]\nclip = 'flex'\nfps = 30\n"
 
@@ -140,29 +140,30 @@ def _pairs(col):
 
 
 def _pressed_arm(device, capacity):
-    """The coarse arm's skin at LBS 150 degrees (forearm pressed into the upper arm)."""
-    rig = make_arm(rings=30, segments=20)
-    model = SkinModelBuilder(rig, ModelParams(volume=False)).finalize(device)
-    col = SelfCollision(model, CollisionParams(capacity=capacity))
-    from warpskin.simulate import initial_state
-
+    """The coarse arm's skin at LBS 150 degrees (forearm pressed into the upper arm): the
+    rig, the detection, its contacts and the two states it ran on."""
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig, ModelParams(volume=False))
+    model = builder.finalize(device)
+    col = SelfCollision(model)
+    contacts = model.contacts(capacity)
     a, b = model.state(), model.state()
-    initial_state(model, a, rig.skinning_matrices("flex", 1.2))
-    initial_state(model, b, rig.skinning_matrices("flex", 1.5))
-    col.detect(a.x, b.x)
-    return rig, col, a, b
+    initial_state(builder, a, rig.skinning_matrices("flex", 1.2))
+    initial_state(builder, b, rig.skinning_matrices("flex", 1.5))
+    col.detect(a.x, b.x, contacts)
+    return rig, col, contacts, a, b
 
 
 def test_overflow_grows_and_finds_the_same_pairs(device):
-    rig, big, a, b = _pressed_arm(device, 1 << 15)
+    rig, _, big, a, b = _pressed_arm(device, 1 << 15)
     assert not big.overflowed()
     ref = _pairs(big)
     assert len(ref[0]) > 10 and len(ref[1]) > 10
-    _, small, a2, b2 = _pressed_arm(device, 8)
+    _, col, small, a2, b2 = _pressed_arm(device, 8)
     assert small.overflowed()  # the flag, never a silent drop
     while small.overflowed():
         small.grow()
-        small.detect(a2.x, b2.x)
+        col.detect(a2.x, b2.x, small)
     assert small.capacity > 8
     assert _pairs(small) == ref
 
@@ -170,8 +171,8 @@ def test_overflow_grows_and_finds_the_same_pairs(device):
 def test_detected_point_triangle_pairs_match_brute_force(device):
     # every (vertex, triangle) pair whose predicted point lies within the thickness in front of
     # or behind the triangle, projecting inside it, and from different patches, is found
-    rig, col, a, b = _pressed_arm(device, 1 << 15)
-    pt, _ = _pairs(col)
+    rig, col, contacts, a, b = _pressed_arm(device, 1 << 15)
+    pt, _ = _pairs(contacts)
     x = b.x.numpy()[: rig.vertex_count].astype(np.float64)
     rest = rig.vertices
     tris = rig.triangles
@@ -253,13 +254,18 @@ def test_collision_params_rejected():
         CollisionParams(fold_cos=1.5).check()
 
 
-def _folded_strip(angle_deg: float):
-    """A flat strip (3 rows of 6 vertices, unit spacing) folded about its middle row by angle."""
+def _folded_strip(angle_deg: float, *, jitter: float = 0.02, row_shift: float = 0.41):
+    """A strip (3 rows of 6 vertices, about unit spacing) folded about its middle row by
+    ``angle_deg``. Generic positions: the turned-over row is shifted along the strip by
+    ``row_shift`` and every vertex jittered (seeded), so that no vertex projects onto a
+    triangle edge or vertex (an exact boundary, decided by float rounding)."""
+    rng = np.random.default_rng(7)
     xs = np.arange(6, dtype=np.float64)
     a = np.radians(angle_deg)
     rows = [np.stack([xs, np.full(6, y), np.zeros(6)], 1) for y in (-1.0, 0.0)]
-    rows.append(np.stack([xs, np.full(6, np.cos(a)), np.full(6, np.sin(a))], 1))  # row 2 turned about y = 0
+    rows.append(np.stack([xs + row_shift, np.full(6, np.cos(a)), np.full(6, np.sin(a))], 1))  # row 2 turned about y = 0
     x = np.concatenate(rows)
+    x[:, :2] += rng.uniform(-jitter, jitter, size=(len(x), 2)) * (np.arange(len(x)) >= 6)[:, None]  # rows 1, 2
     tris = []
     for r in range(2):
         for c in range(5):
@@ -292,26 +298,37 @@ def _detect_pt(x, tris, fold_cos, h, radius, device):
 
 
 def _fold_reference(x, tris, fold_cos, h, radius):
-    """Brute force: (vertex, triangle) pairs of a patch that face each other across a fold."""
+    """Brute force: (vertex, triangle) pairs of a patch that face each other across a fold, and
+    the smallest relative margin of any tested quantity to its threshold (barycentric
+    coordinates to 0, the distance to -h and to the search radius, the normals' cosine to
+    ``fold_cos``), so a test can check that no pair sits on a boundary."""
     tn = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
     vn = np.zeros_like(x)
     for t, f in enumerate(tris):
         vn[f] += tn[t]
     out = set()
+    margin = np.inf
     for i in range(len(x)):
         for t, f in enumerate(tris):
             if i in f:
                 continue
             n = tn[t] / np.linalg.norm(tn[t])
             d = (x[i] - x[f[0]]) @ n
-            if not (-h < d < radius) or vn[i] @ n >= fold_cos * np.linalg.norm(vn[i]):
-                continue
+            cos = vn[i] @ n / np.linalg.norm(vn[i])
             e0, e1, dd = x[f[1]] - x[f[0]], x[f[2]] - x[f[0]], x[i] - x[f[0]]
             m = np.array([[e0 @ e0, e0 @ e1], [e0 @ e1, e1 @ e1]])
             v, w = np.linalg.solve(m, [dd @ e0, dd @ e1])
-            if min(v, w, 1 - v - w) >= 0:
+            bary = min(v, w, 1 - v - w)
+            near = -h < d < radius
+            if near and cos < fold_cos:
+                margin = min(margin, abs(bary))
+            if bary >= 0 and cos < fold_cos:
+                margin = min(margin, abs(d + h) / h, abs(d - radius) / radius)
+            if near and bary >= 0:
+                margin = min(margin, abs(cos - fold_cos))
+            if near and cos < fold_cos and bary >= 0:
                 out.add((i, t))
-    return out
+    return out, margin
 
 
 def test_folded_patch_pairs_collide_by_proximity(device):
@@ -321,7 +338,8 @@ def test_folded_patch_pairs_collide_by_proximity(device):
     h, radius = 0.2, 0.6
     x, tris = _folded_strip(170.0)
     got = _detect_pt(x, tris, 0.0, h, radius, device)
-    ref = _fold_reference(x, tris, 0.0, h, radius)
+    ref, margin = _fold_reference(x, tris, 0.0, h, radius)
+    assert margin > 1e-3, "a reference pair sits on a boundary: the test would depend on rounding"
     assert len(ref) >= 5 and got == ref
     # the turned-over row against the first band, and the first row against the turned-over band
     assert all((i >= 12 and tris[t].max() < 12) or (i < 6 and tris[t].min() >= 6) for i, t in got)
@@ -336,12 +354,12 @@ def test_folded_patch_pairs_collide_by_proximity(device):
 def test_bvh_rebuilt_once_the_skin_has_deformed_and_finds_the_same_pairs(device):
     # the tree is built on the straight arm; at 150 degrees the forearm has swung ~0.25 m (more
     # than 10 % of the arm's diagonal): maybe_rebuild rebuilds it, detection finds the same pairs
-    rig, col, a, b = _pressed_arm(device, 1 << 15)
-    before = _pairs(col)
+    rig, col, contacts, a, b = _pressed_arm(device, 1 << 15)
+    before = _pairs(contacts)
     skin = b.x.numpy()[: rig.vertex_count]
     assert col.maybe_rebuild(skin) and col.rebuilds == 1
-    col.detect(a.x, b.x)
-    assert _pairs(col) == before and len(before[0]) > 10
+    col.detect(a.x, b.x, contacts)
+    assert _pairs(contacts) == before and len(before[0]) > 10
     assert not col.maybe_rebuild(skin + 0.01)  # a translation is no deformation
     assert col.rebuilds == 1
 
@@ -384,7 +402,7 @@ def test_preroll_from_a_self_intersecting_bind_pose_warns(tmp_path):
 
     from warpskin.transforms import linear_blend_skin
 
-    arm = make_arm(rings=30, segments=20)
+    arm = coarse_arm()
     folded = linear_blend_skin(arm.vertices, arm.joint_indices, arm.joint_weights, arm.skinning_matrices("flex", 0.8))
     assert len(self_intersections(folded, arm.triangles)) > 0
     p = tmp_path / "thin.toml"  # thin layers, so that they do not fold over in the folded pose
@@ -404,8 +422,8 @@ def test_detected_edge_edge_pairs_match_brute_force(device):
 
     from warpskin.collision import skin_edges
 
-    rig, col, a, b = _pressed_arm(device, 1 << 15)
-    _, ee = _pairs(col)
+    rig, col, contacts, a, b = _pressed_arm(device, 1 << 15)
+    _, ee = _pairs(contacts)
     edges, _ = skin_edges(rig.triangles)
     x = b.x.numpy()[: rig.vertex_count].astype(np.float64)
     x_old = a.x.numpy()[: rig.vertex_count].astype(np.float64)

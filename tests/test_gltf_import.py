@@ -37,6 +37,7 @@ from pygltflib import (
 )
 from scipy.spatial.transform import Rotation, Slerp
 
+from oracles import lbs
 from warpskin.io.gltf import list_gltf_meshes, load_gltf
 from warpskin.rig import RigError, RigWarning
 
@@ -208,15 +209,6 @@ def rot_z(deg: float) -> np.ndarray:
 
 def quat_z(deg: float) -> np.ndarray:
     return Rotation.from_euler("z", deg, degrees=True).as_quat()  # x, y, z, w
-
-
-def lbs(points: np.ndarray, ji: np.ndarray, jw: np.ndarray, mats: np.ndarray) -> np.ndarray:
-    """sum_k w_k * (M_{j_k} @ [p, 1])."""
-    ph = np.concatenate([points, np.ones((len(points), 1))], axis=1)
-    out = np.zeros((len(points), 3))
-    for k in range(ji.shape[1]):
-        out += jw[:, k, None] * np.einsum("vab,vb->va", mats[ji[:, k]], ph)[:, :3]
-    return out
 
 
 # --------------------------------------------------------------------------------------------

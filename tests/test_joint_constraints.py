@@ -10,13 +10,7 @@ from warpskin.preprocess.kinematic_coupling import build_kinematic_coupling
 from warpskin.preprocess.layers import build_layers
 from warpskin.rig import RigError
 from warpskin.scene import SceneError, load_scene
-from warpskin.scenes.arm import make_arm
 from warpskin.skinning import Skinner
-
-
-@pytest.fixture(scope="module")
-def arm():
-    return make_arm()
 
 
 @pytest.fixture(scope="module")

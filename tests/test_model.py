@@ -8,18 +8,14 @@ import pytest
 import trimesh
 from pxr import Usd, UsdGeom
 
-from warpskin.errors import SceneError
+from oracles import rig_lbs
+from warpskin.errors import InputError, SceneError
 from warpskin.preprocess.layers import LayerParams, build_layers, check_layer_folds
 from warpskin.cli import main
 from warpskin.metrics import self_intersections, signed_volume, triangle_pairs_intersect
 from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
-
-
-@pytest.fixture(scope="module")
-def arm():
-    return make_arm()
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +103,7 @@ def _bent_rest_arm(t=0.6):
     arm = make_arm(rings=40, segments=24)
     g = arm.joint_world_transforms("flex", t)
     m = g @ arm.inverse_bind
-    p = np.concatenate([arm.vertices, np.ones((arm.vertex_count, 1))], 1)
-    rest = sum(arm.joint_weights[:, k, None] * np.einsum("vij,vj->vi", m[arm.joint_indices[:, k]], p)[:, :3] for k in range(3))
+    rest = rig_lbs(arm, m)
     return dataclasses.replace(arm, vertices=rest, inverse_bind=np.linalg.inv(g))
 
 
@@ -185,8 +180,50 @@ def test_finalize_uploads_consistent_arrays(device, arm_builder, arm):
     ctrl = model.control()
     ctrl.set_pose(arm.skinning_matrices("flex", 1.5))
     assert np.allclose(ctrl.skin_matrices.numpy(), arm.skinning_matrices("flex", 1.5), atol=1e-6)
-    with pytest.raises(RigError, match="shape"):
+    with pytest.raises(InputError, match="shape"):
         ctrl.set_pose(np.eye(4))
+    assert ctrl.muscle_activation.shape == (0,)  # no rest-shape drive
+    # the solver's layouts, uploaded as the builder made them
+    lay = arm_builder.solver_layout
+    for name in ("joint_offsets", "joint_ids", "joint_rest_distance", "position_is_path_start", "particle_moment"):
+        assert np.array_equal(getattr(model, name).numpy(), lay[name]), name
+    jc = arm_builder.joint_constraints  # the CSR lists every (particle, joint) constraint once
+    csr = {(p, int(j)) for p in range(model.particle_count)
+           for j in model.joint_ids.numpy()[model.joint_offsets.numpy()[p]:model.joint_offsets.numpy()[p + 1]]}
+    assert csr == set(zip(jc.particles.tolist(), jc.joints.tolist()))
+    assert model.volume.pair_count == arm_builder.volume_layout.pair_count
+    assert model.collision.edge_count == len(arm_builder.collision_topology.edges)
+    # the model holds device arrays, sizes and scalars: no builder, no rig, no host arrays
+    assert not hasattr(model, "builder") and not hasattr(model, "rig")
+    for obj, where in ((model, "model"), (model.volume, "model.volume"), (model.collision, "model.collision")):
+        host = [k for k, val in vars(obj).items() if isinstance(val, np.ndarray)]
+        assert host == [], f"{where} holds host arrays {host}"
+    contacts = model.contacts(16)
+    assert contacts.capacity == 16 and not contacts.overflowed()
+
+
+def test_rest_drive_moves_the_solvers_rest_offsets_not_the_models(arm_builder):
+    # layered popping: the activation in Control drives the rest offsets the shape matching
+    # reads; the model's own rest offsets stay as built
+    from warpskin.solver import SkinSolver
+
+    b = SkinModelBuilder(arm_builder.rig, arm_builder.params).build()
+    m = b.regions.region_members.shape[0]
+    rng = np.random.default_rng(5)
+    deltas = rng.normal(scale=1e-3, size=(2, m, 3)).astype(np.float32)
+    b.set_rest_drive(deltas)
+    model = b.finalize("cpu")
+    solver = SkinSolver(model)
+    s0, s1, ctrl = model.state(), model.state(), model.control()
+    ctrl.set_activation([0.25, 1.0])
+    solver.step(s0, s1, ctrl, None, 0.005)
+    want = b.regions.rest_offsets.astype(np.float32) + 0.25 * deltas[0] + 1.0 * deltas[1]
+    np.testing.assert_allclose(solver.region_rest_offsets.numpy(), want, atol=1e-7)
+    np.testing.assert_array_equal(model.region_rest_offsets.numpy(), b.regions.rest_offsets.astype(np.float32))
+    with pytest.raises(InputError, match="2 muscle activations"):
+        ctrl.set_activation([1.0])
+    with pytest.raises(InputError, match=r"shape \[G, \d+, 3\]"):
+        SkinModelBuilder(arm_builder.rig).set_rest_drive(np.zeros((2, 5, 3)))
 
 
 def test_layers_command_writes_inspectable_usd(tmp_path, capsys):

@@ -9,12 +9,12 @@ direct sum. Float32 bounds (errors relative to ``sum |v|`` over the region, valu
 
 from __future__ import annotations
 
-from collections import deque
 
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
+from oracles import neighbour_sets, omega_rings
 from warpskin.preprocess.fast_summation import (
     ACCUMULATE,
     HEURISTICS,
@@ -39,35 +39,6 @@ PLAIN_BOUND = 1e-3  # x sum|v| per region, values in [0, 1)
 # --------------------------------------------------------------------------------------------
 # Independent helpers: edges and omega-rings straight from the triangles
 # --------------------------------------------------------------------------------------------
-
-
-def neighbour_sets(triangles: np.ndarray, vertex_count: int) -> list[set[int]]:
-    nb: list[set[int]] = [set() for _ in range(vertex_count)]
-    for a, b, c in np.asarray(triangles).tolist():
-        for u, v in ((a, b), (b, c), (c, a)):
-            if u != v:
-                nb[u].add(v)
-                nb[v].add(u)
-    return nb
-
-
-def omega_rings(nb: list[set[int]], omega: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR regions: every vertex and all vertices within ``omega`` edges (breadth-first)."""
-    offsets, members = [0], []
-    for c in range(len(nb)):
-        dist = {c: 0}
-        queue = deque([c])
-        while queue:
-            v = queue.popleft()
-            if dist[v] == omega:
-                continue
-            for u in nb[v]:
-                if u not in dist:
-                    dist[u] = dist[v] + 1
-                    queue.append(u)
-        members.extend(dist)
-        offsets.append(len(members))
-    return np.array(offsets, dtype=np.int64), np.array(members, dtype=np.int64)
 
 
 def direct_sums(offsets: np.ndarray, members: np.ndarray, values: np.ndarray, dtype=np.float64) -> np.ndarray:
@@ -128,10 +99,10 @@ def check_runs(layout: PathLayout, runs: RegionRuns, offsets: np.ndarray, member
 
 
 @pytest.fixture(scope="module")
-def arm():
-    rig = make_arm()
-    nb = neighbour_sets(rig.triangles, rig.vertex_count)
-    return rig, {w: omega_rings(nb, w) for w in (1, 2)}
+def arm_rings(arm):
+    """The arm and its omega-rings (BFS reference) for omega 1 and 2."""
+    nb = neighbour_sets(arm.triangles, arm.vertex_count)
+    return arm, {w: omega_rings(nb, w) for w in (1, 2)}
 
 
 _CESIUM: dict = {}
@@ -170,8 +141,8 @@ def soup_mesh(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("heuristic", HEURISTICS)
-def test_arm_layout_is_valid(arm, heuristic):
-    rig, _ = arm
+def test_arm_layout_is_valid(arm_rings, heuristic):
+    rig, _ = arm_rings
     layout = build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices, heuristic=heuristic)
     check_layout(layout, rig.triangles, rig.vertex_count)
 
@@ -191,8 +162,8 @@ def test_random_mesh_layout_is_valid(mesh, heuristic, seed):
     assert split.path_lengths.max() <= 7
 
 
-def test_layout_check_detects_broken_layouts(arm):
-    rig, _ = arm
+def test_layout_check_detects_broken_layouts(arm_rings):
+    rig, _ = arm_rings
     adj = vertex_adjacency(rig.triangles, rig.vertex_count)
     layout = build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices)
     layout.check(adj)
@@ -261,8 +232,8 @@ def _check_sums(rig, rings, layout, seed):
         )
 
 
-def test_arm_region_sums_match_direct(arm):
-    rig, rings = arm
+def test_arm_region_sums_match_direct(arm_rings):
+    rig, rings = arm_rings
     layout = build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices)
     _check_sums(rig, rings, layout, 0)
     split = build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices, max_path_length=64)
@@ -291,8 +262,8 @@ def test_random_mesh_region_sums_match_direct():
         np.testing.assert_allclose(run_region_sums(layout, runs, vals), direct_sums(o, m, vals), rtol=1e-12)
 
 
-def test_empty_regions_and_single_vertex_regions(arm):
-    rig, _ = arm
+def test_empty_regions_and_single_vertex_regions(arm_rings):
+    rig, _ = arm_rings
     layout = build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices)
     o = np.array([0, 0, 1, 1, 3])
     m = np.array([5, layout.order[10], layout.order[11]])
@@ -350,8 +321,8 @@ def _report(name, rig, rings):
     return means
 
 
-def test_arm_runs_per_region(arm):
-    rig, rings = arm
+def test_arm_runs_per_region(arm_rings):
+    rig, rings = arm_rings
     means = _report("arm", rig, rings)
     size1 = np.diff(rings[1][0]).mean()
     size2 = np.diff(rings[2][0]).mean()

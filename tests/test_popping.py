@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
+from oracles import rig_lbs
 from warpskin.errors import SceneError
 from warpskin.cli import main
 from warpskin.popping import (
@@ -68,15 +69,6 @@ def _posed(rig, ex, mats, device, **kw):
     deformer = PoseSpaceDeformer(rig, ex, device=device)
     deformer.set_pose(mats)
     return deformer, PoppingDynamics(deformer, **kw)
-
-
-def _skin_np(rig, points, mats):
-    """Plain NumPy LBS, independent of the kernels."""
-    p = np.concatenate([points, np.ones((len(points), 1))], axis=1)
-    out = np.zeros((len(points), 3))
-    for k in range(rig.joint_indices.shape[1]):
-        out += rig.joint_weights[:, k, None] * np.einsum("vij,vj->vi", mats[rig.joint_indices[:, k]], p)[:, :3]
-    return out
 
 
 # --------------------------------------------------------------------------- eqs. 1-2, closed form
@@ -198,7 +190,7 @@ def test_pose_space_deformation_reproduces_each_example(device, arm_scene):
         biceps, triceps = meshes["clenched"]["biceps"][k][0], meshes["clenched"]["triceps"][k][0]
         both = biceps + triceps - normal  # LBS is affine in the displacement at a fixed pose
         assert np.abs(deformer.clenched_points.numpy() - both).max() < 2e-6
-        assert np.abs(deformer.lbs().numpy() - _skin_np(rig, rig.vertices, mats)).max() < 2e-6
+        assert np.abs(deformer.lbs().numpy() - rig_lbs(rig, mats)).max() < 2e-6
 
 
 def test_pose_space_deformation_is_smooth_between_examples(device, arm_scene):
@@ -226,8 +218,8 @@ def test_one_example_is_lbs_plus_its_displacement(device, arm_scene):
     scene, rig, _, _ = arm_scene
     bump = _bump(rig.vertices, (0.08, 0.26), 1.0, 0.01)  # the rest-frame displacement, known
     pose = elbow_pose(rig, 60.0)
-    ex = examples_from_meshes(rig, normal=[(_skin_np(rig, rig.vertices + bump, pose), pose)],
-                              clenched=[(_skin_np(rig, rig.vertices + 2 * bump, pose), pose)])
+    ex = examples_from_meshes(rig, normal=[(rig_lbs(rig, pose, points=rig.vertices + bump), pose)],
+                              clenched=[(rig_lbs(rig, pose, points=rig.vertices + 2 * bump), pose)])
     assert np.abs(ex.normal_displacements[0] - bump).max() < 1e-12
     deformer = PoseSpaceDeformer(rig, ex, device=device)
     lbs = Skinner(rig, method="lbs", device=device)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from warpskin.popping import run_popping
+from warpskin.run import run_popping
 from warpskin.rig import RigError
 from warpskin.scene import load_scene
 

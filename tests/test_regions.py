@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from collections import deque
 
 import numpy as np
 import pytest
 
+from oracles import neighbour_sets, omega_ring
 from warpskin.preprocess.layers import build_layers
 from warpskin.preprocess.masses import particle_masses
 from warpskin.preprocess.regions import build_regions, omega_rings, particle_radii
@@ -20,22 +20,7 @@ def small_arm():
 
 
 def _bfs_ring(tris, v, start, omega):
-    nbr = [set() for _ in range(v)]
-    for a, b, c in tris:
-        nbr[a] |= {b, c}
-        nbr[b] |= {a, c}
-        nbr[c] |= {a, b}
-    seen = {start: 0}
-    q = deque([start])
-    while q:
-        u = q.popleft()
-        if seen[u] == omega:
-            continue
-        for w in nbr[u]:
-            if w not in seen:
-                seen[w] = seen[u] + 1
-                q.append(w)
-    return sorted(seen)
+    return sorted(omega_ring(neighbour_sets(tris, v), start, omega))
 
 
 @pytest.mark.parametrize("omega", [1, 2, 3])

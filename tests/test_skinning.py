@@ -7,15 +7,10 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from oracles import rig_lbs
 from warpskin.errors import InputError, SceneError
-from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
 from warpskin.skinning import Skinner
-
-
-@pytest.fixture(scope="module")
-def arm():
-    return make_arm()
 
 
 def _random_affine(rng, count, *, scale=True):
@@ -25,16 +20,6 @@ def _random_affine(rng, count, *, scale=True):
     m[:, :3, :3] = rot @ s
     m[:, :3, 3] = rng.normal(scale=0.3, size=(count, 3))
     return m
-
-
-def _lbs_reference(rig, mats):
-    """Plain NumPy LBS: sum_k w_k * M_{j_k} [p, 1]."""
-    p = np.concatenate([rig.vertices, np.ones((rig.vertex_count, 1))], axis=1)
-    out = np.zeros((rig.vertex_count, 3))
-    for k in range(rig.joint_indices.shape[1]):
-        m = mats[rig.joint_indices[:, k]]
-        out += rig.joint_weights[:, k, None] * np.einsum("vij,vj->vi", m, p)[:, :3]
-    return out
 
 
 def _dqs_reference(rig, mats):
@@ -72,7 +57,7 @@ def test_lbs_matches_numpy_reference(device, arm):
     rng = np.random.default_rng(1)
     mats = _random_affine(rng, arm.joint_count)
     got = Skinner(arm, method="lbs", device=device).skin(mats).numpy()
-    ref = _lbs_reference(arm, mats)
+    ref = rig_lbs(arm, mats)
     assert np.abs(got - ref).max() < 1e-5 * arm.size()
 
 

@@ -10,12 +10,12 @@ import warp as wp
 from pxr import Usd, UsdGeom
 from scipy.spatial.transform import Rotation
 
+from oracles import coarse_arm
 from warpskin.errors import InputError, SceneError
 from warpskin.model import ModelParams, SkinModelBuilder
-from warpskin.rig import RigError
 from warpskin.scene import load_scene
 from warpskin.scenes.arm import make_arm
-from warpskin.simulate import initial_state, simulate
+from warpskin.run import initial_state, simulate
 from warpskin.solver import SimulationError, SkinSolver, SolverParams
 
 COARSE = "[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n"
@@ -23,7 +23,7 @@ COARSE = "[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n"
 
 @pytest.fixture(scope="module")
 def coarse_builder():
-    return SkinModelBuilder(make_arm(rings=30, segments=20)).build()
+    return SkinModelBuilder(coarse_arm()).build()
 
 
 def _scene(tmp_path, extra=""):
@@ -37,10 +37,10 @@ def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coa
     rig = coarse_builder.rig
     solver = SkinSolver(model, SolverParams(iterations=5))
     a, b, c = model.state(), model.state(), model.control()
-    initial_state(model, a, rig.skinning_matrices("flex", 0.0))
+    initial_state(coarse_builder, a, rig.skinning_matrices("flex", 0.0))
     for k in range(12):  # a deforming, moving state
         c.set_pose(rig.skinning_matrices("flex", 0.05 * (k + 1)))
-        solver.step(a, b, c, 0.005)
+        solver.step(a, b, c, None, 0.005)
         a, b = b, a
     q_out = wp.zeros_like(a.q)
     solver.update_moments(a.q)
@@ -67,9 +67,9 @@ def test_rigid_motion_keeps_the_rest_shape(device, coarse_builder, fast):
     solver = SkinSolver(model, SolverParams(gravity=(0, 0, 0), fast_summation=fast))
     a, b, c = model.state(), model.state(), model.control()
     c.set_pose(mats)
-    initial_state(model, a, mats)
+    initial_state(coarse_builder, a, mats)
     for _ in range(200):
-        solver.step(a, b, c, 0.005)
+        solver.step(a, b, c, None, 0.005)
         a, b = b, a
     moved = coarse_builder.layers.flat() @ m[:3, :3].T + m[:3, 3]
     assert np.abs(a.x.numpy() - moved).max() < 1e-4 * coarse_builder.rig.size()
@@ -80,7 +80,7 @@ def test_nothing_drifts_at_rest_without_gravity(device, coarse_builder):
     solver = SkinSolver(model, SolverParams(gravity=(0, 0, 0), iterations=5))
     a, b, c = model.state(), model.state(), model.control()
     for _ in range(1000):
-        solver.step(a, b, c, 0.005)
+        solver.step(a, b, c, None, 0.005)
         a, b = b, a
     assert np.abs(a.x.numpy() - coarse_builder.layers.flat()).max() < 1e-5 * coarse_builder.rig.size()
     assert np.abs(a.v.numpy()).max() < 1e-4
@@ -164,15 +164,15 @@ def test_stiffness_outside_unit_interval_rejected(tmp_path):
     with pytest.raises(InputError, match="step needs two different states"):
         model = SkinModelBuilder(make_arm(rings=12, segments=10), ModelParams(volume=False)).finalize("cpu")
         s = model.state()
-        SkinSolver(model).step(s, s, model.control(), 0.005)
+        SkinSolver(model).step(s, s, model.control(), None, 0.005)
 
 
 def test_nan_stops_the_run_naming_frame_and_particle_and_keeps_a_valid_file(tmp_path, monkeypatch):
     calls = {"n": 0}
     original = SkinSolver.step
 
-    def poisoned(self, state_in, state_out, control, dt):
-        original(self, state_in, state_out, control, dt)
+    def poisoned(self, state_in, state_out, control, contacts, dt):
+        original(self, state_in, state_out, control, contacts, dt)
         calls["n"] += 1
         if calls["n"] == 7 * 3 + 2:  # a substep of frame 4
             x = state_out.x.numpy()

@@ -12,18 +12,14 @@ import numpy as np
 import pytest
 import trimesh
 
+from oracles import rig_lbs
 from warpskin.preprocess.bones import dominant_bone
 from warpskin.preprocess.sub_volumes import SubVolumeParams, SubVolumes, build_subvolumes
 from warpskin.rig import Rig, RigError, Skeleton
-from warpskin.scenes.arm import ARM_DEFAULTS, make_arm
+from warpskin.scenes.arm import ARM_DEFAULTS
 from warpskin.skinning import Skinner
 
 REL = 1e-6
-
-
-@pytest.fixture(scope="module")
-def arm() -> Rig:
-    return make_arm()
 
 
 @pytest.fixture(scope="module")
@@ -37,12 +33,6 @@ def _cesium(path: Path) -> tuple[Rig, SubVolumes]:
 
     rig = load_rig(path)
     return rig, build_subvolumes(rig)
-
-
-def _lbs(rig: Rig, skin: np.ndarray) -> np.ndarray:
-    """Plain NumPy linear blend skinning, ``[V, 3]``."""
-    a = np.einsum("vk,vkij->vij", rig.joint_weights, skin[rig.joint_indices])
-    return np.einsum("vij,vj->vi", a[:, :3, :3], rig.vertices) + a[:, :3, 3]
 
 
 def _mesh_volume(points: np.ndarray, triangles: np.ndarray) -> float:
@@ -127,7 +117,7 @@ def test_arm_subvolumes_closed_and_sum_to_mesh_volume_at_rest_and_flexed(arm, ar
     _check_closed(arm, sv, arm.vertices, sv.center_rest)
     for t in (0.75, 1.5, 2.0):  # flexing to 150 degrees at t = 1.5
         skin = arm.skinning_matrices(arm.clip("flex"), t)
-        pts = _lbs(arm, skin)
+        pts = rig_lbs(arm, skin)
         centers = sv.center_positions(skin)
         vols = sv.volumes(pts, centers)
         assert vols.sum() == pytest.approx(_mesh_volume(pts, arm.triangles), rel=REL)
@@ -135,7 +125,7 @@ def test_arm_subvolumes_closed_and_sum_to_mesh_volume_at_rest_and_flexed(arm, ar
         _check_closed(arm, sv, pts, centers)
     # LBS collapses the elbow: the forearm piece loses volume at full flexion
     skin = arm.skinning_matrices(arm.clip("flex"), 1.5)
-    vols = sv.volumes(_lbs(arm, skin), sv.center_positions(skin))
+    vols = sv.volumes(rig_lbs(arm, skin), sv.center_positions(skin))
     assert vols[1] < 0.97 * sv.rest_volume[1]
 
 
@@ -172,7 +162,7 @@ def test_planes_can_be_moved_along_bones_or_dropped(arm):
     assert sv.center_joint[0] == 1 and sv.count == 3
     _check_partition(arm, sv)
     skin = arm.skinning_matrices("flex", 1.5)
-    pts = _lbs(arm, skin)
+    pts = rig_lbs(arm, skin)
     assert sv.volumes(pts, sv.center_positions(skin)).sum() == pytest.approx(_mesh_volume(pts, arm.triangles), rel=REL)
 
 
@@ -257,7 +247,7 @@ def test_cesium_man_subvolumes(assets):
     clip = rig.clip()
     for t in (clip.start, 0.5 * (clip.start + clip.end), 1.3):
         skin = rig.skinning_matrices(clip, t)
-        pts = _lbs(rig, skin)
+        pts = rig_lbs(rig, skin)
         centers = sv.center_positions(skin)
         vols = sv.volumes(pts, centers)
         assert vols.sum() == pytest.approx(_mesh_volume(pts, rig.triangles), rel=REL)

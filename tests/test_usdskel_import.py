@@ -13,6 +13,7 @@ import pytest
 pxr = pytest.importorskip("pxr")
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: E402
 
+from oracles import rig_lbs
 from warpskin.io import usdskel  # noqa: E402
 from warpskin.io.usdskel import list_usd_meshes, load_usd, triangulate_faces  # noqa: E402
 from warpskin.rig import Rig, RigError, RigWarning  # noqa: E402
@@ -52,9 +53,7 @@ def usd_skinned_world(stage: Usd.Stage, mesh_path: str, tc: float) -> np.ndarray
 def rig_skinned_file_points(rig: Rig, t: float, clip: str | None = None) -> np.ndarray:
     """LBS of the rig at ``t`` [s], mapped back to the file's points ``[N, 3]``."""
     m = rig.skinning_matrices(rig.clip(clip), t)  # [J, 4, 4]
-    ph = np.concatenate([rig.vertices, np.ones((rig.vertex_count, 1))], axis=1)
-    welded = np.einsum("vk,vkij,vj->vi", rig.joint_weights, m[rig.joint_indices], ph)[:, :3]
-    return welded[rig.weld_map]
+    return rig_lbs(rig, m)[rig.weld_map]
 
 
 def max_rel_error(rig: Rig, stage: Usd.Stage, tcs, scale: float = 1.0) -> float:

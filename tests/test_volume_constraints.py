@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import warp as wp
 
+from oracles import rig_lbs
 from warpskin.errors import InputError
 from warpskin.preprocess.sub_volumes import SubVolumeParams, SubVolumes
 from warpskin.model import ModelParams, SkinModelBuilder
-from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
 from warpskin.skinning import Skinner
 from warpskin.volume import VolumeConstraints, volume_layout
@@ -31,7 +31,17 @@ def _builder(single: bool = False) -> SkinModelBuilder:
 
 @functools.lru_cache(maxsize=None)
 def _model(device: str, single: bool = False):
-    return _builder(single).finalize(device)
+    model = _builder(single).finalize(device)
+    _BUILDER_OF[id(model)] = _builder(single)
+    return model
+
+
+_BUILDER_OF: dict = {}  # model id -> its builder (the model holds device arrays only)
+
+
+def _host(model) -> SkinModelBuilder:
+    """The builder (host view: rig, sub-volumes) of a cached model."""
+    return _BUILDER_OF[id(model)]
 
 
 def _setup(device: str, single: bool = False):
@@ -74,9 +84,8 @@ def _gradients_numpy(sv: SubVolumes, points: np.ndarray, centers: np.ndarray) ->
 
 def _dense_pairs(vc: VolumeConstraints) -> np.ndarray:
     """The kernel's per-pair gradients scattered to [S, V, 3]."""
-    lay = vc.layout
     g = np.zeros((vc.subvolume_count, vc.vertex_count, 3))
-    g[lay.pair_subvolume, lay.pair_vertex] = vc.pair_gradient.numpy()
+    g[vc.pair_subvolume.numpy(), vc.pair_vertex.numpy()] = vc.pair_gradient.numpy()
     return g
 
 
@@ -123,7 +132,7 @@ def test_layout_pairs_entries_and_loop_vertices():
 
 def test_gradient_kernel_matches_central_finite_differences(device):
     model, vc, state, ws = _setup(device)
-    sv = model.builder.subvolumes
+    sv = _host(model).subvolumes
     v = model.vertex_count
     x = _perturbed(model, seed=1, scale=0.004)
     state.x.assign(x)
@@ -167,9 +176,9 @@ def test_gradient_kernel_matches_central_finite_differences(device):
     # and the brute-force closed-triangle sum agrees
     np.testing.assert_allclose(got, _gradients_numpy(sv, p, centers), rtol=0, atol=1e-12 * scale)
     # weighted norms w_i |grad_i V_s|^2
-    lay = vc.layout
-    w = model.particle_inv_mass.numpy()[lay.pair_vertex].astype(np.float64)
-    g = fd[lay.pair_subvolume, lay.pair_vertex]
+    pair_vertex, pair_subvolume = vc.pair_vertex.numpy(), vc.pair_subvolume.numpy()
+    w = model.particle_inv_mass.numpy()[pair_vertex].astype(np.float64)
+    g = fd[pair_subvolume, pair_vertex]
     np.testing.assert_allclose(vc.pair_weighted_norm.numpy(), w * np.einsum("ij,ij->i", g, g), rtol=1e-7)
 
 
@@ -180,7 +189,7 @@ def test_gradient_kernel_matches_central_finite_differences(device):
 
 def test_one_projection_removes_the_error_of_a_single_closed_volume(device):
     model, vc, state, ws = _setup(device, single=True)
-    sv = model.builder.subvolumes
+    sv = _host(model).subvolumes
     assert sv.count == 1 and vc.center_count == 0
     v = model.vertex_count
     x = model.particle_q0.numpy().copy()
@@ -202,7 +211,7 @@ def test_one_projection_removes_the_error_of_a_single_closed_volume(device):
 
 def test_one_iteration_matches_numpy_pbd_with_inverse_masses(device):
     model, vc, state, ws = _setup(device)
-    sv = model.builder.subvolumes
+    sv = _host(model).subvolumes
     v = model.vertex_count
     rng = np.random.default_rng(3)
     x0 = _perturbed(model, seed=4, scale=0.003)
@@ -247,7 +256,7 @@ def test_one_iteration_matches_numpy_pbd_with_inverse_masses(device):
 
 def test_iterations_converge_with_pinned_particles_and_kinematic_centers(device):
     model, vc, state, ws = _setup(device)
-    sv = model.builder.subvolumes
+    sv = _host(model).subvolumes
     v = model.vertex_count
     x0 = _perturbed(model, seed=5, scale=0.003)
     # and squeeze the forearm piece by 4 % toward the bone axis (x)
@@ -275,8 +284,7 @@ def test_iterations_converge_with_pinned_particles_and_kinematic_centers(device)
 
 def test_a_fully_pinned_subvolume_is_skipped(device):
     model, vc, state, ws = _setup(device)
-    sv = model.builder.subvolumes
-    v = model.vertex_count
+    sv = _host(model).subvolumes
     x0 = _perturbed(model, seed=7)
     state.x.assign(x0)
     wrist = np.unique(sv.triangles[sv.tri_indices[sv.tri_offsets[2] : sv.tri_offsets[3]]])
@@ -310,16 +318,10 @@ def test_projection_is_deterministic(device):
 # --------------------------------------------------------------------------------------------
 
 
-def _lbs(rig, skin: np.ndarray) -> np.ndarray:
-    """Plain NumPy linear blend skinning in float64, ``[V, 3]``."""
-    a = np.einsum("vk,vkij->vij", rig.joint_weights, skin[rig.joint_indices])
-    return np.einsum("vij,vj->vi", a[:, :3, :3], rig.vertices) + a[:, :3, 3]
-
-
 def test_volumes_and_centers_match_the_host_at_rest_and_posed(device):
     model, vc, state, _ = _setup(device)
-    sv = model.builder.subvolumes
-    rig = model.rig
+    sv = _host(model).subvolumes
+    rig = _host(model).rig
     out = wp.zeros(sv.count, dtype=wp.float32, device=model.device)
     control = model.control()
     vc.center_positions(control.skin_matrices, vc.centers)  # bind pose: the rest centers
@@ -338,7 +340,7 @@ def test_volumes_and_centers_match_the_host_at_rest_and_posed(device):
         vc.volumes(pts, vc.centers, out)
         # against float64 LBS and centers: the float32 rounding of the skinned inputs moves the
         # small hand cap (2e-5 m^3 on this coarse arm) by up to ~3e-6, the others by < 1e-6
-        ref = sv.volumes(_lbs(rig, skin), ref_centers)
+        ref = sv.volumes(rig_lbs(rig, skin), ref_centers)
         np.testing.assert_allclose(out.numpy()[:2], ref[:2], rtol=1e-6)
         np.testing.assert_allclose(out.numpy(), ref, rtol=5e-6)
         # against the same float32 inputs: float32 rounding of the result only
@@ -349,9 +351,9 @@ def test_volumes_and_centers_match_the_host_at_rest_and_posed(device):
 def test_volumes_far_from_the_origin(device):
     """A character 1 km from the origin: float32 positions, float64 sums about a local origin."""
     model, vc, _, _ = _setup(device)
-    sv = model.builder.subvolumes
+    sv = _host(model).subvolumes
     shift = np.array([1000.0, -400.0, 250.0])
-    pts = (model.rig.vertices + shift).astype(np.float32)
+    pts = (_host(model).rig.vertices + shift).astype(np.float32)
     cen = (sv.center_rest + shift).astype(np.float32)
     x = wp.array(pts, dtype=wp.vec3, device=model.device)
     c = wp.array(cen, dtype=wp.vec3, device=model.device)

@@ -182,7 +182,6 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
         d.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
         d.rest_lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
         d.rest_uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
-    d.rest_skin = np.asarray(rig.vertices, dtype=np.float64)  # host: the skin the first BVH is built for
     return d
 
 
@@ -205,7 +204,8 @@ class SelfCollision:
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
-        self._built_at = c.rest_skin  # skin the tree was built for
+        # the skin the tree was built for (host, read once: the rest skin the model uploaded)
+        self._built_at = model.particle_q0.numpy()[:v].astype(np.float64)
         self.rebuilds = 0
         self.thickness, self.radius, self.rest_gap = c.thickness, c.radius, c.rest_gap
 

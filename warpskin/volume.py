@@ -208,14 +208,13 @@ _VOLUME_ARRAYS = (
 class VolumeData:
     """The volume part of a :class:`~warpskin.model.SkinModel`: the :class:`VolumeLayout` as
     device arrays (same names), the fan centres' rest positions ``center_rest`` ``[C]`` and
-    joints ``center_joint``, ``rest_volume`` ``[S]`` (float64), and the counts. ``layout`` keeps
-    the host layout for inspection."""
+    joints ``center_joint``, ``rest_volume`` ``[S]`` (float64), and the counts (the host layout
+    stays with the model builder, ``builder.volume_layout``)."""
 
 
 def upload_volume_layout(layout: VolumeLayout, subvolumes: SubVolumes, device) -> VolumeData:
     """One upload of a volume layout and the sub-volumes' kinematic centres."""
     d = VolumeData()
-    d.layout = layout
     d.vertex_count = layout.vertex_count
     d.center_count = layout.center_count
     d.subvolume_count = layout.subvolume_count
@@ -249,7 +248,6 @@ class VolumeConstraints:
         block_dim: Threads per sub-volume in the block reductions on CUDA devices.
 
     Attributes:
-        layout: The host :class:`VolumeLayout`.
         centers: Fan centers [m], ``[C]`` vec3, a buffer for :meth:`center_positions`.
         rest_volume: ``V_s^rest`` [m^3], ``[S]`` float64.
         subvolume_volume: ``V_s`` [m^3] before the last correction of :meth:`project`, ``[S]``
@@ -291,7 +289,6 @@ class VolumeConstraints:
         if int(block_dim) < 1:
             raise InputError(f"block_dim must be a positive thread count, got {block_dim}")
         self.block_dim = int(block_dim)
-        self.layout = data.layout
         self.vertex_count = data.vertex_count
         self.center_count = data.center_count
         self.subvolume_count = data.subvolume_count

@@ -1,0 +1,79 @@
+"""Independent references shared by the tests, in plain NumPy and Python: no warpskin kernel
+or host routine under test is used here (the procedural arm generator is the only import, for
+the test meshes).
+
+* :func:`lbs` / :func:`rig_lbs`: linear blend skinning, ``sum_k w_k M_{j_k} [p, 1]``, float64.
+* :func:`neighbour_sets`, :func:`omega_rings`, :func:`omega_ring`: omega-rings by
+  breadth-first search over the triangle edges.
+* :func:`coarse_arm`: the procedural arm at a coarse resolution (fast to build and simulate).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+__all__ = ["lbs", "rig_lbs", "neighbour_sets", "omega_rings", "omega_ring", "coarse_arm", "COARSE"]
+
+#: Rings and segments of the coarse arm most solver tests use (1200 particles).
+COARSE = {"rings": 30, "segments": 20}
+
+
+def lbs(points: np.ndarray, joint_indices: np.ndarray, joint_weights: np.ndarray, mats: np.ndarray) -> np.ndarray:
+    """Linear blend skinning ``[N, 3]``: ``sum_k w_k * (M_{j_k} @ [p, 1])`` in float64, one
+    influence at a time (no blended matrix), independent of warpskin's kernels."""
+    p = np.asarray(points, dtype=np.float64)
+    ph = np.concatenate([p, np.ones((len(p), 1))], axis=1)
+    mats = np.asarray(mats, dtype=np.float64)
+    out = np.zeros((len(p), 3))
+    for k in range(joint_indices.shape[1]):
+        out += joint_weights[:, k, None] * np.einsum("vab,vb->va", mats[joint_indices[:, k]], ph)[:, :3]
+    return out
+
+
+def rig_lbs(rig, mats: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+    """:func:`lbs` of a rig's vertices (or of ``points`` with the rig's weights)."""
+    return lbs(rig.vertices if points is None else points, rig.joint_indices, rig.joint_weights, mats)
+
+
+def neighbour_sets(triangles: np.ndarray, vertex_count: int) -> list[set[int]]:
+    """Edge neighbours of every vertex, from the triangles."""
+    nb: list[set[int]] = [set() for _ in range(vertex_count)]
+    for a, b, c in np.asarray(triangles).tolist():
+        for u, v in ((a, b), (b, c), (c, a)):
+            if u != v:
+                nb[u].add(v)
+                nb[v].add(u)
+    return nb
+
+
+def omega_ring(nb: list[set[int]], start: int, omega: int) -> dict[int, int]:
+    """Every vertex within ``omega`` edges of ``start`` -> its edge distance (BFS order)."""
+    dist = {start: 0}
+    queue = deque([start])
+    while queue:
+        v = queue.popleft()
+        if dist[v] == omega:
+            continue
+        for u in nb[v]:
+            if u not in dist:
+                dist[u] = dist[v] + 1
+                queue.append(u)
+    return dist
+
+
+def omega_rings(nb: list[set[int]], omega: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR regions: every vertex and all vertices within ``omega`` edges (breadth-first)."""
+    offsets, members = [0], []
+    for c in range(len(nb)):
+        members.extend(omega_ring(nb, c, omega))
+        offsets.append(len(members))
+    return np.array(offsets, dtype=np.int64), np.array(members, dtype=np.int64)
+
+
+def coarse_arm(**overrides):
+    """The procedural arm at :data:`COARSE` resolution (keyword overrides allowed)."""
+    from warpskin.scenes.arm import make_arm
+
+    return make_arm(**{**COARSE, **overrides})
