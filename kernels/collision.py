@@ -11,6 +11,13 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+#: A point counts as over a triangle while its smallest barycentric coordinate is above minus
+#: this. A point over an edge two triangles share has coordinate 0 in both, and float32
+#: rounding gives its sign: with a strict test both could say "outside" and the contact would
+#: be lost; with the band it collides with one or both (the contact point is clamped onto the
+#: triangle).
+INSIDE_TOLERANCE = wp.constant(1.0e-5)
+
 
 # --------------------------------------------------------------------------------------------
 # Bounds of every skin triangle over the step (old and predicted positions), inflated by the
@@ -181,7 +188,7 @@ def detect_point_triangle_kernel(
         if not (crossing or near):
             continue
         bary = closest_on_triangle(p1, a, b, c)
-        if wp.min(wp.min(bary[0], bary[1]), bary[2]) < 0.0:
+        if wp.min(wp.min(bary[0], bary[1]), bary[2]) < -INSIDE_TOLERANCE:
             continue
         slot = wp.atomic_add(pt_count, 0, 1)
         if slot < capacity:

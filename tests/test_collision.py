@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+from pxr import Usd, UsdGeom
 
 from oracles import coarse_arm
 from warpskin.kernels import collision as k
@@ -203,10 +204,10 @@ def test_detected_point_triangle_pairs_match_brute_force(device):
         assert (x[i] - p0[t]) @ n[t] < col.radius * 1.001
 
 
-def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path):
+def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path, device):
     # the shipped arm scene at its full resolution (2918 vertices, the paper's 2916), with its
     # own solver settings: flexed to 150 degrees (frame 45) and held (to frame 60); every frame
-    result = simulate(load_scene("arm"), tmp_path / "arm.usdc", device="cpu", frames=(0, 60), with_lbs=True,
+    result = simulate(load_scene("arm"), tmp_path / "arm.usdc", device=device, frames=(0, 60), with_lbs=True,
                       check_intersections=True, progress=False)
     assert result.summary["vertices"] == 2918 and len(result.frames) == 61
     m, s = result.metrics, result.summary
@@ -243,6 +244,29 @@ def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path):
     print(f"upper arm: largest outward bulge against LBS {1e3 * gain.max():.1f} mm, largest inward (contact) {1e3 * gain.min():.1f} mm")
     assert gain.min() < -1e-3  # the pressed patch is flattened
     assert gain.max() > 1e-3  # and the flesh around it bulges out
+
+
+def test_simulate_grows_overflowing_contact_buffers_and_repeats_the_frame(tmp_path, device):
+    # the coarse arm pressed to 150 degrees with buffers for 8 candidates: every overflow grows
+    # them and repeats the frame from its start (re-capturing the graphs), so the run equals one
+    # whose buffers never overflowed (bit for bit on the CPU, where the contact order is fixed)
+    text = COARSE + "frames = [40, 46]\n[solver]\niterations = 4\n[collision]\ncapacity = {}\n"
+    runs = []
+    for cap in (8, 1 << 16):
+        p = tmp_path / f"cap{cap}.toml"
+        p.write_text(text.format(cap))
+        runs.append(simulate(load_scene(p), tmp_path / f"cap{cap}.usdc", device=device, progress=False))
+    small, big = runs
+    assert small.summary["overflow_retries"] >= 2 and big.summary["overflow_retries"] == 0
+    assert small.summary["collision_capacity"] >= 256 and small.summary["graph_capture"]
+    stages = [Usd.Stage.Open(str(r.path)) for r in runs]
+    pts = [UsdGeom.Mesh(s.GetPrimAtPath("/warpskin/skin")).GetPointsAttr() for s in stages]
+    for t in range(7):
+        a, b = np.array(pts[0].Get(t)), np.array(pts[1].Get(t))
+        if device == "cpu":
+            np.testing.assert_array_equal(a, b)
+        else:  # atomics order the contacts differently from run to run on a GPU
+            np.testing.assert_allclose(a, b, atol=1e-4 * coarse_arm().size())
 
 
 def test_collision_params_rejected():
@@ -331,6 +355,55 @@ def _fold_reference(x, tris, fold_cos, h, radius):
     return out, margin
 
 
+def _edge_pairs_detected(points, tris, x_tri, device, h=0.1, radius=0.3):
+    """Point-triangle detection of ``points`` [P, 3] against the triangles ``x_tri`` [3T, 3]
+    (``tris`` into them), all in different patches: the detected (point, triangle) pairs."""
+    x = np.vstack([x_tri, points]).astype(np.float32)
+    n, n_tri = len(x), len(x_tri)
+    with wp.ScopedDevice(device):
+        xw = wp.array(x, dtype=wp.vec3)
+        tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
+        lo, hi = wp.zeros(len(tris), dtype=wp.vec3), wp.zeros(len(tris), dtype=wp.vec3)
+        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, radius], outputs=[lo, hi])
+        bvh = wp.Bvh(lo, hi)
+        cap = 4 * len(points) * len(tris)
+        count, pv, pt = wp.zeros(1, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32)
+        wp.launch(k.detect_point_triangle_kernel, dim=n,
+                  inputs=[bvh.id, xw, xw, tw, wp.full(n, -1, dtype=wp.int32), xw, 0.0, wp.zeros(n, dtype=wp.vec3), 0.0, h,
+                          radius, cap],
+                  outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)])
+        c = int(count.numpy()[0])
+    return {(int(i) - n_tri, int(t)) for i, t in zip(pv.numpy()[:c], pt.numpy()[:c]) if i >= n_tri}
+
+
+def test_point_over_a_shared_edge_collides_with_one_of_its_triangles(device):
+    # an exact boundary on purpose: a point straight above the edge two triangles share has
+    # barycentric coordinate 0 in both, and float32 rounding decides the sign; it must collide
+    # with at least one of them (it used to be missed by both in 1 case of 9), while points
+    # clearly inside one triangle (1e-3 of its size from the edge) collide with that one only
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        a, b, c = rng.normal(size=(3, 3))
+        n = np.cross(b - a, c - a)
+        n /= np.linalg.norm(n)
+        m = 0.5 * (a + b)
+        d = m - (c - m) + 0.2 * (b - a)  # the other side of edge ab, in the plane
+        x_tri = np.stack([a, b, c, d]).astype(np.float32).astype(np.float64)
+        tris = np.array([[0, 1, 2], [1, 0, 3]])  # both facing n
+        s = rng.uniform(0.2, 0.8, size=8)
+        lift = rng.uniform(0.01, 0.08, size=8)[:, None] * n
+        on_edge = x_tri[0] + s[:, None] * (x_tri[1] - x_tri[0]) + lift
+        toward = (x_tri[2] - m) / np.linalg.norm(x_tri[2] - m)  # into triangle 0
+        size = np.linalg.norm(x_tri[1] - x_tri[0])
+        inside0 = on_edge + 1e-3 * size * toward
+        inside1 = on_edge - 1e-3 * size * toward
+        got = _edge_pairs_detected(np.vstack([on_edge, inside0, inside1]), tris, x_tri, device)
+        for i in range(8):
+            assert {t for p, t in got if p == i}, f"trial {trial}: a point over the shared edge collided with neither triangle"
+            assert {t for p, t in got if p == 8 + i} == {0}
+            assert {t for p, t in got if p == 16 + i} == {1}
+
+
 def test_folded_patch_pairs_collide_by_proximity(device):
     # one surface patch (every vertex within the rest gap of every other) folded over by 170
     # degrees: the turned-over row faces the first band 0.17 above it; those pairs must become
@@ -364,13 +437,13 @@ def test_bvh_rebuilt_once_the_skin_has_deformed_and_finds_the_same_pairs(device)
     assert col.rebuilds == 1
 
 
-def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path):
+def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path, device):
     # the coarse arm's LBS at 150 degrees passes through itself; started there, the skin keeps
     # part of it; a pre-roll from the bind pose (straight, clean) reaches the pose by collision
     p = tmp_path / "arm.toml"
     p.write_text(COARSE + "frames = [45, 46]\n[solver]\niterations = 10\n")
     scene = load_scene(p)
-    kw = dict(device="cpu", with_lbs=True, check_intersections=True, progress=False)
+    kw = dict(device=device, with_lbs=True, check_intersections=True, progress=False)
     cold = simulate(scene, tmp_path / "cold.usdc", **kw)
     warm = simulate(scene, tmp_path / "warm.usdc", preroll=0.5, **kw)
     assert cold.metrics["intersecting_pairs_lbs"][0] > 20
@@ -381,13 +454,13 @@ def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path):
         simulate(scene, tmp_path / "bad.usdc", preroll=-1.0, **kw)
 
 
-def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets):
+def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets, device):
     # CesiumMan's first walk pose passes the skin through itself under LBS; the scene's 0.5 s
     # pre-roll from the (clean) bind pose reaches it by collision
     scene = load_scene("cesium_man")
     rig = scene.rig()
     assert scene.preroll == 0.5 and len(self_intersections(rig.vertices, rig.triangles)) == 0
-    result = simulate(scene, tmp_path / "walk.usdc", device="cpu", frames=(0, 1), with_lbs=True,
+    result = simulate(scene, tmp_path / "walk.usdc", device=device, frames=(0, 1), with_lbs=True,
                       check_intersections=True, progress=False)
     m = result.metrics
     print(f"CesiumMan frames 0-1: intersecting pairs {m['intersecting_pairs']}, LBS {m['intersecting_pairs_lbs']}")

@@ -30,10 +30,10 @@ keys = [[0.3, 0.0], [0.35, 1.0], [0.9, 1.0], [0.95, 0.0]]
 """
 
 
-def test_layered_mode_pops_the_skin_and_keeps_the_volume(tmp_path):
+def test_layered_mode_pops_the_skin_and_keeps_the_volume(tmp_path, device):
     path = tmp_path / "pop.toml"
     path.write_text(SCENE)
-    run = run_popping(load_scene(path), tmp_path / "pop.usdc", device="cpu", progress=False)
+    run = run_popping(load_scene(path), tmp_path / "pop.usdc", device=device, progress=False)
     s = run.summary
     assert s["mode"] == "layered" and run.frames == 37
     assert s["max_volume_deviation"] < 0.009  # the solver issue's bound (the paper: 0.9 %)

@@ -110,13 +110,13 @@ def test_arm_at_150_degrees_keeps_volume_where_lbs_loses_it(device, tmp_path):
     assert stage.GetPrimAtPath("/warpskin/lbs").IsValid()
 
 
-def test_damping_and_jiggle_after_the_bones_stop(tmp_path):
+def test_damping_and_jiggle_after_the_bones_stop(tmp_path, device):
     # the elbow flexes quickly (0.3 s) and holds: the skin keeps moving after the bones stop,
     # then settles
     p = tmp_path / "quick.toml"
     p.write_text(COARSE + "flex_degrees = 90.0\nflex_time = 0.3\nhold_time = 1.2\nrest_time = 0.0\n"
                  "[animation]\nclip = 'flex'\nfps = 60\nframes = [0, 90]\n[solver]\niterations = 6\ndamping = 3.0\n")
-    result = simulate(load_scene(p), tmp_path / "q.usdc", device="cpu", progress=False)
+    result = simulate(load_scene(p), tmp_path / "q.usdc", device=device, progress=False)
     t = np.array(result.metrics["time"])
     ke = np.array(result.metrics["kinetic_energy"])
     off = np.array(result.metrics["max_offset_from_lbs"])
