@@ -100,3 +100,21 @@ def test_a_bug_exits_1_with_the_debug_hint(tmp_path, capsys, monkeypatch):
     assert not list(tmp_path.iterdir())  # nothing half-written, no temp file
     with pytest.raises(ZeroDivisionError):
         main(["--debug", "skin", "arm", "-o", str(tmp_path / "o.usdc"), "--quiet"])
+
+
+def test_every_subpackage_is_installed():
+    # pyproject lists the packages explicitly (kernels/ and scenes/ are mapped into warpskin):
+    # a subpackage missing there imports from a checkout but not from `pip install .`
+    import sys
+    from pathlib import Path
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(root).parts) for p in (root / "warpskin").rglob("__init__.py")}
+    found |= {"warpskin.kernels", "warpskin.scenes"}
+    assert found == listed

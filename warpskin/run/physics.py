@@ -64,11 +64,13 @@ class PhysicsStepper:
         preroll: Seconds simulated from the bind pose into the first frame's pose before the
             first frame (nothing of it is written); 0 for none.
         activation: ``activation(t) -> [G]`` for a model with a rest-shape drive.
-        label: Progress-bar label prefix.
+        label: Progress-bar label prefix (the command).
+        name: What is simulated, for the label (default: the rig's name).
     """
 
     def __init__(self, builder, model, params: SolverParams, plan: FramePlan, clip, *, use_graph: bool = True,
-                 preroll: float = 0.0, activation: Callable | None = None, label: str = "simulate") -> None:
+                 preroll: float = 0.0, activation: Callable | None = None, label: str = "simulate",
+                 name: str = "") -> None:
         self.builder, self.model, self.plan, self.clip = builder, model, plan, clip
         rig = self.rig = builder.rig
         self.solver = solver = SkinSolver(model, params)
@@ -76,7 +78,7 @@ class PhysicsStepper:
         self.contacts = model.contacts() if solver.collision is not None else None
         self.use_graph = use_graph
         self.dev = dev = model.device
-        self.label = f"{label} {rig.name} ({dev}, {model.particle_count} particles)"
+        self.label = f"{label} {name or rig.name} ({dev}, {model.particle_count} particles)"
         self.substeps = substeps = plan.substeps
         self.dt = plan.dt
         j = self.joint_count = rig.joint_count

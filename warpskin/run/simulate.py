@@ -154,8 +154,7 @@ def simulate(
     if check_intersections is None:
         check_intersections = report_dir is not None
     stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
-                             activation=activation, label="simulate")
-    stepper.label = f"simulate {scene.name} ({model.device}, {model.particle_count} particles)"
+                             activation=activation, label="simulate", name=scene.name)
     measures = _Measurements(builder, stepper, plan, check_intersections)
     tris = rig.triangles
     meshes = [("skin", tris, rig.vertices, {"color": _SKIN_COLOR})]
