@@ -14,7 +14,7 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["lbs", "rig_lbs", "neighbour_sets", "omega_rings", "omega_ring", "coarse_arm", "COARSE"]
+__all__ = ["lbs", "rig_lbs", "neighbour_sets", "omega_rings", "omega_ring", "coarse_arm", "COARSE", "winding_numbers"]
 
 #: Rings and segments of the coarse arm most solver tests use (1200 particles).
 COARSE = {"rings": 30, "segments": 20}
@@ -77,3 +77,20 @@ def coarse_arm(**overrides):
     from warpskin.scenes.arm import make_arm
 
     return make_arm(**{**COARSE, **overrides})
+
+
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Generalised winding number of every point ``[P]`` with respect to a triangle mesh: the sum
+    of the triangles' signed solid angles over 4 pi (Van Oosterom and Strackee 1983). About 1
+    inside a closed, outward-wound surface, 0 outside."""
+    p = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
+    out = np.empty(len(p))
+    for s in range(0, len(p), chunk):
+        a, b, c = (tri[None, :, k] - p[s:s + chunk, None] for k in range(3))  # [C, T, 3]
+        la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
+        det = np.einsum("ctk,ctk->ct", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("ctk,ctk->ct", a, b) * lc + np.einsum("ctk,ctk->ct", b, c) * la \
+            + np.einsum("ctk,ctk->ct", c, a) * lb
+        out[s:s + chunk] = (2.0 * np.arctan2(det, den)).sum(axis=1) / (4.0 * np.pi)
+    return out

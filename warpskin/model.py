@@ -23,7 +23,7 @@ from .collision import CollisionParams
 from .preprocess.bones import Bones, bone_segments
 from .preprocess.joint_constraints import JointConstraints, JointParams, build_joint_constraints
 from .preprocess.kinematic_coupling import KinematicCoupling, build_kinematic_coupling
-from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds
+from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds, fit_layer_depths
 from .preprocess.masses import particle_masses
 from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
@@ -121,6 +121,8 @@ class SkinModelBuilder:
         rig.require_closed()
         self.bones: Bones = self._stage("bones", lambda: bone_segments(rig))
         self.layers: Layers = self._stage("layers", lambda: build_layers(rig, p.layers, bones=self.bones))
+        if p.layers.adaptive:
+            self.layers = self._stage("layer_depths", lambda: fit_layer_depths(rig, self.layers, where=self.where))
         self._stage("layer_check", lambda: check_layer_folds(self.layers, rig.triangles, where=self.where))
         self.masses = self._stage("masses", lambda: particle_masses(self.layers, rig.triangles, density=p.density, where=self.where))
         self.radii = self._stage("radii", lambda: particle_radii(self.layers, rig.triangles))

@@ -543,6 +543,14 @@ class Rig:
     def file_vertex_count(self) -> int:
         return int(self.weld_map.shape[0])
 
+    def file_vertex_ids(self, welded) -> np.ndarray:
+        """The file's own number (its first copy) of each welded vertex in ``welded``, for
+        messages that the user can look up in their DCC."""
+        first = np.full(self.vertex_count, -1, dtype=np.int64)
+        n = self.weld_map.shape[0]
+        first[self.weld_map[::-1]] = np.arange(n - 1, -1, -1)
+        return first[np.asarray(welded, dtype=np.int64)]
+
     def size(self) -> float:
         """Diagonal of the rest mesh's bounding box [m] (the "model size" of tolerances)."""
         return float(np.linalg.norm(self.vertices.max(0) - self.vertices.min(0)))

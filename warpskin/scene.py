@@ -56,7 +56,7 @@ _SCHEMA: dict[str, set[str]] = {
     "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights"},
     "animation": {"clip", "fps", "frames", "preroll"},
     # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
-    "layers": {"fat", "muscle", "bone", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
+    "layers": {"fat", "muscle", "bone", "adaptive", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
     "joints": {"radius_factor", "layers", "joints"},
     "subvolumes": {"enabled", "planes"},
     # Algorithm 1 settings
@@ -387,11 +387,15 @@ def _model_params(extra: dict, where: str):
     omega = lay.get("omega", 1)
     if isinstance(omega, bool) or not isinstance(omega, int):
         raise SceneError(f"{where}: [layers] omega must be an integer, got {omega!r}")
+    adaptive = lay.get("adaptive", defaults.adaptive)
+    if not isinstance(adaptive, bool):
+        raise SceneError(f"{where}: [layers] adaptive must be true or false, got {adaptive!r}")
     layer_params = LayerParams(
         fat=float(lay.get("fat", defaults.fat)),
         muscle=float(lay.get("muscle", defaults.muscle)),
         bone=float(lay.get("bone", defaults.bone)),
         per_bone=per_bone_proj,
+        adaptive=adaptive,
     )
     jt = extra.get("joints", {})
     jp = JointParams()

@@ -20,7 +20,7 @@ from ..errors import SceneError
 from ..rig import Rig, RigError
 from .bones import Bones, bone_segments, closest_point_on_segments, dominant_bone
 
-__all__ = ["LayerParams", "Layers", "build_layers", "LAYER_NAMES", "check_layer_folds"]
+__all__ = ["LayerParams", "Layers", "build_layers", "fit_layer_depths", "folded_triangles", "LAYER_NAMES", "check_layer_folds"]
 
 LAYER_NAMES = ("skin", "fat", "muscle", "bone")
 
@@ -33,11 +33,16 @@ class LayerParams:
         fat, muscle, bone: Positions along the projection segment (0 = skin, 1 = bone center
             line); must satisfy ``0 < fat < muscle < bone < 1``. The paper's Arm: 0.15/0.45/0.8.
         per_bone: Overrides by joint name: ``{"belly": (0.05, 0.1, 0.2)}``.
+        adaptive: The parameters are upper bounds: the depth is reduced locally, and
+            smoothly, where the full depth would fold a layer over or leave the body
+            (:func:`fit_layer_depths`). ``False``: the parameters as given, and an error where
+            a layer folds.
     """
 
     fat: float = 0.15
     muscle: float = 0.45
     bone: float = 0.8
+    adaptive: bool = True
     per_bone: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
     def check(self, where: str = "layers") -> None:
@@ -58,11 +63,16 @@ class Layers:
 
     Attributes:
         positions: Rest positions per layer [m], ``[4, V, 3]`` (skin, fat, muscle, bone).
-        foot: Nearest point on the vertex's bone center line [m], ``[V, 3]``.
+        foot: Nearest point on the vertex's bone center line [m], ``[V, 3]`` (where that lies
+            outside the skin, :func:`fit_layer_depths` puts it as far along the inward normal).
         bone: The vertex's bone (joint index), ``[V]``.
         bone_t: Parameter of the foot along its bone segment, ``[V]`` in [0, 1].
-        params: Projection parameters used per vertex, ``[V, 3]`` (fat, muscle, bone).
+        params: Projection parameters used per vertex, ``[V, 3]`` (fat, muscle, bone), after
+            any local reduction (:func:`fit_layer_depths`).
         bones: The bone segments.
+        depth_scale: Per-vertex factor on the scene's projection parameters, ``[V]`` in (0, 1]
+            (1 where the full depth fits).
+        depth_notes: What :func:`fit_layer_depths` reduced, where and why (for reports).
     """
 
     positions: np.ndarray
@@ -71,6 +81,12 @@ class Layers:
     bone_t: np.ndarray
     params: np.ndarray
     bones: Bones
+    depth_scale: np.ndarray | None = None
+    depth_notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.depth_scale is None:
+            self.depth_scale = np.ones(self.positions.shape[1])
 
     @property
     def vertex_count(self) -> int:
@@ -130,3 +146,210 @@ def check_layer_folds(layers: Layers, triangles: np.ndarray, *, where: str = "la
                 f"(e.g. {', '.join(str(int(f)) for f in flipped[:6])}; bones {names}): its projection "
                 "parameter is too large there; lower it (globally or for those bones)"
             )
+
+
+# --------------------------------------------------------------------------------------------
+# Depths that fit the body: the projection parameters as upper bounds
+# --------------------------------------------------------------------------------------------
+#: Depth fractions (of each vertex's bone-layer depth) checked for folds: the three layers and
+#: the midpoints between them, so that no layer is clean while the tissue between two layers is
+#: inverted.
+_CHECK_BETWEEN = True
+
+
+def _layer_positions(vertices: np.ndarray, seg: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """``[L, V, 3]`` positions at per-vertex depths ``[L, V]`` (fractions of the segment)."""
+    return vertices[None] + depth[:, :, None] * seg[None]
+
+
+def folded_triangles(skin: np.ndarray, layer: np.ndarray, triangles: np.ndarray, *, min_cos: float = 0.0) -> np.ndarray:
+    """Triangles of ``layer`` (same topology as ``skin``) whose normal turned by 90 degrees or
+    more against the skin triangle's (``cos <= min_cos``), or collapsed: the layer folds over
+    there. Returns their indices."""
+    t = triangles
+    n0 = np.cross(skin[t[:, 1]] - skin[t[:, 0]], skin[t[:, 2]] - skin[t[:, 0]])
+    n = np.cross(layer[t[:, 1]] - layer[t[:, 0]], layer[t[:, 2]] - layer[t[:, 0]])
+    dot = np.einsum("ij,ij->i", n, n0)
+    norm = np.linalg.norm(n, axis=1) * np.linalg.norm(n0, axis=1)
+    return np.nonzero(dot <= min_cos * np.maximum(norm, 1e-300))[0]
+
+
+def _segment_exits(rig: Rig, seg: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each projection segment leaves the body: the distance [m] along it to the first
+    surface hit past its own vertex (``inf`` where it stays inside for ``reach`` [m]), and
+    whether it enters the body at its vertex at all (``False``: it points out of the skin)."""
+    import warp as wp
+
+    from ..kernels import layers as k
+
+    length = np.linalg.norm(seg, axis=1)
+    out = np.full(rig.vertex_count, np.inf)
+    inside = np.ones(rig.vertex_count, dtype=bool)
+    ok = length > 0
+    if not ok.any():
+        return out, inside
+    direction = np.zeros_like(seg)
+    direction[ok] = seg[ok] / length[ok, None]
+    # a small step in: well above float32 rounding of the coordinates, well below an edge
+    edge = np.linalg.norm(rig.vertices[rig.triangles[:, 0]] - rig.vertices[rig.triangles[:, 1]], axis=1)
+    offset = 1e-2 * float(np.median(edge)) if edge.size else 1e-6
+    with wp.ScopedDevice("cpu"):
+        mesh = wp.Mesh(points=wp.array(rig.vertices.astype(np.float32), dtype=wp.vec3),
+                       indices=wp.array(rig.triangles.astype(np.int32).ravel(), dtype=wp.int32),
+                       support_winding_number=True)
+        exit_d = wp.zeros(rig.vertex_count, dtype=wp.float32)
+        starts = wp.zeros(rig.vertex_count, dtype=wp.int32)
+        wp.launch(k.segment_exit_kernel, dim=rig.vertex_count,
+                  inputs=[mesh.id, wp.array(rig.vertices.astype(np.float32), dtype=wp.vec3),
+                          wp.array(direction.astype(np.float32), dtype=wp.vec3),
+                          wp.array(np.where(ok, reach, 0.0).astype(np.float32), dtype=wp.float32), float(offset)],
+                  outputs=[exit_d, starts])
+        d = exit_d.numpy().astype(np.float64)
+        inside = starts.numpy().astype(bool) | ~ok
+    hit = ok & (d > 0)
+    out[hit] = d[hit]
+    return out, inside
+
+
+def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[V, 3]`` (outward for outward-wound triangles)."""
+    t = triangles
+    n = np.cross(vertices[t[:, 1]] - vertices[t[:, 0]], vertices[t[:, 2]] - vertices[t[:, 0]])
+    out = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(out, t[:, k], n)
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+
+def _ramp(scale: np.ndarray, edges: np.ndarray, step: float) -> np.ndarray:
+    """Lower ``scale`` until neighbours differ by at most ``step`` (never raise it): a reduced
+    vertex pulls its surroundings down gradually, so the depth varies smoothly."""
+    s = scale.copy()
+    a, b = edges[:, 0], edges[:, 1]
+    for _ in range(int(np.ceil(1.0 / step)) + 1):
+        before = s.copy()
+        np.minimum.at(s, a, s[b] + step)
+        np.minimum.at(s, b, s[a] + step)
+        if np.array_equal(s, before):
+            break
+    return s
+
+
+def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink: float = 0.9, ramp: float = 0.15,
+                     min_scale: float = 0.02, max_rounds: int = 200, exit_margin: float = 0.9) -> Layers:
+    """Reduce the depth of the inner layers locally, and smoothly, wherever the full depth does
+    not fit: where a layer (or the tissue between two layers) would fold over, where the layer
+    would pass through itself, and where a projection segment leaves the body before the bone
+    layer. The scene's projection parameters become upper bounds.
+
+    Every vertex ``i`` gets a factor ``s_i`` in (0, 1] on its three parameters (so their order
+    stays): ``s_i`` starts at the share of the segment that stays inside the body
+    (``exit_margin`` of the way to the exit), lowered around such vertices until neighbours
+    differ by at most ``ramp``; then, round by round, the vertices of every folded or
+    self-intersecting triangle and their neighbours are scaled by ``shrink``. At ``s = 0``
+    every layer is the skin itself, which does not fold, so the rounds end.
+
+    Args:
+        rig: The closed rig.
+        layers: The layers of :func:`build_layers` (the full parameters).
+        where: For messages.
+
+    Returns:
+        New :class:`Layers` with ``params``, ``positions`` and ``depth_scale`` fitted and
+        ``depth_notes`` saying where depth was taken away and why.
+
+    Raises:
+        RigError: no positive depth fits at some vertices (``s`` below ``min_scale``), naming
+            them (the file's vertex numbers) and their bones.
+    """
+    from ..metrics import self_intersections
+
+    v = rig.vertices
+    tris = rig.triangles
+    seg = layers.foot - v
+    p = layers.params
+    deepest = p[:, 2]
+    length = np.linalg.norm(seg, axis=1)
+    exits, inward = _segment_exits(rig, seg, deepest * length / exit_margin)
+    outward = ~inward
+    if outward.any():
+        # the nearest point of the bone lies outside the skin here (the segment points out of
+        # the body): such a vertex's layers go in along its inward normal instead, as deep as
+        # its bone is far
+        seg[outward] = -_vertex_normals(v, tris)[outward] * length[outward, None]
+        again, _ = _segment_exits(rig, seg, deepest * length / exit_margin)
+        exits[outward] = again[outward]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cap = np.where(np.isfinite(exits), exit_margin * exits / np.maximum(deepest * length, 1e-300), 1.0)
+    cap = np.clip(cap, 0.0, 1.0)
+    left_body = cap < 1.0
+    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    s = _ramp(cap, edges, ramp)
+    folded_any = np.zeros(rig.vertex_count, dtype=bool)
+    # pairs the skin itself has (a bind pose through itself) cannot be undone by the layers
+    skin_pairs = {tuple(pq) for pq in self_intersections(v, tris).tolist()}
+    fractions = np.array([p[:, 0], 0.5 * (p[:, 0] + p[:, 1]), p[:, 1], 0.5 * (p[:, 1] + p[:, 2]), p[:, 2]]) \
+        if _CHECK_BETWEEN else p.T
+    for _ in range(max_rounds):
+        pos = _layer_positions(v, seg, fractions * s[None])
+        bad = np.zeros(tris.shape[0], dtype=bool)
+        for x in pos:
+            bad[folded_triangles(v, x, tris)] = True
+        if not bad.any():  # no fold: the exact self-intersection check of the three layers
+            for x in pos[[0, 2, 4]] if _CHECK_BETWEEN else pos:
+                pairs = [pq for pq in self_intersections(x, tris).tolist() if tuple(pq) not in skin_pairs]
+                bad[np.asarray(pairs, dtype=np.int64).ravel()] = True
+        if not bad.any():
+            break
+        hit = np.zeros(rig.vertex_count, dtype=bool)
+        hit[tris[bad].ravel()] = True
+        ring = hit.copy()  # and their neighbours: the fold is between them
+        ring[edges[:, 0]] |= hit[edges[:, 1]]
+        ring[edges[:, 1]] |= hit[edges[:, 0]]
+        folded_any |= ring
+        s[ring] *= shrink
+    else:
+        hit = np.unique(tris[bad].ravel())
+        s[hit] = 0.0
+    weak = np.nonzero(s < min_scale)[0]
+    if weak.size:
+        file_ids = rig.file_vertex_ids(weak)
+        names = sorted({layers.bones.joint_names[b] for b in layers.bone[weak]})[:6]
+        raise RigError(
+            f"{where}: no positive layer depth fits at {weak.size} vertices (file vertices "
+            f"{_list(file_ids)}; bones {names}): the skin there folds over or leaves the body however thin "
+            "the layers are; check those vertices' weights and the bones' placement"
+        )
+    notes = []
+    if outward.any():
+        bones = np.unique(layers.bone[outward])
+        notes.append(f"{where}: {int(outward.sum())} vertices whose bone lies outside the skin go in along their normal "
+                     "instead (bones " + ", ".join(layers.bones.joint_names[b] for b in bones[:6]) + ")")
+    reduced = s < 1.0
+    if reduced.any():
+        for label, mask in (("the layer folded over or passed through itself", folded_any & reduced),
+                            ("the projection segment left the body", left_body & reduced & ~folded_any)):
+            if mask.any():
+                bones = np.unique(layers.bone[mask])
+                parts = []
+                for b in bones[np.argsort([s[mask & (layers.bone == b)].min() for b in bones])][:6]:
+                    sel = mask & (layers.bone == b)
+                    parts.append(f"{layers.bones.joint_names[b]} ({int(sel.sum())} vertices, depth down to "
+                                 f"{100 * s[sel].min():.0f} %)")
+                notes.append(f"{where}: layer depth reduced where {label}: " + ", ".join(parts))
+        ramped = reduced & ~folded_any & ~left_body
+        if ramped.any():
+            notes.append(f"{where}: {int(ramped.sum())} vertices around them ramp to the full depth")
+    params = p * s[:, None]
+    positions = np.empty_like(layers.positions)
+    positions[0] = v
+    for k in range(3):
+        positions[k + 1] = v + params[:, k, None] * seg
+    return Layers(positions=positions, foot=v + seg, bone=layers.bone, bone_t=layers.bone_t, params=params,
+                  bones=layers.bones, depth_scale=s, depth_notes=notes)
+
+
+def _list(idx, limit: int = 8) -> str:
+    idx = [int(i) for i in idx]
+    more = f", ... ({len(idx)} in all)" if len(idx) > limit else ""
+    return ", ".join(str(i) for i in idx[:limit]) + more
