@@ -145,16 +145,62 @@ def test_open_mesh_rejected_by_builder():
         SkinModelBuilder(rig).build()
 
 
-def test_joint_without_bone_length_is_named():
+def _flat(rig):
+    """The rig with a flat hierarchy: every joint a root, placed where it was (the same bind)."""
+    import dataclasses
+
+    world = rig.bind_world_transforms()
+    from scipy.spatial.transform import Rotation
+
+    sk = dataclasses.replace(rig.skeleton, parents=np.full(rig.joint_count, -1), rest_translation=world[:, :3, 3].copy(),
+                             rest_rotation=Rotation.from_matrix(world[:, :3, :3]).as_quat(),
+                             rest_scale=np.ones((rig.joint_count, 3)), root_transform=None)
+    return dataclasses.replace(rig, skeleton=sk)
+
+
+def test_bones_of_a_flat_hierarchy_follow_the_weighted_principal_axis():
+    # every joint hangs from the scene root (as in the WebXR hand): each bone comes from the
+    # vertices it drives, along their weighted principal axis (NumPy's SVD as the reference)
     from warpskin.preprocess.bones import bone_segments
 
-    rig = make_arm(rings=12, segments=10)
-    # a lone root joint that coincides with nothing: give it vertices and no children
-    rig.skeleton.parents[1] = -1
-    rig.skeleton.parents[2] = -1
-    rig.skeleton.root_transform[:] = np.eye(4)
-    rig.inverse_bind[:] = np.eye(4)  # every joint at the origin: no directions at all
-    with pytest.raises(RigError, match="joint 'shoulder' dominates vertices but has no bone length"):
+    rig = _flat(make_arm(rings=24, segments=16))
+    np.testing.assert_allclose(rig.bind_world_transforms(), make_arm(rings=24, segments=16).bind_world_transforms(), atol=1e-9)
+    bones = bone_segments(rig)
+    for j in range(rig.joint_count):
+        w = rig.dense_weights()[:, j]
+        sel = w > 0
+        c = (w[sel, None] * rig.vertices[sel]).sum(axis=0) / w[sel].sum()
+        _, _, vt = np.linalg.svd(np.sqrt(w[sel])[:, None] * (rig.vertices[sel] - c), full_matrices=False)
+        d = bones.end[j] - bones.start[j]
+        assert np.linalg.norm(d) > 0.02 * rig.size()
+        assert abs(d @ vt[0]) / np.linalg.norm(d) > 1 - 1e-9
+        # the segment's line passes through the weighted centre
+        off = (c - bones.start[j]) - ((c - bones.start[j]) @ vt[0]) * vt[0]
+        assert np.linalg.norm(off) < 1e-9 * rig.size()
+    SkinModelBuilder(rig).build()  # and the model builds on it
+
+
+def test_webxr_hand_with_a_flat_hierarchy_builds(assets):
+    from warpskin.io import load_rig
+
+    rig = load_rig(assets / "WebXRGenericHand" / "left.glb")
+    assert (rig.skeleton.parents == -1).all()  # the file's hierarchy is flat
+    b = SkinModelBuilder(rig).build()
+    assert _orientation_flips(rig, b.layers) == [0, 0, 0, 0]
+
+
+def test_joint_without_any_bone_direction_is_named():
+    from warpskin.preprocess.bones import bone_segments
+    from warpskin.rig import Rig, Skeleton
+
+    # two root joints at the origin; 'a' drives only two vertices: no line to follow
+    tet = np.array([[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.2, 1.0, 0.1], [0.1, 0.2, 1.0]])
+    tris = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    sk = Skeleton(joint_names=["a", "b"], parents=np.array([-1, -1]), rest_translation=np.zeros((2, 3)),
+                  rest_rotation=np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)), rest_scale=np.ones((2, 3)))
+    rig = Rig(name="tet", vertices=tet, triangles=tris, skeleton=sk, joint_indices=np.array([[0], [0], [1], [1]]),
+              joint_weights=np.ones((4, 1)), inverse_bind=np.tile(np.eye(4), (2, 1, 1)))
+    with pytest.raises(RigError, match="joint 'a' dominates vertices but neither the hierarchy nor its vertices"):
         bone_segments(rig)
 
 

@@ -149,6 +149,8 @@ def cmd_layers(args) -> int:
             f"{summary['mean_runs_per_region']:.2f} runs per region; {summary['subvolumes']} sub-volumes; "
             f"{summary['joint_constraints']} joint constraints"
         )
+        for note in summary["depth_notes"]:
+            print(note)
         print("build time: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in summary["timings_s"].items()))
     print(f"wrote {path}")
     return 0

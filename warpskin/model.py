@@ -235,6 +235,9 @@ class SkinModelBuilder:
             "mean_runs_per_region": float(self.runs.mean_runs_per_region),
             "joint_constraints": self.joint_constraints.count,
             "subvolumes": len(self.subvolumes.names) if self.subvolumes is not None else 0,
+            "depth_reduced_vertices": int((self.layers.depth_scale < 1.0).sum()),
+            "min_depth_scale": float(self.layers.depth_scale.min()),
+            "depth_notes": list(self.layers.depth_notes),
             "timings_s": dict(self.timings),
         }
         return out

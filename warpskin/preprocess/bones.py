@@ -7,6 +7,10 @@ weights of the mesh vertices."
 Bone ``j`` runs from joint ``j`` to its child (to the mean of its children where it has
 several). A leaf joint gets a short segment along its parent's direction: ``leaf_fraction`` of the parent
 bone, but at most half way to the farthest vertex it dominates, so the segment stays inside.
+A joint with neither (a root without children, as in a flat hierarchy where every joint hangs
+from the scene root, or a joint at the same place as its child and its parent) gets its
+segment from the geometry it drives: the principal axis of its weighted vertices, through
+their weighted centre, over the middle 80 % of their extent along it.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import numpy as np
 
 from ..rig import Rig, RigError
 
-__all__ = ["Bones", "bone_segments", "dominant_bone", "closest_point_on_segments"]
+__all__ = ["Bones", "bone_segments", "dominant_bone", "closest_point_on_segments", "weighted_principal_axis"]
 
 
 @dataclass
@@ -57,6 +61,33 @@ def closest_point_on_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tu
     return a + t[:, None] * d, t
 
 
+def weighted_principal_axis(rig: Rig, joint: int, *, extent: tuple[float, float] = (0.1, 0.9)):
+    """The segment of a joint from the geometry it drives: the principal axis of the vertices it
+    weights (weighted by its weights), through their weighted centre, from the ``extent[0]``
+    to the ``extent[1]`` weighted quantile of their positions along it. ``None`` where the
+    joint weights fewer than 3 vertices or they do not spread along a line."""
+    w = np.zeros(rig.vertex_count)
+    np.add.at(w, np.nonzero(rig.joint_indices == joint)[0], rig.joint_weights[rig.joint_indices == joint])
+    sel = w > 0
+    if sel.sum() < 3:
+        return None
+    p, ww = rig.vertices[sel], w[sel]
+    c = (ww[:, None] * p).sum(axis=0) / ww.sum()
+    cov = (ww[:, None, None] * np.einsum("vi,vj->vij", p - c, p - c)).sum(axis=0) / ww.sum()
+    evals, evecs = np.linalg.eigh(cov)
+    if evals[-1] <= 1e-12 * max(rig.size(), 1e-12) ** 2:
+        return None
+    a = evecs[:, -1]
+    t = (p - c) @ a
+    order = np.argsort(t)
+    cw = np.cumsum(ww[order]) / ww.sum()
+    lo = t[order][np.searchsorted(cw, extent[0])]
+    hi = t[order][min(np.searchsorted(cw, extent[1]), len(t) - 1)]
+    if hi - lo <= 0:
+        return None
+    return c + lo * a, c + hi * a
+
+
 def bone_segments(rig: Rig, *, leaf_fraction: float = 0.5, min_length_fraction: float = 1e-3) -> Bones:
     """Center line of every bone in rest space (the space of ``rig.vertices``).
 
@@ -90,12 +121,17 @@ def bone_segments(rig: Rig, *, leaf_fraction: float = 0.5, min_length_fraction: 
             if n > min_length_fraction * scale:
                 direction, parent_len = d / n, n
         if direction is None:
-            if np.any(owner == k):
-                raise RigError(
-                    f"{rig.source or rig.name}: joint {names[k]!r} dominates vertices but has no bone length "
-                    "(it coincides with its child and has no parent direction); move the joint or its child"
-                )
-            end[k] = start[k]
+            axis = weighted_principal_axis(rig, k)
+            if axis is None:
+                if np.any(owner == k):
+                    raise RigError(
+                        f"{rig.source or rig.name}: joint {names[k]!r} dominates vertices but neither the hierarchy "
+                        "nor its vertices give it a bone direction (they lie at one point); move the joint or "
+                        "re-weight those vertices"
+                    )
+                end[k] = start[k]
+                continue
+            start[k], end[k] = axis
             continue
         # stay inside the flesh: half way to the farthest vertex the joint dominates, so that
         # no vertex lies on its own center line (it would get a zero-height projection segment)
