@@ -68,11 +68,18 @@ def test_weights_off_by_rounding_are_normalised_with_warning():
     assert np.allclose(rig.joint_weights.sum(1), 1.0)
 
 
-def test_weights_with_varying_sums_are_an_error():
+def test_weights_with_varying_sums_are_normalised_per_vertex_with_one_warning():
+    # as three.js and Blender do: each vertex's weights divided by their sum; one warning that
+    # counts the vertices and names the worst (RobotExpressive's hands sum to up to 1.755)
     jw = np.tile([0.75, 0.25], (8, 1))
     jw[4] = [0.3, 0.2]
-    with pytest.raises(RigError, match=r"do not sum to one.*4 \(sum 0.5\)"):
-        _rig(joint_weights=jw)
+    jw[6] = [1.2, 0.555]
+    with pytest.warns(RigWarning) as record:
+        rig = _rig(joint_weights=jw)
+    messages = [str(w.message) for w in record if "normalised per vertex" in str(w.message)]
+    assert len(messages) == 1 and "weights of 2 vertices do not sum to one" in messages[0]
+    assert "file vertex 6, sums to 1.755" in messages[0]  # the farthest from one
+    np.testing.assert_allclose(rig.joint_weights, jw / jw.sum(axis=1, keepdims=True))
 
 
 def test_negative_weight_is_an_error():
@@ -203,3 +210,20 @@ def test_unknown_clip_lists_clips():
     rig = _rig()
     with pytest.raises(RigError, match=r"no clip named 'walk' \(clips: none\)"):
         rig.clip("walk")
+
+
+@pytest.mark.parametrize("factor, guess", [(100.0, "0.01"), (0.01, "100"), (1.0, None)])
+def test_a_body_outside_5_cm_to_20_m_warns_with_the_likely_unit_scale(factor, guess):
+    import warnings as _w
+
+    base = _rig()
+    extent = float((base.vertices.max(axis=0) - base.vertices.min(axis=0)).max())
+    scale = factor * 1.7 / extent  # a 1.7 m body, then in centimetres or hectometres
+    with _w.catch_warnings(record=True) as record:
+        _w.simplefilter("always")
+        _rig(points=_box()[0] * scale)
+    hits = [str(w.message) for w in record if "outside 5 cm - 20 m" in str(w.message)]
+    if guess is None:
+        assert hits == []
+    else:
+        assert len(hits) == 1 and f"--unit-scale {guess}" in hits[0]

@@ -564,11 +564,11 @@ class Rig:
         """Check the rig and repair what is safe to repair.
 
         Errors (raised as :class:`RigError` unless ``raise_on_error=False``): NaN/inf in
-        vertices, weights or matrices; a vertex without weight; negative weights; weights whose
-        sums differ by more than rounding and not by one constant factor; joint indices out of
-        range; mismatched array sizes; cycles in the hierarchy (raised when the skeleton is
-        built). Repaired with a warning: weight sums off by rounding or by a constant factor
-        (normalised). Reported: degenerate triangles, and whether the surface is closed and
+        vertices, weights or matrices; a vertex without weight; negative weights; joint indices
+        out of range; mismatched array sizes; cycles in the hierarchy (raised when the skeleton
+        is built). Repaired with one warning: weight sums that are not one (normalised per
+        vertex, as three.js and Blender do; the warning counts the vertices and names the
+        worst). Reported: degenerate triangles, and whether the surface is closed and
         manifold (:meth:`require_closed` raises if not; LBS does not need it).
         """
         rep = ValidationReport(warnings=list(self.report.warnings) if self.report else [])
@@ -648,14 +648,25 @@ class Rig:
                     c = np.median(sums)
                     if np.all(np.abs(sums - c) <= 1e-3 * c):
                         rep.warnings.append(f"weights sum to {c:.6g} instead of 1 on every vertex; normalised")
-                    else:
-                        worst = np.argsort(-off)[:8]
-                        listing = ", ".join(f"{int(k)} (sum {sums[k]:.4g})" for k in worst)
-                        errors.append(
-                            f"weights do not sum to one and are not off by one common factor: vertices {listing}"
+                    else:  # normalised per vertex, as three.js and Blender do
+                        n_off = int((off > 1e-3).sum())
+                        k = int(np.argmax(off))
+                        fid = int(self.file_vertex_ids([k])[0]) if self.weld_map is not None else k
+                        rep.warnings.append(
+                            f"the weights of {n_off} vertices do not sum to one (the worst, file vertex {fid}, sums to "
+                            f"{sums[k]:.4g}); normalised per vertex"
                         )
                 if not errors:
                     self.joint_weights = jw / sums[:, None]
+        # scale: a body outside 5 cm - 20 m was most likely authored in other units
+        if not errors and v.shape[0] and np.all(np.isfinite(v)):
+            extent = float((v.max(axis=0) - v.min(axis=0)).max())
+            if extent > 0 and not (0.05 <= extent <= 20.0):
+                guess = 10.0 ** round(np.log10(1.7 / extent))
+                rep.warnings.append(
+                    f"the character is {extent:.3g} m across, outside 5 cm - 20 m: if the file is not in metres, "
+                    f"pass --unit-scale {guess:g} (scene: [rig] unit_scale = {guess:g})"
+                )
         # topology
         t = self.triangles
         if t.size:
