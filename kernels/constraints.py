@@ -26,3 +26,38 @@ def project_joint_lower_bound(x: wp.vec3, centre: wp.vec3, rest_distance: float)
     if length < rest_distance and length > 1.0e-12:
         return centre + d * (rest_distance / length)
     return x
+
+
+# --------------------------------------------------------------------------------------------
+# Tether (a maximum-distance constraint to the animation, as PhysX's cloth "max distance"):
+#   t_p = sum_k w_ik M_{j_ik} x0_p          (LBS of particle p's rest position, i = p mod V)
+#   |x_p - t_p| <= r_i,  x_p <- t_p + (x_p - t_p) r_i / |x_p - t_p|   where violated.
+# Applied once per step after the constraint loops and before the velocity update, so the
+# velocity of a clamped particle is the clamped motion (no energy is added).
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def tether_kernel(
+    particle_q0: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    tether_radius: wp.array(dtype=wp.float32),
+    vertex_count: int,
+    # outputs
+    x: wp.array(dtype=wp.vec3),
+    clamped: wp.array(dtype=wp.int32),
+):
+    p = wp.tid()
+    i = p % vertex_count
+    x0 = particle_q0[p]
+    t = wp.vec3(0.0)
+    for k in range(joint_indices.shape[1]):
+        w = joint_weights[i, k]
+        if w != 0.0:
+            t += w * wp.transform_point(skin_matrices[joint_indices[i, k]], x0)
+    d = x[p] - t
+    r = tether_radius[i]
+    dl = wp.length(d)
+    if dl > r:
+        x[p] = t + d * (r / dl)
+        wp.atomic_add(clamped, 0, 1)

@@ -177,7 +177,7 @@ def cmd_simulate(args) -> int:
     result = simulate(
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
-        comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll,
+        comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
     )
     s = result.summary
     line = (
@@ -341,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
     s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
     s.add_argument("--no-collisions", action="store_true", help="switch skin self-collision off")
+    s.add_argument("--allow-unstable", action="store_true",
+                   help="go on (with one warning) when the skin leaves its plausible range instead of stopping "
+                        "with exit 3 ([solver] max_offset, max_volume_error)")
     s.add_argument("--preroll", type=float, default=None, metavar="SECONDS",
                    help="simulate this long from the bind pose into the first frame's pose before writing "
                         "(scene: [animation] preroll; default 0)")

@@ -312,6 +312,9 @@ class SkinModel:
             self.coupling_stiffness = float(c.stiffness)
             jc = b.joint_constraints
             self.joint_rest = v3(jc.joint_rest)
+            # tissue depth of every vertex at rest (skin to bone layer) [m], and the body's size
+            self.vertex_tissue_depth = f32(np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1))
+            self.diagonal = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
             self.joint_offsets = i32(lay["joint_offsets"])
             self.joint_ids = i32(lay["joint_ids"])
             self.joint_rest_distance = f32(lay["joint_rest_distance"])

@@ -61,7 +61,7 @@ _SCHEMA: dict[str, set[str]] = {
     "subvolumes": {"enabled", "planes"},
     # Algorithm 1 settings
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
-               "fast_summation", "volume_stiffness"},
+               "fast_summation", "volume_stiffness", "tether", "tether_floor", "max_offset", "max_volume_error"},
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
                   "fold_cos", "rebuild_spread"},
@@ -155,7 +155,7 @@ class Scene:
         for key in ("iterations", "volume_iterations", "rotation_iterations"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], int)):
                 raise SceneError(f"{where}: [solver] {key} must be an integer, got {table[key]!r}")
-        for key in ("dt", "damping", "volume_stiffness"):
+        for key in ("dt", "damping", "volume_stiffness", "tether", "tether_floor", "max_offset", "max_volume_error"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [solver] {key} must be a number, got {table[key]!r}")
         if "fast_summation" in table and not isinstance(table["fast_summation"], bool):

@@ -14,9 +14,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import warp as wp
 
 from .errors import InputError, SceneError, SimulationError
+from .kernels import constraints as k_con
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
@@ -38,6 +40,16 @@ class SolverParams:
         damping: Velocity damping rate [1/s]: ``v *= exp(-damping dt)`` per step, >= 0.
         fast_summation: Region sums by prefix scans along paths (True) or direct gather (False).
         volume_stiffness: Stiffness of the volume constraints in [0, 1].
+        tether: Every particle stays within ``tether x its vertex's tissue depth + tether_floor
+            x the body's diagonal`` of its LBS target (a maximum-distance constraint, applied
+            once per step before the velocity update), so that no part swings far from the
+            animation and thin tissue (head, hands, feet) wobbles less than the bulk; 0 turns
+            it off. Tissue depth: the distance from the skin vertex to its bone layer at rest.
+        tether_floor: See ``tether``; a fraction of the rest bounding-box diagonal.
+        max_offset: A run stops (SimulationError) at the first frame whose skin is farther
+            than this fraction of the body's diagonal from LBS.
+        max_volume_error: A run stops at the first frame whose volume (whole or any
+            sub-volume) is off its rest volume by more than this fraction.
     """
 
     iterations: int = 20
@@ -48,6 +60,10 @@ class SolverParams:
     damping: float = 2.0
     fast_summation: bool = False
     volume_stiffness: float = 1.0
+    tether: float = 1.5
+    tether_floor: float = 0.01
+    max_offset: float = 0.1
+    max_volume_error: float = 0.1
 
     def check(self, where: str = "solver") -> None:
         def integer(name, lo):
@@ -66,6 +82,10 @@ class SolverParams:
             raise SceneError(f"{where}: damping must be a rate >= 0 [1/s], got {self.damping!r}")
         if not (0.0 <= self.volume_stiffness <= 1.0):
             raise SceneError(f"{where}: volume_stiffness must be in [0, 1], got {self.volume_stiffness!r}")
+        for name in ("tether", "tether_floor", "max_offset", "max_volume_error"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+                raise SceneError(f"{where}: {name} must be a number >= 0, got {value!r}")
 
 
 class SkinSolver:
@@ -109,6 +129,14 @@ class SkinSolver:
             self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
             # largest position correction of each elasticity iteration of the last step [m]
             self.residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
+            # the tether: radius per vertex [m], and how many particles it clamped (last steps)
+            p = self.params
+            self.tether_radius = None
+            if p.tether > 0:
+                depth = model.vertex_tissue_depth.numpy().astype(np.float64)
+                radius = p.tether * depth + p.tether_floor * model.diagonal
+                self.tether_radius = wp.array(radius.astype(np.float32), dtype=wp.float32)
+            self.tether_clamped = wp.zeros(1, dtype=wp.int32)
             # fast summation buffers
             self.prefix_mx = wp.zeros(n, dtype=wp.vec3d)
             self.prefix_mxx = wp.zeros(n, dtype=wp.mat33d)
@@ -261,6 +289,12 @@ class SkinSolver:
                 col.volume_weights(contacts, self.volume_weight_scale)
             self.volume.project(state_out.x, m.particle_inv_mass, self.volume_weight_scale, self.volume_centres,
                                 p.volume_iterations, p.volume_stiffness)
+        # the tether: no particle farther from its LBS target than its radius
+        if self.tether_radius is not None:
+            wp.launch(k_con.tether_kernel, dim=n,
+                      inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
+                              self.tether_radius, m.vertex_count],
+                      outputs=[state_out.x, self.tether_clamped], device=dev)
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],

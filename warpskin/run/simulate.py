@@ -5,12 +5,14 @@ optional report."""
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import SimulationError
 from ..io.usd_export import UsdSkinWriter
 from ..metrics import self_intersections, signed_volume
 from ..model import SkinModelBuilder
@@ -49,15 +51,20 @@ class SimulationResult:
 class _Measurements:
     """Per-frame measurements of the physical skin against LBS (host, after the frame)."""
 
-    def __init__(self, builder, stepper: PhysicsStepper, plan: FramePlan, check_intersections: bool) -> None:
+    def __init__(self, builder, stepper: PhysicsStepper, plan: FramePlan, check_intersections: bool,
+                 params: SolverParams, allow_unstable: bool = False) -> None:
         self.b, self.st, self.plan = builder, stepper, plan
         self.check_intersections = check_intersections
+        self.params, self.allow_unstable, self.warned = params, allow_unstable, False
+        v = builder.rig.vertices
+        self.diagonal = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+        self._pending: dict = {}
         rig = builder.rig
         subs = builder.subvolumes
         self.m: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
                                          "max_offset_from_lbs", "step_ms", "residuals", "contacts_point_triangle",
                                          "contacts_edge_edge", "constraints_active", "intersecting_pairs",
-                                         "intersecting_pairs_lbs")}
+                                         "intersecting_pairs_lbs", "tether_clamped")}
         self.m["volume_rest"] = signed_volume(rig.vertices, rig.triangles)
         self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
         self.lbs: np.ndarray | None = None
@@ -66,25 +73,75 @@ class _Measurements:
         rig = self.b.rig
         return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, self.st.frame_poses[i])
 
-    def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
-        m, b, st = self.m, self.b, self.st
+    def evaluate(self, i: int, skin: np.ndarray) -> np.ndarray:
+        """Volumes and offset of frame ``i`` against LBS, kept for :meth:`__call__`; raises
+        :class:`SimulationError` where the skin left its plausible range (unless
+        ``allow_unstable``, then one warning). Returns the frame's LBS skin."""
+        b, st = self.b, self.st
         subs, tris = b.subvolumes, b.rig.triangles
-        skin = points["skin"]
-        lbs = points.get("lbs")
-        if lbs is None:
-            lbs = self.lbs_points(i)
-        vel = st.velocities()
-        m["time"].append(self.plan.times[i])
-        m["volume"].append(signed_volume(skin, tris))
-        m["volume_lbs"].append(signed_volume(lbs, tris))
+        lbs = self.lbs_points(i)
+        e = {"lbs": lbs, "volume": signed_volume(skin, tris), "volume_lbs": signed_volume(lbs, tris)}
         if subs is not None:
             centres = subs.center_positions(st.frame_poses[i])
-            m["subvolume"].append(subs.volumes(skin.astype(np.float64), centres).tolist())
-            m["subvolume_lbs"].append(subs.volumes(lbs, centres).tolist())
+            e["subvolume"] = subs.volumes(skin.astype(np.float64), centres)
+            e["subvolume_lbs"] = subs.volumes(lbs, centres)
+        d = np.linalg.norm(skin - lbs, axis=1)
+        e["offset"] = float(d.max())
+        self._pending = e
+        problem = self._out_of_range(i, skin, e, d)
+        if problem is not None:
+            if not self.allow_unstable:
+                raise SimulationError(problem + "; lower dt, raise stiffness or iterations, or pass --allow-unstable")
+            if not self.warned:
+                warnings.warn(problem + "; continuing (--allow-unstable)", RuntimeWarning, stacklevel=2)
+                self.warned = True
+        return lbs
+
+    def _out_of_range(self, i: int, skin: np.ndarray, e: dict, d: np.ndarray) -> str | None:
+        p, b = self.params, self.b
+        f = self.plan.frames[i]
+        diag = self.diagonal
+        if e["offset"] > p.max_offset * diag:
+            k = int(np.argmax(d))
+            bone = b.layers.bones.joint_names[b.layers.bone[k]]
+            return (f"frame {f}: the skin left its plausible range: file vertex {int(b.rig.file_vertex_ids([k])[0])} "
+                    f"(bone {bone!r}) is {e['offset']:.3g} m from LBS, {100 * e['offset'] / diag:.1f} % of the body's "
+                    f"{diag:.3g} m diagonal (max_offset {p.max_offset:g})")
+        v0 = self.m["volume_rest"]
+        err, err_lbs = abs(e["volume"] / v0 - 1.0), abs(e["volume_lbs"] / v0 - 1.0)
+        if err > max(p.max_volume_error, 2.0 * err_lbs):
+            return (f"frame {f}: the skin left its plausible range: its volume is off by {100 * err:.1f} % (LBS "
+                    f"{100 * err_lbs:.1f} %, max_volume_error {100 * p.max_volume_error:g} %)")
+        if "subvolume" in e:
+            rest = b.subvolumes.rest_volume
+            err_s = np.abs(e["subvolume"] / rest - 1.0)
+            err_s_lbs = np.abs(e["subvolume_lbs"] / rest - 1.0)
+            over = err_s > np.maximum(p.max_volume_error, 2.0 * err_s_lbs)
+            if over.any():
+                k = int(np.argmax(np.where(over, err_s, -1.0)))
+                return (f"frame {f}: the skin left its plausible range: sub-volume {b.subvolumes.names[k]!r} is off by "
+                        f"{100 * err_s[k]:.1f} % (LBS {100 * err_s_lbs[k]:.1f} %, max_volume_error "
+                        f"{100 * p.max_volume_error:g} %)")
+        return None
+
+    def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
+        m, b, st = self.m, self.b, self.st
+        tris = b.rig.triangles
+        skin = points["skin"]
+        e = self._pending
+        lbs = e["lbs"]
+        vel = st.velocities()
+        m["time"].append(self.plan.times[i])
+        m["volume"].append(e["volume"])
+        m["volume_lbs"].append(e["volume_lbs"])
+        if "subvolume" in e:
+            m["subvolume"].append(e["subvolume"].tolist())
+            m["subvolume_lbs"].append(e["subvolume_lbs"].tolist())
         m["kinetic_energy"].append(float(0.5 * np.sum(b.masses * np.einsum("ij,ij->i", vel, vel))))
-        m["max_offset_from_lbs"].append(float(np.linalg.norm(skin - lbs, axis=1).max()))
+        m["max_offset_from_lbs"].append(e["offset"])
         m["step_ms"].append(step_ms)
         m["residuals"].append(st.solver.residuals.numpy().tolist() if i > 0 else [])
+        m["tether_clamped"].append(int(st.solver.tether_clamped.numpy()[0]))
         c = st.contacts
         if c is not None:
             counts = c.counts.numpy()
@@ -114,6 +171,7 @@ def simulate(
     builder: SkinModelBuilder | None = None,
     activation: Callable | None = None,
     preroll: float | None = None,
+    allow_unstable: bool = False,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -134,9 +192,15 @@ def simulate(
     A first pose whose LBS skin already passes through itself is then reached by collision
     instead of started from; nothing of the pre-roll is written.
 
+    Every frame is checked against its plausible range before it is written: the skin within
+    ``max_offset`` x the body's diagonal of LBS, the whole and every sub-volume within
+    ``max_volume_error`` of the rest volume (or twice LBS's own error, where LBS is worse).
+    ``allow_unstable`` turns a violation into one warning and goes on.
+
     Raises:
-        SimulationError: a particle became NaN; the message names the frame, particle, layer
-            and vertex; the USD file keeps the frames before it (valid, closed).
+        SimulationError: a particle became NaN, or the skin left its plausible range; the
+            message names the frame and the particle, vertex (the file's number), bone or
+            sub-volume; the USD file keeps the frames before it (valid, closed).
     """
     import time
 
@@ -155,7 +219,7 @@ def simulate(
         check_intersections = report_dir is not None
     stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
                              activation=activation, label="simulate", name=scene.name)
-    measures = _Measurements(builder, stepper, plan, check_intersections)
+    measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
     tris = rig.triangles
     meshes = [("skin", tris, rig.vertices, {"color": _SKIN_COLOR})]
     if with_lbs:
@@ -178,8 +242,9 @@ def simulate(
         def frame(self, i):
             pts = stepper.frame(i)
             out = {"skin": pts["skin"]}
+            lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
             if with_lbs:
-                out["lbs"] = measures.lbs_points(i)
+                out["lbs"] = lbs
             if with_layers:
                 for k in range(1, 4):
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
@@ -218,6 +283,10 @@ def simulate(
         "preroll_s": stepper.preroll,
         "preroll_steps": stepper.preroll_steps,
         "bvh_rebuilds": col.rebuilds if col is not None else 0,
+        "tether": params.tether,
+        "tether_clamped_particle_steps": int(stepper.solver.tether_clamped.numpy()[0]),
+        "max_offset_from_lbs_m": float(max(metrics["max_offset_from_lbs"])) if metrics["max_offset_from_lbs"] else 0.0,
+        "body_diagonal_m": measures.diagonal,
     }
     if check_intersections and metrics["intersecting_pairs"]:
         summary["max_intersecting_pairs"] = max(metrics["intersecting_pairs"])

@@ -1,0 +1,128 @@
+"""Bounded, stable dynamics: the tether to the animation, and runs that leave their plausible
+range stop with the frame named (exit 3) instead of writing an explosion with exit 0."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from pxr import Usd, UsdGeom
+
+from oracles import coarse_arm, lbs
+from warpskin.cli import main
+from warpskin.errors import SimulationError
+from warpskin.model import SkinModelBuilder
+from warpskin.run import initial_state, simulate
+from warpskin.scene import load_scene
+from warpskin.solver import SkinSolver, SolverParams
+
+COARSE = ("[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n{params}"
+          "[animation]\nclip = 'flex'\nfps = 30\nframes = [0, 40]\n[solver]\niterations = 8\n{solver}{extra}")
+
+
+def _scene(tmp_path, name, params="", solver="", extra=""):
+    p = tmp_path / f"{name}.toml"
+    p.write_text(COARSE.format(params=params, solver=solver, extra=extra))
+    return load_scene(p)
+
+
+def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
+    # the tether kernel alone: particles thrown far from the animation come back exactly onto
+    # the sphere of their radius around their LBS target (NumPy LBS of the rest layers as the
+    # reference), the others do not move
+    from warpskin.kernels import constraints as k
+
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig)
+    model = builder.finalize(device)
+    solver = SkinSolver(model, SolverParams(tether=1.5, tether_floor=0.01))
+    mats = rig.skinning_matrices("flex", 1.0)
+    ctrl = model.control()
+    ctrl.set_pose(mats)
+    target = lbs(builder.layers.flat(), np.tile(rig.joint_indices, (4, 1)), np.tile(rig.joint_weights, (4, 1)), mats)
+    rng = np.random.default_rng(3)
+    x = target + rng.normal(scale=1e-3, size=target.shape)
+    far = rng.choice(model.particle_count, 40, replace=False)
+    x[far] += rng.normal(size=(40, 3))  # about a metre away
+    xw = wp.array(x.astype(np.float32), dtype=wp.vec3, device=model.device)
+    clamped = wp.zeros(1, dtype=wp.int32, device=model.device)
+    wp.launch(k.tether_kernel, dim=model.particle_count,
+              inputs=[model.particle_q0, model.coupling_joint_indices, model.coupling_joint_weights, ctrl.skin_matrices,
+                      solver.tether_radius, model.vertex_count], outputs=[xw, clamped], device=model.device)
+    out = xw.numpy().astype(np.float64)
+    depth = np.linalg.norm(builder.layers.positions[3] - builder.layers.positions[0], axis=1)
+    r4 = np.tile(1.5 * depth + 0.01 * model.diagonal, 4)
+    dist = np.linalg.norm(out - target, axis=1)
+    np.testing.assert_allclose(dist[far], r4[far], rtol=1e-4)  # on the sphere
+    np.testing.assert_allclose((out - target)[far] / dist[far, None],
+                               (x - target)[far] / np.linalg.norm(x - target, axis=1)[far, None], atol=1e-5)  # radially
+    near = np.setdiff1d(np.arange(model.particle_count), far)
+    np.testing.assert_array_equal(out[near], x[near].astype(np.float32))
+    assert int(clamped.numpy()[0]) == 40
+
+
+def test_after_a_step_every_particle_is_within_its_tether(device):
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig)
+    model = builder.finalize(device)
+    solver = SkinSolver(model, SolverParams(iterations=2))
+    mats = rig.skinning_matrices("flex", 1.0)
+    ctrl = model.control()
+    ctrl.set_pose(mats)
+    a, b = model.state(), model.state()
+    initial_state(builder, a, mats)
+    a.v.assign(np.random.default_rng(1).normal(scale=30.0, size=(model.particle_count, 3)).astype(np.float32))  # m/s
+    solver.step(a, b, ctrl, None, 0.005)
+    target = lbs(builder.layers.flat(), np.tile(rig.joint_indices, (4, 1)), np.tile(rig.joint_weights, (4, 1)), mats)
+    dist = np.linalg.norm(b.x.numpy() - target, axis=1)
+    assert np.all(dist <= solver.tether_radius.numpy()[np.arange(model.particle_count) % model.vertex_count] * 1.0001)
+    assert int(solver.tether_clamped.numpy()[0]) > 0
+
+
+@pytest.mark.parametrize("name, params, solver, extra, cli", [
+    ("dt", "", "", "", ["--dt", "0.02"]),
+    ("stiffness", "", "", "[layers]\nstiffness = [0.01, 0.01, 0.01, 0.01]\n", []),
+    ("gravity", "", "gravity = [0.0, -1000.0, 0.0]\n", "", []),
+    ("fast_flex", "flex_time = 0.02\nhold_time = 1.0\n", "", "", []),
+])
+def test_a_setting_a_user_may_pick_ends_bounded_or_stops_with_exit_3(tmp_path, capsys, name, params, solver, extra, cli):
+    # each ends with the skin within 10 % of the body's diagonal of LBS in every written frame,
+    # or stops with exit 3 naming the frame, the frames before it kept; never an explosion
+    # written with exit 0
+    scene_path = _scene(tmp_path, name, params, solver, extra).source
+    out = tmp_path / f"{name}.usdc"
+    code = main(["simulate", str(scene_path), "-o", str(out), "--lbs", "--quiet"] + cli)
+    err = capsys.readouterr().err
+    assert code in (0, 3), err
+    stage = Usd.Stage.Open(str(out))
+    skin = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    ref = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr()
+    times = skin.GetTimeSamples()
+    rig = coarse_arm()
+    diag = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
+    worst = max(float(np.linalg.norm(np.array(skin.Get(t)) - np.array(ref.Get(t)), axis=1).max()) for t in times)
+    print(f"{name}: exit {code}, {len(times)} frames written, worst offset {100 * worst / diag:.1f} % of the diagonal")
+    assert worst <= 0.1 * diag
+    if code == 3:
+        assert "simulation failed: frame " in err and "plausible range" in err
+        stopped = int(err.split("simulation failed: frame ")[1].split(":")[0])
+        assert times == [float(f) for f in range(stopped)]
+    else:
+        assert len(times) == 41
+
+
+def test_allow_unstable_goes_on_with_one_warning(tmp_path):
+    scene = _scene(tmp_path, "dt", solver="dt = 0.02\nmax_offset = 0.001\n")
+    with pytest.raises(SimulationError, match=r"frame \d+: the skin left its plausible range"):
+        simulate(scene, tmp_path / "a.usdc", progress=False, frames=(0, 6))
+    with pytest.warns(RuntimeWarning, match="continuing \\(--allow-unstable\\)") as record:
+        result = simulate(scene, tmp_path / "b.usdc", progress=False, frames=(0, 6), allow_unstable=True)
+    assert len(result.frames) == 7
+    assert sum("plausible range" in str(w.message) for w in record) == 1
+
+
+def test_the_arm_is_never_tethered(tmp_path):
+    # the physics stays alive: on the shipped arm's flex (frames 0-60, forearm pressing) the
+    # tether never acts, so the contact bulge and the jiggle are the solver's alone
+    result = simulate(load_scene("arm"), tmp_path / "arm.usdc", progress=False, frames=(0, 20))
+    assert result.summary["tether_clamped_particle_steps"] == 0
