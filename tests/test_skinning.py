@@ -159,3 +159,31 @@ def test_skinning_matrices_from_bind_interpolate_the_joints():
     np.testing.assert_allclose(half[0], np.eye(4), atol=1e-12)  # the shoulder does not move
     with pytest.raises(Exception, match=r"u must be in \[0, 1\]"):
         rig.skinning_matrices_from_bind(clip, 1.5, 1.5)
+
+
+def test_preroll_keeps_the_root_where_the_first_frame_puts_it(assets):
+    # CesiumMan is bound Z-up and walks Y-up: interpolating the root too turned the whole body
+    # 90 degrees during the pre-roll (its head swung 137 mm from LBS). The root joints keep the
+    # first frame's placement for every u; the joints below them move from bind to pose
+    from warpskin.io import load_rig
+
+    rig = load_rig(assets / "CesiumMan" / "CesiumMan.glb")
+    clip = rig.clip()
+    t = clip.start
+    roots = np.nonzero(rig.skeleton.parents < 0)[0]
+    target = rig.skinning_matrices(clip, t)
+    for u in np.linspace(0.0, 1.0, 7):
+        m = rig.skinning_matrices_from_bind(clip, t, float(u))
+        np.testing.assert_allclose(m[roots], target[roots], atol=1e-9)
+        world = m @ rig.bind_world_transforms()  # joint world transforms
+        np.testing.assert_allclose(world[roots], rig.joint_world_transforms(clip, t)[roots], atol=1e-9)
+    np.testing.assert_allclose(rig.skinning_matrices_from_bind(clip, t, 1.0), target, atol=1e-9)
+    # at u = 0 the body is the bind pose moved rigidly to the root's placement
+    start = rig.skinning_matrices_from_bind(clip, t, 0.0)
+    r = start[:, :3, :3]
+    np.testing.assert_allclose(r, np.broadcast_to(r[roots[0]], r.shape), atol=1e-9)
+    # (rotations to the float32 precision of the file's inverse bind matrices)
+    np.testing.assert_allclose(np.einsum("jik,jil->jkl", r, r), np.broadcast_to(np.eye(3), r.shape), atol=2e-6)
+    # the old interpolation (keep_root=False) starts from the mesh as modelled
+    np.testing.assert_allclose(rig.skinning_matrices_from_bind(clip, t, 0.0, keep_root=False),
+                               np.tile(np.eye(4), (rig.joint_count, 1, 1)), atol=1e-9)

@@ -751,11 +751,17 @@ class Rig:
         """``G_j(t) @ inverse_bind[j]`` for every joint, ``[J, 4, 4]``."""
         return self.joint_world_transforms(clip, t) @ self.inverse_bind
 
-    def skinning_matrices_from_bind(self, clip: Clip | str | None, t: float, u: float) -> np.ndarray:
+    def skinning_matrices_from_bind(self, clip: Clip | str | None, t: float, u: float, *,
+                                    keep_root: bool = True) -> np.ndarray:
         """Skinning matrices ``[J, 4, 4]`` of the pose ``u`` of the way from the bind pose
-        (``u = 0``: identities, the mesh as modelled) to the clip's pose at ``t`` (``u = 1``):
-        every joint's local translation and scale interpolated, its rotation slerped, then
-        forward kinematics, so bones stay connected all the way (a pre-roll into a pose)."""
+        (``u = 0``) to the clip's pose at ``t`` (``u = 1``): every joint's local translation
+        and scale interpolated, its rotation slerped, then forward kinematics, so bones stay
+        connected all the way (a pre-roll into a pose).
+
+        With ``keep_root`` (the default) the root joints take their placement at ``t``
+        throughout and only the joints below them move: the bind pose starts where the first
+        frame puts the body (no global turn, as from CesiumMan's Z-up bind pose to its Y-up
+        walk). Without it, ``u = 0`` is the mesh as modelled (identities)."""
         if not (0.0 <= u <= 1.0):
             raise RigError(f"blend factor u must be in [0, 1], got {u!r}")
         c = clip if isinstance(clip, Clip) else self.clip(clip)
@@ -764,6 +770,9 @@ class Rig:
         parent_world = np.stack([sk.root_transform[j] if p < 0 else bind[p] for j, p in enumerate(sk.parents)])
         t0, r0, s0 = decompose_trs(np.linalg.solve(parent_world, bind))
         t1, r1, s1 = c.sample_local_trs(sk, t)
+        if keep_root:
+            roots = sk.parents < 0
+            t0[roots], r0[roots], s0[roots] = t1[roots], r1[roots], s1[roots]
         local = compose_trs(t0 + u * (t1 - t0), quat_slerp(r0, r1, u), s0 + u * (s1 - s0))
         return sk.world_from_local(local) @ self.inverse_bind
 

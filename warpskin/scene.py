@@ -46,6 +46,10 @@ __all__ = ["Scene", "SceneError", "load_scene", "resolve_scene", "is_rig_file", 
            "GENERATORS"]
 
 
+#: Seconds of pre-roll from the bind pose for a rig from a file (a procedural rig starts at rest
+#: in its first pose): the first frame's LBS pose often passes the skin through itself.
+FILE_RIG_PREROLL = 0.5
+
 GENERATORS = {
     "arm": "warpskin.scenes.arm:make_arm",
     "popping_arm": "warpskin.scenes.popping_arm:make_popping_arm",
@@ -124,7 +128,7 @@ class Scene:
             spec["mesh"] = mesh
         if unit_scale:
             spec["unit_scale"] = unit_scale
-        return cls(name=p.stem, source=p, rig_spec=spec, clip=clip, fps=float(fps or 30.0))
+        return cls(name=p.stem, source=p, rig_spec=spec, clip=clip, fps=float(fps or 30.0), preroll=FILE_RIG_PREROLL)
 
     def rig(self) -> Rig:
         """Load (once) and return the rig."""
@@ -340,7 +344,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
     clip = anim.get("clip")
     if clip is not None and not isinstance(clip, str):
         raise SceneError(f"{where}: [animation] clip must be a string")
-    preroll = anim.get("preroll", 0.0)
+    is_file_rig = "file" in data["rig"] or "asset" in data["rig"]
+    preroll = anim.get("preroll", FILE_RIG_PREROLL if is_file_rig else 0.0)
     if isinstance(preroll, bool) or not isinstance(preroll, (int, float)) or not math.isfinite(preroll) or preroll < 0:
         raise SceneError(f"{where}: [animation] preroll must be a number of seconds >= 0, got {preroll!r}")
     return Scene(

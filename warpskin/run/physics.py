@@ -147,13 +147,15 @@ class PhysicsStepper:
         n = self.preroll_steps
         u = np.arange(1, n + 1) / n
         u = u * u * (3.0 - 2.0 * u)  # ease in and out
-        pre = np.stack([rig.skinning_matrices_from_bind(self.clip, self.plan.times[0], float(x)) for x in u])
+        t0 = self.plan.times[0]
+        pre = np.stack([rig.skinning_matrices_from_bind(self.clip, t0, float(x)) for x in u])
+        start = rig.skinning_matrices_from_bind(self.clip, t0, 0.0)  # the bind pose, where frame 0 puts the root
         pre_dev = wp.array(pre.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=self.dev)
         j = self.joint_count
         a = self.state_a
         for attempt in range(MAX_GROWTHS + 1):
             # from the bind pose into the first frame's pose (plain launches, once)
-            initial_state(builder, a, np.tile(np.eye(4), (j, 1, 1)))
+            initial_state(builder, a, start)
             sa, sb = a, self.state_b
             for s in range(n):
                 wp.copy(self.control.skin_matrices, pre_dev, dest_offset=0, src_offset=s * j, count=j)
