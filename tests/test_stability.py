@@ -126,3 +126,16 @@ def test_the_arm_is_never_tethered(tmp_path):
     # tether never acts, so the contact bulge and the jiggle are the solver's alone
     result = simulate(load_scene("arm"), tmp_path / "arm.usdc", progress=False, frames=(0, 20))
     assert result.summary["tether_clamped_particle_steps"] == 0
+
+
+def test_rigs_from_files_get_a_preroll_by_default(tmp_path, assets):
+    from warpskin.scene import FILE_RIG_PREROLL, Scene
+
+    assert FILE_RIG_PREROLL == 0.5
+    assert Scene.from_rig_file(assets / "CesiumMan" / "CesiumMan.glb").preroll == 0.5
+    p = tmp_path / "file.toml"
+    p.write_text(f"[rig]\nfile = '{assets / 'CesiumMan' / 'CesiumMan.glb'}'\n")
+    assert load_scene(p).preroll == 0.5
+    p.write_text(f"[rig]\nfile = '{assets / 'CesiumMan' / 'CesiumMan.glb'}'\n[animation]\npreroll = 0.0\n")
+    assert load_scene(p).preroll == 0.0
+    assert load_scene("arm").preroll == 0.0  # a generator's rig starts at rest in its first pose
