@@ -7,6 +7,8 @@ Against a kinematic point (infinite mass, w = 0) the whole correction goes to th
 
 import warp as wp
 
+from .skinning import lbs_point
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -49,12 +51,7 @@ def tether_kernel(
 ):
     p = wp.tid()
     i = p % vertex_count
-    x0 = particle_q0[p]
-    t = wp.vec3(0.0)
-    for k in range(joint_indices.shape[1]):
-        w = joint_weights[i, k]
-        if w != 0.0:
-            t += w * wp.transform_point(skin_matrices[joint_indices[i, k]], x0)
+    t = lbs_point(particle_q0[p], joint_indices, joint_weights, i, skin_matrices)
     d = x[p] - t
     r = tether_radius[i]
     dl = wp.length(d)

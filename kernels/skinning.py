@@ -16,6 +16,23 @@ wp.set_module_options({"enable_backward": False})
 #
 #   p_i' = sum_k w_ik * M_{j_ik} @ [p_i, 1],   M_j = G_j(t) @ inverse_bind_j
 # --------------------------------------------------------------------------------------------
+@wp.func
+def lbs_point(
+    p: wp.vec3,
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    row: int,
+    skin_matrices: wp.array(dtype=wp.mat44),
+) -> wp.vec3:
+    """sum_k w_k M_{j_k} p with the influences of row ``row`` (zero weights skipped)."""
+    acc = wp.vec3(0.0)
+    for k in range(joint_indices.shape[1]):
+        w = joint_weights[row, k]
+        if w != 0.0:
+            acc += w * wp.transform_point(skin_matrices[joint_indices[row, k]], p)
+    return acc
+
+
 @wp.kernel
 def lbs_kernel(
     rest_points: wp.array(dtype=wp.vec3),
@@ -26,13 +43,7 @@ def lbs_kernel(
     points: wp.array(dtype=wp.vec3),
 ):
     i = wp.tid()
-    p = rest_points[i]
-    acc = wp.vec3(0.0)
-    for k in range(joint_indices.shape[1]):
-        w = joint_weights[i, k]
-        if w != 0.0:
-            acc += w * wp.transform_point(skin_matrices[joint_indices[i, k]], p)
-    points[i] = acc
+    points[i] = lbs_point(rest_points[i], joint_indices, joint_weights, i, skin_matrices)
 
 
 # --------------------------------------------------------------------------------------------
