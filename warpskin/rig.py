@@ -780,6 +780,55 @@ class Rig:
         """Joint transforms in rest space at bind time, ``inverse(inverse_bind)``, ``[J, 4, 4]``."""
         return np.linalg.inv(self.inverse_bind)
 
+    # ---------------------------------------------------------------- hierarchy and authored keys
+    def reparented(self, parents: dict[str, str], *, where: str = "") -> Rig:
+        """A copy whose joints hang from the given parents (``{child: parent}``), with the rest
+        pose the bind pose: for a file whose hierarchy is flat (the WebXR hand), so that a
+        rotation authored on one joint carries the joints below it. Only for a rig without
+        animation (its clips' local transforms would change meaning)."""
+        where = where or self.source or self.name
+        if any(c.tracks for c in self.clips.values()):
+            raise RigError(f"{where}: [rig] parents can only be declared for a rig without animation clips")
+        sk = self.skeleton
+        new = sk.parents.copy()
+        for child, parent in parents.items():
+            c = sk.index(str(child))
+            new[c] = -1 if parent in (None, "") else sk.index(str(parent))
+        world = self.bind_world_transforms()
+        root = sk.root_transform
+        local = np.empty_like(world)
+        for j in range(sk.joint_count):
+            base = root[j] if new[j] < 0 else world[new[j]]
+            local[j] = np.linalg.solve(base, world[j])
+        skeleton = Skeleton.from_local_matrices(sk.joint_names, new, local, root.copy())  # raises on a cycle
+        return dataclasses.replace(self, skeleton=skeleton, clips=dict(self.clips))
+
+    def with_keys(self, name: str, keys: dict[str, list], *, interpolation: str = "LINEAR", where: str = "") -> Rig:
+        """A copy with a clip ``name`` made from authored rotation keys: ``{joint: [[t, x, y, z],
+        ...]}``, ``t`` in seconds, ``(x, y, z)`` in degrees about the joint's own rest axes
+        (intrinsic X, then Y, then Z), added to its rest rotation; the other joints keep their
+        rest pose."""
+        from scipy.spatial.transform import Rotation
+
+        where = where or self.source or self.name
+        if interpolation not in ("LINEAR", "STEP"):
+            raise RigError(f"{where}: key interpolation must be 'LINEAR' or 'STEP', got {interpolation!r}")
+        sk = self.skeleton
+        tracks = {}
+        for joint, rows in keys.items():
+            j = sk.index(str(joint))
+            a = np.asarray(rows, dtype=np.float64) if len(rows) else np.zeros((0, 4))
+            if a.ndim != 2 or a.shape[1] != 4 or not np.all(np.isfinite(a)):
+                raise RigError(f"{where}: keys of joint {joint!r} must be rows [t, x_deg, y_deg, z_deg], got {rows!r}")
+            if a.shape[0] > 1 and np.any(np.diff(a[:, 0]) <= 0):
+                raise RigError(f"{where}: key times of joint {joint!r} must increase, got {a[:, 0].tolist()}")
+            rest = Rotation.from_quat(sk.rest_rotation[j])
+            q = (rest * Rotation.from_euler("XYZ", a[:, 1:], degrees=True)).as_quat()
+            tracks[(j, "rotation")] = Track("rotation", a[:, 0], q, interpolation)
+        clips = dict(self.clips)
+        clips[name] = Clip(name, tracks)
+        return dataclasses.replace(self, clips=clips)
+
     # ---------------------------------------------------------------- units
     def rescaled(self, factor: float) -> Rig:
         """A copy with every length multiplied by ``factor`` (e.g. 0.01 for centimetres)."""

@@ -46,6 +46,9 @@ __all__ = ["Scene", "SceneError", "load_scene", "resolve_scene", "is_rig_file", 
            "GENERATORS"]
 
 
+#: Name of the clip made from a scene's ``[animation.keys]``.
+SCENE_CLIP = "scene"
+
 #: Seconds of pre-roll from the bind pose for a rig from a file (a procedural rig starts at rest
 #: in its first pose): the first frame's LBS pose often passes the skin through itself.
 FILE_RIG_PREROLL = 0.5
@@ -57,8 +60,8 @@ GENERATORS = {
 
 _SCHEMA: dict[str, set[str]] = {
     "scene": {"name", "description"},
-    "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights"},
-    "animation": {"clip", "fps", "frames", "preroll"},
+    "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights", "parents"},
+    "animation": {"clip", "fps", "frames", "preroll", "keys", "interpolation"},
     # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
     "layers": {"fat", "muscle", "bone", "adaptive", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
     "joints": {"radius_factor", "layers", "joints"},
@@ -197,6 +200,21 @@ def _where(scene_path: Path | None) -> str:
 
 def _build_rig(scene: Scene) -> Rig:
     rig = _load_rig_of(scene)
+    where = _where(scene.source)
+    parents = scene.rig_spec.get("parents")
+    if parents is not None:
+        if not isinstance(parents, dict) or not all(isinstance(v, str) for v in parents.values()):
+            raise SceneError(f"{where}: [rig] parents must be a table of joint = \"parent joint\" (\"\" for a root)")
+        try:
+            rig = rig.reparented(parents, where=where)
+        except RigError as exc:
+            raise SceneError(f"{where}: [rig] parents: {exc}") from None
+    keys = scene.extra.get("keys")
+    if keys:
+        try:
+            rig = rig.with_keys(SCENE_CLIP, keys, interpolation=scene.extra.get("interpolation", "LINEAR"), where=where)
+        except RigError as exc:
+            raise SceneError(f"{where}: [animation.keys] {exc}") from None
     weights = scene.rig_spec.get("weights", "file")
     if weights == "bone_heat":
         from .preprocess.bone_heat import with_bone_heat_weights
@@ -344,6 +362,13 @@ def load_scene(name_or_path: str | Path) -> Scene:
     clip = anim.get("clip")
     if clip is not None and not isinstance(clip, str):
         raise SceneError(f"{where}: [animation] clip must be a string")
+    keys = anim.get("keys")
+    if keys is not None:
+        if not isinstance(keys, dict) or not all(isinstance(v, dict) and set(v) == {"rotation"} for v in keys.values()):
+            raise SceneError(f"{where}: [animation.keys.JOINT] takes rotation = [[t, x_deg, y_deg, z_deg], ...]")
+        extra["keys"] = {j: v["rotation"] for j, v in keys.items()}
+        extra["interpolation"] = anim.get("interpolation", "LINEAR")
+        clip = clip or SCENE_CLIP
     is_file_rig = "file" in data["rig"] or "asset" in data["rig"]
     preroll = anim.get("preroll", FILE_RIG_PREROLL if is_file_rig else 0.0)
     if isinstance(preroll, bool) or not isinstance(preroll, (int, float)) or not math.isfinite(preroll) or preroll < 0:
