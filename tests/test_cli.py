@@ -109,3 +109,22 @@ def test_warmup_loads_every_kernel_module(capsys):
     assert "kernels ready on cpu" in capsys.readouterr().out
     for n in names:
         assert wp.get_module(n).execs, f"{n} not loaded"
+
+
+def test_projection_option_sets_the_layer_depths(tmp_path, capsys):
+    # a user lowers the layers' depths without writing a scene file
+    import json as _json
+
+    out = tmp_path / "l.usdc"
+    assert main(["layers", "arm", "-o", str(out), "--projection", "0.1,0.3,0.6", "--json"]) == 0
+    text = capsys.readouterr().out
+    summary = _json.loads(text[: text.rindex("}") + 1])
+    stage = Usd.Stage.Open(str(out))
+    skin = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/skin")).GetPointsAttr().Get())
+    bone = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/bone")).GetPointsAttr().Get())
+    fat = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/fat")).GetPointsAttr().Get())
+    ratio = np.linalg.norm(fat - skin, axis=1) / np.linalg.norm(bone - skin, axis=1)
+    np.testing.assert_allclose(ratio, 0.1 / 0.6, rtol=1e-4)  # fat at 0.1, bone at 0.6 of each segment
+    assert summary["depth_reduced_vertices"] == 0
+    assert main(["layers", "arm", "-o", str(out), "--projection", "0.5,0.3,0.6"]) == 2
+    assert "need 0 < FAT < MUSCLE < BONE < 1" in capsys.readouterr().err

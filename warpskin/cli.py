@@ -30,7 +30,7 @@ def _scene_of(args):
         )
         if getattr(args, "weights", None):
             scene.rig_spec["weights"] = args.weights
-        return scene
+        return _with_projection(scene, args)
     scene = load_scene(args.target)
     if getattr(args, "weights", None):
         scene.rig_spec["weights"] = args.weights
@@ -40,6 +40,25 @@ def _scene_of(args):
         scene.rig_spec["mesh"] = args.mesh
     if getattr(args, "unit_scale", None):
         scene.rig_spec["unit_scale"] = args.unit_scale
+    return _with_projection(scene, args)
+
+
+def _parse_projection(text: str) -> tuple[float, float, float]:
+    try:
+        fat, muscle, bone = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--projection must be FAT,MUSCLE,BONE (three numbers), got {text!r}") from None
+    if not (0.0 < fat < muscle < bone < 1.0):
+        raise argparse.ArgumentTypeError(f"--projection {text}: need 0 < FAT < MUSCLE < BONE < 1")
+    return fat, muscle, bone
+
+
+def _with_projection(scene, args):
+    """``--projection F,M,B``: the layers' projection parameters (scene: [layers] fat, muscle, bone)."""
+    p = getattr(args, "projection", None)
+    if p is not None:
+        layers = scene.extra.setdefault("layers", {})
+        layers["fat"], layers["muscle"], layers["bone"] = p
     return scene
 
 
@@ -323,6 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate the physical skin and write it to USD")
     s.add_argument("target", metavar="RIG|SCENE")
+    s.add_argument("--projection", type=_parse_projection, metavar="FAT,MUSCLE,BONE",
+                   help="layer projection parameters, upper bounds (scene: [layers] fat, muscle, bone; default 0.15,0.45,0.8)")
     s.add_argument("-o", "--output", required=True, help="output .usdc (default format), .usda or .usd")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
     s.add_argument("--fps", type=float, help="output frame rate")
@@ -356,6 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--mesh", help="skinned mesh to use when the file has several")
     s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
+    s.add_argument("--projection", type=_parse_projection, metavar="FAT,MUSCLE,BONE",
+                   help="layer projection parameters, upper bounds (scene: [layers] fat, muscle, bone; default 0.15,0.45,0.8)")
     s.add_argument("--json", action="store_true", help="print the model summary as JSON")
     s.set_defaults(func=cmd_layers)
 
