@@ -289,6 +289,14 @@ def test_layers_command_writes_inspectable_usd(tmp_path, capsys):
         assert t.is_watertight and t.volume > 0
     pts = UsdGeom.Points(stage.GetPrimAtPath("/warpskin/joint_constraint_particles"))
     assert len(pts.GetPointsAttr().Get()) > 0
+    skin = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/warpskin/layers/skin"))
+    scale = np.array(skin.GetPrimvar("depthScale").Get())
+    depth = np.array(skin.GetPrimvar("tissueDepth").Get())
+    assert skin.GetPrimvar("depthScale").GetInterpolation() == UsdGeom.Tokens.vertex
+    np.testing.assert_array_equal(scale, np.ones(2918, dtype=np.float32))  # the arm keeps its full depth
+    bone = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/bone")).GetPointsAttr().Get())
+    skin_pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/skin")).GetPointsAttr().Get())
+    np.testing.assert_allclose(depth, np.linalg.norm(bone - skin_pts, axis=1), rtol=1e-5, atol=1e-7)
 
 
 def _orientation_flips(rig, layers) -> list[int]:

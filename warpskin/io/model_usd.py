@@ -32,8 +32,13 @@ def write_model_usd(builder: SkinModelBuilder, path: str | Path, *, comment: str
     tris = rig.triangles
     with UsdSkinWriter(path, fps=24, up_axis=rig.up_axis, comment=comment) as out:
         out.add_group("layers")
+        depth = np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1)
         for k, name in enumerate(LAYER_NAMES):
-            out.add_mesh(f"layers/{name}", tris, rest_points=b.layers.positions[k], animated=False, color=_LAYER_COLORS[k])
+            # the skin carries where the depth was reduced (1 = the scene's full depth) and how
+            # deep the tissue is [m], for a DCC to colour it by
+            pv = {"depthScale": b.layers.depth_scale, "tissueDepth": depth} if k == 0 else None
+            out.add_mesh(f"layers/{name}", tris, rest_points=b.layers.positions[k], animated=False, color=_LAYER_COLORS[k],
+                         vertex_primvars=pv)
         sv = b.subvolumes
         if sv is not None:
             out.add_group("subvolumes")

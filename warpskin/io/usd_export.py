@@ -85,7 +85,7 @@ class UsdSkinWriter:
         os.close(fd)
         os.unlink(tmp)  # USD creates the layer itself; the name is reserved by its randomness
         self._tmp = Path(tmp)
-        self._vt, self._gf, self._usdgeom = Vt, Gf, UsdGeom
+        self._vt, self._gf, self._usdgeom, self._sdf = Vt, Gf, UsdGeom, Sdf
         self._stage = Usd.Stage.CreateNew(str(self._tmp))
         if self._stage is None:  # pragma: no cover
             raise ExportError(f"{self.path}: USD could not create a stage")
@@ -115,6 +115,7 @@ class UsdSkinWriter:
         color: tuple[float, float, float] | None = None,
         animated: bool = True,
         purpose: str | None = None,
+        vertex_primvars: dict[str, np.ndarray] | None = None,
     ) -> str:
         """Declare a surface. Its topology is written once.
 
@@ -125,6 +126,8 @@ class UsdSkinWriter:
             color: Display colour, RGB in [0, 1].
             animated: False for a static prim (its points are the rest points only).
             purpose: Optional ``UsdGeom`` purpose (``"guide"`` hides it in renders).
+            vertex_primvars: Static per-vertex float primvars ``{name: [V]}`` (vertex
+                interpolation), for a DCC to colour the mesh by (e.g. the layer depth factor).
 
         Returns:
             The prim path.
@@ -160,6 +163,12 @@ class UsdSkinWriter:
             mesh.CreateDisplayColorAttr([self._gf.Vec3f(*map(float, color))])
         if purpose is not None:
             mesh.CreatePurposeAttr(purpose)
+        for pv_name, values in (vertex_primvars or {}).items():
+            vals = np.asarray(values, dtype=np.float32).ravel()
+            if vals.shape[0] != vertex_count or not np.all(np.isfinite(vals)):
+                raise ExportError(f"mesh {name!r}: primvar {pv_name!r} needs {vertex_count} finite values, got {vals.shape[0]}")
+            pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(pv_name, self._sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+            pv.Set(Vt.FloatArray.FromNumpy(vals))
         self._meshes[key] = (mesh, pts_attr, ext_attr, vertex_count, animated)
         return str(path)
 
