@@ -151,12 +151,6 @@ def check_layer_folds(layers: Layers, triangles: np.ndarray, *, where: str = "la
 # --------------------------------------------------------------------------------------------
 # Depths that fit the body: the projection parameters as upper bounds
 # --------------------------------------------------------------------------------------------
-#: Depth fractions (of each vertex's bone-layer depth) checked for folds: the three layers and
-#: the midpoints between them, so that no layer is clean while the tissue between two layers is
-#: inverted.
-_CHECK_BETWEEN = True
-
-
 def _layer_positions(vertices: np.ndarray, seg: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """``[L, V, 3]`` positions at per-vertex depths ``[L, V]`` (fractions of the segment)."""
     return vertices[None] + depth[:, :, None] * seg[None]
@@ -288,15 +282,16 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     folded_any = np.zeros(rig.vertex_count, dtype=bool)
     # pairs the skin itself has (a bind pose through itself) cannot be undone by the layers
     skin_pairs = {tuple(pq) for pq in self_intersections(v, tris).tolist()}
-    fractions = np.array([p[:, 0], 0.5 * (p[:, 0] + p[:, 1]), p[:, 1], 0.5 * (p[:, 1] + p[:, 2]), p[:, 2]]) \
-        if _CHECK_BETWEEN else p.T
+    # depths checked for folds: the three layers and the midpoints between them, so that no
+    # layer is clean while the tissue between two layers is inverted
+    fractions = np.array([p[:, 0], 0.5 * (p[:, 0] + p[:, 1]), p[:, 1], 0.5 * (p[:, 1] + p[:, 2]), p[:, 2]])
     for _ in range(max_rounds):
         pos = _layer_positions(v, seg, fractions * s[None])
         bad = np.zeros(tris.shape[0], dtype=bool)
         for x in pos:
             bad[folded_triangles(v, x, tris)] = True
         if not bad.any():  # no fold: the exact self-intersection check of the three layers
-            for x in pos[[0, 2, 4]] if _CHECK_BETWEEN else pos:
+            for x in pos[[0, 2, 4]]:  # the three layers
                 pairs = [pq for pq in self_intersections(x, tris).tolist() if tuple(pq) not in skin_pairs]
                 bad[np.asarray(pairs, dtype=np.int64).ravel()] = True
         if not bad.any():
