@@ -76,6 +76,9 @@ def test_scene_keys_and_parents_are_checked(tmp_path):
     p.write_text(base + "[animation.keys.knee]\nrotation = [[0.0, 0, 0, 0]]\n")
     with pytest.raises(SceneError, match="no joint named 'knee'"):
         load_scene(p).rig()
+    p.write_text(base + "[animation]\ninterpolation = 'STEP'\n")
+    with pytest.raises(SceneError, match="interpolation applies to \\[animation.keys\\] only"):
+        load_scene(p)
     p.write_text(base + "[animation.keys.elbow]\nangle = [[0.0, 0, 0, 0]]\n")
     with pytest.raises(SceneError, match=r"takes rotation = \[\[t, x_deg"):
         load_scene(p)

@@ -41,7 +41,6 @@ def run_skinning_bench(targets: list[str], *, device: str | None = None, frames:
     ``lbs_kernel_ms`` and ``dqs_kernel_ms`` (kernel launch alone, joint data resident);
     and ``dqs_over_lbs`` (ratio of the kernel times, measured in the same run).
     """
-    from .skinning import Skinner
 
     if frames < 1 or repeat < 1:
         raise ValueError("frames and repeat must be >= 1")
@@ -127,7 +126,6 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     from .model import SkinModelBuilder
     from .run.physics import PhysicsStepper, initial_state
     from .run.plan import FramePlan
-    from .skinning import Skinner
     from .solver import SkinSolver
 
     dev = resolve_device(device)
@@ -195,10 +193,8 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
                                    repeat, dev)
         # the user's code path: the frame runner's stepper from the same pose, frame after frame
         frames = 3 + steps * repeat
-        frame_dt = 1.0 / scene.fps
-        sub = max(1, int(np.ceil(frame_dt / dt - 1e-9)))
-        plan = FramePlan(frames=list(range(frames)), times=[t_mid + k * frame_dt for k in range(frames)], fps=scene.fps,
-                         substeps=sub, dt=frame_dt / sub)
+        plan = FramePlan.at_times(list(range(frames)), [t_mid + k / scene.fps for k in range(frames)], scene.fps, max_dt=dt)
+        sub = plan.substeps
         try:
             st = PhysicsStepper(builder, model, params, plan, clip, label="bench")
             for k in range(3):  # compile, capture, grow the contact buffers outside the timed region

@@ -141,7 +141,7 @@ def collision_topology(rig) -> CollisionTopology:
         dominant_joint=rig.joint_indices[rows, best],
         dominant_weight=w[rows, best],
         mean_edge=mean_edge,
-        diagonal=float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0))),
+        diagonal=rig.size(),
     )
 
 

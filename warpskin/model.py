@@ -270,7 +270,6 @@ class SkinModel:
         b = builder
         rig = b.rig
         self.device = device
-        self.name = rig.name
         self.vertex_count = rig.vertex_count
         self.particle_count = 4 * self.vertex_count
         self.joint_count = rig.joint_count
@@ -287,7 +286,6 @@ class SkinModel:
             self.particle_inv_mass = f32(1.0 / b.masses)
             self.particle_stiffness = f32(b.stiffness)
             self.particle_moment = f32(lay["particle_moment"])
-            self.particle_bone = i32(b.layers.bone)  # dominant bone of every vertex, [V]
             self.region_offsets = i32(reg.region_offsets)
             self.region_members = i32(reg.region_members)
             self.region_entry_count = int(reg.region_members.shape[0])
@@ -314,7 +312,7 @@ class SkinModel:
             self.joint_rest = v3(jc.joint_rest)
             # tissue depth of every vertex at rest (skin to bone layer) [m], and the body's size
             self.vertex_tissue_depth = f32(np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1))
-            self.diagonal = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
+            self.diagonal = rig.size()
             self.joint_offsets = i32(lay["joint_offsets"])
             self.joint_ids = i32(lay["joint_ids"])
             self.joint_rest_distance = f32(lay["joint_rest_distance"])

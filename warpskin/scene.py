@@ -369,6 +369,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
         extra["keys"] = {j: v["rotation"] for j, v in keys.items()}
         extra["interpolation"] = anim.get("interpolation", "LINEAR")
         clip = clip or SCENE_CLIP
+    elif "interpolation" in anim:
+        raise SceneError(f"{where}: [animation] interpolation applies to [animation.keys] only")
     is_file_rig = "file" in data["rig"] or "asset" in data["rig"]
     preroll = anim.get("preroll", FILE_RIG_PREROLL if is_file_rig else 0.0)
     if isinstance(preroll, bool) or not isinstance(preroll, (int, float)) or not math.isfinite(preroll) or preroll < 0:

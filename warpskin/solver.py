@@ -129,7 +129,7 @@ class SkinSolver:
             self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
             # largest position correction of each elasticity iteration of the last step [m]
             self.residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
-            # the tether: radius per vertex [m], and how many particles it clamped (last steps)
+            # the tether: radius per vertex [m], and a running count of the particles it clamped
             p = self.params
             self.tether_radius = None
             if p.tether > 0:

@@ -256,6 +256,7 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         RigError: no positive depth fits at some vertices (``s`` below ``min_scale``), naming
             them (the file's vertex numbers) and their bones.
     """
+    from ..collision import skin_edges
     from ..metrics import self_intersections
 
     v = rig.vertices
@@ -277,7 +278,7 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         cap = np.where(np.isfinite(exits), exit_margin * exits / np.maximum(deepest * length, 1e-300), 1.0)
     cap = np.clip(cap, 0.0, 1.0)
     left_body = cap < 1.0
-    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    edges, _ = skin_edges(tris)
     s = _ramp(cap, edges, ramp)
     folded_any = np.zeros(rig.vertex_count, dtype=bool)
     # pairs the skin itself has (a bind pose through itself) cannot be undone by the layers

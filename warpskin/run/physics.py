@@ -75,7 +75,7 @@ class PhysicsStepper:
         rig = self.rig = builder.rig
         self.solver = solver = SkinSolver(model, params)
         self.collision = solver.collision
-        self.contacts = model.contacts() if solver.collision is not None else None
+        self.contacts = model.contacts()  # None when the model has no collision data
         self.use_graph = use_graph
         self.dev = dev = model.device
         self.label = f"{label} {name or rig.name} ({dev}, {model.particle_count} particles)"

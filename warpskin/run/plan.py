@@ -39,9 +39,16 @@ class FramePlan:
         first, last = int(first), int(last)
         if first < 0 or last < first:
             raise SceneError(f"bad frame range {first}:{last}: need 0 <= FIRST <= LAST")
-        fps = float(scene.fps)
+        frame_list = list(range(first, last + 1))
+        return cls.at_times(frame_list, [scene.frame_time(f) for f in frame_list], scene.fps, max_dt=max_dt)
+
+    @classmethod
+    def at_times(cls, frames: list[int], times: list[float], fps: float, *, max_dt: float | None = None) -> FramePlan:
+        """The plan of ``frames`` at clip ``times`` [s], ``fps`` apart, with substeps no longer
+        than ``max_dt`` [s] (``None``: one step per frame)."""
+        fps = float(fps)
         if not (math.isfinite(fps) and fps > 0):
-            raise SceneError(f"fps must be a positive number, got {scene.fps!r}")
+            raise SceneError(f"fps must be a positive number, got {fps!r}")
         frame_dt = 1.0 / fps
         if max_dt is None:
             substeps = 1
@@ -49,9 +56,7 @@ class FramePlan:
             if not (math.isfinite(max_dt) and max_dt > 0):
                 raise SceneError(f"dt must be a positive number of seconds, got {max_dt!r}")
             substeps = max(1, math.ceil(frame_dt / max_dt - 1e-9))
-        frame_list = list(range(first, last + 1))
-        return cls(frames=frame_list, times=[scene.frame_time(f) for f in frame_list], fps=fps, substeps=substeps,
-                   dt=frame_dt / substeps)
+        return cls(frames=list(frames), times=list(times), fps=fps, substeps=substeps, dt=frame_dt / substeps)
 
     @property
     def count(self) -> int:

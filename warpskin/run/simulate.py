@@ -56,9 +56,9 @@ class _Measurements:
         self.b, self.st, self.plan = builder, stepper, plan
         self.check_intersections = check_intersections
         self.params, self.allow_unstable, self.warned = params, allow_unstable, False
-        v = builder.rig.vertices
-        self.diagonal = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+        self.diagonal = builder.rig.size()
         self._pending: dict = {}
+        self._clamped = int(stepper.solver.tether_clamped.numpy()[0])  # the pre-roll's
         rig = builder.rig
         subs = builder.subvolumes
         self.m: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
@@ -141,7 +141,9 @@ class _Measurements:
         m["max_offset_from_lbs"].append(e["offset"])
         m["step_ms"].append(step_ms)
         m["residuals"].append(st.solver.residuals.numpy().tolist() if i > 0 else [])
-        m["tether_clamped"].append(int(st.solver.tether_clamped.numpy()[0]))
+        clamped = int(st.solver.tether_clamped.numpy()[0])  # a running count: this frame's share
+        m["tether_clamped"].append(clamped - self._clamped)
+        self._clamped = clamped
         c = st.contacts
         if c is not None:
             counts = c.counts.numpy()
@@ -187,8 +189,9 @@ def simulate(
     intersecting skin triangle pairs per frame with the exact, solver-independent check
     (:func:`warpskin.metrics.self_intersections`); default: only when writing a report.
     ``preroll`` [s] (default: the scene's ``[animation] preroll``) simulates that long before
-    the first frame, from the bind pose (the mesh as modelled) into the first frame's pose
-    (local joint transforms interpolated, eased in and out); velocities are zeroed after it.
+    the first frame, from the bind pose into the first frame's pose (the root joints at the
+    first frame's placement throughout, the joints below them interpolated, eased in and out);
+    velocities are zeroed after it.
     A first pose whose LBS skin already passes through itself is then reached by collision
     instead of started from; nothing of the pre-roll is written.
 
@@ -211,8 +214,9 @@ def simulate(
     plan = FramePlan.for_scene(scene, frames, max_dt=params.dt)
     preroll = scene.preroll if preroll is None else float(preroll)
     t_build = time.perf_counter()
-    builder = builder or SkinModelBuilder(rig, scene.model_params())
-    builder.params.collision = collision if collision is not None else scene.collision_params()
+    builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
+    if collision is not None:
+        builder.params.collision = collision
     model = builder.finalize(device)
     build_s = time.perf_counter() - t_build
     if check_intersections is None:
