@@ -122,6 +122,15 @@ def folded(u: wp.vec3, w: wp.vec3, fold_cos: float) -> bool:
     return wp.dot(u, w) < fold_cos * wp.length(u) * wp.length(w)
 
 
+@wp.func
+def facing(u: wp.vec3, w: wp.vec3, d: wp.vec3, fold_cos: float) -> bool:
+    """Two nearby features with surface directions ``u`` and ``w`` and ``d`` from the first to
+    the second lie across a fold: directions more than acos(fold_cos) apart, and not each one
+    behind the other (d . u < 0 and d . w > 0): that is a convex corner (a cylinder's rim, a box
+    edge, low-poly geometry), where the directions are as far apart but nothing folded."""
+    return folded(u, w, fold_cos) and not (wp.dot(d, u) < 0.0 and wp.dot(d, w) > 0.0)
+
+
 # --------------------------------------------------------------------------------------------
 # Point-triangle detection (one thread per skin vertex). A candidate is a triangle whose swept
 # box overlaps the vertex's swept box, that does not contain the vertex, and where either the
@@ -133,7 +142,8 @@ def folded(u: wp.vec3, w: wp.vec3, fold_cos: float) -> bool:
 # the point on the outer side of the skin: C(p, a, b, c) = n . (p - a) - h >= 0 (Mueller et al.
 # 2007). Pairs of one surface patch (close at rest) collide only by crossing, unless the skin
 # between them has folded over (the vertex normal and the triangle normal more than
-# acos(fold_cos) apart): in a wrinkle or a crease they face each other and collide by proximity.
+# acos(fold_cos) apart, and not each behind the other): in a wrinkle or a crease they face each
+# other and collide by proximity; across a convex corner they do not.
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def detect_point_triangle_kernel(
@@ -183,7 +193,7 @@ def detect_point_triangle_kernel(
         d0 = wp.dot(p0 - a0, n0)
         crossing = d0 >= 0.0 and d1 < 0.0
         near = d1 < radius and d1 > -thickness  # ahead within the search radius, behind within h
-        if patch and not folded(vertex_normals[i], n, fold_cos):
+        if patch and not facing(vertex_normals[i], n, (a + b + c) / 3.0 - p1, fold_cos):
             near = False
         if not (crossing or near):
             continue
@@ -233,6 +243,26 @@ def segment_closest(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3) -> wp.ve
             t = 1.0
             s = wp.clamp((b - c) / a, 0.0, 1.0)
     return wp.vec2(s, t)
+
+
+@wp.func
+def lines_meet_far_from_edges(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, margin: float) -> bool:
+    """The closest points of the two edges' infinite lines lie more than ``margin`` (a fraction
+    of the edge) beyond the end of either edge; False for parallel edges."""
+    d1 = p2 - p1
+    d2 = p4 - p3
+    r = p1 - p3
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    b = wp.dot(d1, d2)
+    c = wp.dot(d1, r)
+    f = wp.dot(d2, r)
+    den = a * e - b * b
+    if den <= 1.0e-12 * a * e:
+        return False
+    s = (b * f - c * e) / den
+    t = (a * f - b * c) / den
+    return s < -margin or s > 1.0 + margin or t < -margin or t > 1.0 + margin
 
 
 @wp.func
@@ -293,16 +323,17 @@ def detect_edge_edge_kernel(
                 continue
             if excluded(i1, i3, rigid_bone) and excluded(i2, i4, rigid_bone) and excluded(i1, i4, rigid_bone):
                 continue
-            patch = (same_patch(i1, i3, rest, rest_gap) or same_patch(i1, i4, rest, rest_gap)
-                     or same_patch(i2, i3, rest, rest_gap) or same_patch(i2, i4, rest, rest_gap))
-            if patch and folded(vertex_normals[i1] + vertex_normals[i2], vertex_normals[i3] + vertex_normals[i4], fold_cos):
-                patch = False  # folded over: the two edges face each other
             p3 = x_pred[i3]
             p4 = x_pred[i4]
             st = segment_closest(p1, p2, p3, p4)
             q1 = p1 + st[0] * (p2 - p1)
             q2 = p3 + st[1] * (p4 - p3)
             dist = wp.length(q2 - q1)
+            patch = (same_patch(i1, i3, rest, rest_gap) or same_patch(i1, i4, rest, rest_gap)
+                     or same_patch(i2, i3, rest, rest_gap) or same_patch(i2, i4, rest, rest_gap))
+            if patch and facing(vertex_normals[i1] + vertex_normals[i2], vertex_normals[i3] + vertex_normals[i4],
+                                (p3 + p4) * 0.5 - (p1 + p2) * 0.5, fold_cos):
+                patch = False  # folded over: the two edges face each other
             # side at the start of the step: sign of (p4 - p1) . n with n = (p2 - p1) x (p4 - p3)
             o1 = x_old[i1]
             n0 = wp.cross(x_old[i2] - o1, x_old[i4] - x_old[i3])
@@ -403,10 +434,26 @@ def project_point_triangle_kernel(
 # --------------------------------------------------------------------------------------------
 @wp.func
 def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn: float, thickness: float):
-    """Returns (C, g1, g2, g3, g4) for the paper's edge-edge constraint."""
+    """Returns (C, g1, g2, g3, g4) for the paper's edge-edge constraint.
+
+    The paper's C is the distance between the two edges' infinite lines along their common
+    normal; that is the edges' distance where the lines' closest points lie on (or within one
+    edge length of) both edges. Where they lie farther out (coplanar edges of a flat patch,
+    edges whose lines meet far beyond their ends) the lines' distance is near zero for edges
+    far apart, so there C is the unsigned distance of the edges' closest points minus the
+    thickness."""
     e12 = p2 - p1
     e34 = p4 - p3
     e14 = p4 - p1
+    st = segment_closest(p1, p2, p3, p4)
+    if lines_meet_far_from_edges(p1, p2, p3, p4, 1.0):
+        dq = (p3 + st[1] * e34) - (p1 + st[0] * e12)
+        lq = wp.length(dq)
+        if lq < 1.0e-20:
+            z = wp.vec3(0.0)
+            return 0.0, z, z, z, z
+        uq = dq / lq
+        return lq - thickness, -(1.0 - st[0]) * uq, -st[0] * uq, (1.0 - st[1]) * uq, st[1] * uq
     n = wp.cross(e12, e34)
     ln2 = wp.dot(n, n)
     scale = wp.max(wp.dot(e12, e12), wp.dot(e34, e34))
@@ -422,7 +469,6 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
         g4 = sgn * (u12 + n) / ln
         return c, g1, g2, g3, g4
     # parallel edges: the perpendicular between the closest points
-    st = segment_closest(p1, p2, p3, p4)
     q1 = p1 + st[0] * e12
     q2 = p3 + st[1] * e34
     d = q2 - q1

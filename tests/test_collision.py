@@ -37,10 +37,30 @@ def _ee_reference(p, sgn, h):
     return sgn * (p[3] - p[0]) @ n / np.linalg.norm(n) - h
 
 
+def _line_params(p):
+    """Unclamped parameters (s, t) of the closest points of the two edges' infinite lines."""
+    d1, d2, r = p[1] - p[0], p[3] - p[2], p[0] - p[2]
+    a, b, e, c, f = d1 @ d1, d1 @ d2, d2 @ d2, d1 @ r, d2 @ r
+    den = a * e - b * b
+    return (b * f - c * e) / den, (a * f - b * c) / den
+
+
+def _edges_whose_lines_meet(rng, inside):
+    """Random edges whose lines' closest points lie within [-0.5, 1.5] of both (``inside``) or
+    beyond [-2, 3] of one: generic, well away from the branch boundary at [-1, 2]."""
+    while True:
+        p = rng.normal(size=(4, 3))
+        s, t = _line_params(p)
+        if inside and -0.5 < s < 1.5 and -0.5 < t < 1.5:
+            return p
+        if not inside and (min(s, t) < -2.0 or max(s, t) > 3.0):
+            return p
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_edge_edge_gradient_equals_finite_differences(device, seed):
     rng = np.random.default_rng(seed)
-    p = rng.normal(size=(4, 3))
+    p = _edges_whose_lines_meet(rng, inside=True)
     sgn, h = (1.0 if seed % 2 else -1.0), 0.01
     c, g = _ee(p, sgn, h, device)
     assert c == pytest.approx(_ee_reference(p, sgn, h), abs=1e-5)
@@ -51,6 +71,43 @@ def test_edge_edge_gradient_equals_finite_differences(device, seed):
             dp[i, d] = eps
             fd = (_ee_reference(p + dp, sgn, h) - _ee_reference(p - dp, sgn, h)) / (2 * eps)
             assert g[i, d] == pytest.approx(fd, abs=2e-3 * max(1.0, abs(fd)))
+
+
+def _segment_distance(p, samples=2001):
+    """Brute force: the distance of the two edges by dense sampling of the first."""
+    s = np.linspace(0.0, 1.0, samples)[:, None]
+    q = p[0] + s * (p[1] - p[0])
+    d = p[3] - p[2]
+    t = np.clip((q - p[2]) @ d / (d @ d), 0.0, 1.0)[:, None]
+    return float(np.linalg.norm(q - (p[2] + t * d), axis=1).min())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_edge_edge_far_lines_use_the_edges_distance(device, seed):
+    """Edges whose lines meet far beyond their ends: C is the edges' own distance minus h (the
+    lines' distance, the paper's C, would be near zero for coplanar edges however far apart)."""
+    rng = np.random.default_rng(100 + seed)
+    p = _edges_whose_lines_meet(rng, inside=False)
+    h = 0.01
+    c, g = _ee(p, 1.0 if seed % 2 else -1.0, h, device)
+    assert c == pytest.approx(_segment_distance(p) - h, abs=1e-5)
+    eps = 1e-5
+    for i in range(4):
+        for d in range(3):
+            dp = np.zeros((4, 3))
+            dp[i, d] = eps
+            fd = (_segment_distance(p + dp, 20001) - _segment_distance(p - dp, 20001)) / (2 * eps)
+            assert g[i, d] == pytest.approx(fd, abs=2e-2 * max(1.0, abs(fd)))
+
+
+def test_edge_edge_coplanar_edges_far_apart_are_inactive(device):
+    """Two edges in one plane (a flat cap of a low-poly mesh), 0.5 apart, whose lines cross
+    3 edge lengths away: no constraint although the lines' distance is 0."""
+    p = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.2, 0.5, 0.0], [0.8, 0.52, 0.0]])
+    s, t = _line_params(p)
+    assert max(abs(s), abs(t)) > 3.0
+    c, _ = _ee(p, 1.0, 0.05, device)
+    assert c == pytest.approx(_segment_distance(p) - 0.05, abs=1e-5) and c > 0.4
 
 
 def test_edge_edge_parallel_branch(device):
