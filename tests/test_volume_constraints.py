@@ -24,8 +24,10 @@ ARM = {"rings": 16, "segments": 12}
 
 @functools.lru_cache(maxsize=None)
 def _builder(single: bool = False) -> SkinModelBuilder:
-    """The coarse arm (3 sub-volumes), or with both planes dropped (one closed sub-volume)."""
-    params = ModelParams(subvolumes=SubVolumeParams(planes={"elbow": None, "wrist": None})) if single else None
+    """The coarse arm (3 sub-volumes), or with both planes dropped (one closed sub-volume); as
+    given (not refined: the kernels are tested on its own 194 vertices)."""
+    params = ModelParams(subvolumes=SubVolumeParams(planes={"elbow": None, "wrist": None})) if single else ModelParams()
+    params.refine = False
     return SkinModelBuilder(make_arm(**ARM), params).build()
 
 

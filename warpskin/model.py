@@ -51,6 +51,14 @@ class ModelParams:
         collision: The skin self-collision model (thickness, friction, margins); with
             ``enabled = False`` the model has no contact data and ``model.contacts()`` is
             ``None``.
+        refine: Simulate a coarse skin on a refined copy
+            (:func:`warpskin.preprocess.refine.refine_long_edges`: every edge longer than
+            ``max_edge`` split at its midpoint, the surface unchanged; the file's vertices are
+            what is written). With ``max_edge`` unset, a skin is coarse when its mean edge is
+            longer than :data:`COARSE_EDGE` x :func:`~warpskin.preprocess.refine.default_max_edge`
+            (edges of about 1000 vertices over its area): a low-poly mesh's one-ring regions
+            span its joints and hold bent limbs straight.
+        max_edge: Longest simulated edge [m]; ``None`` for the default (coarse skins only).
     """
 
     layers: LayerParams = field(default_factory=LayerParams)
@@ -63,6 +71,8 @@ class ModelParams:
     subvolumes: object | None = None
     volume: bool = True
     collision: CollisionParams = field(default_factory=CollisionParams)
+    refine: bool = True
+    max_edge: float | None = None
 
     def check(self, where: str = "model") -> None:
         self.layers.check(where)
@@ -77,6 +87,33 @@ class ModelParams:
         if not (0.0 <= self.coupling_stiffness <= 1.0):
             raise SceneError(f"{where}: coupling stiffness must be in [0, 1], got {self.coupling_stiffness}")
         self.collision.check(where)
+        if not isinstance(self.refine, bool):
+            raise SceneError(f"{where}: refine must be true or false, got {self.refine!r}")
+        if self.max_edge is not None and (isinstance(self.max_edge, bool) or not isinstance(self.max_edge, (int, float))
+                                          or not (np.isfinite(self.max_edge) and self.max_edge > 0)):
+            raise SceneError(f"{where}: max_edge must be a positive length [m], got {self.max_edge!r}")
+
+
+#: A skin is coarse (refined by default) when its mean edge is longer than this share of
+#: :func:`~warpskin.preprocess.refine.default_max_edge`: RiggedSimple 5.3, RecursiveSkeletons 2.7,
+#: RiggedFigure 1.5 and the Fox 1.1 are; the 600-vertex test arm 0.71, the WebXR hand 0.48 and
+#: CesiumMan 0.33 are not.
+COARSE_EDGE = 0.9
+
+
+def refine_coarse(rig: Rig, max_edge: float | None = None) -> Rig:
+    """``rig`` refined for the simulation (:meth:`Rig.refined`) where its skin is coarse, or
+    everywhere an edge is longer than an explicit ``max_edge``; ``rig`` itself otherwise."""
+    from .collision import skin_edges
+    from .preprocess.refine import default_max_edge
+
+    if max_edge is None:
+        max_edge = default_max_edge(rig.vertices, rig.triangles)
+        edges, _ = skin_edges(rig.triangles)
+        mean_edge = float(np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1).mean())
+        if mean_edge <= COARSE_EDGE * max_edge:
+            return rig
+    return rig.refined(float(max_edge))
 
 
 class SkinModelBuilder:
@@ -119,10 +156,17 @@ class SkinModelBuilder:
         rig, p = self.rig, self.params
         p.check(self.where)
         rig.require_closed()
-        self.bones: Bones = self._stage("bones", lambda: bone_segments(rig))
-        self.layers: Layers = self._stage("layers", lambda: build_layers(rig, p.layers, bones=self.bones))
+        if p.refine and rig.render_count is None:
+            rig = self.rig = self._stage("refine", lambda: refine_coarse(rig, p.max_edge))
+        # the bones and the layers of the skin as loaded; a refined skin's added vertices get
+        # their parents' mean (each refined layer triangle lies in a coarse one)
+        loaded = rig.unrefined()
+        self.bones: Bones = self._stage("bones", lambda: bone_segments(loaded))
+        self.layers: Layers = self._stage("layers", lambda: build_layers(loaded, p.layers, bones=self.bones))
         if p.layers.adaptive:
-            self.layers = self._stage("layer_depths", lambda: fit_layer_depths(rig, self.layers, where=self.where))
+            self.layers = self._stage("layer_depths", lambda: fit_layer_depths(loaded, self.layers, where=self.where))
+        if loaded is not rig:
+            self.layers = self.layers.refined(rig.vertex_parents)
         self._stage("layer_check", lambda: check_layer_folds(self.layers, rig.triangles, where=self.where))
         self.masses = self._stage("masses", lambda: particle_masses(self.layers, rig.triangles, density=p.density, where=self.where))
         self.radii = self._stage("radii", lambda: particle_radii(self.layers, rig.triangles))

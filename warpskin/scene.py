@@ -63,7 +63,8 @@ _SCHEMA: dict[str, set[str]] = {
     "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights", "parents"},
     "animation": {"clip", "fps", "frames", "preroll", "keys", "interpolation"},
     # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
-    "layers": {"fat", "muscle", "bone", "adaptive", "stiffness", "density", "omega", "coupling_stiffness", "per_bone"},
+    "layers": {"fat", "muscle", "bone", "adaptive", "stiffness", "density", "omega", "coupling_stiffness", "per_bone",
+               "refine", "max_edge"},
     "joints": {"radius_factor", "layers", "joints"},
     "subvolumes": {"enabled", "planes"},
     # Algorithm 1 settings
@@ -450,6 +451,12 @@ def _model_params(extra: dict, where: str):
             else:
                 raise SceneError(f"{where}: [subvolumes] planes.{joint} must be a number in [0, 1] or false, got {value!r}")
         sub_params = SubVolumeParams(planes=planes)
+    refine = lay.get("refine", True)
+    if not isinstance(refine, bool):
+        raise SceneError(f"{where}: [layers] refine must be true or false, got {refine!r}")
+    max_edge = lay.get("max_edge")
+    if max_edge is not None and (isinstance(max_edge, bool) or not isinstance(max_edge, (int, float))):
+        raise SceneError(f"{where}: [layers] max_edge must be a length [m], got {max_edge!r}")
     enabled = sv.get("enabled", True)
     if not isinstance(enabled, bool):
         raise SceneError(f"{where}: [subvolumes] enabled must be true or false")
@@ -463,6 +470,8 @@ def _model_params(extra: dict, where: str):
         joints=joint_params,
         subvolumes=sub_params,
         volume=enabled,
+        refine=refine,
+        max_edge=None if max_edge is None else float(max_edge),
     )
     params.check(where)
     return params

@@ -96,6 +96,25 @@ class Layers:
     def particle_count(self) -> int:
         return 4 * self.vertex_count
 
+    def refined(self, parents: np.ndarray) -> Layers:
+        """The layers of a skin refined by midpoint splits (``parents`` ``[A, 2]``, each added
+        vertex's two parents, in order: :class:`~warpskin.preprocess.refine.RefinedSurface`):
+        every added vertex's layer positions, foot and parameters are its parents' mean, so
+        each refined layer triangle lies inside a layer triangle of the coarse skin and folds
+        nowhere the coarse layers do not; its bone is its first parent's."""
+        from .refine import extend_midpoints
+
+        return Layers(
+            positions=np.stack([extend_midpoints(x, parents) for x in self.positions]),
+            foot=extend_midpoints(self.foot, parents),
+            bone=extend_midpoints(self.bone, parents, take_first=True),
+            bone_t=extend_midpoints(self.bone_t, parents),
+            params=extend_midpoints(self.params, parents),
+            bones=self.bones,
+            depth_scale=extend_midpoints(self.depth_scale, parents),
+            depth_notes=list(self.depth_notes),
+        )
+
     def flat(self) -> np.ndarray:
         """All particle rest positions, layer-major, ``[4 V, 3]``."""
         return self.positions.reshape(-1, 3)

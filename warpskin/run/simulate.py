@@ -65,27 +65,33 @@ class _Measurements:
                                          "max_offset_from_lbs", "step_ms", "residuals", "contacts_point_triangle",
                                          "contacts_edge_edge", "constraints_active", "intersecting_pairs",
                                          "intersecting_pairs_lbs", "tether_clamped")}
-        self.m["volume_rest"] = signed_volume(rig.vertices, rig.triangles)
+        self.m["volume_rest"] = signed_volume(rig.vertices[: rig.output_count], rig.output_triangles)
         self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
         self.lbs: np.ndarray | None = None
 
     def lbs_points(self, i: int) -> np.ndarray:
+        """LBS of every simulated skin vertex (the file's first, then any added by refining)."""
         rig = self.b.rig
         return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, self.st.frame_poses[i])
 
     def evaluate(self, i: int, skin: np.ndarray) -> np.ndarray:
         """Volumes and offset of frame ``i`` against LBS, kept for :meth:`__call__`; raises
         :class:`SimulationError` where the skin left its plausible range (unless
-        ``allow_unstable``, then one warning). Returns the frame's LBS skin."""
+        ``allow_unstable``, then one warning). ``skin`` is every simulated skin vertex; the
+        volume, offset and intersections are those of the file's own mesh (its vertices are
+        the first ones), the sub-volumes those of the simulated surface. Returns the LBS of
+        the file's mesh."""
         b, st = self.b, self.st
-        subs, tris = b.subvolumes, b.rig.triangles
-        lbs = self.lbs_points(i)
-        e = {"lbs": lbs, "volume": signed_volume(skin, tris), "volume_lbs": signed_volume(lbs, tris)}
+        subs = b.subvolumes
+        n, tris = b.rig.output_count, b.rig.output_triangles
+        lbs_all = self.lbs_points(i)
+        lbs, out = lbs_all[:n], skin[:n]
+        e = {"lbs": lbs, "volume": signed_volume(out, tris), "volume_lbs": signed_volume(lbs, tris)}
         if subs is not None:
             centres = subs.center_positions(st.frame_poses[i])
             e["subvolume"] = subs.volumes(skin.astype(np.float64), centres)
-            e["subvolume_lbs"] = subs.volumes(lbs, centres)
-        d = np.linalg.norm(skin - lbs, axis=1)
+            e["subvolume_lbs"] = subs.volumes(lbs_all, centres)
+        d = np.linalg.norm(out - lbs, axis=1)
         e["offset"] = float(d.max())
         self._pending = e
         problem = self._out_of_range(i, skin, e, d)
@@ -126,8 +132,8 @@ class _Measurements:
 
     def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
         m, b, st = self.m, self.b, self.st
-        tris = b.rig.triangles
-        skin = points["skin"]
+        tris = b.rig.output_triangles
+        skin = points["skin"]  # the file's vertices (what was written)
         e = self._pending
         lbs = e["lbs"]
         vel = st.velocities()
@@ -224,13 +230,15 @@ def simulate(
     stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
                              activation=activation, label="simulate", name=scene.name)
     measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
-    tris = rig.triangles
-    meshes = [("skin", tris, rig.vertices, {"color": _SKIN_COLOR})]
+    sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
+    n_out = sim.output_count
+    tris = sim.output_triangles
+    meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR})]
     if with_lbs:
-        meshes.append(("lbs", tris, rig.vertices, {"color": _LBS_COLOR, "purpose": "guide"}))
-    if with_layers:
+        meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
+    if with_layers:  # the inner layers as simulated (guides)
         for k in range(1, 4):
-            meshes.append((f"layer_{LAYER_NAMES[k]}", tris, builder.layers.positions[k], {"purpose": "guide"}))
+            meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k], {"purpose": "guide"}))
 
     class _Writes:
         """What ``simulate`` writes of a physics frame."""
@@ -245,7 +253,7 @@ def simulate(
 
         def frame(self, i):
             pts = stepper.frame(i)
-            out = {"skin": pts["skin"]}
+            out = {"skin": pts["skin"][:n_out]}
             lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
             if with_lbs:
                 out["lbs"] = lbs
@@ -269,6 +277,8 @@ def simulate(
         "device": str(model.device),
         "particles": model.particle_count,
         "vertices": model.vertex_count,
+        "file_vertices_written": n_out,
+        "refined_vertices_added": model.vertex_count - n_out,
         "frames": len(written),
         "substeps_per_frame": plan.substeps,
         "dt_s": plan.dt,

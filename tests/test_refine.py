@@ -1,0 +1,210 @@
+"""Refining a coarse skin for the simulation (warpskin.preprocess.refine, Rig.refined), against
+trimesh's mesh checks and NumPy references; and the coarse rigs of the assets end to end."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from oracles import rig_lbs
+from warpskin.model import ModelParams, SkinModelBuilder, refine_coarse
+from warpskin.preprocess.layers import folded_triangles
+from warpskin.preprocess.refine import default_max_edge, extend_midpoints, flip_flat_edges, refine_long_edges
+
+
+def _coarse_cylinder(rings=3, around=8, length=6.0, radius=1.0):
+    """A closed low-poly cylinder along z with fan caps (like RiggedSimple): long thin sides."""
+    rng = np.random.default_rng(3)
+    z = np.linspace(-length / 2, length / 2, rings)
+    a = np.linspace(0, 2 * np.pi, around, endpoint=False) + 0.01
+    v = np.array([[radius * np.cos(t), radius * np.sin(t), zz] for zz in z for t in a])
+    v += rng.normal(scale=1e-3, size=v.shape)  # generic positions
+    v[:around, 2] = z[0]
+    v[-around:, 2] = z[-1]  # flat caps
+    tris = []
+    for r in range(rings - 1):
+        for k in range(around):
+            i0, i1 = r * around + k, r * around + (k + 1) % around
+            j0, j1 = i0 + around, i1 + around
+            tris += [(i0, i1, j1), (i0, j1, j0)]
+    for k in range(1, around - 1):  # fans from the first vertex of each rim
+        tris.append((0, k + 1, k))
+        top = (rings - 1) * around
+        tris.append((top, top + k, top + k + 1))
+    return v, np.array(tris)
+
+
+def _on_surface(points, v, t, tol):
+    """Brute force: each point lies on some triangle (within ``tol`` of its plane, barycentric
+    coordinates >= -tol relative)."""
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    n = np.cross(b - a, c - a)
+    area2 = np.linalg.norm(n, axis=1)
+    n_hat = n / area2[:, None]
+    out = np.zeros(len(points), dtype=bool)
+    for k, p in enumerate(points):
+        plane = np.abs(np.einsum("ij,ij->i", p - a, n_hat)) < tol
+        wa = np.einsum("ij,ij->i", np.cross(c - b, p - b), n_hat) / area2
+        wb = np.einsum("ij,ij->i", np.cross(a - c, p - c), n_hat) / area2
+        wc = 1.0 - wa - wb
+        inside = (wa > -1e-9) & (wb > -1e-9) & (wc > -1e-9)
+        out[k] = bool((plane & inside).any())
+    return out
+
+
+def _edges(t):
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def test_refined_surface_is_closed_oriented_and_the_same_surface():
+    v, t = _coarse_cylinder()
+    m0 = trimesh.Trimesh(v, t, process=False)
+    assert m0.is_watertight and m0.is_winding_consistent and m0.volume > 0
+    max_edge = 0.4
+    ref = refine_long_edges(v, t, max_edge)
+    x, tt = ref.vertices, ref.triangles
+    m = trimesh.Trimesh(x, tt, process=False)
+    assert m.is_watertight and m.is_winding_consistent
+    # every input vertex kept, first and in order
+    np.testing.assert_array_equal(x[: len(v)], v)
+    # no edge longer than the bound
+    e = _edges(tt)
+    assert np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1).max() <= max_edge
+    # the same surface: same volume and area, every new vertex on the input surface
+    assert m.volume == pytest.approx(m0.volume, rel=1e-9)
+    assert m.area == pytest.approx(m0.area, rel=1e-9)
+    assert _on_surface(x[len(v):], v, t, 1e-9 * np.linalg.norm(v.max(0) - v.min(0))).all()
+    # every added vertex is the midpoint of its parents
+    np.testing.assert_allclose(x[len(v):], 0.5 * (x[ref.parents[:, 0]] + x[ref.parents[:, 1]]), atol=1e-12)
+    assert (ref.parents < np.arange(len(v), len(x))[:, None]).all()  # parents come earlier
+
+
+def test_flat_flips_keep_the_surface_and_fix_a_fan():
+    """A fan over a flat ellipse is flipped towards Delaunay: the minimum angle rises, the area
+    and orientation stay."""
+    n = 12
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False) + 0.02
+    # an ellipse, not a circle: on a circle every triangulation is Delaunay (a tie)
+    x = np.stack([3.0 * np.cos(a), np.sin(a), np.zeros(n)], axis=1)
+    t = np.array([(0, k, k + 1) for k in range(1, n - 1)])
+
+    def min_angle(tris):
+        out = []
+        for tri in tris:
+            for k in range(3):
+                p, q, r = x[tri[k]], x[tri[(k + 1) % 3]], x[tri[(k + 2) % 3]]
+                u, w = q - p, r - p
+                out.append(np.arccos(np.clip(u @ w / np.linalg.norm(u) / np.linalg.norm(w), -1, 1)))
+        return min(out)
+
+    f = flip_flat_edges(x, t)
+    assert f.shape == t.shape
+    area = lambda tris: 0.5 * np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])[:, 2]  # noqa: E731
+    assert (area(f) > 0).all() and area(f).sum() == pytest.approx(area(t).sum(), rel=1e-12)
+    assert min_angle(f) > 2.0 * min_angle(t)
+    # a bent (non-coplanar) pair is never flipped
+    xb = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0.3], [0.5, -1, 0.3]], float)
+    tb = np.array([[0, 1, 2], [1, 0, 3]])
+    np.testing.assert_array_equal(flip_flat_edges(xb, tb), tb)
+
+
+def test_extend_midpoints_against_a_loop():
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(5, 3))
+    parents = np.array([[0, 1], [2, 5], [5, 6], [3, 4], [7, 8]])
+    ref = list(base)
+    for a, b in parents:
+        ref.append(0.5 * (ref[a] + ref[b]))
+    np.testing.assert_allclose(extend_midpoints(base, parents), np.array(ref), atol=1e-15)
+    labels = np.array([4, 3, 2, 1, 0])
+    got = extend_midpoints(labels, parents, take_first=True)
+    want = list(labels)
+    for a, _b in parents:
+        want.append(want[a])
+    np.testing.assert_array_equal(got, want)
+
+
+def _mean_edge(rig):
+    e = _edges(rig.triangles)
+    return float(np.linalg.norm(rig.vertices[e[:, 0]] - rig.vertices[e[:, 1]], axis=1).mean())
+
+
+def test_rig_refined_keeps_the_file_vertices_and_their_skinning(coarse_arm):
+    rig = coarse_arm
+    fine = rig.refined(_mean_edge(rig))
+    n = rig.vertex_count
+    assert fine.vertex_count > n and fine.output_count == n
+    np.testing.assert_array_equal(fine.output_triangles, rig.triangles)
+    np.testing.assert_array_equal(fine.vertices[:n], rig.vertices)
+    # weights: the file's for its vertices, the parents' mean for a midpoint (dense, NumPy)
+    dense = fine.dense_weights()
+    np.testing.assert_allclose(dense[:n], rig.dense_weights(), atol=1e-12)
+    ref = list(rig.dense_weights())
+    for a, b in fine.vertex_parents:
+        ref.append(0.5 * (ref[a] + ref[b]))
+    np.testing.assert_allclose(dense, np.array(ref), atol=1e-12)
+    np.testing.assert_allclose(dense.sum(1), 1.0, atol=1e-12)
+    # LBS of the file's vertices is unchanged by refining (the oracle's LBS, a bent pose)
+    mats = rig.skinning_matrices(rig.clip(None), 1.2)
+    np.testing.assert_allclose(rig_lbs(fine, mats)[:n], rig_lbs(rig, mats), atol=1e-12)
+    # a message names the vertex an added one was split from (a file vertex)
+    assert (fine.file_vertex_ids(np.arange(n, fine.vertex_count)) >= 0).all()
+    assert fine.unrefined().vertex_count == n
+
+
+def test_fine_skins_are_not_refined_by_default(arm):
+    assert refine_coarse(arm) is arm  # the arm's 2918 vertices are fine already
+
+
+def test_refined_layers_lie_in_the_coarse_ones(coarse_arm):
+    """The builder fits the layers on the file's skin and gives each midpoint its parents'
+    mean: no refined layer triangle folds (brute-force orientation check)."""
+    params = ModelParams(max_edge=_mean_edge(coarse_arm))
+    b = SkinModelBuilder(coarse_arm, params).build()
+    rig = b.rig
+    assert rig.vertex_count > coarse_arm.vertex_count
+    for k in range(1, 4):
+        pos = b.layers.positions[k]
+        assert folded_triangles(rig.vertices, pos, rig.triangles).size == 0
+        par = rig.vertex_parents
+        n = coarse_arm.vertex_count
+        np.testing.assert_allclose(pos[n:], extend_midpoints(pos[:n], par)[n:], atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------
+# The coarse rigs of the assets, with the defaults only (shortened clips for CI time): refined
+# for the simulation, written back with the file's vertices, and no worse than LBS.
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("rel, frames", [("RiggedSimple/RiggedSimple.glb", (0, 24)),
+                                         ("RiggedFigure/RiggedFigure.glb", (0, 14))])
+def test_coarse_assets_simulate_with_defaults_no_worse_than_lbs(tmp_path, assets, device, rel, frames):
+    from pxr import Usd, UsdGeom
+
+    from warpskin.run import simulate
+    from warpskin.scene import resolve_scene
+
+    scene = resolve_scene(assets / rel)
+    loaded = scene.rig()
+    result = simulate(scene, tmp_path / "out.usdc", device=device, progress=False, frames=frames, with_lbs=True,
+                      check_intersections=True)
+    m, s = result.metrics, result.summary
+    assert s["refined_vertices_added"] > 0 and s["file_vertices_written"] == loaded.vertex_count
+    # the written mesh has the file's (welded) topology
+    stage = Usd.Stage.Open(str(result.path))
+    meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.GetName() == "skin"]
+    assert len(meshes) == 1
+    assert np.asarray(meshes[0].GetFaceVertexIndicesAttr().Get()).reshape(-1, 3).tolist() == loaded.triangles.tolist()
+    pts = np.asarray(meshes[0].GetPointsAttr().Get(Usd.TimeCode(frames[1])))
+    assert pts.shape == (loaded.vertex_count, 3) and np.isfinite(pts).all()
+    # against LBS, frame by frame (the whole volume within a 0.1 % band of LBS's: a frame where
+    # LBS is exactly at rest volume cannot be matched by a skin under gravity)
+    v0 = m["volume_rest"]
+    vol = np.abs(np.array(m["volume"]) / v0 - 1)
+    vol_lbs = np.abs(np.array(m["volume_lbs"]) / v0 - 1)
+    assert np.all(vol <= vol_lbs + 1e-3)
+    rest = np.array(m["subvolume_rest"])
+    sub = np.abs(np.array(m["subvolume"]) / rest - 1).max(axis=1)
+    sub_lbs = np.abs(np.array(m["subvolume_lbs"]) / rest - 1).max(axis=1)
+    assert np.all(sub <= sub_lbs + 1e-3)
+    assert np.all(np.array(m["intersecting_pairs"]) <= np.array(m["intersecting_pairs_lbs"]))
+    assert max(m["max_offset_from_lbs"]) <= 0.05 * s["body_diagonal_m"]

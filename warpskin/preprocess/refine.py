@@ -1,0 +1,225 @@
+"""Refining a coarse skin for the simulation: long edges are split at their midpoints.
+
+The layered model needs a skin fine enough that a shape-matching region (a vertex's one-ring)
+is small against a limb. A low-poly game mesh (RiggedSimple's 96-vertex cylinder, the Fox)
+has one-rings that reach from one joint past the next, so every region spans a joint and
+pulls the bent limb back towards its straight bind shape. Splitting every edge longer than
+``max_edge`` at its midpoint (red-green refinement, repeated until none is longer) makes the
+regions small without changing the surface: the new vertices lie on the old triangles, every
+file vertex stays (the first ``V`` vertices, in order), the surface stays closed, manifold and
+consistently oriented, and a midpoint's skinning weights are the mean of its edge's.
+
+The simulation then runs on the refined skin and writes back the file's own vertices.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["RefinedSurface", "refine_long_edges", "default_max_edge", "flip_flat_edges"]
+
+#: Vertex count the default edge length aims at for a coarse skin (near-equilateral triangles).
+TARGET_VERTICES = 1000
+
+
+def surface_area(vertices: np.ndarray, triangles: np.ndarray) -> float:
+    t = np.asarray(triangles, dtype=np.int64)
+    v = np.asarray(vertices, dtype=np.float64)
+    return float(0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum())
+
+
+def default_max_edge(vertices: np.ndarray, triangles: np.ndarray, target_vertices: int = TARGET_VERTICES) -> float:
+    """Twice the edge length of an equilateral mesh of ``target_vertices`` vertices over the
+    surface's area (a closed surface of V vertices has about 2V triangles): after splitting,
+    the edges lie between this and half of it."""
+    area = surface_area(vertices, triangles)
+    return 2.0 * math.sqrt(2.0 * area / (math.sqrt(3.0) * max(int(target_vertices), 1)))
+
+
+class RefinedSurface:
+    """A refined skin.
+
+    Attributes:
+        vertices: ``[V', 3]``; the first ``original_count`` are the input's, in order.
+        triangles: ``[T', 3]``, the same orientation as the input's.
+        parents: The two vertices each added vertex is the midpoint of, ``[V' - V, 2]`` (either
+            may itself be an added vertex, always one added earlier).
+        origin: The input vertex nearest along the splits of every vertex, ``[V']`` (itself
+            for an input vertex): what a message names for an added vertex.
+        original_count: ``V``.
+    """
+
+    def __init__(self, vertices, triangles, parents, original_count: int) -> None:
+        self.vertices = vertices
+        self.triangles = triangles
+        self.parents = parents
+        self.original_count = int(original_count)
+        origin = np.arange(vertices.shape[0])
+        for k, (a, _b) in enumerate(parents):
+            origin[original_count + k] = origin[a]
+        self.origin = origin
+
+    @property
+    def added(self) -> int:
+        return int(self.vertices.shape[0] - self.original_count)
+
+    def interpolate(self, values: np.ndarray) -> np.ndarray:
+        """Per-vertex ``values`` ``[V, ...]`` of the input extended to every vertex (a midpoint
+        gets the mean of its two parents'), in float64."""
+        return extend_midpoints(values, self.parents)
+
+
+def extend_midpoints(values: np.ndarray, parents: np.ndarray, *, take_first: bool = False) -> np.ndarray:
+    """Per-vertex ``values`` ``[V, ...]`` extended by one row per added vertex: the mean of its
+    two parents' rows (``parents`` ``[A, 2]``, each referring to earlier rows), or with
+    ``take_first`` the first parent's (for labels such as a bone index)."""
+    values = np.asarray(values)
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1, 2)
+    dtype = values.dtype if take_first else np.float64
+    out = np.empty((values.shape[0] + parents.shape[0],) + values.shape[1:], dtype=dtype)
+    n = values.shape[0]
+    out[:n] = values
+    # one vectorised step per generation: the rows added by one refinement pass only refer to
+    # rows of earlier passes, and a row's parents are always earlier rows
+    k = 0
+    while k < parents.shape[0]:
+        # the longest run of added rows whose parents are all already filled
+        limit = n + k
+        stop = k
+        while stop < parents.shape[0] and parents[stop].max() < limit:
+            stop += 1
+        if stop == k:  # a parent in this run itself: fall back to one row
+            stop = k + 1
+        a, b = parents[k:stop, 0], parents[k:stop, 1]
+        out[n + k:n + stop] = out[a] if take_first else 0.5 * (out[a] + out[b])
+        k = stop
+    return out
+
+
+def refine_long_edges(vertices: np.ndarray, triangles: np.ndarray, max_edge: float, *,
+                      max_vertices: int = 200_000) -> RefinedSurface:
+    """Split every edge longer than ``max_edge`` at its midpoint until none is.
+
+    Each pass marks the longest edge of every triangle that has one longer than ``max_edge``
+    and splits all marked edges at once; a triangle with one, two or three split edges becomes
+    two, three (the quad cut along its shorter diagonal) or four triangles, so no T-junction is
+    ever left. After each pass, edges between two coplanar triangles are flipped towards
+    Delaunay (:func:`flip_flat_edges`), which changes no point of the surface but keeps the
+    splits of a fan (a low-poly cap) from piling up slivers at its apex.
+
+    Raises:
+        ValueError: ``max_edge`` is not positive, or refining would exceed ``max_vertices``.
+    """
+    if not (math.isfinite(max_edge) and max_edge > 0):
+        raise ValueError(f"max_edge must be a positive length, got {max_edge!r}")
+    verts = [np.asarray(vertices, dtype=np.float64)]
+    x = verts[0]
+    tris = np.asarray(triangles, dtype=np.int64).copy()
+    n0 = x.shape[0]
+    parents: list[tuple[int, int]] = []
+    while True:
+        e = np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1)  # [T, 3, 2]
+        length = np.linalg.norm(x[e[..., 0]] - x[e[..., 1]], axis=2)  # [T, 3]
+        longest = np.argmax(length, axis=1)
+        rows = np.nonzero(length[np.arange(len(tris)), longest] > max_edge)[0]
+        if rows.size == 0:
+            break
+        marked = np.sort(e[rows, longest[rows]], axis=1)
+        marked = np.unique(marked, axis=0)
+        if x.shape[0] + marked.shape[0] > max_vertices:
+            raise ValueError(f"refining to edges of at most {max_edge:.4g} would need more than {max_vertices} vertices")
+        base = x.shape[0]
+        mid = {(int(a), int(b)): base + k for k, (a, b) in enumerate(marked)}
+        x = np.concatenate([x, 0.5 * (x[marked[:, 0]] + x[marked[:, 1]])])
+        parents.extend((int(a), int(b)) for a, b in marked)
+        out = []
+        for tri in tris:
+            a, b, c = (int(i) for i in tri)
+            m = [mid.get((min(a, b), max(a, b))), mid.get((min(b, c), max(b, c))), mid.get((min(c, a), max(c, a)))]
+            k = sum(v is not None for v in m)
+            if k == 0:
+                out.append((a, b, c))
+                continue
+            # rotate so that the split edges come first: (a, b) split, then (b, c), then (c, a)
+            for _ in range(3):
+                if k == 3 or (k == 1 and m[0] is not None) or (k == 2 and m[2] is None):
+                    break
+                a, b, c = b, c, a
+                m = m[1:] + m[:1]
+            if k == 1:
+                mab = m[0]
+                out += [(a, mab, c), (mab, b, c)]
+            elif k == 2:
+                mab, mbc = m[0], m[1]
+                out.append((mab, b, mbc))
+                # the quad a, mab, mbc, c along its shorter diagonal
+                if np.linalg.norm(x[a] - x[mbc]) <= np.linalg.norm(x[mab] - x[c]):
+                    out += [(a, mab, mbc), (a, mbc, c)]
+                else:
+                    out += [(a, mab, c), (mab, mbc, c)]
+            else:
+                mab, mbc, mca = m
+                out += [(a, mab, mca), (mab, b, mbc), (mca, mbc, c), (mab, mbc, mca)]
+        tris = flip_flat_edges(x, np.array(out, dtype=np.int64))
+    par = np.array(parents, dtype=np.int64).reshape(-1, 2)
+    return RefinedSurface(x, tris, par, n0)
+
+
+def _angle(x: np.ndarray, apex: int, a: int, b: int) -> float:
+    u, w = x[a] - x[apex], x[b] - x[apex]
+    return math.atan2(float(np.linalg.norm(np.cross(u, w))), float(np.dot(u, w)))
+
+
+def flip_flat_edges(x: np.ndarray, triangles: np.ndarray, *, coplanar_cos: float = 1.0 - 1e-10,
+                    max_passes: int = 50) -> np.ndarray:
+    """Flip every edge shared by two coplanar, equally oriented triangles whose opposite angles
+    sum to more than pi (the Delaunay criterion), until none is left or ``max_passes``. Only
+    coplanar pairs are flipped, so the surface (every point of it) is unchanged; the
+    orientation of each triangle is kept."""
+    tris = [list(t) for t in np.asarray(triangles, dtype=np.int64)]
+    normals = []
+    for a, b, c in tris:
+        n = np.cross(x[b] - x[a], x[c] - x[a])
+        ln = np.linalg.norm(n)
+        normals.append(n / ln if ln > 0 else n)
+    for _ in range(max_passes):
+        edge_tri: dict[tuple[int, int], int] = {}  # directed edge -> its triangle
+        for k, (a, b, c) in enumerate(tris):
+            edge_tri[(a, b)] = k
+            edge_tri[(b, c)] = k
+            edge_tri[(c, a)] = k
+        undirected = {tuple(sorted(e)) for e in edge_tri}
+        flipped = 0
+        touched: set[int] = set()
+        for a, b in list(edge_tri):
+            if a > b or (b, a) not in edge_tri:
+                continue
+            k1, k2 = edge_tri[(a, b)], edge_tri[(b, a)]
+            if k1 in touched or k2 in touched:
+                continue
+            if float(np.dot(normals[k1], normals[k2])) < coplanar_cos:
+                continue
+            t1, t2 = tris[k1], tris[k2]
+            c = next(v for v in t1 if v != a and v != b)
+            d = next(v for v in t2 if v != a and v != b)
+            if c == d or tuple(sorted((c, d))) in undirected:
+                continue
+            if _angle(x, c, a, b) + _angle(x, d, a, b) <= math.pi + 1e-9:
+                continue
+            # (a, b, c) and (b, a, d) become (c, a, d) and (d, b, c): both keep the orientation
+            n1 = np.cross(x[a] - x[c], x[d] - x[c])
+            n2 = np.cross(x[b] - x[d], x[c] - x[d])
+            if np.dot(n1, normals[k1]) <= 0 or np.dot(n2, normals[k1]) <= 0:
+                continue  # the quad is not convex there: a flip would fold it
+            tris[k1], tris[k2] = [c, a, d], [d, b, c]
+            normals[k1] = n1 / np.linalg.norm(n1)
+            normals[k2] = n2 / np.linalg.norm(n2)
+            undirected.discard((min(a, b), max(a, b)))
+            undirected.add((min(c, d), max(c, d)))
+            touched.update((k1, k2))
+            flipped += 1
+        if not flipped:
+            break
+    return np.array(tris, dtype=np.int64).reshape(-1, 3)
