@@ -11,7 +11,7 @@ from pxr import Usd, UsdGeom
 from oracles import coarse_arm, lbs
 from warpskin.cli import main
 from warpskin.errors import SimulationError
-from warpskin.model import SkinModelBuilder
+from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.run import initial_state, simulate
 from warpskin.scene import load_scene
 from warpskin.solver import SkinSolver, SolverParams
@@ -62,8 +62,10 @@ def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
 
 
 def test_after_a_step_every_particle_is_within_its_tether(device):
+    # without the volume loop, which runs after the tether (and may move a particle by its
+    # sub-volume's correction), the tether is the step's last position change
     rig = coarse_arm()
-    builder = SkinModelBuilder(rig)
+    builder = SkinModelBuilder(rig, ModelParams(volume=False))
     model = builder.finalize(device)
     solver = SkinSolver(model, SolverParams(iterations=2))
     mats = rig.skinning_matrices("flex", 1.0)

@@ -283,18 +283,19 @@ class SkinSolver:
             q_src, q_dst = q_dst, q_src
         if q_src is not state_out.q:
             wp.copy(state_out.q, q_src)
+        # the tether: no particle farther from its LBS target than its radius (before the volume
+        # loop, which restores what the clamp took from a sub-volume)
+        if self.tether_radius is not None:
+            wp.launch(k_con.tether_kernel, dim=n,
+                      inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
+                              self.tether_radius, m.vertex_count],
+                      outputs=[state_out.x, self.tether_clamped], device=dev)
         # 11-13: volume loop
         if self.volume is not None:
             if col is not None:
                 col.volume_weights(contacts, self.volume_weight_scale)
             self.volume.project(state_out.x, m.particle_inv_mass, self.volume_weight_scale, self.volume_centres,
                                 p.volume_iterations, p.volume_stiffness)
-        # the tether: no particle farther from its LBS target than its radius
-        if self.tether_radius is not None:
-            wp.launch(k_con.tether_kernel, dim=n,
-                      inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
-                              self.tether_radius, m.vertex_count],
-                      outputs=[state_out.x, self.tether_clamped], device=dev)
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],
