@@ -8,7 +8,7 @@ import trimesh
 from oracles import rig_lbs
 from warpskin.model import ModelParams, SkinModelBuilder, refine_coarse
 from warpskin.preprocess.layers import folded_triangles
-from warpskin.preprocess.refine import default_max_edge, extend_midpoints, flip_flat_edges, refine_long_edges
+from warpskin.preprocess.refine import extend_midpoints, flip_flat_edges, refine_long_edges
 
 
 def _coarse_cylinder(rings=3, around=8, length=6.0, radius=1.0):
