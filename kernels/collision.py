@@ -618,13 +618,15 @@ def reset_collision_kernel(
 @wp.kernel
 def volume_weights_kernel(
     colliding: wp.array(dtype=wp.int32),
+    colliding_weight: float,
     # outputs
     weight_scale: wp.array(dtype=wp.float32),
 ):
-    """Colliding particles get weight 0 in the volume loop (Diziol et al. 2011)."""
+    """Colliding particles get ``colliding_weight`` on their inverse mass in the volume loop
+    (Diziol et al. 2011 use 0: they stay put)."""
     i = wp.tid()
     if colliding[i] != 0:
-        weight_scale[i] = 0.0
+        weight_scale[i] = colliding_weight
     else:
         weight_scale[i] = 1.0
 

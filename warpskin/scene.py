@@ -69,10 +69,11 @@ _SCHEMA: dict[str, set[str]] = {
     "subvolumes": {"enabled", "planes"},
     # Algorithm 1 settings
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
-               "fast_summation", "volume_stiffness", "tether", "tether_floor", "max_offset", "max_volume_error"},
+               "fast_summation", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
+               "max_volume_error", "max_speed"},
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
-                  "fold_cos", "rebuild_spread"},
+                  "fold_cos", "rebuild_spread", "volume_weight"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }
@@ -163,7 +164,8 @@ class Scene:
         for key in ("iterations", "volume_iterations", "rotation_iterations"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], int)):
                 raise SceneError(f"{where}: [solver] {key} must be an integer, got {table[key]!r}")
-        for key in ("dt", "damping", "volume_stiffness", "tether", "tether_floor", "max_offset", "max_volume_error"):
+        for key in ("dt", "damping", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
+                    "max_volume_error", "max_speed"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [solver] {key} must be a number, got {table[key]!r}")
         if "fast_summation" in table and not isinstance(table["fast_summation"], bool):
@@ -183,7 +185,8 @@ class Scene:
         where = _where(self.source)
         if "enabled" in table and not isinstance(table["enabled"], bool):
             raise SceneError(f"{where}: [collision] enabled must be true or false")
-        for key in ("thickness", "friction", "restitution", "detection_margin", "fold_cos", "rebuild_spread"):
+        for key in ("thickness", "friction", "restitution", "detection_margin", "fold_cos", "rebuild_spread",
+                    "volume_weight"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
         params = CollisionParams(**table)
