@@ -35,7 +35,7 @@ def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
     rig = coarse_arm()
     builder = SkinModelBuilder(rig)
     model = builder.finalize(device)
-    solver = SkinSolver(model, SolverParams(tether=1.5, tether_floor=0.01))
+    solver = SkinSolver(model, SolverParams(tether=1.5, tether_floor=0.01, tether_max=1.0))  # no cap here
     mats = rig.skinning_matrices("flex", 1.0)
     ctrl = model.control()
     ctrl.set_pose(mats)
@@ -59,6 +59,22 @@ def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
     near = np.setdiff1d(np.arange(model.particle_count), far)
     np.testing.assert_array_equal(out[near], x[near].astype(np.float32))
     assert int(clamped.numpy()[0]) == 40
+
+
+def test_no_tether_radius_exceeds_tether_max_of_the_diagonal(device):
+    # radius = min(tether x tissue depth + floor x diagonal, tether_max x diagonal), per vertex,
+    # against the builder's own depths (NumPy); a cap below every radius clamps them all
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig)
+    model = builder.finalize(device)
+    diag = rig.size()
+    depth = np.linalg.norm(builder.layers.positions[3] - builder.layers.positions[0], axis=1)
+    free = 1.5 * depth + 0.01 * diag
+    for cap in (0.08, 0.5 * free.min() / diag):
+        solver = SkinSolver(model, SolverParams(tether=1.5, tether_floor=0.01, tether_max=cap))
+        want = np.minimum(free, cap * diag)
+        np.testing.assert_allclose(solver.tether_radius.numpy(), want, rtol=1e-6)
+    np.testing.assert_allclose(solver.tether_radius.numpy(), 0.5 * free.min(), rtol=1e-6)  # all clamped
 
 
 def test_after_a_step_every_particle_is_within_its_tether(device):
@@ -111,6 +127,28 @@ def test_a_setting_a_user_may_pick_ends_bounded_or_stops_with_exit_3(tmp_path, c
         assert times == [float(f) for f in range(stopped)]
     else:
         assert len(times) == 41
+
+
+def test_motion_growing_faster_than_max_speed_stops_at_the_first_such_frame(tmp_path):
+    # the check on the skin's motion relative to the animation: with a bound below what the
+    # flex produces, the run stops at the first frame whose RMS relative speed is above it and
+    # above the frame before (the reference: the same run's own per-frame series, unbounded)
+    scene = _scene(tmp_path, "speed")
+    free = simulate(scene, tmp_path / "free.usdc", progress=False, frames=(0, 30))
+    speed = np.array(free.metrics["relative_speed_rms"]) / free.summary["body_diagonal_m"]
+    assert speed[0] == 0.0 and speed.max() > 0
+    bound = 0.5 * speed.max()
+    growing = np.nonzero((speed > bound) & (speed > np.concatenate([[0.0], speed[:-1]])))[0]
+    first = int(growing[0])
+    assert 0 < first < 30
+    params = scene.solver_params()
+    params.max_speed = float(bound)
+    with pytest.raises(SimulationError, match=rf"frame {first}: .*motion relative to the animation keeps growing"):
+        simulate(scene, tmp_path / "stopped.usdc", progress=False, frames=(0, 30), solver_params=params)
+    # the frames before it were kept
+    stage = Usd.Stage.Open(str(tmp_path / "stopped.usdc"))
+    times = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    assert len(times.GetTimeSamples()) == first
 
 
 def test_allow_unstable_goes_on_with_one_warning(tmp_path):

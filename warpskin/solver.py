@@ -46,10 +46,16 @@ class SolverParams:
             animation and thin tissue (head, hands, feet) wobbles less than the bulk; 0 turns
             it off. Tissue depth: the distance from the skin vertex to its bone layer at rest.
         tether_floor: See ``tether``; a fraction of the rest bounding-box diagonal.
+        tether_max: No tether radius exceeds this fraction of the diagonal, so that a run the
+            tether holds is never stopped by the ``max_offset`` check (deep tissue of a
+            low-poly body, such as the Fox's 12 m head, would otherwise get a radius above it).
         max_offset: A run stops (SimulationError) at the first frame whose skin is farther
             than this fraction of the body's diagonal from LBS.
         max_volume_error: A run stops at the first frame whose volume (whole or any
             sub-volume) is off its rest volume by more than this fraction.
+        max_speed: A run stops at the first frame where the skin's motion relative to the
+            animation (its velocities minus LBS's, mass-weighted RMS) is faster than this many
+            body diagonals per second and still growing: energy the animation did not put in.
     """
 
     iterations: int = 20
@@ -62,8 +68,10 @@ class SolverParams:
     volume_stiffness: float = 1.0
     tether: float = 1.5
     tether_floor: float = 0.01
+    tether_max: float = 0.08
     max_offset: float = 0.1
     max_volume_error: float = 0.1
+    max_speed: float = 2.0
 
     def check(self, where: str = "solver") -> None:
         def integer(name, lo):
@@ -82,7 +90,7 @@ class SolverParams:
             raise SceneError(f"{where}: damping must be a rate >= 0 [1/s], got {self.damping!r}")
         if not (0.0 <= self.volume_stiffness <= 1.0):
             raise SceneError(f"{where}: volume_stiffness must be in [0, 1], got {self.volume_stiffness!r}")
-        for name in ("tether", "tether_floor", "max_offset", "max_volume_error"):
+        for name in ("tether", "tether_floor", "tether_max", "max_offset", "max_volume_error", "max_speed"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise SceneError(f"{where}: {name} must be a number >= 0, got {value!r}")
@@ -134,7 +142,7 @@ class SkinSolver:
             self.tether_radius = None
             if p.tether > 0:
                 depth = model.vertex_tissue_depth.numpy().astype(np.float64)
-                radius = p.tether * depth + p.tether_floor * model.diagonal
+                radius = np.minimum(p.tether * depth + p.tether_floor * model.diagonal, p.tether_max * model.diagonal)
                 self.tether_radius = wp.array(radius.astype(np.float32), dtype=wp.float32)
             self.tether_clamped = wp.zeros(1, dtype=wp.int32)
             # fast summation buffers

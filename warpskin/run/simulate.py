@@ -62,12 +62,15 @@ class _Measurements:
         rig = builder.rig
         subs = builder.subvolumes
         self.m: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
-                                         "max_offset_from_lbs", "step_ms", "residuals", "contacts_point_triangle",
-                                         "contacts_edge_edge", "constraints_active", "intersecting_pairs",
+                                         "max_offset_from_lbs", "relative_speed_rms", "step_ms", "residuals",
+                                         "contacts_point_triangle", "contacts_edge_edge", "constraints_active", "intersecting_pairs",
                                          "intersecting_pairs_lbs", "tether_clamped")}
         self.m["volume_rest"] = signed_volume(rig.vertices[: rig.output_count], rig.output_triangles)
         self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
         self.lbs: np.ndarray | None = None
+        self._prev_lbs: np.ndarray | None = None
+        self._prev_speed = 0.0
+        self._skin_mass = np.asarray(builder.masses[: rig.vertex_count], dtype=np.float64)
 
     def lbs_points(self, i: int) -> np.ndarray:
         """LBS of every simulated skin vertex (the file's first, then any added by refining)."""
@@ -93,6 +96,17 @@ class _Measurements:
             e["subvolume_lbs"] = subs.volumes(lbs_all, centres)
         d = np.linalg.norm(out - lbs, axis=1)
         e["offset"] = float(d.max())
+        # the skin's motion relative to the animation: its velocities minus LBS's over the frame
+        vs = self.st.velocities()[: b.rig.vertex_count].astype(np.float64)
+        if self._prev_lbs is not None and i > 0:
+            frame_dt = self.plan.times[i] - self.plan.times[i - 1]
+            rel = vs - (lbs_all - self._prev_lbs) / frame_dt
+        else:
+            rel = np.zeros_like(vs)
+        w = self._skin_mass
+        e["relative_speed_rms"] = float(np.sqrt(np.sum(w * np.einsum("ij,ij->i", rel, rel)) / w.sum()))
+        e["relative_speed"] = rel
+        self._prev_lbs = lbs_all
         self._pending = e
         problem = self._out_of_range(i, skin, e, d)
         if problem is not None:
@@ -113,6 +127,16 @@ class _Measurements:
             return (f"frame {f}: the skin left its plausible range: file vertex {int(b.rig.file_vertex_ids([k])[0])} "
                     f"(bone {bone!r}) is {e['offset']:.3g} m from LBS, {100 * e['offset'] / diag:.1f} % of the body's "
                     f"{diag:.3g} m diagonal (max_offset {p.max_offset:g})")
+        speed, before = e["relative_speed_rms"], self._prev_speed
+        self._prev_speed = speed
+        if speed > p.max_speed * diag and speed > before:
+            rel = np.linalg.norm(e["relative_speed"], axis=1)
+            k = int(np.argmax(rel))
+            bone = b.layers.bones.joint_names[b.layers.bone[k]]
+            return (f"frame {f}: the skin left its plausible range: its motion relative to the animation keeps "
+                    f"growing without input (RMS {speed:.3g} m/s, {speed / diag:.2g} body diagonals per second, "
+                    f"max_speed {p.max_speed:g}; fastest near file vertex {int(b.rig.file_vertex_ids([k])[0])}, "
+                    f"bone {bone!r})")
         v0 = self.m["volume_rest"]
         err, err_lbs = abs(e["volume"] / v0 - 1.0), abs(e["volume_lbs"] / v0 - 1.0)
         if err > max(p.max_volume_error, 2.0 * err_lbs):
@@ -145,6 +169,7 @@ class _Measurements:
             m["subvolume_lbs"].append(e["subvolume_lbs"].tolist())
         m["kinetic_energy"].append(float(0.5 * np.sum(b.masses * np.einsum("ij,ij->i", vel, vel))))
         m["max_offset_from_lbs"].append(e["offset"])
+        m["relative_speed_rms"].append(e["relative_speed_rms"])
         m["step_ms"].append(step_ms)
         m["residuals"].append(st.solver.residuals.numpy().tolist() if i > 0 else [])
         clamped = int(st.solver.tether_clamped.numpy()[0])  # a running count: this frame's share
