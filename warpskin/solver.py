@@ -42,12 +42,13 @@ class SolverParams:
         volume_stiffness: Stiffness of the volume constraints in [0, 1].
         tether: Every particle stays within ``tether x its vertex's tissue depth + tether_floor
             x the body's diagonal`` of its LBS target (a maximum-distance constraint, applied
-            once per step before the velocity update), so that no part swings far from the
+            once per step between the elasticity and the volume loop; the volume loop may then
+            move a particle past it by its sub-volume's correction), so that no part swings far from the
             animation and thin tissue (head, hands, feet) wobbles less than the bulk; 0 turns
             it off. Tissue depth: the distance from the skin vertex to its bone layer at rest.
         tether_floor: See ``tether``; a fraction of the rest bounding-box diagonal.
         tether_max: No tether radius exceeds this fraction of the diagonal, so that a run the
-            tether holds is never stopped by the ``max_offset`` check (deep tissue of a
+            tether holds is not stopped by the ``max_offset`` check (deep tissue of a
             low-poly body, such as the Fox's 12 m head, would otherwise get a radius above it).
         max_offset: A run stops (SimulationError) at the first frame whose skin is farther
             than this fraction of the body's diagonal from LBS.
