@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 from warpskin.rig import Clip, Rig, RigError, Track, RigWarning, Skeleton, mesh_edge_report, weld_by_position
+from warpskin.transforms import compose_trs
 
 
 def _skeleton(parents=(-1, 0)):
@@ -227,3 +228,54 @@ def test_a_body_outside_5_cm_to_20_m_warns_with_the_likely_unit_scale(factor, gu
         assert hits == []
     else:
         assert len(hits) == 1 and f"--unit-scale {guess}" in hits[0]
+
+
+def test_a_scaled_node_above_the_skeleton_is_moved_into_the_bind_space():
+    """A 100x scaled, rotated armature node above the joints (RobotExpressive): the bind space
+    is scaled to match, the skinned points of every pose are unchanged (NumPy LBS of the file's
+    arrays as the reference) and every skinning matrix becomes rigid."""
+    from scipy.spatial.transform import Rotation
+
+    v, f = _box()
+    v = v * 0.02 + np.array([0.003, -0.001, 0.002])  # a 2 cm box
+    root = np.eye(4)
+    root[:3, :3] = 100.0 * Rotation.from_euler("x", -90, degrees=True).as_matrix()
+    sk = _skeleton()
+    sk = Skeleton(sk.joint_names, sk.parents, sk.rest_translation * 0.02, sk.rest_rotation, sk.rest_scale,
+                  np.stack([root, np.eye(4)]))
+    inverse_bind = np.linalg.inv(sk.world_from_local(sk.rest_local_matrices())) @ root  # binds at the mesh's scale
+    ji = np.tile([0, 1], (len(v), 1))
+    rng = np.random.default_rng(0)
+    w0 = rng.uniform(0.2, 0.8, len(v))
+    jw = np.stack([w0, 1 - w0], axis=1)
+    clip = Clip("bend", {(1, "rotation"): Track("rotation", np.array([0.0, 1.0]),
+                                                np.array([[0, 0, 0, 1.0], Rotation.from_euler("z", 40, degrees=True).as_quat()]))})
+    with pytest.warns(RigWarning, match="scale the mesh by 100"):
+        rig = _rig(points=v, triangles=f, skeleton=sk, joint_indices=ji, joint_weights=jw, inverse_bind=inverse_bind,
+                   clips={"bend": clip}, validate=False)
+    np.testing.assert_allclose(rig.vertices, v * 100.0, rtol=1e-12)
+    for t in (0.0, 0.6, 1.0):
+        world = sk.world_from_local(compose_trs(*clip.sample_local_trs(sk, t)))
+        want = np.einsum("vk,vkij,vj->vi", jw, (world @ inverse_bind)[ji], np.c_[v, np.ones(len(v))])[:, :3]
+        mats = rig.skinning_matrices("bend", t)
+        got = np.einsum("vk,vkij,vj->vi", jw, mats[ji], np.c_[rig.vertices, np.ones(len(v))])[:, :3]
+        np.testing.assert_allclose(got, want, atol=1e-9)
+        for m in mats:
+            np.testing.assert_allclose(np.linalg.svd(m[:3, :3], compute_uv=False), 1.0, atol=1e-9)
+
+
+def test_an_unscaled_or_unevenly_scaled_rig_is_left_alone():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RigWarning)  # no warning either
+        rig = _rig()
+    np.testing.assert_array_equal(rig.vertices, _box()[0])
+    # a non-uniform scale cannot be moved into a rigid bind: left as it is
+    sk = _skeleton()
+    root = np.diag([100.0, 50.0, 100.0, 1.0])
+    sk = Skeleton(sk.joint_names, sk.parents, sk.rest_translation, sk.rest_rotation, sk.rest_scale,
+                  np.stack([root, np.eye(4)]))
+    ib = np.linalg.inv(sk.world_from_local(sk.rest_local_matrices())) @ root
+    rig = _rig(skeleton=sk, inverse_bind=ib, validate=False)
+    np.testing.assert_array_equal(rig.vertices, _box()[0])

@@ -506,6 +506,7 @@ class Rig:
             up_axis=up_axis,
             meters_per_unit=meters_per_unit,
         )
+        rig = rig._bind_scale_normalised()
         if weld and first.size != n:
             dense = rig._dense_weights(ji, jw)
             diff = np.abs(dense - dense[first][wmap]).max(axis=1)
@@ -519,6 +520,31 @@ class Rig:
         if validate:
             rig.validate(raise_on_error=True)
         return rig
+
+    def _bind_scale_normalised(self, tolerance: float = 1e-3) -> Rig:
+        """The rig with its bind space scaled to match its animation, where every skinning
+        matrix of the bind pose carries one uniform scale ``s`` (RobotExpressive: its armature
+        node scales the 2 cm hand by 100): vertices x ``s``, inverse binds x ``1/s``, so the
+        skinned points are unchanged and the skinning matrices rigid (shape matching follows
+        rotations only). ``self`` otherwise; a warning says what was done."""
+        j = self.skeleton.joint_count
+        ib = np.asarray(self.inverse_bind)
+        if ib.shape != (j, 4, 4) or self.joint_indices.shape != self.joint_weights.shape:
+            return self  # validate() names what is wrong
+        used = np.unique(self.joint_indices[self.joint_weights > 0])
+        if used.size == 0 or used.min() < 0 or used.max() >= j or not np.isfinite(ib).all():
+            return self
+        mats = self.skeleton.world_from_local(self.skeleton.rest_local_matrices()) @ self.inverse_bind
+        sv = np.array([np.linalg.svd(mats[j][:3, :3], compute_uv=False) for j in used])
+        s = float(np.median(sv))
+        if not np.isfinite(s) or s <= 0 or abs(s - 1.0) <= tolerance or np.abs(sv / s - 1.0).max() > tolerance:
+            return self
+        inv = np.diag([1.0 / s, 1.0 / s, 1.0 / s, 1.0])
+        out = dataclasses.replace(self, vertices=self.vertices * s, inverse_bind=self.inverse_bind @ inv,
+                                  report=self.report)
+        out._warn(f"the skinning matrices scale the mesh by {s:.6g} (a scaled node above the skeleton); the bind "
+                  "space is scaled to match (the skinned points are unchanged)")
+        return out
 
     def _dense_weights(self, ji: np.ndarray, jw: np.ndarray) -> np.ndarray:
         j = self.skeleton.joint_count
