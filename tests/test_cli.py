@@ -128,3 +128,17 @@ def test_projection_option_sets_the_layer_depths(tmp_path, capsys):
     assert summary["depth_reduced_vertices"] == 0
     assert main(["layers", "arm", "-o", str(out), "--projection", "0.5,0.3,0.6"]) == 2
     assert "need 0 < FAT < MUSCLE < BONE < 1" in capsys.readouterr().err
+
+
+def test_warnings_are_one_plain_line_and_no_native_cuda_notice(tmp_path, assets):
+    # a separate process: the "no CUDA driver" notice is printed by Warp's C library on its
+    # stderr file descriptor at start-up, and Python's warnings carry file paths and source
+    # lines by default; neither reaches the user of a CPU command (the Fox, 155 units across,
+    # gets the unit-scale warning)
+    run = subprocess.run([sys.executable, "-m", "warpskin", "simulate", str(assets / "Fox" / "Fox.glb"), "--frames",
+                          "0:0", "-o", str(tmp_path / "fox.usda"), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    warn = [ln for ln in run.stderr.splitlines() if "outside 5 cm - 20 m" in ln]
+    assert len(warn) == 1 and warn[0].startswith("warpskin: warning: "), run.stderr
+    assert "Warp CUDA warning" not in run.stderr
+    assert ".py:" not in run.stderr and "rig.validate" not in run.stderr

@@ -418,6 +418,31 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _init_warp_quietly() -> None:
+    """Initialise Warp with its native "no CUDA driver" notice (printed by the C library on
+    every start of a machine without a GPU) kept off the terminal; a command that asks for a
+    CUDA device initialises it normally and sees the notice."""
+    import os
+
+    import warp as wp
+
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stderr (captured): nothing to hide
+        wp.init()
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+        wp.init()
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+        os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -430,9 +455,19 @@ def main(argv: list[str] | None = None) -> int:
     if not args.debug:
         import warp as wp
 
-        wp.config.log_level = wp.LOG_ERROR  # no banner, no "no CUDA driver" notice
+        wp.config.log_level = wp.LOG_ERROR  # no banner
+        if not str(getattr(args, "device", None) or "").startswith("cuda"):
+            _init_warp_quietly()
     from .errors import InputError, SimulationError
 
+    import warnings
+
+    def one_line(message, category, filename, lineno, file=None, line=None):  # no file paths or source lines
+        print(f"warpskin: warning: {message}", file=sys.stderr if file is None else file)
+
+    shown = warnings.showwarning
+    if not args.debug:
+        warnings.showwarning = one_line
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
@@ -454,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warpskin: internal error: {type(exc).__name__}: {exc} (this is a bug; run with --debug for the "
               "traceback)", file=sys.stderr)
         return 1
+    finally:
+        warnings.showwarning = shown
 
 
 if __name__ == "__main__":  # pragma: no cover
