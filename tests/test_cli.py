@@ -136,7 +136,8 @@ def test_warnings_are_one_plain_line_and_no_native_cuda_notice(tmp_path, assets)
     # lines by default; neither reaches the user of a CPU command (the Fox, 155 units across,
     # gets the unit-scale warning)
     run = subprocess.run([sys.executable, "-m", "warpskin", "simulate", str(assets / "Fox" / "Fox.glb"), "--frames",
-                          "0:0", "-o", str(tmp_path / "fox.usda"), "--quiet"], capture_output=True, text=True, timeout=300)
+                          "0:0", "-o", str(tmp_path / "fox.usda"), "--quiet"], capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path)  # not the checkout, whose warpskin/ folder would shadow the installed package
     assert run.returncode == 0, run.stderr
     warn = [ln for ln in run.stderr.splitlines() if "outside 5 cm - 20 m" in ln]
     assert len(warn) == 1 and warn[0].startswith("warpskin: warning: "), run.stderr
