@@ -70,3 +70,41 @@ def test_layered_mode_rejects_unknown_layers(tmp_path):
     with pytest.raises(RigError, match="cannot be moved by the muscles"):
         muscle_rest_offset_deltas(SkinModelBuilder(scene.rig()), examples_for_scene(scene),
                                   scene.rig().skinning_matrices("pop", 0.5), layers=("bone",))
+
+
+def test_layered_deltas_of_a_refined_skin_carry_the_examples_to_the_midpoints(tmp_path):
+    # a skin refined for the simulation (every edge longer than its mean split): the examples
+    # are of the file's vertices; each added vertex's clenched displacement is its parents'
+    # mean (a loop as the reference), and the region offsets change by the formula
+    from warpskin.model import ModelParams, SkinModelBuilder
+    from warpskin.popping import examples_for_scene, muscle_rest_offset_deltas
+    from warpskin.popping.pose_space import PoseSpaceDeformer
+
+    path = tmp_path / "pop.toml"
+    path.write_text(SCENE)
+    scene = load_scene(path)
+    rig = scene.rig()
+    e = np.sort(np.concatenate([rig.triangles[:, [0, 1]], rig.triangles[:, [1, 2]], rig.triangles[:, [2, 0]]]), axis=1)
+    e = np.unique(e, axis=0)
+    mean_edge = float(np.linalg.norm(rig.vertices[e[:, 0]] - rig.vertices[e[:, 1]], axis=1).mean())
+    builder = SkinModelBuilder(rig, ModelParams(max_edge=mean_edge)).build()
+    assert builder.rig.vertex_count > rig.vertex_count
+    examples = examples_for_scene(scene)
+    mats = rig.skinning_matrices("pop", 0.5)
+    got = muscle_rest_offset_deltas(builder, examples, mats)
+    _, group_w = PoseSpaceDeformer(rig, examples, device="cpu").weights(mats)
+    v = builder.rig.vertex_count
+    reg = builder.regions
+    region_of = reg.region_of_entry()
+    m = builder.masses[reg.region_members]
+    for g in range(examples.group_count):
+        disp = list(np.einsum("e,evc->vc", group_w[g], examples.clenched_disparities[g]))
+        for a, b in builder.rig.vertex_parents:
+            disp.append(0.5 * (disp[a] + disp[b]))
+        dx0 = np.concatenate([np.array(disp)] * 3 + [np.zeros((v, 3))])  # skin, fat, muscle move; bone stays
+        dm = dx0[reg.region_members]
+        dcom = np.zeros((reg.region_count, 3))
+        np.add.at(dcom, region_of, m[:, None] * dm)
+        dcom /= reg.region_mass[:, None]
+        np.testing.assert_allclose(got[g], dm - dcom[region_of], atol=1e-12)
+    assert np.abs(got).max() > 1e-4  # the clenched biceps moves something

@@ -41,15 +41,19 @@ def muscle_rest_offset_deltas(builder, examples: PoppingExamples, skin_matrices:
         ``[G, M, 3]`` [m], M the number of region entries.
     """
     from ..preprocess.layers import LAYER_NAMES
+    from ..preprocess.refine import extend_midpoints
 
     builder.build()
     bad = [n for n in layers if n not in LAYER_NAMES[:3]]
     if bad:
         raise RigError(f"layered popping: layers {bad} cannot be moved by the muscles; choose from {list(LAYER_NAMES[:3])}")
-    v = builder.rig.vertex_count
-    if examples.vertex_count != v:
-        raise RigError(f"layered popping: the examples have {examples.vertex_count} vertices, the model {v}")
-    deformer = PoseSpaceDeformer(builder.rig, examples, device="cpu")
+    rig = builder.rig
+    loaded = rig.unrefined()  # the examples are of the skin as loaded; a refined one adds midpoints
+    if examples.vertex_count != loaded.vertex_count:
+        raise RigError(f"layered popping: the examples have {examples.vertex_count} vertices, the rig "
+                       f"{loaded.vertex_count}")
+    v = rig.vertex_count
+    deformer = PoseSpaceDeformer(loaded, examples, device="cpu")
     _, group_w = deformer.weights(skin_matrices)
     reg = builder.regions
     region_of = reg.region_of_entry()
@@ -57,6 +61,8 @@ def muscle_rest_offset_deltas(builder, examples: PoppingExamples, skin_matrices:
     out = np.zeros((examples.group_count, reg.region_members.size, 3))
     for g in range(examples.group_count):
         disp = np.einsum("e,evc->vc", group_w[g], examples.clenched_disparities[g])  # [V, 3]
+        if rig.vertex_parents is not None:
+            disp = extend_midpoints(disp, rig.vertex_parents)
         dx0 = np.zeros((4 * v, 3))
         for name in layers:
             k = LAYER_NAMES.index(name)
