@@ -445,15 +445,15 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
     e12 = p2 - p1
     e34 = p4 - p3
     e14 = p4 - p1
-    st = segment_closest(p1, p2, p3, p4)
     if lines_meet_far_from_edges(p1, p2, p3, p4, 1.0):
-        dq = (p3 + st[1] * e34) - (p1 + st[0] * e12)
+        sf = segment_closest(p1, p2, p3, p4)
+        dq = (p3 + sf[1] * e34) - (p1 + sf[0] * e12)
         lq = wp.length(dq)
         if lq < 1.0e-20:
             z = wp.vec3(0.0)
             return 0.0, z, z, z, z
         uq = dq / lq
-        return lq - thickness, -(1.0 - st[0]) * uq, -st[0] * uq, (1.0 - st[1]) * uq, st[1] * uq
+        return lq - thickness, -(1.0 - sf[0]) * uq, -sf[0] * uq, (1.0 - sf[1]) * uq, sf[1] * uq
     n = wp.cross(e12, e34)
     ln2 = wp.dot(n, n)
     scale = wp.max(wp.dot(e12, e12), wp.dot(e34, e34))
@@ -469,6 +469,7 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
         g4 = sgn * (u12 + n) / ln
         return c, g1, g2, g3, g4
     # parallel edges: the perpendicular between the closest points
+    st = segment_closest(p1, p2, p3, p4)
     q1 = p1 + st[0] * e12
     q2 = p3 + st[1] * e34
     d = q2 - q1

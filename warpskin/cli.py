@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 __all__ = ["main"]
@@ -459,8 +460,6 @@ def main(argv: list[str] | None = None) -> int:
         if not str(getattr(args, "device", None) or "").startswith("cuda"):
             _init_warp_quietly()
     from .errors import InputError, SimulationError
-
-    import warnings
 
     def one_line(message, category, filename, lineno, file=None, line=None):  # no file paths or source lines
         print(f"warpskin: warning: {message}", file=sys.stderr if file is None else file)

@@ -156,7 +156,7 @@ class SkinModelBuilder:
         rig, p = self.rig, self.params
         p.check(self.where)
         rig.require_closed()
-        if p.refine and rig.render_count is None:
+        if p.refine and not rig.refined_skin:
             rig = self.rig = self._stage("refine", lambda: refine_coarse(rig, p.max_edge))
         # the bones and the layers of the skin as loaded; a refined skin's added vertices get
         # their parents' mean (each refined layer triangle lies in a coarse one)

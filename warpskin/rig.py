@@ -410,13 +410,10 @@ class Rig:
     up_axis: str = "Y"
     meters_per_unit: float = 1.0
     report: ValidationReport | None = None
-    #: For a skin refined for the simulation (:meth:`refined`): the vertex count and triangles of
-    #: the skin as loaded (its vertices are this rig's first ``render_count``), and the loaded
-    #: vertex each vertex was split from. ``None`` for a rig as loaded.
-    render_count: int | None = None
+    #: For a skin refined for the simulation (:meth:`refined`): the triangles of the skin as
+    #: loaded (into this rig's first :attr:`output_count` vertices), and the two vertices each
+    #: added vertex is the midpoint of, ``[added, 2]``. ``None`` for a rig as loaded.
     render_triangles: np.ndarray | None = None
-    vertex_origin: np.ndarray | None = None
-    #: The two vertices each added vertex is the midpoint of, ``[V - render_count, 2]``.
     vertex_parents: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -584,14 +581,22 @@ class Rig:
         n = self.weld_map.shape[0]
         first[self.weld_map[::-1]] = np.arange(n - 1, -1, -1)
         welded = np.asarray(welded, dtype=np.int64)
-        if self.vertex_origin is not None:  # a vertex added by refining: the one it was split from
-            welded = self.vertex_origin[welded]
+        if self.vertex_parents is not None:  # a vertex added by refining: the one it was split from
+            from .preprocess.refine import extend_midpoints
+
+            origin = extend_midpoints(np.arange(self.output_count), self.vertex_parents, take_first=True)
+            welded = origin[welded]
         return first[welded]
+
+    @property
+    def refined_skin(self) -> bool:
+        """Whether the skin was refined for the simulation (:meth:`refined`)."""
+        return self.vertex_parents is not None
 
     @property
     def output_count(self) -> int:
         """Vertices of the skin as loaded (what is written): the first of :attr:`vertices`."""
-        return self.vertex_count if self.render_count is None else int(self.render_count)
+        return self.vertex_count - (0 if self.vertex_parents is None else int(self.vertex_parents.shape[0]))
 
     @property
     def output_triangles(self) -> np.ndarray:
@@ -600,30 +605,30 @@ class Rig:
 
     def unrefined(self) -> Rig:
         """The rig as loaded, of a refined one (``self`` for a rig as loaded)."""
-        if self.render_count is None:
+        if not self.refined_skin:
             return self
-        n = int(self.render_count)
+        n = self.output_count
         return dataclasses.replace(
             self, vertices=self.vertices[:n].copy(), triangles=self.render_triangles.copy(),
             joint_indices=self.joint_indices[:n].copy(), joint_weights=self.joint_weights[:n].copy(),
-            render_count=None, render_triangles=None, vertex_origin=None, vertex_parents=None, report=None)
+            render_triangles=None, vertex_parents=None, report=None)
 
     def refined(self, max_edge: float) -> Rig:
         """A copy whose skin has every edge longer than ``max_edge`` [m] split at its midpoint
         (:func:`warpskin.preprocess.refine.refine_long_edges`); the loaded vertices stay the
         first ones, a midpoint's weights are the mean of its edge's. ``self`` when no edge is
         longer."""
-        from .preprocess.refine import refine_long_edges
+        from .preprocess.refine import extend_midpoints, refine_long_edges
 
-        if self.render_count is not None:
+        if self.refined_skin:
             raise RigError(f"{self.source or self.name}: the skin is already refined")
         try:
             ref = refine_long_edges(self.vertices, self.triangles, max_edge)
         except ValueError as err:
-            raise RigError(f"{self.source or self.name}: {err}; raise [model] max_edge") from None
+            raise RigError(f"{self.source or self.name}: {err}; raise [layers] max_edge") from None
         if ref.added == 0:
             return self
-        dense = ref.interpolate(self.dense_weights())
+        dense = extend_midpoints(self.dense_weights(), ref.parents)
         k = max(int((dense > 0).sum(axis=1).max()), 1)
         ji = np.argsort(-dense, axis=1, kind="stable")[:, :k]
         jw = np.take_along_axis(dense, ji, axis=1)
@@ -634,9 +639,7 @@ class Rig:
             triangles=ref.triangles,
             joint_indices=ji,
             joint_weights=jw,
-            render_count=self.vertex_count,
             render_triangles=self.triangles.copy(),
-            vertex_origin=ref.origin,
             vertex_parents=ref.parents,
             report=None,
         )

@@ -98,7 +98,7 @@ class Layers:
 
     def refined(self, parents: np.ndarray) -> Layers:
         """The layers of a skin refined by midpoint splits (``parents`` ``[A, 2]``, each added
-        vertex's two parents, in order: :class:`~warpskin.preprocess.refine.RefinedSurface`):
+        vertex's two parents, in order: :attr:`~warpskin.rig.Rig.vertex_parents`):
         every added vertex's layer positions, foot and parameters are its parents' mean, so
         each refined layer triangle lies inside a layer triangle of the coarse skin and folds
         nowhere the coarse layers do not; its bone is its first parent's."""

@@ -46,8 +46,6 @@ class RefinedSurface:
         triangles: ``[T', 3]``, the same orientation as the input's.
         parents: The two vertices each added vertex is the midpoint of, ``[V' - V, 2]`` (either
             may itself be an added vertex, always one added earlier).
-        origin: The input vertex nearest along the splits of every vertex, ``[V']`` (itself
-            for an input vertex): what a message names for an added vertex.
         original_count: ``V``.
     """
 
@@ -56,19 +54,10 @@ class RefinedSurface:
         self.triangles = triangles
         self.parents = parents
         self.original_count = int(original_count)
-        origin = np.arange(vertices.shape[0])
-        for k, (a, _b) in enumerate(parents):
-            origin[original_count + k] = origin[a]
-        self.origin = origin
 
     @property
     def added(self) -> int:
         return int(self.vertices.shape[0] - self.original_count)
-
-    def interpolate(self, values: np.ndarray) -> np.ndarray:
-        """Per-vertex ``values`` ``[V, ...]`` of the input extended to every vertex (a midpoint
-        gets the mean of its two parents'), in float64."""
-        return extend_midpoints(values, self.parents)
 
 
 def extend_midpoints(values: np.ndarray, parents: np.ndarray, *, take_first: bool = False) -> np.ndarray:
@@ -81,17 +70,15 @@ def extend_midpoints(values: np.ndarray, parents: np.ndarray, *, take_first: boo
     out = np.empty((values.shape[0] + parents.shape[0],) + values.shape[1:], dtype=dtype)
     n = values.shape[0]
     out[:n] = values
-    # one vectorised step per generation: the rows added by one refinement pass only refer to
-    # rows of earlier passes, and a row's parents are always earlier rows
+    if parents.size and (parents.max(axis=1) >= n + np.arange(parents.shape[0])).any():
+        raise ValueError("extend_midpoints: every added row's parents must be earlier rows")
+    # one vectorised step per generation (a refinement pass): the longest run of added rows
+    # whose parents are all filled already
+    top = parents.max(axis=1) if parents.size else parents[:, 0]
     k = 0
     while k < parents.shape[0]:
-        # the longest run of added rows whose parents are all already filled
-        limit = n + k
-        stop = k
-        while stop < parents.shape[0] and parents[stop].max() < limit:
-            stop += 1
-        if stop == k:  # a parent in this run itself: fall back to one row
-            stop = k + 1
+        late = np.nonzero(top[k:] >= n + k)[0]
+        stop = k + int(late[0]) if late.size else parents.shape[0]
         a, b = parents[k:stop, 0], parents[k:stop, 1]
         out[n + k:n + stop] = out[a] if take_first else 0.5 * (out[a] + out[b])
         k = stop
@@ -114,8 +101,7 @@ def refine_long_edges(vertices: np.ndarray, triangles: np.ndarray, max_edge: flo
     """
     if not (math.isfinite(max_edge) and max_edge > 0):
         raise ValueError(f"max_edge must be a positive length, got {max_edge!r}")
-    verts = [np.asarray(vertices, dtype=np.float64)]
-    x = verts[0]
+    x = np.asarray(vertices, dtype=np.float64)
     tris = np.asarray(triangles, dtype=np.int64).copy()
     n0 = x.shape[0]
     parents: list[tuple[int, int]] = []

@@ -97,7 +97,8 @@ class _Measurements:
         d = np.linalg.norm(out - lbs, axis=1)
         e["offset"] = float(d.max())
         # the skin's motion relative to the animation: its velocities minus LBS's over the frame
-        vs = self.st.velocities()[: b.rig.vertex_count].astype(np.float64)
+        e["velocities"] = vel = st.velocities()  # one host copy per frame, for __call__ too
+        vs = vel[: b.rig.vertex_count].astype(np.float64)
         if self._prev_lbs is not None and i > 0:
             frame_dt = self.plan.times[i] - self.plan.times[i - 1]
             rel = vs - (lbs_all - self._prev_lbs) / frame_dt
@@ -106,7 +107,8 @@ class _Measurements:
         w = self._skin_mass
         e["relative_speed_rms"] = float(np.sqrt(np.sum(w * np.einsum("ij,ij->i", rel, rel)) / w.sum()))
         e["relative_speed"] = rel
-        self._prev_lbs = lbs_all
+        e["relative_speed_before"] = self._prev_speed
+        self._prev_lbs, self._prev_speed = lbs_all, e["relative_speed_rms"]
         self._pending = e
         problem = self._out_of_range(i, skin, e, d)
         if problem is not None:
@@ -127,8 +129,7 @@ class _Measurements:
             return (f"frame {f}: the skin left its plausible range: file vertex {int(b.rig.file_vertex_ids([k])[0])} "
                     f"(bone {bone!r}) is {e['offset']:.3g} m from LBS, {100 * e['offset'] / diag:.1f} % of the body's "
                     f"{diag:.3g} m diagonal (max_offset {p.max_offset:g})")
-        speed, before = e["relative_speed_rms"], self._prev_speed
-        self._prev_speed = speed
+        speed, before = e["relative_speed_rms"], e["relative_speed_before"]
         if speed > p.max_speed * diag and speed > before:
             rel = np.linalg.norm(e["relative_speed"], axis=1)
             k = int(np.argmax(rel))
@@ -160,7 +161,7 @@ class _Measurements:
         skin = points["skin"]  # the file's vertices (what was written)
         e = self._pending
         lbs = e["lbs"]
-        vel = st.velocities()
+        vel = e["velocities"]
         m["time"].append(self.plan.times[i])
         m["volume"].append(e["volume"])
         m["volume_lbs"].append(e["volume_lbs"])
