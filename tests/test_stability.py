@@ -97,6 +97,29 @@ def test_after_a_step_every_particle_is_within_its_tether(device):
     assert int(solver.tether_clamped.numpy()[0]) > 0
 
 
+def test_with_the_volume_loop_no_skin_particle_ends_a_step_beyond_the_cap(device):
+    # the volume loop runs after the tether and restores a sub-volume through the particles it
+    # may move; the cap (tether_max x diagonal) holds again after it, so no skin particle ends
+    # a step farther than that from its LBS target (NumPy LBS), however hard it was thrown
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig)
+    model = builder.finalize(device)
+    cap = 0.01
+    solver = SkinSolver(model, SolverParams(iterations=2, tether_max=cap))
+    mats = rig.skinning_matrices("flex", 1.0)
+    ctrl = model.control()
+    ctrl.set_pose(mats)
+    a, b = model.state(), model.state()
+    initial_state(builder, a, mats)
+    a.v.assign(np.random.default_rng(2).normal(scale=30.0, size=(model.particle_count, 3)).astype(np.float32))
+    solver.step(a, b, ctrl, None, 0.005)
+    v = model.vertex_count
+    target = lbs(builder.layers.positions[0], rig.joint_indices, rig.joint_weights, mats)
+    dist = np.linalg.norm(b.x.numpy()[:v] - target, axis=1)
+    assert dist.max() <= cap * model.diagonal * 1.0001
+    assert dist.max() >= 0.99 * cap * model.diagonal  # the throw reached the cap: the bound was tested
+
+
 @pytest.mark.parametrize("name, params, solver, extra, cli", [
     ("dt", "", "", "", ["--dt", "0.02"]),
     ("stiffness", "", "", "[layers]\nstiffness = [0.01, 0.01, 0.01, 0.01]\n", []),
