@@ -94,3 +94,30 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, triangles: np.ndar
             + np.einsum("ctk,ctk->ct", c, a) * lb
         out[s:s + chunk] = (2.0 * np.arctan2(det, den)).sum(axis=1) / (4.0 * np.pi)
     return out
+
+
+def usd_skinned_world(stage, mesh_path: str, tc: float) -> np.ndarray:
+    """World-space skinned points ``[N, 3]`` of ``mesh_path`` as usd-core's own UsdSkel
+    computes them (``SkinningQuery.ComputeSkinnedPoints``, then the skeleton's local-to-world)
+    at time code ``tc``."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    predicate = Usd.TraverseInstanceProxies()
+    cache = UsdSkel.Cache()
+    for prim in stage.Traverse(predicate):
+        if not prim.IsA(UsdSkel.Root):
+            continue
+        root = UsdSkel.Root(prim)
+        cache.Populate(root, predicate)
+        for binding in cache.ComputeSkelBindings(root, predicate):
+            for target in binding.GetSkinningTargets():
+                if str(target.GetPrim().GetPath()) != mesh_path:
+                    continue
+                skel_query = cache.GetSkelQuery(binding.GetSkeleton())
+                points = UsdGeom.Mesh(target.GetPrim()).GetPointsAttr().Get(tc)
+                xforms = skel_query.ComputeSkinningTransforms(tc)
+                assert target.ComputeSkinnedPoints(xforms, points, tc)
+                l2w = np.array(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc)).T
+                p = np.asarray(points, dtype=np.float64)
+                return p @ l2w[:3, :3].T + l2w[:3, 3]
+    raise AssertionError(f"{mesh_path} is not a skinning target")

@@ -13,7 +13,7 @@ import pytest
 pxr = pytest.importorskip("pxr")
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: E402
 
-from oracles import rig_lbs
+from oracles import rig_lbs, usd_skinned_world
 from warpskin.io import usdskel  # noqa: E402
 from warpskin.io.usdskel import list_usd_meshes, load_usd, triangulate_faces  # noqa: E402
 from warpskin.rig import Rig, RigError, RigWarning  # noqa: E402
@@ -25,29 +25,6 @@ TOL = 1e-5  # relative to the model size (bbox diagonal)
 # --------------------------------------------------------------------------------------------
 # Reference and helpers
 # --------------------------------------------------------------------------------------------
-
-
-def usd_skinned_world(stage: Usd.Stage, mesh_path: str, tc: float) -> np.ndarray:
-    """World-space skinned points ``[N, 3]`` as usd-core computes them at time code ``tc``."""
-    predicate = Usd.TraverseInstanceProxies()
-    cache = UsdSkel.Cache()
-    for prim in stage.Traverse(predicate):
-        if not prim.IsA(UsdSkel.Root):
-            continue
-        root = UsdSkel.Root(prim)
-        cache.Populate(root, predicate)
-        for binding in cache.ComputeSkelBindings(root, predicate):
-            for target in binding.GetSkinningTargets():
-                if str(target.GetPrim().GetPath()) != mesh_path:
-                    continue
-                skel_query = cache.GetSkelQuery(binding.GetSkeleton())
-                points = UsdGeom.Mesh(target.GetPrim()).GetPointsAttr().Get(tc)
-                xforms = skel_query.ComputeSkinningTransforms(tc)
-                assert target.ComputeSkinnedPoints(xforms, points, tc)
-                l2w = np.array(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc)).T
-                p = np.asarray(points, dtype=np.float64)
-                return p @ l2w[:3, :3].T + l2w[:3, 3]
-    raise AssertionError(f"{mesh_path} is not a skinning target")
 
 
 def rig_skinned_file_points(rig: Rig, t: float, clip: str | None = None) -> np.ndarray:

@@ -193,7 +193,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
                                    repeat, dev)
         # the user's code path: the frame runner's stepper from the same pose, frame after frame
         frames = 3 + steps * repeat
-        plan = FramePlan.at_times(list(range(frames)), [t_mid + k / scene.fps for k in range(frames)], scene.fps, max_dt=dt)
+        plan = FramePlan.at_times(list(range(frames)), [t_mid + k / scene.frame_rate for k in range(frames)], scene.frame_rate, max_dt=dt)
         sub = plan.substeps
         try:
             st = PhysicsStepper(builder, model, params, plan, clip, label="bench")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -74,6 +75,51 @@ def _parse_frames(text: str | None) -> tuple[int, int] | None:
     if first < 0 or last < first:
         raise argparse.ArgumentTypeError(f"--frames {text}: need 0 <= FIRST <= LAST")
     return first, last
+
+
+def _positive(flag: str):
+    """An argparse type: a finite number > 0, or one line naming ``flag``."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"{flag} must be a positive number, got {text!r}")
+        return value
+
+    return parse
+
+
+def _non_negative(flag: str):
+    """An argparse type: a finite number >= 0."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0):
+            raise argparse.ArgumentTypeError(f"{flag} must be a number >= 0, got {text!r}")
+        return value
+
+    return parse
+
+
+def _count(flag: str, lowest: int):
+    """An argparse type: an integer >= ``lowest``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = lowest - 1
+        if value < lowest:
+            raise argparse.ArgumentTypeError(f"{flag} must be an integer >= {lowest}, got {text!r}")
+        return value
+
+    return parse
 
 
 # ------------------------------------------------------------------------------------ commands
@@ -143,7 +189,7 @@ def cmd_skin(args) -> int:
     scene = _scene_of(args)
     out = Path(args.output)
     path, count = skin_to_usd(
-        scene, out, method=args.method, device=args.device, frames=args.frames, fps=args.fps,
+        scene, out, method=args.method, device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         with_rest=args.with_rest, with_lbs=args.with_lbs, topology=args.topology, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]),
     )
@@ -198,6 +244,7 @@ def cmd_simulate(args) -> int:
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
+        start_frame=args.start_frame,
     )
     s = result.summary
     line = (
@@ -269,7 +316,7 @@ def cmd_pop(args) -> int:
         raise SceneError("pop needs a SCENE and -o OUT.usdc (or --bench)")
     scene = _scene_of(args)
     result = run_popping(
-        scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps,
+        scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode,
     )
@@ -309,9 +356,22 @@ def cmd_warmup(args) -> int:
 
 # ------------------------------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     p = argparse.ArgumentParser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")
+    p.add_argument("--version", action="version", version=f"warpskin {__version__}")
     p.add_argument("--debug", action="store_true", help="print tracebacks on errors")
+    # global flags are accepted after the command too (SUPPRESS: not given there, the value
+    # before the command stands)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="print tracebacks on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    add_parser = sub.add_parser
+
+    def with_common(*a, **kw):
+        return add_parser(*a, parents=[common], **kw)
+
+    sub.add_parser = with_common
 
     s = sub.add_parser("scenes", help="list the shipped scenes")
     s.set_defaults(func=cmd_scenes)
@@ -319,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("info", help="describe a rig file or scene")
     s.add_argument("target", metavar="RIG|SCENE")
     s.add_argument("--mesh", help="skinned mesh to inspect (default: the largest)")
-    s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=cmd_info)
 
@@ -329,10 +389,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", choices=["lbs", "dqs"], default="lbs")
     s.add_argument("--clip", help="clip name (default: the scene's, or the first)")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
-    s.add_argument("--fps", type=float, help="output frame rate (default: the scene's, 30 for a rig file)")
+    s.add_argument("--fps", type=_positive("--fps"), help="output frame rate, resampling the clip (default: the scene's, else the source's: a USD stage's "
+                        "timeCodesPerSecond, a glTF clip's key spacing, else 30)")
+    s.add_argument("--start-frame", type=int, metavar="N",
+                   help="write the first frame at time code N (default: the source's own frame numbers)")
     s.add_argument("--device", help="cpu, cuda or cuda:N (default: Warp's default)")
     s.add_argument("--mesh", help="skinned mesh to use when the file has several")
-    s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--with-rest", action="store_true", help="also write the rest mesh as a sibling prim")
     s.add_argument("--with-lbs", action="store_true", help="with --method dqs, also write the LBS result")
@@ -347,26 +410,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="layer projection parameters, upper bounds (scene: [layers] fat, muscle, bone; default 0.15,0.45,0.8)")
     s.add_argument("-o", "--output", required=True, help="output .usdc (default format), .usda or .usd")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
-    s.add_argument("--fps", type=float, help="output frame rate")
+    s.add_argument("--fps", type=_positive("--fps"), help="output frame rate, resampling the clip (default: the source's)")
+    s.add_argument("--start-frame", type=int, metavar="N",
+                   help="write the first frame at time code N (default: the source's own frame numbers)")
     s.add_argument("--clip", help="clip name")
     s.add_argument("--device", help="cpu, cuda or cuda:N")
     s.add_argument("--mesh", help="skinned mesh to use when the file has several")
-    s.add_argument("--unit-scale", type=float, help="multiply lengths by this")
+    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this")
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--lbs", action="store_true", help="also write the LBS result as a sibling prim")
     s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
-    s.add_argument("--iterations", type=int, help="elasticity iterations per step (scene: [solver] iterations)")
-    s.add_argument("--volume-iterations", type=int, help="volume iterations per step")
-    s.add_argument("--dt", type=float, help="largest substep [s]")
-    s.add_argument("--damping", type=float, help="velocity damping rate [1/s]")
+    s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
+    s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")
+    s.add_argument("--dt", type=_positive("--dt"), help="largest substep [s]")
+    s.add_argument("--damping", type=_non_negative("--damping"), help="velocity damping rate [1/s]")
     s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
     s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
     s.add_argument("--no-collisions", action="store_true", help="switch skin self-collision off")
     s.add_argument("--allow-unstable", action="store_true",
                    help="go on (with one warning) when the skin leaves its plausible range instead of stopping "
                         "with exit 3 ([solver] max_offset, max_volume_error)")
-    s.add_argument("--preroll", type=float, default=None, metavar="SECONDS",
+    s.add_argument("--preroll", type=_non_negative("--preroll"), default=None, metavar="SECONDS",
                    help="simulate this long from the bind pose into the first frame's pose before writing "
                         "(scene: [animation] preroll; default 0)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -376,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("target", metavar="RIG|SCENE")
     s.add_argument("-o", "--output", required=True, help="output .usdc/.usda/.usd")
     s.add_argument("--mesh", help="skinned mesh to use when the file has several")
-    s.add_argument("--unit-scale", type=float, help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--projection", type=_parse_projection, metavar="FAT,MUSCLE,BONE",
                    help="layer projection parameters, upper bounds (scene: [layers] fat, muscle, bone; default 0.15,0.45,0.8)")
@@ -398,11 +463,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("target", metavar="SCENE", nargs="?", help="a scene with popping examples (popping_arm) or its .toml file")
     s.add_argument("-o", "--output", help="output .usdc (default format), .usda or .usd")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
-    s.add_argument("--fps", type=float, help="output frame rate (default: the scene's)")
+    s.add_argument("--fps", type=_positive("--fps"), help="output frame rate (default: the scene's)")
+    s.add_argument("--start-frame", type=int, metavar="N",
+                   help="write the first frame at time code N (default: the source's own frame numbers)")
     s.add_argument("--device", help="cpu, cuda or cuda:N")
     s.add_argument("--alpha-min", type=float, help="stiffness at the largest disparity, in (0, 1] (scene: [popping] alpha_min)")
     s.add_argument("--beta", type=float, help="relaxation rate [1/s] (scene: [popping] beta)")
-    s.add_argument("--dt", type=float, help="step length [s] (scene: [popping] dt)")
+    s.add_argument("--dt", type=_positive("--dt"), help="step length [s] (scene: [popping] dt)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument("--mode", choices=["goal", "layered"],
                    help="goal: the paper's goal-driven skin; layered: the activation drives the multi-layer model's muscle layer")

@@ -34,6 +34,7 @@ __all__ = [
     "ValidationReport",
     "weld_by_position",
     "mesh_edge_report",
+    "key_rate",
 ]
 
 INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
@@ -146,6 +147,9 @@ class Clip:
 
     name: str
     tracks: dict[tuple[int, str], Track] = field(default_factory=dict)
+    #: The source's frame rate [frames/s]: a USD stage's timeCodesPerSecond, the spacing of a
+    #: glTF clip's keys where it is a frame rate (:func:`key_rate`), else ``None``.
+    rate: float | None = None
 
     @property
     def start(self) -> float:
@@ -175,6 +179,24 @@ class Clip:
             else:
                 sc[j] = value
         return tr, rot, sc
+
+
+def key_rate(times: np.ndarray, *, lowest: float = 12.0, highest: float = 240.0, tolerance: float = 1e-3) -> float | None:
+    """The frame rate a clip's key times were sampled at, where one is evident: the inverse
+    of the median spacing, rounded to a whole rate in ``[lowest, highest]`` frames/s, with
+    every key within ``tolerance`` frames of that grid. ``None`` for sparse or irregular keys
+    (RiggedFigure's two keys 1.25 s apart), so that the caller falls back to a default."""
+    t = np.unique(np.asarray(times, dtype=np.float64))
+    if t.size < 3:
+        return None
+    spacing = float(np.median(np.diff(t)))
+    if spacing <= 0:
+        return None
+    rate = round(1.0 / spacing)
+    if not (lowest <= rate <= highest) or abs(rate * spacing - 1.0) > 1e-2:
+        return None
+    off_grid = np.abs(t * rate - np.round(t * rate))
+    return float(rate) if float(off_grid.max()) <= tolerance else None
 
 
 # --------------------------------------------------------------------------------------------
@@ -944,7 +966,7 @@ class Rig:
             for key, tr in c.tracks.items():
                 vals = tr.values * factor if tr.path == "translation" else tr.values.copy()
                 tracks[key] = Track(tr.path, tr.times.copy(), vals, tr.interpolation)
-            clips[cname] = Clip(c.name, tracks)
+            clips[cname] = Clip(c.name, tracks, c.rate)
         return dataclasses.replace(
             self,
             vertices=self.vertices * factor,

@@ -46,6 +46,9 @@ __all__ = ["Scene", "SceneError", "load_scene", "resolve_scene", "is_rig_file", 
            "GENERATORS"]
 
 
+#: Output frame rate where neither the scene nor the clip gives one [frames/s].
+DEFAULT_FPS = 30.0
+
 #: Name of the clip made from a scene's ``[animation.keys]``.
 SCENE_CLIP = "scene"
 
@@ -102,8 +105,11 @@ class Scene:
         source: The TOML file (or the rig file for a bare rig).
         rig_spec: The ``[rig]`` table.
         clip: Clip name (``None``: the rig's first clip).
-        fps: Frames per second of the output.
-        frames: Inclusive frame range ``(first, last)`` or ``None`` for the whole clip.
+        fps: Frames per second of the output; ``None``: the clip's own rate (a USD stage's
+            timeCodesPerSecond, a glTF clip's key spacing), else 30 (see :attr:`frame_rate`).
+        frames: Inclusive frame range ``(first, last)`` or ``None`` for the whole clip. Frame
+            ``f`` is at clip time ``f / frame_rate`` seconds: the source's own time codes, so a
+            bake lines up with its source (CesiumMan's walk is frames 1-48 at 24 fps).
         preroll: Seconds of simulation before the first frame, moving from the bind pose into
             the first frame's pose (0: start at the first frame's LBS pose).
         description: Free text.
@@ -114,7 +120,7 @@ class Scene:
     source: Path | None
     rig_spec: dict
     clip: str | None = None
-    fps: float = 30.0
+    fps: float | None = None
     frames: tuple[int, int] | None = None
     preroll: float = 0.0
     description: str = ""
@@ -133,7 +139,7 @@ class Scene:
             spec["mesh"] = mesh
         if unit_scale:
             spec["unit_scale"] = unit_scale
-        return cls(name=p.stem, source=p, rig_spec=spec, clip=clip, fps=float(fps or 30.0), preroll=FILE_RIG_PREROLL)
+        return cls(name=p.stem, source=p, rig_spec=spec, clip=clip, fps=float(fps) if fps else None, preroll=FILE_RIG_PREROLL)
 
     def rig(self) -> Rig:
         """Load (once) and return the rig."""
@@ -141,12 +147,37 @@ class Scene:
             self._rig = _build_rig(self)
         return self._rig
 
-    def frame_range(self) -> tuple[int, int]:
-        """Inclusive frame range to play."""
-        if self.frames is not None:
-            return self.frames
+    @property
+    def frame_rate(self) -> float:
+        """Frames per second of the output: :attr:`fps` if set, else the clip's own rate, else
+        :data:`DEFAULT_FPS`."""
+        if self.fps is not None:
+            return float(self.fps)
+        rate = self.rig().clip(self.clip).rate
+        return float(rate) if rate else DEFAULT_FPS
+
+    def clip_frames(self) -> tuple[int, int]:
+        """The frames the clip spans at :attr:`frame_rate`: the first at or after its first
+        key, the last at or before its last key."""
         clip = self.rig().clip(self.clip)
-        return 0, int(math.floor(clip.duration * self.fps + 1e-6))
+        r = self.frame_rate
+        eps = 1e-3  # frames: key times are often float32 (RiggedSimple's last key is 49.99999 frames)
+        first = int(math.ceil(clip.start * r - eps))
+        return first, max(first, int(math.floor(clip.end * r + eps)))
+
+    def frame_range(self) -> tuple[int, int]:
+        """Inclusive frame range to play (the scene's, else the whole clip)."""
+        return self.frames if self.frames is not None else self.clip_frames()
+
+    def check_frames(self, first: int, last: int) -> None:
+        """Raise :class:`SceneError` unless ``first:last`` lies inside the clip."""
+        lo, hi = self.clip_frames()
+        if first < lo or last > hi:
+            clip = self.rig().clip(self.clip)
+            raise SceneError(
+                f"frames {first}:{last} are outside clip {clip.name!r}, which spans frames {lo}:{hi} at "
+                f"{self.frame_rate:g} fps ({clip.start:.4g}-{clip.end:.4g} s)"
+            )
 
     def model_params(self):
         """The :class:`~warpskin.model.ModelParams` of the ``[layers]``, ``[joints]``,
@@ -194,8 +225,8 @@ class Scene:
         return params
 
     def frame_time(self, frame: int) -> float:
-        """Clip time [s] of a frame: the clip's first key plus ``frame / fps``."""
-        return self.rig().clip(self.clip).start + frame / self.fps
+        """Clip time [s] of a frame: ``frame / frame_rate``."""
+        return frame / self.frame_rate
 
 
 def _where(scene_path: Path | None) -> str:
@@ -351,7 +382,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
     anim = data.get("animation", {})
     if "rig" not in data:
         raise SceneError(f"{where}: missing [rig] section")
-    fps = _positive(where, "[animation] fps", anim.get("fps", 30.0))
+    fps = _positive(where, "[animation] fps", anim["fps"]) if "fps" in anim else None
     frames = anim.get("frames")
     if frames is not None:
         if (

@@ -636,7 +636,7 @@ def _read_animation(
         for j in animated:
             tracks[(int(j), path_name)] = Track(path_name, times, values[:, anim_of[j], :], interp)
     name = aprim.GetName()
-    return {name: Clip(name, tracks)}
+    return {name: Clip(name, tracks, rate=tcps)}
 
 
 # --------------------------------------------------------------------------------------------

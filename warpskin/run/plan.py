@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..errors import SceneError
 
@@ -16,10 +16,12 @@ class FramePlan:
 
     Attributes:
         frames: Frame numbers, inclusive range, ``[F]``.
-        times: Clip time of every frame [s] (the clip's first key plus ``frame / fps``).
+        times: Clip time of every frame [s] (``frame / fps``: the source's seconds).
         fps: Frames per second of the output.
         substeps: Steps per frame, >= 1.
         dt: Step length [s] (``1 / fps / substeps``).
+        time_codes: The USD time code each frame is written at: its frame number, or with a
+            start frame, shifted so that the first frame is written there.
     """
 
     frames: list[int]
@@ -27,20 +29,33 @@ class FramePlan:
     fps: float
     substeps: int
     dt: float
+    time_codes: list[float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not self.time_codes:
+            self.time_codes = [float(f) for f in self.frames]
 
     @classmethod
-    def for_scene(cls, scene, frames: tuple[int, int] | None = None, *, max_dt: float | None = None) -> FramePlan:
-        """The plan of ``scene`` over ``frames`` (default: the scene's range), with substeps no
-        longer than ``max_dt`` [s] (``None``: one step per frame). The one place a frame
-        range and a frame rate are checked."""
+    def for_scene(cls, scene, frames: tuple[int, int] | None = None, *, max_dt: float | None = None,
+                  start_frame: int | None = None) -> FramePlan:
+        """The plan of ``scene`` over ``frames`` (default: the scene's range, which must lie in
+        the clip), with substeps no longer than ``max_dt`` [s] (``None``: one step per frame),
+        written from time code ``start_frame`` (default: the frame numbers themselves). The one
+        place a frame range and a frame rate are checked."""
         first, last = frames if frames is not None else scene.frame_range()
         if isinstance(first, bool) or isinstance(last, bool) or int(first) != first or int(last) != last:
             raise SceneError(f"bad frame range {first}:{last}: frames are integers")
         first, last = int(first), int(last)
         if first < 0 or last < first:
             raise SceneError(f"bad frame range {first}:{last}: need 0 <= FIRST <= LAST")
+        scene.check_frames(first, last)
         frame_list = list(range(first, last + 1))
-        return cls.at_times(frame_list, [scene.frame_time(f) for f in frame_list], scene.fps, max_dt=max_dt)
+        plan = cls.at_times(frame_list, [scene.frame_time(f) for f in frame_list], scene.frame_rate, max_dt=max_dt)
+        if start_frame is not None:
+            if isinstance(start_frame, bool) or int(start_frame) != start_frame:
+                raise SceneError(f"start frame must be an integer, got {start_frame!r}")
+            plan.time_codes = [float(int(start_frame) + f - first) for f in frame_list]
+        return plan
 
     @classmethod
     def at_times(cls, frames: list[int], times: list[float], fps: float, *, max_dt: float | None = None) -> FramePlan:

@@ -4,6 +4,8 @@ activation drives the multi-layer model's rest shape; the physical skin makes th
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -106,6 +108,7 @@ def run_popping(
     device=None,
     frames: tuple[int, int] | None = None,
     fps: float | None = None,
+    start_frame: int | None = None,
     alpha_min: float | None = None,
     beta: float | None = None,
     dt: float | None = None,
@@ -129,6 +132,7 @@ def run_popping(
         device: Warp device.
         frames: Inclusive frame range; default the scene's.
         fps: Output frame rate; default the scene's.
+        start_frame: Time code of the first frame written; default its frame number.
         alpha_min, beta, dt: Overrides of the scene's ``[popping]`` values.
         mode: ``"goal"`` or ``"layered"``; default the scene's ``[popping] mode``.
         progress: Progress bar on stderr.
@@ -139,8 +143,8 @@ def run_popping(
     """
     scene = resolve_scene(scene)
     if fps is not None:
-        if not (fps > 0):
-            raise SceneError(f"fps must be positive, got {fps}")
+        if not (math.isfinite(fps) and fps > 0):
+            raise SceneError(f"fps must be a positive number, got {fps}")
         scene.fps = float(fps)
     settings = popping_settings(scene)
     where = str(scene.source or scene.name)
@@ -152,10 +156,10 @@ def run_popping(
     settings.check(f"{where}: [popping]")
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
-                            progress=progress, comment=comment)
+                            progress=progress, comment=comment, start_frame=start_frame)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt)
+    plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt, start_frame=start_frame)
     if examples is None:
         examples = examples_for_scene(scene)
     deformer = PoseSpaceDeformer(rig, examples, device=device, joints=settings.joints, rbf_width=settings.rbf_width)
@@ -166,7 +170,7 @@ def run_popping(
         raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
     stepper = PoppingStepper(rig, clip, plan, deformer, dynamics, settings, name=scene.name)
     over = _Overshoot()
-    writer = UsdSkinWriter(out_path, fps=scene.fps, up_axis=rig.up_axis, comment=comment)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment)
     record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=progress,
                          steps_in_first_frame=True).run()
     count = len(record.frames)
@@ -188,7 +192,8 @@ def run_popping(
     )
 
 
-def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment) -> PoppingRun:
+def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
+                 start_frame=None) -> PoppingRun:
     from ..model import SkinModelBuilder
     from .simulate import simulate
 
@@ -202,6 +207,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     settings.activation.check_groups(groups, "[popping.activation]")
     builder.set_rest_drive(deltas)
     result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress, comment=comment,
+                      start_frame=start_frame,
                       builder=builder, activation=lambda t: settings.activation.sample(t, groups))
     summary = dict(result.summary)
     summary["mode"] = "layered"

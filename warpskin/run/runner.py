@@ -95,7 +95,7 @@ class FrameRunner:
                     rec.failure = SimulationError(f"{exc} ({len(rec.frames)} frames before it were written{where})")
                     break
                 if writer is not None:
-                    writer.write_frame(f, points)
+                    writer.write_frame(plan.time_codes[i], points)
                 rec.frames.append(f)
                 rec.step_ms.append(step_ms)
                 for measure in self.measures:

@@ -206,6 +206,7 @@ def simulate(
     activation: Callable | None = None,
     preroll: float | None = None,
     allow_unstable: bool = False,
+    start_frame: int | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -232,6 +233,9 @@ def simulate(
     ``max_volume_error`` of the rest volume (or twice LBS's own error, where LBS is worse).
     ``allow_unstable`` turns a violation into one warning and goes on.
 
+    Frames are the source's time codes (``frame / fps`` seconds, at the clip's own rate unless
+    the scene sets ``fps``); ``start_frame`` writes the first frame at that time code instead.
+
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
             message names the frame and the particle, vertex (the file's number), bone or
@@ -243,7 +247,7 @@ def simulate(
     params.check(str(scene.source or scene.name))
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    plan = FramePlan.for_scene(scene, frames, max_dt=params.dt)
+    plan = FramePlan.for_scene(scene, frames, max_dt=params.dt, start_frame=start_frame)
     preroll = scene.preroll if preroll is None else float(preroll)
     t_build = time.perf_counter()
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
@@ -288,7 +292,7 @@ def simulate(
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
             return out
 
-    writer = UsdSkinWriter(out_path, fps=scene.fps, up_axis=rig.up_axis, comment=comment)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment)
     record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress).run(keep_failure=True)
     metrics = measures.m
     written = record.frames

@@ -3,6 +3,8 @@ baselines), through the frame runner."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..errors import SceneError
@@ -73,6 +75,7 @@ def skin_to_usd(
     device: str | None = None,
     frames: tuple[int, int] | None = None,
     fps: float | None = None,
+    start_frame: int | None = None,
     with_rest: bool = False,
     with_lbs: bool = False,
     topology: str = "welded",
@@ -87,7 +90,9 @@ def skin_to_usd(
         method: ``"lbs"`` or ``"dqs"``.
         device: Warp device.
         frames: Inclusive frame range; default the scene's.
-        fps: Output frame rate; default the scene's.
+        fps: Output frame rate (resampling the clip); default the scene's, else the clip's own.
+        start_frame: Time code of the first frame written; default its frame number (the
+            source's own time codes).
         with_rest: Also write the rest mesh as a static sibling prim ``rest``.
         with_lbs: With ``method="dqs"``, also write the LBS result as a sibling prim ``lbs``.
         topology: ``"welded"`` (the closed surface warpskin works on) or ``"file"`` (the
@@ -100,16 +105,16 @@ def skin_to_usd(
     """
     scene = resolve_scene(scene)
     if fps is not None:
-        if not (fps > 0):
-            raise SceneError(f"fps must be positive, got {fps}")
+        if not (math.isfinite(fps) and fps > 0):
+            raise SceneError(f"fps must be a positive number, got {fps}")
         scene.fps = float(fps)
     if topology not in ("welded", "file"):
         raise SceneError(f"topology must be 'welded' or 'file', got {topology!r}")
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    plan = FramePlan.for_scene(scene, frames)
+    plan = FramePlan.for_scene(scene, frames, start_frame=start_frame)
     stepper = SkinningStepper(rig, clip, plan, method=method, device=device, with_lbs=with_lbs, with_rest=with_rest,
                               topology=topology, name=scene.name)
-    writer = UsdSkinWriter(out_path, fps=scene.fps, up_axis=rig.up_axis, comment=comment)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment)
     record = FrameRunner(plan, stepper, writer=writer, progress=progress, steps_in_first_frame=True).run()
     return writer.path, len(record.frames)

@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 
-from ...rig import PATHS, Clip, RigError, RigWarning, Skeleton, Track
+from ...rig import PATHS, Clip, RigError, RigWarning, Skeleton, Track, key_rate
 from ...transforms import compose_trs, decompose_trs, quat_multiply
 from .document import _Document
 
@@ -174,7 +174,8 @@ def _read_clips(doc: _Document, info: _SkinInfo) -> dict[str, Clip]:
                 stacklevel=3,
             )
         if tracks:
-            clips[name] = Clip(name, tracks)
+            times = np.concatenate([tr.times for tr in tracks.values()])
+            clips[name] = Clip(name, tracks, rate=key_rate(times))
     return clips
 
 
