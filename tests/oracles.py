@@ -121,3 +121,11 @@ def usd_skinned_world(stage, mesh_path: str, tc: float) -> np.ndarray:
                 p = np.asarray(points, dtype=np.float64)
                 return p @ l2w[:3, :3].T + l2w[:3, 3]
     raise AssertionError(f"{mesh_path} is not a skinning target")
+
+
+def prim(stage, relative: str):
+    """The prim at ``relative`` under a bake's root (its ``defaultPrim``, named after the
+    character)."""
+    root = stage.GetDefaultPrim()
+    assert root, "the stage has no defaultPrim"
+    return stage.GetPrimAtPath(root.GetPath().AppendPath(relative))

@@ -10,11 +10,12 @@ import pytest
 from pxr import Usd, UsdGeom
 
 from warpskin.cli import main
+from oracles import prim
 
 
 def _frames(path):
     stage = Usd.Stage.Open(str(path))
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin"))
+    mesh = UsdGeom.Mesh(prim(stage, "skin"))
     return stage, mesh.GetPointsAttr().GetTimeSamples()
 
 
@@ -34,9 +35,9 @@ def test_skin_dqs_with_lbs_and_rest_prims(tmp_path):
     stage, samples = _frames(out)
     assert samples == [float(f) for f in range(40, 50)]
     for name in ("lbs", "rest"):
-        assert stage.GetPrimAtPath(f"/warpskin/{name}").IsValid()
-    skin = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().Get(45))
-    lbs = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr().Get(45))
+        assert prim(stage, f"{name}").IsValid()
+    skin = np.array(UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().Get(45))
+    lbs = np.array(UsdGeom.Mesh(prim(stage, "lbs")).GetPointsAttr().Get(45))
     assert np.abs(skin - lbs).max() > 1e-3  # DQS and LBS differ at a bent elbow
 
 
@@ -46,8 +47,12 @@ def test_skin_cesium_man_glb(tmp_path, assets):
     assert main(["skin", str(rig), "-o", str(out), "--fps", "24", "--quiet"]) == 0
     stage, samples = _frames(out)
     assert len(samples) == 48 and min(samples) == 1  # keys from 1/24 to 2 s: the source's frames 1..48
-    pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().Get(0))
-    assert pts.shape == (2338, 3)
+    pts = np.array(UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().Get(0))
+    assert pts.shape == (3273, 3)  # the file's own vertices by default
+    welded = tmp_path / "welded.usdc"
+    assert main(["skin", str(rig), "-o", str(welded), "--topology", "welded", "--frames", "1:2", "--quiet"]) == 0
+    stage, _ = _frames(welded)
+    assert np.array(UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().Get(0)).shape == (2338, 3)
 
 
 def test_skin_cesium_man_file_topology(tmp_path, assets):
@@ -55,7 +60,7 @@ def test_skin_cesium_man_file_topology(tmp_path, assets):
     rig = assets / "usd" / "CesiumMan" / "CesiumMan.usdz"
     assert main(["skin", str(rig), "-o", str(out), "--topology", "file", "--frames", "1:3", "--quiet"]) == 0
     stage, samples = _frames(out)
-    pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().Get(1))
+    pts = np.array(UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().Get(1))
     assert pts.shape == (3273, 3) and len(samples) == 3
 
 
@@ -120,9 +125,9 @@ def test_projection_option_sets_the_layer_depths(tmp_path, capsys):
     text = capsys.readouterr().out
     summary = _json.loads(text[: text.rindex("}") + 1])
     stage = Usd.Stage.Open(str(out))
-    skin = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/skin")).GetPointsAttr().Get())
-    bone = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/bone")).GetPointsAttr().Get())
-    fat = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/fat")).GetPointsAttr().Get())
+    skin = np.array(UsdGeom.Mesh(prim(stage, "layers/skin")).GetPointsAttr().Get())
+    bone = np.array(UsdGeom.Mesh(prim(stage, "layers/bone")).GetPointsAttr().Get())
+    fat = np.array(UsdGeom.Mesh(prim(stage, "layers/fat")).GetPointsAttr().Get())
     ratio = np.linalg.norm(fat - skin, axis=1) / np.linalg.norm(bone - skin, axis=1)
     np.testing.assert_allclose(ratio, 0.1 / 0.6, rtol=1e-4)  # fat at 0.1, bone at 0.6 of each segment
     assert summary["depth_reduced_vertices"] == 0

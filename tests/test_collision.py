@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 from pxr import Usd, UsdGeom
 
-from oracles import coarse_arm
+from oracles import coarse_arm, prim
 from warpskin.kernels import collision as k
 
 wp.set_module_options({"enable_backward": False})
@@ -279,8 +279,8 @@ def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path, de
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(result.path))
-    skin = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
-    lbs = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr()
+    skin = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr()
+    lbs = UsdGeom.Mesh(prim(stage, "lbs")).GetPointsAttr()
     rig = load_scene("arm").rig()
     for f in range(0, 61, 15):
         assert len(self_intersections(np.array(skin.Get(f), dtype=np.float64), rig.triangles)) == 0
@@ -317,7 +317,7 @@ def test_simulate_grows_overflowing_contact_buffers_and_repeats_the_frame(tmp_pa
     assert small.summary["overflow_retries"] >= 2 and big.summary["overflow_retries"] == 0
     assert small.summary["collision_capacity"] >= 256 and small.summary["graph_capture"]
     stages = [Usd.Stage.Open(str(r.path)) for r in runs]
-    pts = [UsdGeom.Mesh(s.GetPrimAtPath("/warpskin/skin")).GetPointsAttr() for s in stages]
+    pts = [UsdGeom.Mesh(prim(s, "skin")).GetPointsAttr() for s in stages]
     for t in range(7):
         a, b = np.array(pts[0].Get(t)), np.array(pts[1].Get(t))
         if device == "cpu":

@@ -12,6 +12,7 @@ from pxr import Usd, UsdGeom
 import warpskin
 from warpskin.cli import main
 from warpskin.errors import InputError, OutputError, RigError, SceneError, SimulationError, WarpskinError
+from oracles import prim
 
 COARSE = "[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 16\nsegments = 12\n[animation]\nclip = 'flex'\nfps = 30\n"
 
@@ -84,7 +85,7 @@ def test_failed_run_exits_3_and_keeps_the_frames_before_it(tmp_path, capsys, mon
     line = _one_line(capsys.readouterr().err)
     assert "simulation failed: frame 3" in line and "3 frames before it were written" in line
     stage = Usd.Stage.Open(str(out))
-    assert UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+    assert UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
 
 
 def test_a_bug_exits_1_with_the_debug_hint(tmp_path, capsys, monkeypatch):

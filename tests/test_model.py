@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from pxr import Usd, UsdGeom
 
-from oracles import rig_lbs
+from oracles import rig_lbs, prim
 from warpskin.errors import InputError, SceneError
 from warpskin.preprocess.layers import LayerParams, build_layers, check_layer_folds, fit_layer_depths
 from warpskin.cli import main
@@ -279,23 +279,23 @@ def test_layers_command_writes_inspectable_usd(tmp_path, capsys):
     assert "11672 particles" in text and "3 sub-volumes" in text
     stage = Usd.Stage.Open(str(out))
     for name in ("skin", "fat", "muscle", "bone"):
-        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/warpskin/layers/{name}"))
+        mesh = UsdGeom.Mesh(prim(stage, f"layers/{name}"))
         assert len(mesh.GetPointsAttr().Get()) == 2918
-    subs = [p for p in stage.GetPrimAtPath("/warpskin/subvolumes").GetChildren()]
+    subs = [p for p in prim(stage, "subvolumes").GetChildren()]
     assert len(subs) == 3
-    for prim in subs:  # each written sub-volume is a closed mesh
-        m = UsdGeom.Mesh(prim)
+    for sub in subs:  # each written sub-volume is a closed mesh
+        m = UsdGeom.Mesh(sub)
         t = trimesh.Trimesh(np.array(m.GetPointsAttr().Get()), np.array(m.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3), process=False)
         assert t.is_watertight and t.volume > 0
-    pts = UsdGeom.Points(stage.GetPrimAtPath("/warpskin/joint_constraint_particles"))
+    pts = UsdGeom.Points(prim(stage, "joint_constraint_particles"))
     assert len(pts.GetPointsAttr().Get()) > 0
-    skin = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/warpskin/layers/skin"))
+    skin = UsdGeom.PrimvarsAPI(prim(stage, "layers/skin"))
     scale = np.array(skin.GetPrimvar("depthScale").Get())
     depth = np.array(skin.GetPrimvar("tissueDepth").Get())
     assert skin.GetPrimvar("depthScale").GetInterpolation() == UsdGeom.Tokens.vertex
     np.testing.assert_array_equal(scale, np.ones(2918, dtype=np.float32))  # the arm keeps its full depth
-    bone = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/bone")).GetPointsAttr().Get())
-    skin_pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/layers/skin")).GetPointsAttr().Get())
+    bone = np.array(UsdGeom.Mesh(prim(stage, "layers/bone")).GetPointsAttr().Get())
+    skin_pts = np.array(UsdGeom.Mesh(prim(stage, "layers/skin")).GetPointsAttr().Get())
     np.testing.assert_allclose(depth, np.linalg.norm(bone - skin_pts, axis=1), rtol=1e-5, atol=1e-7)
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from oracles import rig_lbs
+from oracles import rig_lbs, prim
 from warpskin.errors import SceneError
 from warpskin.cli import main
 from warpskin.popping import (
@@ -368,7 +368,7 @@ def test_cli_pop_writes_usd(tmp_path, capsys, device):
     assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == 30
     pts = {}
     for name in ("popping", "normal", "goal", "lbs"):
-        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/warpskin/{name}"))
+        mesh = UsdGeom.Mesh(prim(stage, f"{name}"))
         assert mesh.GetPrim().IsValid(), name
         assert mesh.GetPointsAttr().GetTimeSamples() == [float(f) for f in range(31)]
         pts[name] = np.array(mesh.GetPointsAttr().Get(30))

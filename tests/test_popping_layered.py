@@ -10,6 +10,7 @@ from pxr import Usd, UsdGeom
 from warpskin.run import run_popping
 from warpskin.rig import RigError
 from warpskin.scene import load_scene
+from oracles import prim
 
 SCENE = """[rig]
 generator = "popping_arm"
@@ -40,8 +41,8 @@ def test_layered_mode_pops_the_skin_and_keeps_the_volume(tmp_path, device):
     scene = load_scene(path)
     rig = scene.rig()
     stage = Usd.Stage.Open(str(run.path))
-    skin = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
-    lbs = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr()
+    skin = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr()
+    lbs = UsdGeom.Mesh(prim(stage, "lbs")).GetPointsAttr()
     assert np.array_equal(np.array(lbs.Get(5)), np.array(lbs.Get(30)))  # the bones never move
     g = rig.joint_world_transforms("pop", scene.frame_time(5))
     a0, a1 = g[0, :3, 3], g[1, :3, 3]

@@ -10,7 +10,7 @@ import warp as wp
 from pxr import Usd, UsdGeom
 from scipy.spatial.transform import Rotation
 
-from oracles import coarse_arm
+from oracles import coarse_arm, prim
 from warpskin.errors import InputError, SceneError
 from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.scene import load_scene
@@ -106,8 +106,8 @@ def test_arm_at_150_degrees_keeps_volume_where_lbs_loses_it(device, tmp_path):
     residuals = result.metrics["residuals"][-1]
     assert len(residuals) == 10 and residuals[-1] < residuals[0]  # the elasticity loop converges
     stage = Usd.Stage.Open(str(out))
-    assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().GetTimeSamples()) == 49
-    assert stage.GetPrimAtPath("/warpskin/lbs").IsValid()
+    assert len(UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().GetTimeSamples()) == 49
+    assert prim(stage, "lbs").IsValid()
 
 
 def test_damping_and_jiggle_after_the_bones_stop(tmp_path, device):
@@ -136,8 +136,8 @@ def test_two_cpu_runs_are_identical_with_and_without_graph_capture(tmp_path):
                  use_graph=False)
     assert a.summary["graph_capture"] and not b.summary["graph_capture"]  # two different paths compared
     stage_a, stage_b = Usd.Stage.Open(str(a.path)), Usd.Stage.Open(str(b.path))  # keep the stages alive
-    sa = UsdGeom.Mesh(stage_a.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
-    sb = UsdGeom.Mesh(stage_b.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    sa = UsdGeom.Mesh(prim(stage_a, "skin")).GetPointsAttr()
+    sb = UsdGeom.Mesh(prim(stage_b, "skin")).GetPointsAttr()
     for f in range(9):
         assert np.array_equal(np.array(sa.Get(f)), np.array(sb.Get(f)))
 
@@ -185,7 +185,7 @@ def test_nan_stops_the_run_naming_frame_and_particle_and_keeps_a_valid_file(tmp_
         simulate(_scene(tmp_path, "[solver]\niterations = 2\n"), out, device="cpu", frames=(0, 10), progress=False,
                  use_graph=False)  # the fault injection reads the state on the host
     stage = Usd.Stage.Open(str(out))
-    samples = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr().GetTimeSamples()
+    samples = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().GetTimeSamples()
     assert samples == [0.0, 1.0, 2.0, 3.0]
 
 

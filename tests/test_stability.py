@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 from pxr import Usd, UsdGeom
 
-from oracles import coarse_arm, lbs
+from oracles import coarse_arm, lbs, prim
 from warpskin.cli import main
 from warpskin.errors import SimulationError
 from warpskin.model import ModelParams, SkinModelBuilder
@@ -136,8 +136,8 @@ def test_a_setting_a_user_may_pick_ends_bounded_or_stops_with_exit_3(tmp_path, c
     err = capsys.readouterr().err
     assert code in (0, 3), err
     stage = Usd.Stage.Open(str(out))
-    skin = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
-    ref = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/lbs")).GetPointsAttr()
+    skin = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr()
+    ref = UsdGeom.Mesh(prim(stage, "lbs")).GetPointsAttr()
     times = skin.GetTimeSamples()
     rig = coarse_arm()
     diag = float(np.linalg.norm(rig.vertices.max(axis=0) - rig.vertices.min(axis=0)))
@@ -170,7 +170,7 @@ def test_motion_growing_faster_than_max_speed_stops_at_the_first_such_frame(tmp_
         simulate(scene, tmp_path / "stopped.usdc", progress=False, frames=(0, 30), solver_params=params)
     # the frames before it were kept
     stage = Usd.Stage.Open(str(tmp_path / "stopped.usdc"))
-    times = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin")).GetPointsAttr()
+    times = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr()
     assert len(times.GetTimeSamples()) == first
 
 

@@ -10,6 +10,7 @@ from pxr import Usd, UsdGeom
 
 from warpskin.io.usd_export import ExportError, UsdSkinWriter
 from warpskin.scenes.arm import make_arm
+from oracles import prim
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +35,7 @@ def test_round_trip_every_time_sample(tmp_path, arm, ext):
     assert stage.GetStartTimeCode() == 3 and stage.GetEndTimeCode() == 8
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
     assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/skin"))
+    mesh = UsdGeom.Mesh(prim(stage, "skin"))
     assert np.array_equal(np.array(mesh.GetFaceVertexCountsAttr().Get()), np.full(arm.triangle_count, 3))
     assert np.array_equal(np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3), arm.triangles)
     attr = mesh.GetPointsAttr()
@@ -46,7 +47,7 @@ def test_round_trip_every_time_sample(tmp_path, arm, ext):
         assert np.allclose(ext_got, [pts.min(0), pts.max(0)], atol=1e-7)
     # topology is written once (no time samples), the static prim has none
     assert mesh.GetFaceVertexIndicesAttr().GetNumTimeSamples() == 0
-    rest = UsdGeom.Mesh(stage.GetPrimAtPath("/warpskin/rest"))
+    rest = UsdGeom.Mesh(prim(stage, "rest"))
     assert rest.GetPointsAttr().GetNumTimeSamples() == 0
     assert rest.GetPurposeAttr().Get() == UsdGeom.Tokens.guide
 

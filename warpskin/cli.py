@@ -244,7 +244,7 @@ def cmd_simulate(args) -> int:
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
-        start_frame=args.start_frame,
+        start_frame=args.start_frame, topology=args.topology,
     )
     s = result.summary
     line = (
@@ -317,7 +317,7 @@ def cmd_pop(args) -> int:
     scene = _scene_of(args)
     result = run_popping(
         scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
-        alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
+        topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode,
     )
     s = result.summary
@@ -399,8 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--with-rest", action="store_true", help="also write the rest mesh as a sibling prim")
     s.add_argument("--with-lbs", action="store_true", help="with --method dqs, also write the LBS result")
-    s.add_argument("--topology", choices=["welded", "file"], default="welded",
-                   help="welded closed surface (default) or the file's own seam-split vertices")
+    s.add_argument("--topology", choices=["file", "welded"], default="file",
+                   help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_skin)
 
@@ -419,6 +419,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this")
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--lbs", action="store_true", help="also write the LBS result as a sibling prim")
+    s.add_argument("--topology", choices=["file", "welded"], default="file",
+                   help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
     s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
@@ -471,6 +473,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--beta", type=float, help="relaxation rate [1/s] (scene: [popping] beta)")
     s.add_argument("--dt", type=_positive("--dt"), help="step length [s] (scene: [popping] dt)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--topology", choices=["file", "welded"], default="file",
+                   help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--mode", choices=["goal", "layered"],
                    help="goal: the paper's goal-driven skin; layered: the activation drives the multi-layer model's muscle layer")
     s.add_argument("--bench", action="store_true",

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -415,6 +416,8 @@ class Rig:
         file_triangles: Triangles of the file's own (unwelded) topology, ``[T, 3]``.
         up_axis: ``"Y"`` or ``"Z"``, as the source said.
         meters_per_unit: Scale the source was converted by (informational).
+        render: UVs, rest normals and materials of the file's topology
+            (:class:`~warpskin.io.render.RenderAttributes`), or ``None``.
     """
 
     name: str
@@ -437,6 +440,7 @@ class Rig:
     #: added vertex is the midpoint of, ``[added, 2]``. ``None`` for a rig as loaded.
     render_triangles: np.ndarray | None = None
     vertex_parents: np.ndarray | None = None
+    render: Any = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64)
@@ -473,6 +477,7 @@ class Rig:
         up_axis: str = "Y",
         meters_per_unit: float = 1.0,
         validate: bool = True,
+        render: Any = None,
     ) -> Rig:
         """Build a rig from per-file-vertex arrays, welding split vertices by position.
 
@@ -524,7 +529,10 @@ class Rig:
             file_triangles=triangles,
             up_axis=up_axis,
             meters_per_unit=meters_per_unit,
+            render=render,
         )
+        if render is not None:
+            render.check(n, triangles.shape[0], source or name)
         rig = rig._bind_scale_normalised()
         if weld and first.size != n:
             dense = rig._dense_weights(ji, jw)

@@ -30,7 +30,7 @@ def write_model_usd(builder: SkinModelBuilder, path: str | Path, *, comment: str
     b = builder.build()
     rig = b.rig
     tris = rig.triangles
-    with UsdSkinWriter(path, fps=24, up_axis=rig.up_axis, comment=comment) as out:
+    with UsdSkinWriter(path, fps=24, up_axis=rig.up_axis, comment=comment, root=rig.name or "character") as out:
         out.add_group("layers")
         depth = np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1)
         for k, name in enumerate(LAYER_NAMES):

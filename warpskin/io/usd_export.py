@@ -38,6 +38,11 @@ def _pxr():
     return Gf, Sdf, Usd, UsdGeom, Vt
 
 
+def _file_name(name: str) -> str:
+    out = "".join(c if (c.isalnum() or c in "-_.") else "_" for c in Path(name).name).lstrip(".")
+    return out or "texture.png"
+
+
 def _prim_name(name: str) -> str:
     out = "".join(c if (c.isalnum() or c == "_") else "_" for c in name)
     if not out or out[0].isdigit():
@@ -55,8 +60,13 @@ class UsdSkinWriter:
             its time code.
         up_axis: ``"Y"`` or ``"Z"``.
         meters_per_unit: Stage ``metersPerUnit`` (warpskin writes metres: 1).
-        root: Name of the root ``Xform`` prim.
+        root: Name of the root ``Xform`` prim: the character's name, so that bakes of several
+            characters can be referenced into one stage side by side. It is the stage's
+            ``defaultPrim`` and of ``kind`` component.
         comment: Stage comment (e.g. the command line that made it).
+
+    Materials (:meth:`add_material`) go under ``<root>/Looks``; their texture images are
+    written beside the USD file, in ``<stem>_textures/``, when the writer closes.
     """
 
     def __init__(
@@ -97,6 +107,10 @@ class UsdSkinWriter:
         UsdGeom.SetStageMetersPerUnit(st, float(meters_per_unit))
         self._root = UsdGeom.Xform.Define(st, Sdf.Path("/" + _prim_name(root)))
         st.SetDefaultPrim(self._root.GetPrim())
+        from pxr import Kind, Usd as _Usd
+
+        _Usd.ModelAPI(self._root.GetPrim()).SetKind(Kind.Tokens.component)
+        self._textures: dict[str, bytes] = {}
         if comment:
             st.GetRootLayer().comment = comment
         self._meshes: dict[str, tuple] = {}
@@ -116,6 +130,10 @@ class UsdSkinWriter:
         animated: bool = True,
         purpose: str | None = None,
         vertex_primvars: dict[str, np.ndarray] | None = None,
+        remap: np.ndarray | None = None,
+        uvs: np.ndarray | None = None,
+        normal_groups: np.ndarray | None = None,
+        materials: list[tuple[str, np.ndarray]] | None = None,
     ) -> str:
         """Declare a surface. Its topology is written once.
 
@@ -128,6 +146,16 @@ class UsdSkinWriter:
             purpose: Optional ``UsdGeom`` purpose (``"guide"`` hides it in renders).
             vertex_primvars: Static per-vertex float primvars ``{name: [V]}`` (vertex
                 interpolation), for a DCC to colour the mesh by (e.g. the layer depth factor).
+            remap: ``[V]`` index of every written vertex into the points :meth:`write_frame`
+                is given (a file's seam-split vertices from the welded surface warpskin
+                simulates); rest points are given already remapped.
+            uvs: ``[T, 3, 2]`` texture coordinates per triangle corner (``primvars:st``,
+                faceVarying).
+            normal_groups: ``[V]`` smoothing group per vertex: normals (vertex interpolation)
+                are then computed from every frame's points
+                (:func:`~warpskin.io.render.group_normals`) and time-sampled with them.
+            materials: ``[(material path, triangle indices)]`` from :meth:`add_material`: one
+                covering every triangle is bound to the mesh, several as face GeomSubsets.
 
         Returns:
             The prim path.
@@ -148,6 +176,10 @@ class UsdSkinWriter:
                     f"mesh {name!r}: rest points of shape {rest.shape} do not cover the {vertex_count} vertices the triangles use"
                 )
             vertex_count = rest.shape[0]
+        if remap is not None:
+            remap = np.asarray(remap, dtype=np.int64)
+            if remap.ndim != 1 or remap.shape[0] != vertex_count:
+                raise ExportError(f"mesh {name!r}: remap must give one source index per vertex ({vertex_count})")
         path = self._root.GetPath().AppendPath(key)
         mesh = UsdGeom.Mesh.Define(self._stage, path)
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(tri.shape[0], 3, dtype=np.int32)))
@@ -169,8 +201,124 @@ class UsdSkinWriter:
                 raise ExportError(f"mesh {name!r}: primvar {pv_name!r} needs {vertex_count} finite values, got {vals.shape[0]}")
             pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(pv_name, self._sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
             pv.Set(Vt.FloatArray.FromNumpy(vals))
-        self._meshes[key] = (mesh, pts_attr, ext_attr, vertex_count, animated)
+        if uvs is not None:
+            st = np.asarray(uvs, dtype=np.float32).reshape(-1, 2)
+            if st.shape[0] != 3 * tri.shape[0] or not np.isfinite(st).all():
+                raise ExportError(f"mesh {name!r}: uvs must be finite, one per triangle corner ({3 * tri.shape[0]})")
+            pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", self._sdf.ValueTypeNames.TexCoord2fArray,
+                                                         UsdGeom.Tokens.faceVarying)
+            pv.Set(Vt.Vec2fArray.FromNumpy(st))
+        normals = None
+        if normal_groups is not None:
+            groups = np.asarray(normal_groups, dtype=np.int64)
+            if groups.shape != (vertex_count,):
+                raise ExportError(f"mesh {name!r}: normal groups must be one per vertex ({vertex_count})")
+            normals = (mesh.CreateNormalsAttr(), groups, tri.astype(np.int64))
+            mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            if rest_points is not None:
+                normals[0].Set(Vt.Vec3fArray.FromNumpy(self._normals(rest, normals)))
+        for mat_path, faces in materials or []:
+            material = self._usdshade().Material(self._stage.GetPrimAtPath(mat_path))
+            faces = np.asarray(faces, dtype=np.int64)
+            if faces.size == tri.shape[0]:
+                binding = self._usdshade().MaterialBindingAPI.Apply(mesh.GetPrim())
+                binding.Bind(material)
+            else:
+                subset = UsdGeom.Subset.CreateGeomSubset(mesh, _prim_name(material.GetPrim().GetName()),
+                                                         UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces.astype(np.int32)),
+                                                         "materialBind")
+                self._usdshade().MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
+        self._meshes[key] = (mesh, pts_attr, ext_attr, vertex_count, animated, remap, normals)
         return str(path)
+
+    @staticmethod
+    def _usdshade():
+        from pxr import UsdShade
+
+        return UsdShade
+
+    def _normals(self, points: np.ndarray, normals) -> np.ndarray:
+        from .render import group_normals
+
+        _, groups, tri = normals
+        return group_normals(points, tri, groups).astype(np.float32)
+
+    def add_material(self, material) -> str:
+        """A ``UsdPreviewSurface`` material for a :class:`~warpskin.io.render.Material` under
+        ``<root>/Looks``: its base colour, and its texture (read through ``primvars:st``)
+        where it has one. Returns the material's path."""
+        self._check_open()
+        UsdShade, Sdf = self._usdshade(), self._sdf
+        looks = self._root.GetPath().AppendChild("Looks")
+        if not self._stage.GetPrimAtPath(looks):
+            self._stage.DefinePrim(looks, "Scope")
+        path = looks.AppendChild(_prim_name(material.name))
+        if self._stage.GetPrimAtPath(path):
+            return str(path)
+        mat = UsdShade.Material.Define(self._stage, path)
+        surface = UsdShade.Shader.Define(self._stage, path.AppendChild("PreviewSurface"))
+        surface.CreateIdAttr("UsdPreviewSurface")
+        surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+        surface.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+        color = surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f)
+        rgba = tuple(float(c) for c in material.base_color)
+        color.Set(self._gf.Vec3f(*rgba[:3]))
+        if rgba[3] < 1.0:
+            surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(rgba[3])
+        mat.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+        if material.texture:
+            name = _file_name(material.texture_name or f"{_prim_name(material.name)}.png")
+            while name in self._textures and self._textures[name] != material.texture:
+                name = "_" + name
+            self._textures[name] = material.texture
+            reader = UsdShade.Shader.Define(self._stage, path.AppendChild("stReader"))
+            reader.CreateIdAttr("UsdPrimvarReader_float2")
+            reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+            tex = UsdShade.Shader.Define(self._stage, path.AppendChild("BaseColorTexture"))
+            tex.CreateIdAttr("UsdUVTexture")
+            tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(f"./{self._texture_dir.name}/{name}"))
+            tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+            tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("repeat")
+            tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("repeat")
+            tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(self._gf.Vec4f(*rgba[:3], 1.0))
+            tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+            color.ConnectToSource(tex.ConnectableAPI(), "rgb")
+        return str(path)
+
+    @property
+    def _texture_dir(self) -> Path:
+        return self.path.with_name(f"{self.path.stem}_textures")
+
+    def add_variant_set(self, name: str, variants: dict[str, dict[str, dict]], default: str) -> None:
+        """A variant set on the root prim: ``{variant: {child prim name: {"visibility": ...,
+        "purpose": ...}}}``, so that a reviewer flips between, e.g., the physical skin and LBS in
+        any DCC."""
+        self._check_open()
+        from pxr import UsdGeom
+
+        root = self._root.GetPrim()
+        # a local opinion is stronger than any variant's: every attribute a variant sets moves
+        # into the variants, each of which authors it (its own value, or the local one it had)
+        keys = {(child, attr) for prims in variants.values() for child, ops in prims.items() for attr in ops}
+        local = {}
+        for child, attr in keys:
+            target = root.GetChild(_prim_name(child))
+            held = target.GetAttribute(attr)
+            local[(child, attr)] = held.Get() if held and held.HasAuthoredValue() else None
+            if held:
+                target.RemoveProperty(attr)
+        vset = root.GetVariantSets().AddVariantSet(name)
+        for variant, prims in variants.items():
+            vset.AddVariant(variant)
+            vset.SetVariantSelection(variant)
+            with vset.GetVariantEditContext():
+                for child, attr in sorted(keys):
+                    value = prims.get(child, {}).get(attr, local[(child, attr)])
+                    if value is None:
+                        continue
+                    img = UsdGeom.Imageable(root.GetChild(_prim_name(child)))
+                    (img.CreateVisibilityAttr() if attr == "visibility" else img.CreatePurposeAttr()).Set(value)
+        vset.SetVariantSelection(default)
 
     def add_points(
         self,
@@ -203,7 +351,7 @@ class UsdSkinWriter:
             prim.CreateExtentAttr(self._extent(pts))
         if color is not None:
             prim.CreateDisplayColorAttr([self._gf.Vec3f(*map(float, color))])
-        self._meshes[key] = (prim, None, None, pts.shape[0], False)
+        self._meshes[key] = (prim, None, None, pts.shape[0], False, None, None)
         return str(prim.GetPath())
 
     def add_group(self, name: str) -> UsdSkinWriter:
@@ -234,11 +382,16 @@ class UsdSkinWriter:
             key = "/".join(_prim_name(part) for part in name.split("/"))
             if key not in self._meshes:
                 raise ExportError(f"frame {frame}: no mesh {name!r} was added (meshes: {sorted(self._meshes)})")
-            mesh, pts_attr, ext_attr, count, animated = self._meshes[key]
+            mesh, pts_attr, ext_attr, count, animated, remap, normals = self._meshes[key]
             if not animated:
                 raise ExportError(f"mesh {name!r} was added as static")
             arr = pts.numpy() if hasattr(pts, "numpy") else pts
             arr = np.asarray(arr, dtype=np.float32)
+            if remap is not None:
+                if arr.ndim != 2 or arr.shape[0] <= int(remap.max()):
+                    raise ExportError(f"frame {frame}: mesh {name!r} needs at least {int(remap.max()) + 1} points to "
+                                      f"remap, got shape {arr.shape}")
+                arr = arr[remap]
             if arr.shape != (count, 3):
                 raise ExportError(f"frame {frame}: mesh {name!r} expects {count} points [V, 3], got shape {arr.shape}")
             finite = np.isfinite(arr).all(axis=1)
@@ -247,6 +400,8 @@ class UsdSkinWriter:
                 raise ExportError(f"frame {frame}: mesh {name!r} has a NaN or inf position at vertex {bad}")
             pts_attr.Set(Vt.Vec3fArray.FromNumpy(arr), tc)
             ext_attr.Set(self._extent(arr), tc)
+            if normals is not None:
+                normals[0].Set(Vt.Vec3fArray.FromNumpy(self._normals(arr, normals)), tc)
         self._first = tc if self._first is None else min(self._first, tc)
         self._last = tc if self._last is None else max(self._last, tc)
         self.frames_written += 1
@@ -266,6 +421,7 @@ class UsdSkinWriter:
                 self._stage.SetEndTimeCode(self._last)
             self._stage.GetRootLayer().Save()
             self._stage = None
+            self._write_textures()
             os.replace(self._tmp, self.path)
         except Exception as exc:
             self.abort()
@@ -274,6 +430,22 @@ class UsdSkinWriter:
             raise ExportError(f"{self.path}: writing failed: {exc}") from exc
         self._closed = True
         return self.path
+
+    def _write_textures(self) -> None:
+        """The material images, each written to a temporary name and renamed into place."""
+        if not self._textures:
+            return
+        folder = self._texture_dir
+        folder.mkdir(exist_ok=True)
+        for name, data in self._textures.items():
+            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data)
+                os.replace(tmp, folder / name)
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
 
     def abort(self) -> None:
         """Drop everything written so far; the target path is left untouched."""

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..rig import Clip, Rig, RigError, RigWarning, Skeleton, Track, _fmt_indices
+from .render import Material, RenderAttributes, read_asset_bytes
 
 __all__ = ["load_usd", "list_usd_meshes", "USD_EXTENSIONS"]
 
@@ -43,13 +44,13 @@ USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
 def _pxr() -> Any:
     """The ``pxr`` modules used here, as a namespace; :class:`RigError` if usd-core is missing."""
     try:
-        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
     except ImportError as exc:  # pragma: no cover - usd-core is a dependency
         raise RigError(
             "reading USD files needs usd-core (the `pxr` module): pip install usd-core"
         ) from exc
 
-    return SimpleNamespace(Gf=Gf, Sdf=Sdf, Tf=Tf, Usd=Usd, UsdGeom=UsdGeom, UsdSkel=UsdSkel, Vt=Vt)
+    return SimpleNamespace(Gf=Gf, Sdf=Sdf, Tf=Tf, Usd=Usd, UsdGeom=UsdGeom, UsdShade=UsdShade, UsdSkel=UsdSkel, Vt=Vt)
 
 
 def _warn(message: str) -> None:
@@ -359,8 +360,9 @@ def _select(targets: list[_Target], others: list[Any], mesh: str | None, path: P
 # --------------------------------------------------------------------------------------------
 
 
-def _read_mesh(pxr: Any, tg: _Target, where: _Where, t0: Any) -> tuple[np.ndarray, np.ndarray]:
-    """File points ``[N, 3]`` (mesh space) and CCW triangles ``[T, 3]``."""
+def _read_mesh(pxr: Any, tg: _Target, where: _Where, t0: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """File points ``[N, 3]`` (mesh space), CCW triangles ``[T, 3]``, the same triangles as
+    face-vertex (corner) indices ``[T, 3]`` (for faceVarying primvars), and each triangle's face."""
     mesh = pxr.UsdGeom.Mesh(tg.prim)
     pts = mesh.GetPointsAttr().Get(t0)
     if pts is None or len(pts) == 0:
@@ -385,13 +387,119 @@ def _read_mesh(pxr: Any, tg: _Target, where: _Where, t0: Any) -> tuple[np.ndarra
             f"(values {_fmt_indices(np.unique(indices[oob]))})"
         )
     tri, skipped = triangulate_faces(counts, indices, holes)
+    corners, _ = triangulate_faces(counts, np.arange(indices.size), holes)
     if skipped.size:
         where.warn(f"faces {_fmt_indices(skipped)} have fewer than 3 vertices; skipped")
     if tri.shape[0] == 0:
         raise where.error("has no polygon with 3 or more vertices")
     if mesh.GetOrientationAttr().Get(t0) == pxr.UsdGeom.Tokens.leftHanded:
-        tri = tri[:, [0, 2, 1]]
-    return points, tri
+        tri, corners = tri[:, [0, 2, 1]], corners[:, [0, 2, 1]]
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    face = np.searchsorted(offsets, corners[:, 0], side="right") - 1
+    return points, tri, corners, face
+
+
+def _flat_primvar(pxr: Any, pv: Any, t0: Any, n: int, tri: np.ndarray, corners: np.ndarray, face: np.ndarray,
+                  width: int) -> np.ndarray | None:
+    """A primvar's values per triangle corner ``[T, 3, width]`` whatever its interpolation, or
+    ``None`` where its size does not match it."""
+    values = pv.ComputeFlattened(t0)
+    if values is None:
+        return None
+    v = np.asarray(values, dtype=np.float64).reshape(-1, width)
+    interp = str(pv.GetInterpolation())
+    if interp in ("vertex", "varying") and v.shape[0] == n:
+        out = v[tri]
+    elif interp == "faceVarying" and v.shape[0] > corners.max():
+        out = v[corners]
+    elif interp == "uniform" and v.shape[0] > face.max():
+        out = np.repeat(v[face][:, None, :], 3, axis=1)
+    elif interp == "constant" and v.shape[0] >= 1:
+        out = np.broadcast_to(v[0], (tri.shape[0], 3, width)).copy()
+    else:
+        return None
+    return out if np.isfinite(out).all() else None
+
+
+def _read_render(pxr: Any, tg: _Target, where: _Where, t0: Any, n: int, tri: np.ndarray, corners: np.ndarray,
+                 face: np.ndarray, geom_bind: np.ndarray) -> RenderAttributes:
+    """UVs (``primvars:st``, or the first texture-coordinate primvar), rest normals (vertex
+    interpolated ``primvars:normals`` or ``normals``, in bind space) and the bound
+    UsdPreviewSurface material(s) of the mesh (per GeomSubset where faces bind their own)."""
+    UsdGeom, UsdShade, Sdf = pxr.UsdGeom, pxr.UsdShade, pxr.Sdf
+    mesh = UsdGeom.Mesh(tg.prim)
+    api = UsdGeom.PrimvarsAPI(tg.prim)
+    uvs = None
+    candidates = [api.GetPrimvar("st")] + [pv for pv in api.GetPrimvars()
+                                            if pv.GetTypeName().role == Sdf.ValueRoleNames.TextureCoordinate]
+    for pv in candidates:
+        if pv and pv.HasValue():
+            uvs = _flat_primvar(pxr, pv, t0, n, tri, corners, face, 2)
+            if uvs is not None:
+                break
+    normals = None
+    npv = api.GetPrimvar("normals")
+    if npv and npv.HasValue() and str(npv.GetInterpolation()) in ("vertex", "varying"):
+        values = npv.ComputeFlattened(t0)
+    elif mesh.GetNormalsAttr().HasValue() and str(mesh.GetNormalsInterpolation()) in ("vertex", "varying"):
+        values = mesh.GetNormalsAttr().Get(t0)
+    else:
+        values = None
+    if values is not None and len(values) == n:
+        normals = np.asarray(values, dtype=np.float64).reshape(-1, 3) @ np.linalg.inv(geom_bind[:3, :3])
+    # materials: the mesh's own binding, and GeomSubsets of faces that bind another
+    materials: list[Material] = []
+    tri_mat = np.full(tri.shape[0], -1, dtype=np.int64)
+    known: dict[str, int] = {}
+
+    def index_of(prim) -> int:
+        bound = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+        if not bound:
+            return -1
+        key = str(bound.GetPath())
+        if key not in known:
+            known[key] = len(materials)
+            materials.append(_usd_material(pxr, bound, where))
+        return known[key]
+
+    tri_mat[:] = index_of(tg.prim)
+    for subset in UsdGeom.Subset.GetAllGeomSubsets(mesh):
+        if str(subset.GetElementTypeAttr().Get()) != "face":
+            continue
+        k = index_of(subset.GetPrim())
+        faces = np.asarray(subset.GetIndicesAttr().Get(t0) or [], dtype=np.int64)
+        if k >= 0 and faces.size:
+            tri_mat[np.isin(face, faces)] = k
+    return RenderAttributes(uvs=uvs, normals=normals, materials=materials,
+                            triangle_material=tri_mat if materials else None)
+
+
+def _usd_material(pxr: Any, material: Any, where: _Where) -> Material:
+    """A UsdPreviewSurface's diffuse colour and, where it is connected to a UsdUVTexture, that
+    texture's image bytes (from a plain file or inside a usdz)."""
+    UsdShade = pxr.UsdShade
+    name = material.GetPrim().GetName()
+    shader = material.ComputeSurfaceSource()[0]
+    if not shader:
+        return Material(name=name)
+    color = (0.18, 0.18, 0.18, 1.0)  # UsdPreviewSurface's default diffuseColor
+    inp = shader.GetInput("diffuseColor")
+    if inp:
+        value = inp.Get()
+        if value is not None:
+            color = (*map(float, value), 1.0)
+        source = inp.GetConnectedSource()
+        if source:
+            tex = UsdShade.Shader(source[0].GetPrim())
+            file_input = tex.GetInput("file")
+            asset = file_input.Get() if file_input else None
+            resolved = asset.resolvedPath if asset is not None else ""
+            data = read_asset_bytes(resolved) if resolved else None
+            if data is not None:
+                tex_name = Path(asset.path.split("[")[-1].rstrip("]")).name
+                return Material(name=name, base_color=(1.0, 1.0, 1.0, 1.0), texture=data, texture_name=tex_name)
+            where.warn(f"material <{material.GetPath()}>: its diffuse texture cannot be read; written without it")
+    return Material(name=name, base_color=color)
 
 
 def _read_influences(
@@ -675,7 +783,7 @@ def load_usd(path: str | Path, *, mesh: str | None = None, weld: bool = True) ->
     where = _Where(p, prim_path)
     t0 = pxr.Usd.TimeCode.EarliestTime()
 
-    points, triangles = _read_mesh(pxr, tg, where, t0)
+    points, triangles, corners, face = _read_mesh(pxr, tg, where, t0)
     skeleton, inverse_bind, has_rest = _read_skeleton(pxr, tg, where, t0)
     ji, jw = _read_influences(pxr, tg, where, t0, points.shape[0], skeleton.joint_names)
 
@@ -690,7 +798,8 @@ def load_usd(path: str | Path, *, mesh: str | None = None, weld: bool = True) ->
         raise where.error("primvars:skel:geomBindTransform is singular or holds NaN/inf")
     rest = points @ geom_bind[:3, :3].T + geom_bind[:3, 3]
     if np.linalg.det(geom_bind[:3, :3]) < 0.0:  # a mirroring bind transform flips the winding
-        triangles = triangles[:, [0, 2, 1]]
+        triangles, corners = triangles[:, [0, 2, 1]], corners[:, [0, 2, 1]]
+    render = _read_render(pxr, tg, where, t0, points.shape[0], triangles, corners, face, geom_bind)
 
     clips = _read_animation(pxr, stage, tg, where, skeleton.joint_names, has_rest)
 
@@ -713,6 +822,7 @@ def load_usd(path: str | Path, *, mesh: str | None = None, weld: bool = True) ->
             weld=weld,
             up_axis=up,
             meters_per_unit=1.0,
+            render=render,
         )
     except RigError as exc:
         msg = str(exc)

@@ -19,6 +19,7 @@ from ..popping.examples import PoppingExamples, examples_for_scene
 from ..popping.layered import muscle_rest_offset_deltas
 from ..popping.pose_space import PoseSpaceDeformer
 from ..scene import resolve_scene
+from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
@@ -55,6 +56,7 @@ class PoppingStepper:
         self.groups = deformer.group_names
         self.step_times = plan.substep_times(leading=True)
         self.label = f"pop {name or rig.name} ({deformer.device}, {rig.vertex_count} vertices)"
+        self.variant = "popping"
         self._points: dict[str, np.ndarray] = {}
 
     def meshes(self) -> list:
@@ -109,6 +111,7 @@ def run_popping(
     frames: tuple[int, int] | None = None,
     fps: float | None = None,
     start_frame: int | None = None,
+    topology: str = "file",
     alpha_min: float | None = None,
     beta: float | None = None,
     dt: float | None = None,
@@ -133,6 +136,7 @@ def run_popping(
         frames: Inclusive frame range; default the scene's.
         fps: Output frame rate; default the scene's.
         start_frame: Time code of the first frame written; default its frame number.
+        topology: ``"file"`` (the file's own vertices, faces, UVs; default) or ``"welded"``.
         alpha_min, beta, dt: Overrides of the scene's ``[popping]`` values.
         mode: ``"goal"`` or ``"layered"``; default the scene's ``[popping] mode``.
         progress: Progress bar on stderr.
@@ -156,7 +160,7 @@ def run_popping(
     settings.check(f"{where}: [popping]")
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
-                            progress=progress, comment=comment, start_frame=start_frame)
+                            progress=progress, comment=comment, start_frame=start_frame, topology=topology)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt, start_frame=start_frame)
@@ -170,9 +174,10 @@ def run_popping(
         raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
     stepper = PoppingStepper(rig, clip, plan, deformer, dynamics, settings, name=scene.name)
     over = _Overshoot()
-    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment)
+    output = CharacterOutput(rig, topology)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
     record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=progress,
-                         steps_in_first_frame=True).run()
+                         steps_in_first_frame=True, output=output).run()
     count = len(record.frames)
     return PoppingRun(
         path=Path(writer.path),
@@ -193,7 +198,7 @@ def run_popping(
 
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
-                 start_frame=None) -> PoppingRun:
+                 start_frame=None, topology="file") -> PoppingRun:
     from ..model import SkinModelBuilder
     from .simulate import simulate
 
@@ -207,7 +212,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     settings.activation.check_groups(groups, "[popping.activation]")
     builder.set_rest_drive(deltas)
     result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress, comment=comment,
-                      start_frame=start_frame,
+                      start_frame=start_frame, topology=topology,
                       builder=builder, activation=lambda t: settings.activation.sample(t, groups))
     summary = dict(result.summary)
     summary["mode"] = "layered"

@@ -61,16 +61,19 @@ class FrameRunner:
         progress: Show a progress bar on stderr.
         steps_in_first_frame: Whether the first frame is reached by stepping (popping) or is
             the initial state (the physical skin), for the per-step timing.
+        output: A :class:`~warpskin.run.output.CharacterOutput` that declares the character's
+            meshes in the file's topology (``None``: as the stepper gives them).
     """
 
     def __init__(self, plan: FramePlan, stepper, *, writer=None, measures: list[Callable] | None = None,
-                 progress: bool = True, steps_in_first_frame: bool = False) -> None:
+                 progress: bool = True, steps_in_first_frame: bool = False, output=None) -> None:
         self.plan = plan
         self.stepper = stepper
         self.writer = writer
         self.measures = list(measures or [])
         self.progress = progress
         self.steps_in_first_frame = steps_in_first_frame
+        self.output = output
 
     def run(self, *, keep_failure: bool = False) -> RunRecord:
         """Run every frame. Returns the :class:`RunRecord`; a stepper's SimulationError is
@@ -82,7 +85,18 @@ class FrameRunner:
         try:
             if writer is not None:
                 for name, tris, rest, kw in st.meshes():
-                    writer.add_mesh(name, tris, rest_points=rest, **kw)
+                    if self.output is not None:
+                        self.output.declare(writer, name, tris, rest, kw)
+                    else:
+                        writer.add_mesh(name, tris, rest_points=rest, **kw)
+                names = [m[0] for m in st.meshes()]
+                if self.output is not None and "lbs" in names and len(names) > 1:
+                    # a reviewer flips between the result and LBS in any DCC (the LBS guide stays)
+                    main_mesh, label = names[0], getattr(st, "variant", "physical")
+                    writer.add_variant_set("deformer", {
+                        label: {main_mesh: {"visibility": "inherited"}},
+                        "lbs": {main_mesh: {"visibility": "invisible"}, "lbs": {"purpose": "default"}},
+                    }, default=label)
             for i, f in enumerate(plan.frames):
                 t0 = time.perf_counter()
                 try:

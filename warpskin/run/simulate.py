@@ -21,6 +21,7 @@ from ..scene import Scene
 from ..solver import SolverParams
 from ..transforms import linear_blend_skin
 from .physics import PhysicsStepper
+from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
@@ -207,6 +208,7 @@ def simulate(
     preroll: float | None = None,
     allow_unstable: bool = False,
     start_frame: int | None = None,
+    topology: str = "file",
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -235,6 +237,8 @@ def simulate(
 
     Frames are the source's time codes (``frame / fps`` seconds, at the clip's own rate unless
     the scene sets ``fps``); ``start_frame`` writes the first frame at that time code instead.
+    ``topology`` ``"file"`` (default) writes the skin (and LBS) with the file's own vertices,
+    faces, UVs and materials, ``"welded"`` the closed surface as loaded.
 
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
@@ -292,8 +296,10 @@ def simulate(
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
             return out
 
-    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment)
-    record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress).run(keep_failure=True)
+    output = CharacterOutput(sim, topology)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
+    record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress,
+                         output=output).run(keep_failure=True)
     metrics = measures.m
     written = record.frames
     subs = builder.subvolumes
@@ -307,7 +313,8 @@ def simulate(
         "device": str(model.device),
         "particles": model.particle_count,
         "vertices": model.vertex_count,
-        "file_vertices_written": n_out,
+        "topology": topology,
+        "file_vertices_written": sim.file_vertex_count if topology == "file" else n_out,
         "refined_vertices_added": model.vertex_count - n_out,
         "frames": len(written),
         "substeps_per_frame": plan.substeps,

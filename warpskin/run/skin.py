@@ -11,6 +11,7 @@ from ..errors import SceneError
 from ..io.usd_export import UsdSkinWriter
 from ..scene import resolve_scene
 from ..skinning import Skinner
+from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
@@ -26,42 +27,35 @@ class SkinningStepper:
         device: Warp device.
         with_lbs: With ``method="dqs"``, also LBS as mesh ``lbs``.
         with_rest: Also the rest mesh as a static guide ``rest``.
-        topology: ``"welded"`` (the closed surface warpskin works on) or ``"file"`` (the
-            file's own vertices, split at seams).
+
+    Points are of the welded surface; :class:`~warpskin.run.output.CharacterOutput` writes them
+    in the file's topology.
     """
 
     def __init__(self, rig, clip, plan: FramePlan, *, method: str = "lbs", device=None, with_lbs: bool = False,
-                 with_rest: bool = False, topology: str = "welded", name: str = "") -> None:
-        if topology not in ("welded", "file"):
-            raise SceneError(f"topology must be 'welded' or 'file', got {topology!r}")
+                 with_rest: bool = False, name: str = "") -> None:
         self.rig, self.clip, self.plan = rig, clip, plan
         self.skinner = Skinner(rig, method=method, device=device)
         self.lbs = Skinner(rig, method="lbs", device=device) if (with_lbs and method != "lbs") else None
         self.with_rest = with_rest
-        if topology == "file":
-            self.tris, self.remap = rig.file_triangles, rig.weld_map
-        else:
-            self.tris, self.remap = rig.triangles, None
+        self.variant = method
         self.label = f"skin {name or rig.name} ({method}, {self.skinner.device})"
         self._points: dict[str, np.ndarray] = {}
 
-    def _pick(self, points: np.ndarray) -> np.ndarray:
-        return points[self.remap] if self.remap is not None else points
-
     def meshes(self) -> list:
-        rest = self._pick(self.rig.vertices)
-        out = [("skin", self.tris, rest, {"color": (0.85, 0.64, 0.52)})]
+        tris, rest = self.rig.triangles, self.rig.vertices
+        out = [("skin", tris, rest, {"color": (0.85, 0.64, 0.52)})]
         if self.with_rest:
-            out.append(("rest", self.tris, rest, {"animated": False, "color": (0.5, 0.5, 0.5), "purpose": "guide"}))
+            out.append(("rest", tris, rest, {"animated": False, "color": (0.5, 0.5, 0.5), "purpose": "guide"}))
         if self.lbs is not None:
-            out.append(("lbs", self.tris, rest, {"color": (0.4, 0.55, 0.85), "purpose": "guide"}))
+            out.append(("lbs", tris, rest, {"color": (0.4, 0.55, 0.85), "purpose": "guide"}))
         return out
 
     def advance(self, i: int) -> None:
         mats = self.rig.skinning_matrices(self.clip, self.plan.times[i])
-        self._points = {"skin": self._pick(self.skinner.skin(mats).numpy())}
+        self._points = {"skin": self.skinner.skin(mats).numpy()}
         if self.lbs is not None:
-            self._points["lbs"] = self._pick(self.lbs.skin(mats).numpy())
+            self._points["lbs"] = self.lbs.skin(mats).numpy()
 
     def frame(self, i: int) -> dict[str, np.ndarray]:
         return self._points
@@ -78,7 +72,7 @@ def skin_to_usd(
     start_frame: int | None = None,
     with_rest: bool = False,
     with_lbs: bool = False,
-    topology: str = "welded",
+    topology: str = "file",
     progress: bool = True,
     comment: str = "",
 ):
@@ -95,8 +89,9 @@ def skin_to_usd(
             source's own time codes).
         with_rest: Also write the rest mesh as a static sibling prim ``rest``.
         with_lbs: With ``method="dqs"``, also write the LBS result as a sibling prim ``lbs``.
-        topology: ``"welded"`` (the closed surface warpskin works on) or ``"file"`` (the
-            file's own vertices, split at seams, so UVs in the source still line up).
+        topology: ``"file"`` (the file's own vertices, faces, UVs and materials, so the bake
+            lines up with its source; default) or ``"welded"`` (the closed surface warpskin
+            works on).
         progress: Show a progress bar on stderr.
         comment: Stage comment.
 
@@ -108,13 +103,13 @@ def skin_to_usd(
         if not (math.isfinite(fps) and fps > 0):
             raise SceneError(f"fps must be a positive number, got {fps}")
         scene.fps = float(fps)
-    if topology not in ("welded", "file"):
-        raise SceneError(f"topology must be 'welded' or 'file', got {topology!r}")
     rig = scene.rig()
+    output = CharacterOutput(rig, topology)
     clip = rig.clip(scene.clip)
     plan = FramePlan.for_scene(scene, frames, start_frame=start_frame)
     stepper = SkinningStepper(rig, clip, plan, method=method, device=device, with_lbs=with_lbs, with_rest=with_rest,
-                              topology=topology, name=scene.name)
-    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment)
-    record = FrameRunner(plan, stepper, writer=writer, progress=progress, steps_in_first_frame=True).run()
+                              name=scene.name)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
+    record = FrameRunner(plan, stepper, writer=writer, progress=progress, steps_in_first_frame=True,
+                         output=output).run()
     return writer.path, len(record.frames)

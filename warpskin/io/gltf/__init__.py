@@ -19,12 +19,14 @@ non-joint nodes *between* two joints are folded into the child joint's rest pose
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ...rig import Rig, RigError
+from ...rig import Rig, RigError, RigWarning
+from ..render import Material, RenderAttributes
 from .document import _MALFORMED, _Document
 from .mesh import _attributes, _describe, _mesh_entries, _read_mesh
 from .skin import _read_clips, _SkinInfo
@@ -100,7 +102,7 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
     entry = _select(doc, entries, mesh)
     node_parent = doc.node_parents()
     label = entry["name"]
-    points, triangles, ji, jw = _read_mesh(doc, entry["mesh"], label)
+    points, triangles, ji, jw, attrs = _read_mesh(doc, entry["mesh"], label)
     skin_index = entry["skin"]
     info = _SkinInfo(doc, skin_index, node_parent)
     n_j = len(info.joints)
@@ -130,7 +132,48 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
         weld=weld,
         up_axis="Y",
         meters_per_unit=1.0,
+        render=_render_attributes(doc, triangles, attrs),
     )
+
+
+def _render_attributes(doc: _Document, triangles: np.ndarray, attrs: dict) -> RenderAttributes:
+    """UVs per triangle corner (glTF's v flipped to USD's st), rest normals and the materials of
+    the mesh's primitives (base colour factor and texture image)."""
+    uvs = None
+    if attrs["uv"] is not None:
+        uv = attrs["uv"][triangles]  # [T, 3, 2]
+        uvs = np.stack([uv[..., 0], 1.0 - uv[..., 1]], axis=-1)
+    used = sorted(int(m) for m in np.unique(attrs["material"]) if m >= 0)
+    materials = [_material(doc, m) for m in used]
+    lookup = np.full(max(used, default=-1) + 2, -1, dtype=np.int64)
+    lookup[used] = np.arange(len(used))
+    return RenderAttributes(uvs=uvs, normals=attrs["normal"], materials=materials,
+                            triangle_material=lookup[attrs["material"]] if used else None)
+
+
+def _material(doc: _Document, index: int) -> Material:
+    mat = doc.item("materials", index, "a primitive's material")
+    name = mat.name or f"material_{index}"
+    pbr = mat.pbrMetallicRoughness
+    factor = getattr(pbr, "baseColorFactor", None) if pbr is not None else None
+    color = tuple(float(c) for c in (factor if factor and len(factor) == 4 else (1.0, 1.0, 1.0, 1.0)))
+    tex_info = getattr(pbr, "baseColorTexture", None) if pbr is not None else None
+    if tex_info is None or tex_info.index is None:
+        return Material(name=name, base_color=color)
+    texture = doc.item("textures", tex_info.index, f"material {name!r} baseColorTexture")
+    if texture.source is None:
+        return Material(name=name, base_color=color)
+    image = doc.item("images", texture.source, f"texture {tex_info.index}")
+    data = doc.image_bytes(texture.source, image)
+    if data is None:
+        return Material(name=name, base_color=color)
+    ext = ".png" if data[:8] == b"\x89PNG\r\n\x1a\n" else ".jpg" if data[:3] == b"\xff\xd8\xff" else ""
+    if not ext:  # a format a USD renderer cannot be assumed to read (KTX2, WebP): colour only
+        warnings.warn(f"{doc.where}: material {name!r}: its base-colour image is neither PNG nor JPEG; written "
+                      "without the texture", RigWarning, stacklevel=4)
+        return Material(name=name, base_color=color)
+    stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in (image.name or name)) or f"image_{texture.source}"
+    return Material(name=name, base_color=color, texture=data, texture_name=stem + ext)
 
 
 def load_gltf(path: str | Path, *, mesh: str | None = None, weld: bool = True) -> Rig:

@@ -73,7 +73,12 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
         "nodes": ("Node", True),
         "skins": ("Skin", True),
         "scenes": ("Scene", True),
+        "materials": ("Material", True),
+        "textures": ("Texture", True),
+        "images": ("Image", True),
     },
+    "Material": {"pbrMetallicRoughness": ("PbrMetallicRoughness", False)},
+    "PbrMetallicRoughness": {"baseColorTexture": ("TextureInfo", False)},
     "Accessor": {"sparse": ("Sparse", False)},
     "Sparse": {"indices": ("AccessorSparseIndices", False), "values": ("AccessorSparseValues", False)},
     "Animation": {"channels": ("AnimationChannel", True), "samplers": ("AnimationSampler", True)},
@@ -105,7 +110,12 @@ _FIELD_TYPES: dict[str, dict[str, str]] = {
     "Buffer": {"byteLength": "int", "uri": "str"},
     "BufferView": {"buffer": "int", "byteOffset": "int", "byteLength": "int", "byteStride": "int"},
     "Mesh": {"weights": "nums", "name": "str"},
-    "Primitive": {"indices": "int", "mode": "int"},
+    "Primitive": {"indices": "int", "mode": "int", "material": "int"},
+    "Material": {"name": "str"},
+    "PbrMetallicRoughness": {"baseColorFactor": "nums"},
+    "TextureInfo": {"index": "int", "texCoord": "int"},
+    "Texture": {"source": "int", "name": "str"},
+    "Image": {"bufferView": "int", "uri": "str", "mimeType": "str", "name": "str"},
     "Node": {
         "mesh": "int",
         "skin": "int",
@@ -302,6 +312,23 @@ class _Document:
             raise self.error(f"{label} holds {len(data)} bytes but declares byteLength {declared} (truncated?)")
         self._buffers[index] = data
         return data
+
+    def image_bytes(self, index: int, image: Any) -> bytes | None:
+        """The encoded bytes of image ``index`` (a buffer view, a ``data:`` URI or a file beside
+        the glTF), or ``None`` with a warning where they cannot be read (the mesh still loads)."""
+        try:
+            if image.bufferView is not None:
+                data, start, length, _ = self.buffer_view(image.bufferView, f"image {index}")
+                return bytes(data[start : start + length])
+            uri = image.uri or ""
+            if uri.startswith("data:"):
+                header, _, payload = uri.partition(",")
+                return base64.b64decode(payload) if header.endswith(";base64") else urllib.parse.unquote_to_bytes(payload)
+            return (self.path.parent / urllib.parse.unquote(uri)).read_bytes()
+        except (RigError, OSError, ValueError, binascii.Error) as e:
+            warnings.warn(f"{self.where}: image {index} cannot be read ({e}); written without its texture",
+                          RigWarning, stacklevel=5)
+            return None
 
     def buffer_view(self, index: int, what: str) -> tuple[bytes, int, int, int | None]:
         """``(buffer bytes, start offset, byte length, byte stride or None)`` of a buffer view."""

@@ -122,13 +122,16 @@ def _attribute_sets(doc: _Document, attrs: dict[str, Any], what: str) -> list[in
     return found
 
 
-def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Concatenated points ``[N, 3]``, triangles ``[T, 3]``, joint indices and weights ``[N, K]``."""
+def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Concatenated points ``[N, 3]``, triangles ``[T, 3]``, joint indices and weights ``[N, K]``,
+    and the render attributes: ``{"uv": [N, 2] or None, "normal": [N, 3] or None,
+    "material": [T] glTF material index (-1: none)}``."""
     mesh = doc.meshes[mesh_index]
     prims = list(mesh.primitives or [])
     if not prims:
         raise doc.error(f"mesh {label!r} has no primitives")
     pts, tris, jis, jws = [], [], [], []
+    uvs, nrms, mats = [], [], []
     base = 0
     for p, prim in enumerate(prims):
         what = f"mesh {label!r} primitive {p}"
@@ -180,8 +183,14 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray,
                 raise doc.error(f"{what} has vertex index {bad}, outside [0, {n - 1}] (POSITION has {n} elements)")
         else:
             idx = np.arange(n, dtype=np.int64)
-        tris.append(_triangulate(doc, idx, mode, what) + base)
+        tri = _triangulate(doc, idx, mode, what)
+        tris.append(tri + base)
         pts.append(pos)
+        uvs.append(_optional(doc, attrs, "TEXCOORD_0", 2, n, what))
+        nrms.append(_optional(doc, attrs, "NORMAL", 3, n, what))
+        material = prim.material
+        mats.append(np.full(tri.shape[0], material if isinstance(material, int) and not isinstance(material, bool)
+                            else -1, dtype=np.int64))
         jis.append(np.concatenate(ji_parts, axis=1))
         jws.append(jw_all)
         base += n
@@ -195,7 +204,27 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray,
             RigWarning,
             stacklevel=4,
         )
-    return np.concatenate(pts), np.concatenate(tris), np.concatenate(jis), np.concatenate(jws)
+    render = {
+        # a primitive without UVs or normals: zeros / none for the whole mesh's normals
+        "uv": np.concatenate([u if u is not None else np.zeros((q.shape[0], 2)) for u, q in zip(uvs, pts)])
+        if any(u is not None for u in uvs) else None,
+        "normal": np.concatenate(nrms) if all(v is not None for v in nrms) else None,
+        "material": np.concatenate(mats),
+    }
+    return np.concatenate(pts), np.concatenate(tris), np.concatenate(jis), np.concatenate(jws), render
+
+
+def _optional(doc: _Document, attrs: dict, name: str, width: int, n: int, what: str) -> np.ndarray | None:
+    """A float vertex attribute (``TEXCOORD_0``, ``NORMAL``) of ``n`` elements, or ``None``."""
+    if name not in attrs:
+        return None
+    arr = doc.accessor(attrs[name], f"{what} {name}")
+    if arr.shape != (n, width):
+        raise doc.error(f"{what} {name} has shape {arr.shape}, expected ({n}, {width})")
+    if not np.isfinite(arr).all():
+        bad = int(np.nonzero(~np.isfinite(arr).all(axis=1))[0][0])
+        raise doc.error(f"{what} {name} of vertex {bad} is not finite")
+    return arr.astype(np.float64)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,88 @@
+"""How a character's surfaces are written: in the file's own topology by default (its seam-split
+vertices and triangles, with its UVs, recomputed normals and its materials), at rest in stage
+space, under a root prim named after the character.
+
+warpskin deforms the welded, closed surface; :class:`CharacterOutput` declares each mesh of it
+to the :class:`~warpskin.io.usd_export.UsdSkinWriter` with the file's triangles and a remap from
+the welded vertices, so the steppers keep producing welded points and the bake still lines up
+with the source's UVs and faces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import SceneError
+from ..io.render import smoothing_groups
+from ..transforms import linear_blend_skin
+
+__all__ = ["CharacterOutput", "TOPOLOGIES", "rest_pose_points"]
+
+#: ``file``: the file's own vertices, faces and UVs (default); ``welded``: the closed surface
+#: warpskin simulates (seam-split vertices merged).
+TOPOLOGIES = ("file", "welded")
+
+
+def rest_pose_points(rig) -> np.ndarray:
+    """The skin in the skeleton's rest pose in stage space ``[V, 3]`` (every vertex of ``rig``):
+    the default-time points of a bake, standing where its frames stand (CesiumMan's bind space
+    is Z-up under a Y-up stage)."""
+    from ..rig import Clip
+
+    mats = rig.skinning_matrices(Clip("rest"), 0.0)
+    return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, mats)
+
+
+class CharacterOutput:
+    """Declares a rig's surfaces to a writer in the chosen topology.
+
+    Args:
+        rig: The rig whose welded output surface the steppers deform (for a refined rig, its
+            first :attr:`~warpskin.rig.Rig.output_count` vertices).
+        topology: One of :data:`TOPOLOGIES`.
+    """
+
+    def __init__(self, rig, topology: str = "file") -> None:
+        if topology not in TOPOLOGIES:
+            raise SceneError(f"topology must be one of {TOPOLOGIES}, got {topology!r}")
+        self.rig, self.topology = rig, topology
+        self.n = rig.output_count
+        self.welded_triangles = rig.output_triangles
+        self.rest = rest_pose_points(rig)[: self.n]
+        render = rig.render
+        self.groups = smoothing_groups(rig.weld_map, render.normals if render is not None else None)
+        self._material_paths: list[str] | None = None
+
+    @property
+    def root_name(self) -> str:
+        return self.rig.name or "character"
+
+    def is_character_mesh(self, triangles: np.ndarray) -> bool:
+        t = np.asarray(triangles)
+        return t.shape == self.welded_triangles.shape and np.array_equal(t, self.welded_triangles)
+
+    def declare(self, writer, name: str, triangles: np.ndarray, rest: np.ndarray | None, kw: dict) -> str:
+        """Add mesh ``name`` to ``writer``: a mesh of the character's welded output surface in
+        the chosen topology, at rest in stage space; any other mesh (inner layers) as given."""
+        if not self.is_character_mesh(triangles):
+            return writer.add_mesh(name, triangles, rest_points=rest, **kw)
+        kw = dict(kw)
+        if self.topology == "welded":
+            return writer.add_mesh(name, triangles, rest_points=self.rest, **kw)
+        rig, render = self.rig, self.rig.render
+        tris = rig.file_triangles
+        kw["remap"] = rig.weld_map
+        kw["normal_groups"] = self.groups
+        if render is not None and render.uvs is not None:
+            kw["uvs"] = render.uvs
+        if render is not None and render.materials and kw.get("purpose") != "guide":
+            kw.pop("color", None)  # the material's colour, not the review colour
+            paths = self._materials(writer)
+            tm = render.triangle_material
+            kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
+        return writer.add_mesh(name, tris, rest_points=self.rest[rig.weld_map], **kw)
+
+    def _materials(self, writer) -> list[str]:
+        if self._material_paths is None:
+            self._material_paths = [writer.add_material(m) for m in self.rig.render.materials]
+        return self._material_paths
