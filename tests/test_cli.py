@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -148,3 +149,73 @@ def test_warnings_are_one_plain_line_and_no_native_cuda_notice(tmp_path, assets)
     assert len(warn) == 1 and warn[0].startswith("warpskin: warning: "), run.stderr
     assert "Warp CUDA warning" not in run.stderr
     assert ".py:" not in run.stderr and "rig.validate" not in run.stderr
+
+
+# --------------------------------------------------------------------------------------------
+# CLI conventions
+# --------------------------------------------------------------------------------------------
+def test_version_and_global_flags_anywhere(capsys):
+    import warpskin
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"warpskin {warpskin.__version__}"
+    assert main(["scenes", "--debug"]) == 0  # a global flag after the command
+    assert "arm" in capsys.readouterr().out
+
+
+def test_output_path_is_checked_before_any_work(tmp_path, capsys, assets):
+    import time
+
+    glb = assets / "CesiumMan" / "CesiumMan.glb"
+    cases = [
+        (tmp_path, "is a folder"),
+        (tmp_path / "missing" / "o.usdc", "does not exist"),
+        (tmp_path / ("n" * 245 + ".usdc"), "over this file system's"),
+        (tmp_path / "o.obj", "output must end in one of"),
+    ]
+    for out, message in cases:
+        t0 = time.perf_counter()
+        assert main(["simulate", str(glb), "-o", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert time.perf_counter() - t0 < 5.0  # refused up front, not after a simulation
+    copy = tmp_path / "rig.usda"  # -o naming the input: refused, the input untouched
+    copy.write_text("#usda 1.0\n")
+    before = copy.read_bytes()
+    assert main(["skin", str(copy), "-o", str(copy), "--quiet"]) == 2
+    assert "is the input file" in capsys.readouterr().err and copy.read_bytes() == before
+
+
+def test_json_summaries(tmp_path, capsys):
+    assert main(["skin", "arm", "-o", str(tmp_path / "s.usdc"), "--frames", "0:2", "--json", "--quiet"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["frames"] == 3 and s["vertices_written"] == 2918 and s["fps"] == 30 and s["path"].endswith("s.usdc")
+    assert main(["simulate", "arm", "-o", str(tmp_path / "p.usdc"), "--frames", "0:1", "--json", "--quiet"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["frames"] == 2 and s["particles"] == 11672 and "max_volume_deviation" in s
+    assert main(["pop", "popping_arm", "-o", str(tmp_path / "q.usdc"), "--frames", "0:2", "--json", "--quiet"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["frames"] == 3 and s["groups"]
+
+
+@pytest.mark.parametrize("signame, code", [("SIGTERM", 143), ("SIGHUP", 129)])
+def test_a_killed_run_leaves_no_temp_file(tmp_path, signame, code):
+    import signal
+    import time
+
+    out = tmp_path / "arm.usdc"
+    proc = subprocess.Popen([sys.executable, "-m", "warpskin", "simulate", "arm", "-o", str(out), "--quiet"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300  # kernels may compile first on a fresh cache
+        while not [p for p in tmp_path.iterdir() if p.name.startswith(".arm.")]:
+            assert proc.poll() is None and time.monotonic() < deadline, "the run never opened its output"
+            time.sleep(0.2)
+        proc.send_signal(getattr(signal, signame))
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code
+    assert f"stopped by {signame}" in err
+    assert list(tmp_path.iterdir()) == []

@@ -133,3 +133,24 @@ def test_fps_resamples_and_start_frame_shifts(assets, tmp_path):
     for k in (0, 5, 10):  # source frame 10 + k, written at 1001 + k
         ref = usd_skinned_world(src, mesh, 10.0 + k)
         assert np.abs(moved[1001.0 + k] - ref).max() < TOL * float(np.linalg.norm(np.ptp(ref, axis=0)))
+
+
+def test_a_simulate_bake_lines_up_with_its_source(assets, tmp_path):
+    # the physical skin's bake: its LBS comparison matches usd-core's skinning of the usdz at
+    # every written time code, and both meshes carry the file's UVs
+    src, mesh = _cesium_usdz(assets)
+    out = tmp_path / "walk.usdc"
+    assert main(["simulate", str(assets / "usd" / "CesiumMan" / "CesiumMan.usdz"), "-o", str(out), "--frames", "1:3",
+                 "--lbs", "--preroll", "0.05", "--quiet"]) == 0
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetTimeCodesPerSecond() == 24
+    root = stage.GetDefaultPrim()
+    lbs = UsdGeom.Mesh(root.GetChild("lbs"))
+    assert lbs.GetPointsAttr().GetTimeSamples() == [1.0, 2.0, 3.0]
+    for tc in (1.0, 2.0, 3.0):
+        ref = usd_skinned_world(src, mesh, tc)
+        got = np.asarray(lbs.GetPointsAttr().Get(tc), dtype=np.float64)
+        assert np.abs(got - ref).max() < TOL * float(np.linalg.norm(np.ptp(ref, axis=0)))
+    for name in ("skin", "lbs"):
+        st = UsdGeom.PrimvarsAPI(root.GetChild(name)).GetPrimvar("st")
+        assert st and len(st.Get()) == 3 * 4672

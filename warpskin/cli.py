@@ -17,6 +17,8 @@ import json
 import math
 import sys
 import warnings
+
+import numpy as np
 from pathlib import Path
 
 __all__ = ["main"]
@@ -188,20 +190,38 @@ def cmd_skin(args) -> int:
 
     scene = _scene_of(args)
     out = Path(args.output)
-    path, count = skin_to_usd(
+    run = skin_to_usd(
         scene, out, method=args.method, device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         with_rest=args.with_rest, with_lbs=args.with_lbs, topology=args.topology, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]),
     )
-    print(f"wrote {path} ({count} frames, {args.method})")
+    if args.json:
+        return _print_json({"path": str(run.path), **run.summary})
+    print(f"wrote {run.path} ({run.frames} frames, {args.method})")
+    return 0
+
+
+def _print_json(summary: dict) -> int:
+    """A command's summary as one JSON document on stdout (``--json``)."""
+
+    def plain(value):
+        if isinstance(value, (np.floating, np.integer)):
+            return value.item()
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        return str(value)
+
+    print(json.dumps(summary, indent=2, default=plain))
     return 0
 
 
 def cmd_layers(args) -> int:
     from .io.model_usd import write_model_usd
+    from .io.usd_export import check_output_path
     from .model import SkinModelBuilder
 
     scene = _scene_of(args)
+    check_output_path(args.output, inputs=scene.input_paths())  # before any work
     builder = SkinModelBuilder(scene.rig(), scene.model_params())
     path = write_model_usd(builder, args.output, comment="warpskin " + " ".join(sys.argv[1:]))
     summary = builder.summary()
@@ -247,6 +267,8 @@ def cmd_simulate(args) -> int:
         start_frame=args.start_frame, topology=args.topology,
     )
     s = result.summary
+    if args.json:
+        return _print_json({"path": str(result.path), **s})
     line = (
         f"wrote {result.path} ({s['frames']} frames, {s['particles']} particles, {s['substeps_per_frame']} substeps "
         f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']}); "
@@ -287,7 +309,7 @@ def cmd_bench(args) -> int:
 def _emit_json(result: dict, path: str | None) -> int:
     """Print a benchmark's JSON and, with ``--json FILE``, write it there too."""
     text = json.dumps(result, indent=2)
-    if path:
+    if path and path != "-":
         Path(path).write_text(text + "\n")
         print(f"wrote {path}")
     print(text)
@@ -321,6 +343,8 @@ def cmd_pop(args) -> int:
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode,
     )
     s = result.summary
+    if args.json:
+        return _print_json({"path": str(result.path), "frames": result.frames, **s})
     if s.get("mode") == "layered":
         print(
             f"wrote {result.path} ({result.frames} frames, layered: the muscle layer of {s['particles']} particles driven "
@@ -399,6 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
     s.add_argument("--with-rest", action="store_true", help="also write the rest mesh as a sibling prim")
     s.add_argument("--with-lbs", action="store_true", help="with --method dqs, also write the LBS result")
+    s.add_argument("--json", action="store_true", help="print the run's summary as JSON instead of the text line")
     s.add_argument("--topology", choices=["file", "welded"], default="file",
                    help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -436,6 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preroll", type=_non_negative("--preroll"), default=None, metavar="SECONDS",
                    help="simulate this long from the bind pose into the first frame's pose before writing "
                         "(scene: [animation] preroll; default 0)")
+    s.add_argument("--json", action="store_true", help="print the run's summary as JSON instead of the text line")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
 
@@ -481,7 +507,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instead: time example-based skinning and the popping step per frame at 4322 vertices vs LBS (JSON)")
     s.add_argument("--steps", type=int, default=200, help="with --bench: frames per measurement")
     s.add_argument("--repeat", type=int, default=3, help="with --bench: measurements; the best is reported")
-    s.add_argument("--json", metavar="FILE", help="with --bench: also write the JSON to FILE")
+    s.add_argument("--json", nargs="?", const="-", metavar="FILE",
+                   help="print the run's summary as JSON (with --bench: also write the JSON to FILE)")
     s.set_defaults(func=cmd_pop)
 
     s = sub.add_parser("warmup", help="compile and cache the Warp kernels")
@@ -515,6 +542,33 @@ def _init_warp_quietly() -> None:
         os.close(devnull)
 
 
+class _Signalled(BaseException):
+    """Raised in the main thread by SIGTERM or SIGHUP, so that a run unwinds like an interrupt:
+    the writer drops its temporary file and nothing is left under the output name."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum, frame):
+    raise _Signalled(signum)
+
+
+def _install_signal_handlers() -> dict:
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    saved = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is not None:
+            saved[sig] = signal.signal(sig, _on_signal)
+    return saved
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -538,11 +592,17 @@ def main(argv: list[str] | None = None) -> int:
     shown = warnings.showwarning
     if not args.debug:
         warnings.showwarning = one_line
+    saved_handlers = _install_signal_handlers()
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print("warpskin: interrupted", file=sys.stderr)
+        print("warpskin: interrupted; nothing was written", file=sys.stderr)
         return 130
+    except _Signalled as exc:
+        import signal
+
+        print(f"warpskin: stopped by {signal.Signals(exc.signum).name}; nothing was written", file=sys.stderr)
+        return 128 + exc.signum
     except SimulationError as exc:  # the run failed or left its valid range; earlier frames kept
         if args.debug:
             raise
@@ -561,6 +621,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         warnings.showwarning = shown
+        import signal
+
+        for sig, handler in saved_handlers.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":  # pragma: no cover

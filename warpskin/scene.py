@@ -224,6 +224,21 @@ class Scene:
         params.check(where)
         return params
 
+    def input_paths(self) -> list[Path]:
+        """The files this scene reads: its TOML (or rig) file and the rig file it names."""
+        out = [self.source] if self.source is not None else []
+        spec = self.rig_spec
+        if "file" in spec:
+            path = Path(spec["file"])
+            if not path.is_absolute() and self.source is not None and self.source.suffix == ".toml":
+                path = self.source.parent / path
+            out.append(path)
+        elif "asset" in spec:
+            assets = find_assets_dir()
+            if assets is not None:
+                out.append(assets / spec["asset"])
+        return out
+
     def frame_time(self, frame: int) -> float:
         """Clip time [s] of a frame: ``frame / frame_rate``."""
         return frame / self.frame_rate

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from ..errors import OutputError
 
-__all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS"]
+__all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS", "check_output_path"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -48,6 +48,37 @@ def _prim_name(name: str) -> str:
     if not out or out[0].isdigit():
         out = "_" + out
     return out
+
+
+def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
+    """Check, before any work, that a USD file can be written at ``path``: a USD extension, an
+    existing folder we may write to, not a folder itself, a name short enough for the
+    temporary name beside it, and not one of ``inputs`` (a bake never overwrites its source).
+    Returns the path; raises :class:`ExportError` naming the problem."""
+    p = Path(path)
+    if p.is_dir():
+        raise ExportError(f"{p}: is a folder; give a file name such as {p / 'bake.usdc'}")
+    ext = p.suffix.lower()
+    if ext not in USD_EXTENSIONS:
+        raise ExportError(f"{p}: output must end in one of {USD_EXTENSIONS} (got {ext or 'no extension'})")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ExportError(f"{p}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ExportError(f"{p}: folder {parent} is not writable")
+    limit = os.pathconf(parent, "PC_NAME_MAX") if hasattr(os, "pathconf") else 255
+    longest = max(len(p.name.encode()), len(f".{p.stem}.xxxxxxxx.tmp{ext}".encode()), len(f"{p.stem}_textures".encode()))
+    if longest > limit:
+        raise ExportError(f"{p}: the file name is {len(p.name.encode())} bytes; with warpskin's temporary name it "
+                          f"needs {longest}, over this file system's {limit}")
+    for src in inputs:
+        try:
+            same = Path(src).exists() and p.exists() and os.path.samefile(src, p)
+        except OSError:
+            same = False
+        if same or Path(src).resolve() == p.resolve():
+            raise ExportError(f"{p}: is the input file; write the bake under another name")
+    return p
 
 
 class UsdSkinWriter:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
-from ..io.usd_export import UsdSkinWriter
+from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..popping.activation import PoppingSettings, popping_settings
 from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene
@@ -146,6 +146,7 @@ def run_popping(
         A :class:`PoppingRun`.
     """
     scene = resolve_scene(scene)
+    check_output_path(out_path, inputs=scene.input_paths())  # before any work
     if fps is not None:
         if not (math.isfinite(fps) and fps > 0):
             raise SceneError(f"fps must be a positive number, got {fps}")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SimulationError
-from ..io.usd_export import UsdSkinWriter
+from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..metrics import self_intersections, signed_volume
 from ..model import SkinModelBuilder
 from ..preprocess.layers import LAYER_NAMES
@@ -247,6 +247,7 @@ def simulate(
     """
     import time
 
+    check_output_path(out_path, inputs=scene.input_paths())  # before any work
     params = solver_params or scene.solver_params()
     params.check(str(scene.source or scene.name))
     rig = scene.rig()

@@ -4,18 +4,20 @@ baselines), through the frame runner."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import SceneError
-from ..io.usd_export import UsdSkinWriter
+from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..scene import resolve_scene
 from ..skinning import Skinner
 from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["SkinningStepper", "skin_to_usd"]
+__all__ = ["SkinningStepper", "SkinRun", "skin_to_usd"]
 
 
 class SkinningStepper:
@@ -61,6 +63,24 @@ class SkinningStepper:
         return self._points
 
 
+@dataclass
+class SkinRun:
+    """What :func:`skin_to_usd` wrote; unpacks as ``(path, frame_count)``.
+
+    Attributes:
+        path: The USD file.
+        frames: Frames written.
+        summary: Method, topology, rate, time codes, vertices written, device.
+    """
+
+    path: Path
+    frames: int
+    summary: dict = field(default_factory=dict)
+
+    def __iter__(self):
+        return iter((self.path, self.frames))
+
+
 def skin_to_usd(
     scene,
     out_path,
@@ -96,9 +116,10 @@ def skin_to_usd(
         comment: Stage comment.
 
     Returns:
-        ``(path, frame_count)``.
+        A :class:`SkinRun` (unpacks as ``(path, frame_count)``).
     """
     scene = resolve_scene(scene)
+    check_output_path(out_path, inputs=scene.input_paths())  # before any work
     if fps is not None:
         if not (math.isfinite(fps) and fps > 0):
             raise SceneError(f"fps must be a positive number, got {fps}")
@@ -112,4 +133,16 @@ def skin_to_usd(
     writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
     record = FrameRunner(plan, stepper, writer=writer, progress=progress, steps_in_first_frame=True,
                          output=output).run()
-    return writer.path, len(record.frames)
+    summary = {
+        "scene": scene.name,
+        "method": method,
+        "device": str(stepper.skinner.device),
+        "topology": topology,
+        "fps": plan.fps,
+        "frames": len(record.frames),
+        "first_time_code": plan.time_codes[0],
+        "last_time_code": plan.time_codes[-1],
+        "vertices_written": rig.file_vertex_count if topology == "file" else rig.vertex_count,
+        "mean_frame_ms": float(np.mean(record.step_ms)) if record.step_ms else 0.0,
+    }
+    return SkinRun(writer.path, len(record.frames), summary)
