@@ -259,6 +259,10 @@ class UsdSkinWriter:
                                                          UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces.astype(np.int32)),
                                                          "materialBind")
                 self._usdshade().MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
+        if materials and len(materials) > 1:  # one material per triangle: the subsets partition the faces
+            covered = sum(np.asarray(f).size for _, f in materials)
+            UsdGeom.Subset.SetFamilyType(mesh, "materialBind",
+                                         UsdGeom.Tokens.partition if covered == tri.shape[0] else UsdGeom.Tokens.nonOverlapping)
         self._meshes[key] = (mesh, pts_attr, ext_attr, vertex_count, animated, remap, normals)
         return str(path)
 
