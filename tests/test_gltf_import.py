@@ -37,7 +37,7 @@ from pygltflib import (
 )
 from scipy.spatial.transform import Rotation, Slerp
 
-from oracles import lbs
+from oracles import lbs, rig_lbs
 from warpskin.io.gltf import list_gltf_meshes, load_gltf
 from warpskin.rig import RigError, RigWarning
 
@@ -342,15 +342,22 @@ def test_matrix_nodes_and_non_joint_nodes_between_joints(tmp_path: Path) -> None
         np.testing.assert_allclose(world[1], g1, atol=1e-9)
 
 
-def test_animated_non_joint_ancestor_warns(tmp_path: Path) -> None:
+def test_an_animated_non_joint_ancestor_moves_the_skeleton(tmp_path: Path) -> None:
+    # the non-joint root node's translation is kept (glTF: a joint's world transform includes
+    # every ancestor's), not dropped with a warning
     channels = [
         (0, "translation", [0.0, 1.0], [[0, 0, 0], [1, 0, 0]], "LINEAR"),  # the non-joint root
         (2, "scale", [0.0], [[1, 1, 2]], "STEP"),
     ]
     anims = [("a", channels)]
-    with pytest.warns(RigWarning, match=r"non-joint ancestors.*node 0 \('root'\)"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RigWarning)
         rig = load_gltf(make_box(tmp_path, animations=anims))
-    assert list(rig.clip("a").tracks) == [(1, "scale")]
+    clip = rig.clip("a")
+    assert list(clip.tracks) == [(1, "scale")] and list(clip.ancestor_tracks) == [(0, "translation")]
+    w0, w1, half = (rig.joint_world_transforms(clip, t) for t in (0.0, 1.0, 0.5))
+    np.testing.assert_allclose(w1[:, :3, 3] - w0[:, :3, 3], np.tile([1.0, 0.0, 0.0], (rig.joint_count, 1)), atol=1e-12)
+    np.testing.assert_allclose(half[:, :3, 3] - w0[:, :3, 3], np.tile([0.5, 0.0, 0.0], (rig.joint_count, 1)), atol=1e-12)
 
 
 # --------------------------------------------------------------------------------------------
@@ -651,11 +658,17 @@ def test_recursive_skeletons(assets: Path) -> None:
     assert rig.mesh_name == meshes[0]["name"] and rig.joint_count == 10 and rig.vertex_count == 40
     assert rig.skeleton.parents.tolist() == [-1] + list(range(9))
     assert list(rig.clips) == ["Track0"] and len(rig.clip("Track0").tracks) == 10
-    # a nested skeleton: its chain hangs off joints of another skin, which are animated
-    with pytest.warns(RigWarning, match="non-joint ancestors"):
+    # a nested skeleton: its chain hangs off joints of another skin, which are animated; that
+    # animation is kept (the root's ancestors move with the clip), nothing is dropped
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         nested = load_gltf(path, mesh=meshes[1]["name"])
-    assert nested.joint_count == 10
-    assert not np.allclose(nested.skeleton.root_transform[0], np.eye(4))
+    assert not [w for w in caught if "non-joint" in str(w.message)]
+    assert nested.joint_count == 10 and list(nested.skeleton.root_chains) == [0]
+    clip = nested.clip("Track0")
+    assert clip.ancestor_tracks
+    a, b = clip.root_transforms(nested.skeleton, 0.3)[0], clip.root_transforms(nested.skeleton, 1.3)[0]
+    assert not np.allclose(a, b)
 
 
 # --------------------------------------------------------------------------------------------
@@ -823,3 +836,95 @@ def test_bad_animation_keys(tmp_path: Path) -> None:
     with pytest.raises(RigError, match=r"2 key times need 6 VEC3 output values"):
         load_gltf(make_box(tmp_path, name="c", animations=anims))
 
+
+
+# --------------------------------------------------------------------------------------------
+# Nested skeletons: a joint's world transform includes every animated ancestor (glTF spec)
+# --------------------------------------------------------------------------------------------
+def _gltf_reference_skinning(path: Path, t: float) -> list[np.ndarray]:
+    """Every skinned instance's world-space skinned points at time ``t`` [s], straight from the
+    glTF spec with pygltflib and SciPy: each node's local TRS (its animation channels sampled
+    linearly, rotations slerped, clamped at the ends), world = parent world x local for every
+    node, joint matrix = world x inverse bind, LBS of the mesh's POSITION/JOINTS_0/WEIGHTS_0."""
+    import pygltflib
+    from scipy.spatial.transform import Rotation, Slerp
+
+    g = pygltflib.GLTF2().load(str(path))
+    blob = g.binary_blob()
+    comp = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+
+    def read(i):
+        acc = g.accessors[i]
+        view = g.bufferViews[acc.bufferView]
+        dt = np.dtype(comp[acc.componentType])
+        n, w = acc.count, width[acc.type]
+        stride = view.byteStride or dt.itemsize * w
+        start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+        rows = [np.frombuffer(blob, dt, w, start + k * stride) for k in range(n)]
+        return np.array(rows, dtype=np.float64)
+
+    local = []
+    for node in g.nodes:
+        if node.matrix:
+            local.append(np.array(node.matrix, dtype=np.float64).reshape(4, 4).T)
+            continue
+        local.append([np.array(node.translation or [0, 0, 0], float), np.array(node.rotation or [0, 0, 0, 1], float),
+                      np.array(node.scale or [1, 1, 1], float)])
+    for ch in g.animations[0].channels:
+        smp = g.animations[0].samplers[ch.sampler]
+        times, values = read(smp.input).ravel(), read(smp.output)
+        tc = float(np.clip(t, times[0], times[-1]))
+        if ch.target.path == "rotation":
+            value = Slerp(times, Rotation.from_quat(values))(tc).as_quat()
+        else:
+            value = np.array([np.interp(tc, times, values[:, c]) for c in range(values.shape[1])])
+        local[ch.target.node][["translation", "rotation", "scale"].index(ch.target.path)] = value
+
+    def matrix(entry):
+        if isinstance(entry, np.ndarray):
+            return entry
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_quat(entry[1]).as_matrix() * entry[2]
+        m[:3, 3] = entry[0]
+        return m
+
+    parent = {c: i for i, node in enumerate(g.nodes) for c in (node.children or [])}
+    world: dict[int, np.ndarray] = {}
+
+    def world_of(i):
+        if i not in world:
+            world[i] = (world_of(parent[i]) if i in parent else np.eye(4)) @ matrix(local[i])
+        return world[i]
+
+    out = []
+    for i, node in enumerate(g.nodes):
+        if node.mesh is None or node.skin is None:
+            continue
+        skin = g.skins[node.skin]
+        ibm = read(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+        mats = np.stack([world_of(j) for j in skin.joints]) @ ibm
+        attrs = g.meshes[node.mesh].primitives[0].attributes
+        pos, ji, jw = read(attrs.POSITION), read(attrs.JOINTS_0).astype(int), read(attrs.WEIGHTS_0)
+        hom = np.c_[pos, np.ones(len(pos))]
+        out.append(np.einsum("vk,vkab,vb->va", jw, mats[ji], hom)[:, :3])
+    return out
+
+
+def test_every_nested_skeleton_follows_its_animated_ancestors(assets: Path) -> None:
+    # RecursiveSkeletons: 84 skins whose chains hang off joints of other skins, which are
+    # animated; each instance's LBS against the spec's own evaluation at generic times
+    path = assets / "RecursiveSkeletons" / "RecursiveSkeletons.glb"
+    meshes = list_gltf_meshes(path)
+    times = (0.37, 1.21, 1.93)
+    refs = {t: _gltf_reference_skinning(path, t) for t in times}
+    worst = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RigWarning)  # unit-size hints, bind-space scale
+        for k, entry in enumerate(meshes):
+            rig = load_gltf(path, mesh=entry["name"])
+            for t in times:
+                got = rig_lbs(rig, rig.skinning_matrices(rig.clip(None), t))[rig.weld_map]
+                ref = refs[t][k]
+                worst = max(worst, float(np.abs(got - ref).max() / np.linalg.norm(np.ptp(ref, axis=0))))
+    assert worst < 1e-6, f"worst instance off by {worst:.3g} of its size"

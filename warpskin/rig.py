@@ -151,16 +151,46 @@ class Clip:
     #: The source's frame rate [frames/s]: a USD stage's timeCodesPerSecond, the spacing of a
     #: glTF clip's keys where it is a frame rate (:func:`key_rate`), else ``None``.
     rate: float | None = None
+    #: Tracks of non-joint nodes above root joints (:attr:`Skeleton.root_chains`), keyed by
+    #: ``(node, path)``: a skeleton nested under animated nodes (RecursiveSkeletons).
+    ancestor_tracks: dict[tuple[int, str], Track] = field(default_factory=dict)
 
     @property
     def start(self) -> float:
         """First key time over all tracks [s] (0 for an empty clip)."""
-        return min((tr.start for tr in self.tracks.values()), default=0.0)
+        return min((tr.start for tr in self._all_tracks()), default=0.0)
 
     @property
     def end(self) -> float:
         """Last key time over all tracks [s] (0 for an empty clip)."""
-        return max((tr.end for tr in self.tracks.values()), default=0.0)
+        return max((tr.end for tr in self._all_tracks()), default=0.0)
+
+    def _all_tracks(self):
+        return list(self.tracks.values()) + list(self.ancestor_tracks.values())
+
+    def root_transforms(self, skeleton: Skeleton, t: float) -> np.ndarray:
+        """World transform of every root joint's non-joint ancestors at time ``t``, ``[J, 4, 4]``:
+        the skeleton's static :attr:`~Skeleton.root_transform`, with every chain that holds an
+        animated node evaluated node by node at ``t`` (glTF: a node's world transform is its
+        parent's times its own local one)."""
+        root = skeleton.root_transform
+        if not self.ancestor_tracks or not skeleton.root_chains:
+            return root
+        root = root.copy()
+        for j, chain in skeleton.root_chains.items():
+            if not any((node, p) in self.ancestor_tracks for node, _ in chain for p in PATHS):
+                continue
+            m = np.eye(4)
+            for node, rest in chain:
+                keyed = [p for p in PATHS if (node, p) in self.ancestor_tracks]
+                if keyed:
+                    trs = list(decompose_trs(rest))
+                    for p in keyed:
+                        trs[list(PATHS).index(p)] = self.ancestor_tracks[(node, p)].sample(t)
+                    rest = compose_trs(*trs)
+                m = m @ rest
+            root[j] = m
+        return root
 
     @property
     def duration(self) -> float:
@@ -217,6 +247,9 @@ class Skeleton:
         rest_scale: Local rest scale, ``[J, 3]``.
         root_transform: World transform of the (non-joint) ancestors of each root joint,
             ``[J, 4, 4]``; only read where ``parents[j] == -1``. Identity by default.
+        root_chains: For root joints whose ancestors a clip animates: the ancestor nodes top
+            down, ``{joint: [(node, rest local 4x4), ...]}`` (their product is the joint's
+            ``root_transform``); see :meth:`Clip.root_transforms`.
     """
 
     joint_names: list[str]
@@ -225,6 +258,7 @@ class Skeleton:
     rest_rotation: np.ndarray
     rest_scale: np.ndarray
     root_transform: np.ndarray | None = None
+    root_chains: dict[int, list[tuple[int, np.ndarray]]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.joint_names = [str(n) for n in self.joint_names]
@@ -296,12 +330,14 @@ class Skeleton:
         """Local rest transforms ``[J, 4, 4]``."""
         return compose_trs(self.rest_translation, self.rest_rotation, self.rest_scale)
 
-    def world_from_local(self, local: np.ndarray) -> np.ndarray:
-        """Forward kinematics: world transforms ``[J, 4, 4]`` from local ones ``[J, 4, 4]``."""
+    def world_from_local(self, local: np.ndarray, root: np.ndarray | None = None) -> np.ndarray:
+        """Forward kinematics: world transforms ``[J, 4, 4]`` from local ones ``[J, 4, 4]``, under
+        the root joints' ancestors ``root`` (default: the static :attr:`root_transform`)."""
+        root = self.root_transform if root is None else root
         world = np.empty_like(local)
         for j in self._order:
             p = self.parents[j]
-            world[j] = (self.root_transform[j] if p < 0 else world[p]) @ local[j]
+            world[j] = (root[j] if p < 0 else world[p]) @ local[j]
         return world
 
     def children(self, joint: int) -> np.ndarray:
@@ -868,7 +904,7 @@ class Rig:
         """World transforms of every joint at time ``t`` [s], ``[J, 4, 4]``."""
         c = clip if isinstance(clip, Clip) else self.clip(clip)
         tr, rot, sc = c.sample_local_trs(self.skeleton, t)
-        return self.skeleton.world_from_local(compose_trs(tr, rot, sc))
+        return self.skeleton.world_from_local(compose_trs(tr, rot, sc), c.root_transforms(self.skeleton, t))
 
     def skinning_matrices(self, clip: Clip | str | None, t: float) -> np.ndarray:
         """``G_j(t) @ inverse_bind[j]`` for every joint, ``[J, 4, 4]``."""
@@ -897,7 +933,8 @@ class Rig:
             roots = sk.parents < 0
             t0[roots], r0[roots], s0[roots] = t1[roots], r1[roots], s1[roots]
         local = compose_trs(t0 + u * (t1 - t0), quat_slerp(r0, r1, u), s0 + u * (s1 - s0))
-        return sk.world_from_local(local) @ self.inverse_bind
+        root = c.root_transforms(sk, t) if keep_root else None  # the roots' placement at t
+        return sk.world_from_local(local, root) @ self.inverse_bind
 
     def bind_world_transforms(self) -> np.ndarray:
         """Joint transforms in rest space at bind time, ``inverse(inverse_bind)``, ``[J, 4, 4]``."""
@@ -924,6 +961,7 @@ class Rig:
             base = root[j] if new[j] < 0 else world[new[j]]
             local[j] = np.linalg.solve(base, world[j])
         skeleton = Skeleton.from_local_matrices(sk.joint_names, new, local, root.copy())  # raises on a cycle
+        skeleton.root_chains = {j: chain for j, chain in sk.root_chains.items() if new[j] < 0}
         return dataclasses.replace(self, skeleton=skeleton, clips=dict(self.clips))
 
     def with_keys(self, name: str, keys: dict[str, list], *, interpolation: str = "LINEAR", where: str = "") -> Rig:
@@ -967,14 +1005,18 @@ class Rig:
             sk.rest_rotation.copy(),
             sk.rest_scale.copy(),
             s @ sk.root_transform @ s_inv,
+            {j: [(node, s @ m @ s_inv) for node, m in chain] for j, chain in sk.root_chains.items()},
         )
-        clips = {}
-        for cname, c in self.clips.items():
-            tracks = {}
-            for key, tr in c.tracks.items():
+
+        def scaled(tracks):
+            out = {}
+            for key, tr in tracks.items():
                 vals = tr.values * factor if tr.path == "translation" else tr.values.copy()
-                tracks[key] = Track(tr.path, tr.times.copy(), vals, tr.interpolation)
-            clips[cname] = Clip(c.name, tracks, c.rate)
+                out[key] = Track(tr.path, tr.times.copy(), vals, tr.interpolation)
+            return out
+
+        clips = {cname: Clip(c.name, scaled(c.tracks), c.rate, scaled(c.ancestor_tracks))
+                 for cname, c in self.clips.items()}
         return dataclasses.replace(
             self,
             vertices=self.vertices * factor,

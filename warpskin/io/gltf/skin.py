@@ -35,6 +35,8 @@ class _SkinInfo:
         # joint -> static transform of the non-joint nodes between it and its parent joint
         self.pre: dict[int, tuple[np.ndarray, np.ndarray, float, bool]] = {}
         self.ancestors: set[int] = set()  # non-joint ancestors of any joint
+        self.root_chain_nodes: set[int] = set()  # those above a root joint (their animation is kept)
+        root_chains: dict[int, list[tuple[int, np.ndarray]]] = {}
         for j, node in enumerate(joints):
             chain = []
             p = int(node_parent[node])
@@ -48,13 +50,16 @@ class _SkinInfo:
             t, r, s = doc.local_trs(node)
             if p < 0:
                 root_transform[j] = chain_m
+                if chain:
+                    root_chains[j] = [(int(c), doc.local_matrix(c)) for c in reversed(chain)]
+                    self.root_chain_nodes.update(int(c) for c in chain)
             else:
                 parents[j] = self.joint_of_node[p]
                 if not np.allclose(chain_m, np.eye(4), atol=1e-12):
                     t, r, s, pre = self._fold(doc, chain_m, chain, t, r, s)
                     self.pre[j] = pre
             trs_t[j], trs_r[j], trs_s[j] = t, r, s
-        self.skeleton = Skeleton(self.names, parents, trs_t, trs_r, trs_s, root_transform)
+        self.skeleton = Skeleton(self.names, parents, trs_t, trs_r, trs_s, root_transform, root_chains)
 
     @staticmethod
     def _fold(
@@ -117,6 +122,7 @@ def _read_clips(doc: _Document, info: _SkinInfo) -> dict[str, Clip]:
             name, k = f"{base}_{k}", k + 1
         names.add(name)
         tracks: dict[tuple[int, str], Track] = {}
+        above: dict[tuple[int, str], Track] = {}  # animated nodes above the root joints
         ignored: set[int] = set()
         approximated: set[int] = set()
         samplers = list(anim.samplers or [])
@@ -127,12 +133,13 @@ def _read_clips(doc: _Document, info: _SkinInfo) -> dict[str, Clip]:
             if node is None or path not in PATHS:
                 continue  # morph weights, KHR_animation_pointer, ...
             doc.item("nodes", node, f"animation {name!r} channel {c}")
-            if node not in info.joint_of_node:
+            if node not in info.joint_of_node and node not in info.root_chain_nodes:
                 if node in info.ancestors:
                     ignored.add(int(node))
                 continue
-            j = info.joint_of_node[node]
-            what = f"animation {name!r} channel {c} ({info.names[j]!r} {path})"
+            j = info.joint_of_node.get(node)
+            what = (f"animation {name!r} channel {c} ({info.names[j]!r} {path})" if j is not None
+                    else f"animation {name!r} channel {c} ({doc.node_label(node)} {path}, above the skeleton)")
             if not isinstance(ch.sampler, int) or not 0 <= ch.sampler < len(samplers):
                 raise doc.error(f"{what} uses sampler {ch.sampler!r}, but the animation has {len(samplers)}")
             sampler = samplers[ch.sampler]
@@ -150,17 +157,21 @@ def _read_clips(doc: _Document, info: _SkinInfo) -> dict[str, Clip]:
                     f"{what}: accessor count mismatch: {k_count} key times need {expected} "
                     f"{'VEC' + str(width)} output values, got {values.shape[0]} of {values.shape[1]} components"
                 )
-            if j in info.pre:
+            if j is not None and j in info.pre:
                 if not info.pre[j][3]:
                     approximated.add(j)
                 values = info.bake(j, path, values.reshape((k_count, 3, width) if cubic else (k_count, width)), cubic)
             try:
-                tracks[(j, path)] = Track(path, times.ravel(), values, interp)
+                track = Track(path, times.ravel(), values, interp)
             except RigError as e:
                 raise doc.error(f"{what}: {e}") from e
+            if j is None:
+                above[(int(node), path)] = track
+            else:
+                tracks[(j, path)] = track
         if ignored:
             warnings.warn(
-                f"{doc.where}: animation {name!r} animates non-joint ancestors of the skeleton "
+                f"{doc.where}: animation {name!r} animates non-joint nodes between joints of the skeleton "
                 f"({', '.join(doc.node_label(n) for n in sorted(ignored))}); that animation is ignored "
                 "(their rest transform is used)",
                 RigWarning,
@@ -173,9 +184,9 @@ def _read_clips(doc: _Document, info: _SkinInfo) -> dict[str, Clip]:
                 RigWarning,
                 stacklevel=3,
             )
-        if tracks:
-            times = np.concatenate([tr.times for tr in tracks.values()])
-            clips[name] = Clip(name, tracks, rate=key_rate(times))
+        if tracks or above:
+            times = np.concatenate([tr.times for tr in list(tracks.values()) + list(above.values())])
+            clips[name] = Clip(name, tracks, rate=key_rate(times), ancestor_tracks=above)
     return clips
 
 
