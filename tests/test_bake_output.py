@@ -139,3 +139,25 @@ def test_welded_topology_on_request(assets, tmp_path, command):
                      "--topology", "welded", *extra)
     mesh = UsdGeom.Mesh(prim(stage, "skin"))
     assert len(mesh.GetPointsAttr().Get(1)) == 2338 and not UsdGeom.PrimvarsAPI(mesh).HasPrimvar("st")
+
+
+def test_the_report_and_the_bake_show_where_the_physics_acts(tmp_path):
+    import json
+
+    report = tmp_path / "report"
+    out, stage = _bake(tmp_path, "simulate", "arm", "--frames", "0:4", "--lbs", "--report", str(report))
+    data = json.loads((report / "report.json").read_text())
+    assert data["metrics"]["frame"] == [0.0, 1.0, 2.0, 3.0, 4.0]
+    for name in ("volume.png", "intersections.png", "contacts.png", "step_time.png", "offset_map.png",
+                 "offset_from_lbs.png"):
+        assert (report / name).stat().st_size > 1000, name
+    # the skin's per-vertex distance from LBS, time-sampled: |skin - lbs| from the file's own points
+    skin = UsdGeom.Mesh(prim(stage, "skin"))
+    lbs = UsdGeom.Mesh(prim(stage, "lbs"))
+    pv = UsdGeom.PrimvarsAPI(skin).GetPrimvar("deviationFromLbs")
+    assert pv.GetInterpolation() == UsdGeom.Tokens.vertex and pv.GetAttr().GetTimeSamples() == [0.0, 1.0, 2.0, 3.0, 4.0]
+    for tc in (1.0, 4.0):
+        want = np.linalg.norm(np.asarray(skin.GetPointsAttr().Get(tc), dtype=np.float64)
+                              - np.asarray(lbs.GetPointsAttr().Get(tc), dtype=np.float64), axis=1)
+        np.testing.assert_allclose(np.asarray(pv.Get(tc)), want, atol=2e-7)
+    assert np.asarray(pv.Get(4.0)).max() > 1e-4  # the physics acts

@@ -13,9 +13,14 @@ import numpy as np
 __all__ = ["write_plots"]
 
 
-def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str]) -> list[str]:
-    """Write volume, sub-volume, energy, residual and offset plots; returns the file names
-    (empty without matplotlib)."""
+def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str], *, title: str = "",
+                where: tuple[np.ndarray, np.ndarray] | None = None) -> list[str]:
+    """Write volume, sub-volume, energy, residual, offset, intersection, contact and step-time
+    plots against the written frames (the bake's time codes), each titled with ``title`` (the
+    scene and its parameters); with ``where = (rest points [V, 3], largest distance from LBS
+    per vertex [V])``, also a picture of where the skin departs from LBS (front and side views
+    of the rest pose, coloured by that distance). Returns the file names (empty without
+    matplotlib)."""
     try:
         import matplotlib
 
@@ -23,13 +28,16 @@ def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str]) -> 
         import matplotlib.pyplot as plt
     except ImportError:
         return []
-    t = np.array(metrics["time"])
+    t = np.array(metrics.get("frame") or metrics["time"])  # frames, as the DCC's timeline shows them
+    frame_label = "frame" if metrics.get("frame") else "time [s]"
     written: list[str] = []
 
-    def figure(name: str, title: str, xlabel: str, ylabel: str, draw, legend: bool = False) -> None:
+    def figure(name: str, what: str, xlabel: str, ylabel: str, draw, legend: bool = False) -> None:
         fig, ax = plt.subplots(figsize=(8, 4.5))
         draw(ax)
-        ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
+        ax.set(title=what, xlabel=frame_label if xlabel == "time [s]" else xlabel, ylabel=ylabel)
+        if title:
+            fig.suptitle(title, fontsize=8)
         ax.grid(alpha=0.3)
         if legend:
             ax.legend(fontsize=7, ncol=2)
@@ -69,11 +77,45 @@ def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str]) -> 
             cmap = plt.get_cmap("viridis")
             for n, (k, r) in enumerate(picks):
                 ax.semilogy(np.arange(1, len(r) + 1), np.maximum(np.array(r), 1e-12),
-                            color=cmap(n / max(len(picks) - 1, 1)), label=f"t = {t[k]:.2f} s")
+                            color=cmap(n / max(len(picks) - 1, 1)), label=f"{frame_label} {t[k]:g}")
 
         figure("residuals.png", "Iteration residuals", "elasticity iteration (last substep of the frame)",
                "largest position correction [m]", residuals, True)
 
     figure("offset_from_lbs.png", "How far the physical skin departs from LBS", "time [s]",
            "largest skin offset from LBS [mm]", lambda ax: ax.plot(t, 1e3 * np.array(metrics["max_offset_from_lbs"])))
+
+    if metrics.get("intersecting_pairs"):
+        def pairs(ax):
+            ax.plot(t, metrics["intersecting_pairs"], label="warpskin", lw=2, drawstyle="steps-mid")
+            ax.plot(t, metrics["intersecting_pairs_lbs"], label="LBS", lw=2, ls="--", drawstyle="steps-mid")
+
+        figure("intersections.png", "Intersecting skin triangle pairs (exact check)", "time [s]", "pairs", pairs, True)
+
+    if metrics.get("contacts_point_triangle"):
+        def contacts(ax):
+            ax.plot(t, metrics["contacts_point_triangle"], label="point-triangle contacts")
+            ax.plot(t, metrics["contacts_edge_edge"], label="edge-edge contacts")
+            ax.plot(t, metrics["constraints_active"], label="active constraints (last iteration)")
+
+        figure("contacts.png", "Self-collision over the run", "time [s]", "count", contacts, True)
+
+    if where is not None and len(where[0]):
+        rest, dev = np.asarray(where[0]), 1e3 * np.asarray(where[1])
+        order = np.argsort(dev)  # the largest on top
+        fig, axes = plt.subplots(1, 2, figsize=(10, 5.5))
+        for ax, (a, b, label) in zip(axes, [(0, 1, "front (X, Y)"), (2, 1, "side (Z, Y)")]):
+            sc = ax.scatter(rest[order, a], rest[order, b], c=dev[order], s=6, cmap="inferno")
+            ax.set(title=label, aspect="equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+        fig.colorbar(sc, ax=axes, label="largest distance from LBS over the run [mm]", shrink=0.8)
+        fig.suptitle((title + "\n" if title else "") + "Where the physical skin departs from LBS (rest pose)", fontsize=8)
+        fig.savefig(report_dir / "offset_map.png", dpi=110)
+        plt.close(fig)
+        written.append("offset_map.png")
+
+    if metrics.get("step_ms"):
+        figure("step_time.png", "Time per solver step", "time [s]", "ms per step",
+               lambda ax: ax.plot(t[1:], np.array(metrics["step_ms"])[1:]))
     return written

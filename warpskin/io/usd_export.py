@@ -142,6 +142,7 @@ class UsdSkinWriter:
 
         _Usd.ModelAPI(self._root.GetPrim()).SetKind(Kind.Tokens.component)
         self._textures: dict[str, bytes] = {}
+        self._animated_primvars: dict[str, dict] = {}
         if comment:
             st.GetRootLayer().comment = comment
         self._meshes: dict[str, tuple] = {}
@@ -165,6 +166,7 @@ class UsdSkinWriter:
         uvs: np.ndarray | None = None,
         normal_groups: np.ndarray | None = None,
         materials: list[tuple[str, np.ndarray]] | None = None,
+        animated_primvars: tuple[str, ...] = (),
     ) -> str:
         """Declare a surface. Its topology is written once.
 
@@ -187,6 +189,8 @@ class UsdSkinWriter:
                 (:func:`~warpskin.io.render.group_normals`) and time-sampled with them.
             materials: ``[(material path, triangle indices)]`` from :meth:`add_material`: one
                 covering every triangle is bound to the mesh, several as face GeomSubsets.
+            animated_primvars: Names of per-vertex float primvars time-sampled with the points
+                (``write_frame(..., primvars=...)``), e.g. the distance from LBS.
 
         Returns:
             The prim path.
@@ -263,7 +267,12 @@ class UsdSkinWriter:
             covered = sum(np.asarray(f).size for _, f in materials)
             UsdGeom.Subset.SetFamilyType(mesh, "materialBind",
                                          UsdGeom.Tokens.partition if covered == tri.shape[0] else UsdGeom.Tokens.nonOverlapping)
+        extra = {}
+        for pv_name in animated_primvars:
+            extra[pv_name] = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(pv_name, self._sdf.ValueTypeNames.FloatArray,
+                                                                     UsdGeom.Tokens.vertex)
         self._meshes[key] = (mesh, pts_attr, ext_attr, vertex_count, animated, remap, normals)
+        self._animated_primvars[key] = extra
         return str(path)
 
     @staticmethod
@@ -399,12 +408,14 @@ class UsdSkinWriter:
         return self
 
     # ------------------------------------------------------------------ frames
-    def write_frame(self, frame: float, points: dict[str, np.ndarray]) -> None:
+    def write_frame(self, frame: float, points: dict[str, np.ndarray], primvars: dict[str, dict] | None = None) -> None:
         """Time-sample the points of some or all animated meshes at ``frame`` (a time code).
 
         Args:
             frame: Frame number; time [s] = frame / fps.
             points: Mesh name -> ``[V, 3]`` positions [m] (NumPy or anything with ``.numpy()``).
+            primvars: Mesh name -> ``{primvar: [V] values}`` for the mesh's animated primvars
+                (given per source vertex, like the points, where the mesh remaps).
 
         Raises:
             ExportError: an unknown mesh name, a wrong vertex count, or NaN/inf positions
@@ -437,6 +448,19 @@ class UsdSkinWriter:
             ext_attr.Set(self._extent(arr), tc)
             if normals is not None:
                 normals[0].Set(Vt.Vec3fArray.FromNumpy(self._normals(arr, normals)), tc)
+        for name, values in (primvars or {}).items():
+            key = "/".join(_prim_name(part) for part in name.split("/"))
+            declared = self._animated_primvars.get(key, {})
+            remap = self._meshes[key][5] if key in self._meshes else None
+            for pv_name, vals in values.items():
+                if pv_name not in declared:
+                    raise ExportError(f"frame {frame}: mesh {name!r} has no animated primvar {pv_name!r}")
+                v = np.asarray(vals, dtype=np.float32).ravel()
+                v = v[remap] if remap is not None else v
+                if v.shape[0] != self._meshes[key][3] or not np.isfinite(v).all():
+                    raise ExportError(f"frame {frame}: primvar {pv_name!r} of mesh {name!r} needs "
+                                      f"{self._meshes[key][3]} finite values")
+                declared[pv_name].Set(Vt.FloatArray.FromNumpy(v), tc)
         self._first = tc if self._first is None else min(self._first, tc)
         self._last = tc if self._last is None else max(self._last, tc)
         self.frames_written += 1

@@ -15,7 +15,8 @@ A stepper has:
   :meth:`~warpskin.io.usd_export.UsdSkinWriter.add_mesh`;
 * ``advance(i)``: step to the plan's frame ``i`` and read the result back to the host (the
   work that is timed);
-* ``frame(i)``: the points of frame ``i`` to write, ``{mesh name: [N, 3]}`` (host arrays).
+* ``frame(i)``: the points of frame ``i`` to write, ``{mesh name: [N, 3]}`` (host arrays), and
+  optionally ``"primvars": {mesh name: {primvar: [N]}}`` for animated primvars.
 """
 
 from __future__ import annotations
@@ -108,8 +109,9 @@ class FrameRunner:
                     where = f" to {writer.path}" if writer is not None else ""
                     rec.failure = SimulationError(f"{exc} ({len(rec.frames)} frames before it were written{where})")
                     break
+                primvars = points.pop("primvars", None) if isinstance(points, dict) else None
                 if writer is not None:
-                    writer.write_frame(plan.time_codes[i], points)
+                    writer.write_frame(plan.time_codes[i], points, primvars)
                 rec.frames.append(f)
                 rec.step_ms.append(step_ms)
                 for measure in self.measures:

@@ -62,7 +62,7 @@ class _Measurements:
         self._clamped = int(stepper.solver.tether_clamped.numpy()[0])  # the pre-roll's
         rig = builder.rig
         subs = builder.subvolumes
-        self.m: dict = {k: [] for k in ("time", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
+        self.m: dict = {k: [] for k in ("time", "frame", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
                                          "max_offset_from_lbs", "relative_speed_rms", "step_ms", "residuals",
                                          "contacts_point_triangle", "contacts_edge_edge", "constraints_active", "intersecting_pairs",
                                          "intersecting_pairs_lbs", "tether_clamped")}
@@ -72,6 +72,7 @@ class _Measurements:
         self._prev_lbs: np.ndarray | None = None
         self._prev_speed = 0.0
         self._skin_mass = np.asarray(builder.masses[: rig.vertex_count], dtype=np.float64)
+        self.max_deviation = np.zeros(rig.output_count)  # per file vertex, over the frames written
 
     def lbs_points(self, i: int) -> np.ndarray:
         """LBS of every simulated skin vertex (the file's first, then any added by refining)."""
@@ -97,6 +98,7 @@ class _Measurements:
             e["subvolume_lbs"] = subs.volumes(lbs_all, centres)
         d = np.linalg.norm(out - lbs, axis=1)
         e["offset"] = float(d.max())
+        e["deviation"] = d
         # the skin's motion relative to the animation: its velocities minus LBS's over the frame
         e["velocities"] = vel = st.velocities()  # one host copy per frame, for __call__ too
         vs = vel[: b.rig.vertex_count].astype(np.float64)
@@ -159,11 +161,13 @@ class _Measurements:
     def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
         m, b, st = self.m, self.b, self.st
         tris = b.rig.output_triangles
+        self.max_deviation = np.maximum(self.max_deviation, self._pending["deviation"])
         skin = points["skin"]  # the file's vertices (what was written)
         e = self._pending
         lbs = e["lbs"]
         vel = e["velocities"]
         m["time"].append(self.plan.times[i])
+        m["frame"].append(self.plan.time_codes[i])
         m["volume"].append(e["volume"])
         m["volume_lbs"].append(e["volume_lbs"])
         if "subvolume" in e:
@@ -268,7 +272,8 @@ def simulate(
     sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
     n_out = sim.output_count
     tris = sim.output_triangles
-    meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR})]
+    # the skin carries its distance from LBS per vertex and frame, for a DCC to colour it by
+    meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
     if with_lbs:
         meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
     if with_layers:  # the inner layers as simulated (guides)
@@ -290,6 +295,7 @@ def simulate(
             pts = stepper.frame(i)
             out = {"skin": pts["skin"][:n_out]}
             lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
+            out["primvars"] = {"skin": {"deviationFromLbs": np.linalg.norm(out["skin"] - lbs, axis=1)}}
             if with_lbs:
                 out["lbs"] = lbs
             if with_layers:
@@ -358,7 +364,11 @@ def simulate(
 
         report = Path(report_dir)
         report.mkdir(parents=True, exist_ok=True)
-        plots = write_plots(report, metrics, list(subs.names) if subs is not None else [])
+        title = (f"{scene.name}: {model.particle_count} particles, {plan.substeps} x {plan.dt * 1e3:.2f} ms steps per frame "
+                 f"at {plan.fps:g} fps, {params.iterations} + {params.volume_iterations} iterations, collisions "
+                 f"{'on' if col is not None else 'off'}, {model.device}")
+        plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
+                            where=(output.rest, measures.max_deviation))
         summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
         (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=1))
     if record.failure is not None:
