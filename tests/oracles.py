@@ -129,3 +129,87 @@ def prim(stage, relative: str):
     root = stage.GetDefaultPrim()
     assert root, "the stage has no defaultPrim"
     return stage.GetPrimAtPath(root.GetPath().AppendPath(relative))
+
+
+def gltf_reference_points(path, t: float, animation: str | None = None) -> dict[int, np.ndarray]:
+    """World-space points of every mesh node at time ``t`` [s] of ``animation`` (default the
+    first), straight from the glTF spec with pygltflib and SciPy: each node's local TRS (its
+    animation channels sampled linearly, rotations slerped, clamped at the ends), world = parent
+    world x local for every node; a skinned mesh is the LBS of its POSITION/JOINTS_0/WEIGHTS_0
+    under joint matrices world x inverse bind, any other mesh its node's world x POSITION
+    (every primitive, concatenated). Keyed by node index."""
+    import pygltflib
+    from scipy.spatial.transform import Rotation, Slerp
+
+    g = pygltflib.GLTF2().load(str(path))
+    blob = g.binary_blob()
+    comp = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+
+    def read(i):
+        acc = g.accessors[i]
+        view = g.bufferViews[acc.bufferView]
+        dt = np.dtype(comp[acc.componentType])
+        n, w = acc.count, width[acc.type]
+        stride = view.byteStride or dt.itemsize * w
+        start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+        rows = [np.frombuffer(blob, dt, w, start + k * stride) for k in range(n)]
+        return np.array(rows, dtype=np.float64)
+
+    local = []
+    for node in g.nodes:
+        if node.matrix:
+            local.append(np.array(node.matrix, dtype=np.float64).reshape(4, 4).T)
+            continue
+        local.append([np.array(node.translation or [0, 0, 0], float), np.array(node.rotation or [0, 0, 0, 1], float),
+                      np.array(node.scale or [1, 1, 1], float)])
+    anim = next((a for a in g.animations if a.name == animation), None) if animation else g.animations[0]
+    for ch in anim.channels:
+        if ch.target.path not in ("translation", "rotation", "scale"):
+            continue  # morph weights do not move a mesh's base points
+        smp = anim.samplers[ch.sampler]
+        assert smp.interpolation in (None, "LINEAR"), "the reference samples LINEAR channels only"
+        times, values = read(smp.input).ravel(), read(smp.output)
+        tc = float(np.clip(t, times[0], times[-1]))
+        if ch.target.path == "rotation":
+            value = Slerp(times, Rotation.from_quat(values))(tc).as_quat()
+        else:
+            value = np.array([np.interp(tc, times, values[:, c]) for c in range(values.shape[1])])
+        local[ch.target.node][["translation", "rotation", "scale"].index(ch.target.path)] = value
+
+    def matrix(entry):
+        if isinstance(entry, np.ndarray):
+            return entry
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_quat(entry[1]).as_matrix() * entry[2]
+        m[:3, 3] = entry[0]
+        return m
+
+    parent = {c: i for i, node in enumerate(g.nodes) for c in (node.children or [])}
+    world: dict[int, np.ndarray] = {}
+
+    def world_of(i):
+        if i not in world:
+            world[i] = (world_of(parent[i]) if i in parent else np.eye(4)) @ matrix(local[i])
+        return world[i]
+
+    out = {}
+    for i, node in enumerate(g.nodes):
+        if node.mesh is None:
+            continue
+        parts = []
+        for prim in g.meshes[node.mesh].primitives:
+            attrs = prim.attributes
+            pos = read(attrs.POSITION)
+            hom = np.c_[pos, np.ones(len(pos))]
+            if node.skin is None:
+                parts.append((hom @ world_of(i).T)[:, :3])
+                continue
+            skin = g.skins[node.skin]
+            ibm = read(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+            mats = np.stack([world_of(j) for j in skin.joints]) @ ibm
+            ji, jw = read(attrs.JOINTS_0).astype(int), read(attrs.WEIGHTS_0)
+            jw = jw / jw.sum(axis=1, keepdims=True)
+            parts.append(np.einsum("vk,vkab,vb->va", jw, mats[ji], hom)[:, :3])
+        out[i] = np.concatenate(parts)
+    return out

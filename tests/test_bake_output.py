@@ -161,3 +161,41 @@ def test_the_report_and_the_bake_show_where_the_physics_acts(tmp_path):
                               - np.asarray(lbs.GetPointsAttr().Get(tc), dtype=np.float64), axis=1)
         np.testing.assert_allclose(np.asarray(pv.Get(tc)), want, atol=2e-7)
     assert np.asarray(pv.Get(4.0)).max() > 1e-4  # the physics acts
+
+
+def test_every_mesh_of_robot_expressive_is_written_following_its_joints(assets, tmp_path):
+    # 14 meshes: the skinned right hand (the skin), the other skinned hand and 12 body parts
+    # parented rigidly to joints; each written with its own vertices and faces, and matching
+    # the glTF spec's own evaluation (pygltflib: node world x points, LBS for the skinned ones)
+    from oracles import gltf_reference_points
+
+    glb = assets / "RobotExpressive" / "RobotExpressive.glb"
+    out, stage = _bake(tmp_path, "skin", str(glb), "--clip", "Walking", "--frames", "0:6")
+    import pygltflib
+
+    g = pygltflib.GLTF2().load(str(glb))
+    mesh_nodes = {n.name.replace(".", "_"): i for i, n in enumerate(g.nodes) if n.mesh is not None}  # prim names
+    assert len(mesh_nodes) == 14
+    root = stage.GetDefaultPrim()
+    written = {p.GetName(): UsdGeom.Mesh(p) for p in root.GetChildren() if p.IsA(UsdGeom.Mesh)}
+    assert len(written) == 14 and "skin" in written
+    fps = stage.GetTimeCodesPerSecond()
+    for tc in (0.0, 3.0, 6.0):
+        ref = gltf_reference_points(glb, tc / fps, animation="Walking")
+        size = float(np.linalg.norm(np.ptp(np.concatenate(list(ref.values())), axis=0)))
+        for name, mesh in written.items():
+            node = mesh_nodes["Hand_R" if name == "skin" else name]
+            got = np.asarray(mesh.GetPointsAttr().Get(tc), dtype=np.float64)
+            assert got.shape == ref[node].shape, name
+            assert np.abs(got - ref[node]).max() < 1e-5 * size, f"{name} at {tc}"
+    assert _validate_ok(out)
+
+
+def _validate_ok(path) -> bool:
+    from pxr import UsdValidation
+
+    reg = UsdValidation.ValidationRegistry()
+    ctx = UsdValidation.ValidationContext([reg.GetOrLoadValidatorByName(m.name) for m in reg.GetAllValidatorMetadata()])
+    errors = [e for e in ctx.Validate(Usd.Stage.Open(str(path))) if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    assert not errors, [e.GetMessage() for e in errors]
+    return True

@@ -37,7 +37,7 @@ from pygltflib import (
 )
 from scipy.spatial.transform import Rotation, Slerp
 
-from oracles import lbs, rig_lbs
+from oracles import gltf_reference_points, lbs, rig_lbs
 from warpskin.io.gltf import list_gltf_meshes, load_gltf
 from warpskin.rig import RigError, RigWarning
 
@@ -841,83 +841,13 @@ def test_bad_animation_keys(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------------
 # Nested skeletons: a joint's world transform includes every animated ancestor (glTF spec)
 # --------------------------------------------------------------------------------------------
-def _gltf_reference_skinning(path: Path, t: float) -> list[np.ndarray]:
-    """Every skinned instance's world-space skinned points at time ``t`` [s], straight from the
-    glTF spec with pygltflib and SciPy: each node's local TRS (its animation channels sampled
-    linearly, rotations slerped, clamped at the ends), world = parent world x local for every
-    node, joint matrix = world x inverse bind, LBS of the mesh's POSITION/JOINTS_0/WEIGHTS_0."""
-    import pygltflib
-    from scipy.spatial.transform import Rotation, Slerp
-
-    g = pygltflib.GLTF2().load(str(path))
-    blob = g.binary_blob()
-    comp = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
-    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
-
-    def read(i):
-        acc = g.accessors[i]
-        view = g.bufferViews[acc.bufferView]
-        dt = np.dtype(comp[acc.componentType])
-        n, w = acc.count, width[acc.type]
-        stride = view.byteStride or dt.itemsize * w
-        start = (view.byteOffset or 0) + (acc.byteOffset or 0)
-        rows = [np.frombuffer(blob, dt, w, start + k * stride) for k in range(n)]
-        return np.array(rows, dtype=np.float64)
-
-    local = []
-    for node in g.nodes:
-        if node.matrix:
-            local.append(np.array(node.matrix, dtype=np.float64).reshape(4, 4).T)
-            continue
-        local.append([np.array(node.translation or [0, 0, 0], float), np.array(node.rotation or [0, 0, 0, 1], float),
-                      np.array(node.scale or [1, 1, 1], float)])
-    for ch in g.animations[0].channels:
-        smp = g.animations[0].samplers[ch.sampler]
-        times, values = read(smp.input).ravel(), read(smp.output)
-        tc = float(np.clip(t, times[0], times[-1]))
-        if ch.target.path == "rotation":
-            value = Slerp(times, Rotation.from_quat(values))(tc).as_quat()
-        else:
-            value = np.array([np.interp(tc, times, values[:, c]) for c in range(values.shape[1])])
-        local[ch.target.node][["translation", "rotation", "scale"].index(ch.target.path)] = value
-
-    def matrix(entry):
-        if isinstance(entry, np.ndarray):
-            return entry
-        m = np.eye(4)
-        m[:3, :3] = Rotation.from_quat(entry[1]).as_matrix() * entry[2]
-        m[:3, 3] = entry[0]
-        return m
-
-    parent = {c: i for i, node in enumerate(g.nodes) for c in (node.children or [])}
-    world: dict[int, np.ndarray] = {}
-
-    def world_of(i):
-        if i not in world:
-            world[i] = (world_of(parent[i]) if i in parent else np.eye(4)) @ matrix(local[i])
-        return world[i]
-
-    out = []
-    for i, node in enumerate(g.nodes):
-        if node.mesh is None or node.skin is None:
-            continue
-        skin = g.skins[node.skin]
-        ibm = read(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
-        mats = np.stack([world_of(j) for j in skin.joints]) @ ibm
-        attrs = g.meshes[node.mesh].primitives[0].attributes
-        pos, ji, jw = read(attrs.POSITION), read(attrs.JOINTS_0).astype(int), read(attrs.WEIGHTS_0)
-        hom = np.c_[pos, np.ones(len(pos))]
-        out.append(np.einsum("vk,vkab,vb->va", jw, mats[ji], hom)[:, :3])
-    return out
-
-
 def test_every_nested_skeleton_follows_its_animated_ancestors(assets: Path) -> None:
     # RecursiveSkeletons: 84 skins whose chains hang off joints of other skins, which are
     # animated; each instance's LBS against the spec's own evaluation at generic times
     path = assets / "RecursiveSkeletons" / "RecursiveSkeletons.glb"
     meshes = list_gltf_meshes(path)
     times = (0.37, 1.21, 1.93)
-    refs = {t: _gltf_reference_skinning(path, t) for t in times}
+    refs = {t: gltf_reference_points(path, t) for t in times}
     worst = 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RigWarning)  # unit-size hints, bind-space scale
@@ -925,6 +855,6 @@ def test_every_nested_skeleton_follows_its_animated_ancestors(assets: Path) -> N
             rig = load_gltf(path, mesh=entry["name"])
             for t in times:
                 got = rig_lbs(rig, rig.skinning_matrices(rig.clip(None), t))[rig.weld_map]
-                ref = refs[t][k]
+                ref = refs[t][entry["node"]]
                 worst = max(worst, float(np.abs(got - ref).max() / np.linalg.norm(np.ptp(ref, axis=0))))
     assert worst < 1e-6, f"worst instance off by {worst:.3g} of its size"

@@ -36,6 +36,7 @@ __all__ = [
     "weld_by_position",
     "mesh_edge_report",
     "key_rate",
+    "Attachment",
 ]
 
 INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
@@ -228,6 +229,46 @@ def key_rate(times: np.ndarray, *, lowest: float = 12.0, highest: float = 240.0,
         return None
     off_grid = np.abs(t * rate - np.round(t * rate))
     return float(rate) if float(off_grid.max()) <= tolerance else None
+
+
+@dataclass
+class Attachment:
+    """Another mesh of the character that follows the skeleton by LBS: a mesh parented rigidly to
+    a joint node (RobotExpressive's body parts: weight 1 to that joint, as three.js and Blender
+    play it) or another skinned mesh on the same joints (its other hand). Written beside the
+    skin; not simulated.
+
+    Attributes:
+        name: The mesh's name (unique in the rig).
+        vertices: The file's points ``[N, 3]`` [m].
+        triangles: ``[T, 3]``, counter-clockwise from outside.
+        joint_indices, joint_weights: ``[N, K]`` influences (rig joint indices), weights
+            summing to one.
+        joint_offsets: ``[J, 4, 4]``: the transform from the file's points into each joint's
+            space (the mesh's own inverse bind matrices; for a rigid mesh, its node transform
+            below the joint), so that a point is ``sum_k w_k G_j(t) joint_offsets[j] p`` with
+            ``G_j`` the rig's joint world transforms.
+        render: Its UVs, normals and materials (:class:`~warpskin.io.render.RenderAttributes`).
+    """
+
+    name: str
+    vertices: np.ndarray
+    triangles: np.ndarray
+    joint_indices: np.ndarray
+    joint_weights: np.ndarray
+    joint_offsets: np.ndarray
+    render: Any = None
+
+    def points(self, joint_world: np.ndarray) -> np.ndarray:
+        """Positions ``[N, 3]`` under the rig's joint world transforms ``[J, 4, 4]``."""
+        mats = joint_world @ self.joint_offsets
+        hom = np.c_[self.vertices, np.ones(len(self.vertices))]
+        return np.einsum("vk,vkab,vb->va", self.joint_weights, mats[self.joint_indices], hom)[:, :3]
+
+    def rescaled(self, factor: float) -> Attachment:
+        s = np.diag([factor, factor, factor, 1.0])
+        s_inv = np.diag([1.0 / factor] * 3 + [1.0])
+        return dataclasses.replace(self, vertices=self.vertices * factor, joint_offsets=s @ self.joint_offsets @ s_inv)
 
 
 # --------------------------------------------------------------------------------------------
@@ -477,6 +518,8 @@ class Rig:
     render_triangles: np.ndarray | None = None
     vertex_parents: np.ndarray | None = None
     render: Any = None
+    #: Meshes parented rigidly to joints, written beside the skin (:class:`Attachment`).
+    attachments: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64)
@@ -1029,6 +1072,7 @@ class Rig:
             file_triangles=self.file_triangles.copy(),
             joint_indices=self.joint_indices.copy(),
             joint_weights=self.joint_weights.copy(),
+            attachments=[a.rescaled(factor) for a in self.attachments],
         )
 
     def summary(self) -> dict:

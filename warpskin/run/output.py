@@ -42,7 +42,7 @@ class CharacterOutput:
         topology: One of :data:`TOPOLOGIES`.
     """
 
-    def __init__(self, rig, topology: str = "file") -> None:
+    def __init__(self, rig, topology: str = "file", clip=None) -> None:
         if topology not in TOPOLOGIES:
             raise SceneError(f"topology must be one of {TOPOLOGIES}, got {topology!r}")
         self.rig, self.topology = rig, topology
@@ -52,6 +52,10 @@ class CharacterOutput:
         render = rig.render
         self.groups = smoothing_groups(rig.weld_map, render.normals if render is not None else None)
         self._material_paths: list[str] | None = None
+        # the character's other meshes (rigid parts, other skinned meshes), written beside the
+        # skin at the clip's poses
+        self.clip = clip
+        self.attachments = list(getattr(rig, "attachments", []) or []) if clip is not None else []
 
     @property
     def root_name(self) -> str:
@@ -81,6 +85,30 @@ class CharacterOutput:
             tm = render.triangle_material
             kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
         return writer.add_mesh(name, tris, rest_points=self.rest[rig.weld_map], **kw)
+
+    def declare_attachments(self, writer) -> None:
+        """Add every attachment as a sibling mesh in its own topology, at rest in stage space."""
+        from ..rig import Clip, weld_by_position
+
+        rest_world = self.rig.joint_world_transforms(Clip("rest"), 0.0)
+        for a in self.attachments:
+            render = a.render
+            _, wmap = weld_by_position(a.vertices)
+            kw = {"normal_groups": smoothing_groups(wmap, render.normals if render is not None else None)}
+            if render is not None and render.uvs is not None:
+                kw["uvs"] = render.uvs
+            if render is not None and render.materials:
+                paths = [writer.add_material(m) for m in render.materials]
+                tm = render.triangle_material
+                kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
+            writer.add_mesh(a.name, a.triangles, rest_points=a.points(rest_world), **kw)
+
+    def attachment_points(self, t: float) -> dict[str, np.ndarray]:
+        """Every attachment's points at clip time ``t`` [s]."""
+        if not self.attachments:
+            return {}
+        world = self.rig.joint_world_transforms(self.clip, t)
+        return {a.name: a.points(world) for a in self.attachments}
 
     def _materials(self, writer) -> list[str]:
         if self._material_paths is None:

@@ -175,7 +175,7 @@ def run_popping(
         raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
     stepper = PoppingStepper(rig, clip, plan, deformer, dynamics, settings, name=scene.name)
     over = _Overshoot()
-    output = CharacterOutput(rig, topology)
+    output = CharacterOutput(rig, topology, clip)
     writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
     record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=progress,
                          steps_in_first_frame=True, output=output).run()

@@ -90,6 +90,8 @@ class FrameRunner:
                         self.output.declare(writer, name, tris, rest, kw)
                     else:
                         writer.add_mesh(name, tris, rest_points=rest, **kw)
+                if self.output is not None:
+                    self.output.declare_attachments(writer)
                 names = [m[0] for m in st.meshes()]
                 if self.output is not None and "lbs" in names and len(names) > 1:
                     # a reviewer flips between the result and LBS in any DCC (the LBS guide stays)
@@ -110,6 +112,8 @@ class FrameRunner:
                     rec.failure = SimulationError(f"{exc} ({len(rec.frames)} frames before it were written{where})")
                     break
                 primvars = points.pop("primvars", None) if isinstance(points, dict) else None
+                if self.output is not None and self.output.attachments:
+                    points = {**points, **self.output.attachment_points(plan.times[i])}
                 if writer is not None:
                     writer.write_frame(plan.time_codes[i], points, primvars)
                 rec.frames.append(f)

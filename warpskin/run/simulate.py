@@ -303,7 +303,7 @@ def simulate(
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
             return out
 
-    output = CharacterOutput(sim, topology)
+    output = CharacterOutput(sim, topology, clip)
     writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
     record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress,
                          output=output).run(keep_failure=True)

@@ -125,8 +125,8 @@ def skin_to_usd(
             raise SceneError(f"fps must be a positive number, got {fps}")
         scene.fps = float(fps)
     rig = scene.rig()
-    output = CharacterOutput(rig, topology)
     clip = rig.clip(scene.clip)
+    output = CharacterOutput(rig, topology, clip)
     plan = FramePlan.for_scene(scene, frames, start_frame=start_frame)
     stepper = SkinningStepper(rig, clip, plan, method=method, device=device, with_lbs=with_lbs, with_rest=with_rest,
                               name=scene.name)

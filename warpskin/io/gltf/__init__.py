@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ...rig import Rig, RigError, RigWarning
+from ...rig import Attachment, Rig, RigError, RigWarning
 from ..render import Material, RenderAttributes
 from .document import _MALFORMED, _Document
 from .mesh import _attributes, _describe, _mesh_entries, _read_mesh
@@ -118,7 +118,7 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
     else:
         inverse_bind = np.tile(np.eye(4), (n_j, 1, 1))
     clips = _read_clips(doc, info)
-    return Rig.from_file_arrays(
+    rig = Rig.from_file_arrays(
         name=path.stem,
         points=points,
         triangles=triangles,
@@ -134,7 +134,65 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
         meters_per_unit=1.0,
         render=_render_attributes(doc, triangles, attrs),
     )
+    rig.attachments = _attachments(doc, entries, info, node_parent, rig)
+    return rig
 
+
+def _attachments(doc: _Document, entries: list[dict], info, node_parent: np.ndarray, rig: Rig) -> list[Attachment]:
+    """The character's other meshes, each following the rig's joints by LBS: meshes without a
+    skin whose node hangs (directly or through non-joint nodes) from a joint (weight 1 to it),
+    and other skinned meshes whose joints are all the rig's. One warning names them."""
+    out: list[Attachment] = []
+    taken = {rig.mesh_name}
+    n_j = rig.joint_count
+    for e in entries:
+        if e["name"] == rig.mesh_name or e["node"] is None:
+            continue
+        if e["skinned"]:
+            skin = doc.skins[e["skin"]]
+            nodes = list(skin.joints or [])
+            if not nodes or any(n not in info.joint_of_node for n in nodes):
+                continue  # another character's skeleton
+            points, tris, ji, jw, attrs = _read_mesh(doc, e["mesh"], e["name"])
+            ibm = (doc.accessor(skin.inverseBindMatrices, f"skin {e['skin']} inverseBindMatrices")
+                   .reshape(-1, 4, 4).transpose(0, 2, 1) if skin.inverseBindMatrices is not None
+                   else np.tile(np.eye(4), (len(nodes), 1, 1)))
+            if ibm.shape[0] != len(nodes) or (ji.size and ji.max() >= len(nodes)):
+                continue
+            ours = np.array([info.joint_of_node[n] for n in nodes])
+            offsets = np.tile(np.eye(4), (n_j, 1, 1))
+            offsets[ours] = ibm
+            ji = ours[ji]
+            sums = jw.sum(axis=1, keepdims=True)
+            if np.any(sums <= 0) or not np.isfinite(jw).all():
+                continue
+            jw = jw / sums
+        else:
+            below = doc.local_matrix(e["node"])
+            p = int(node_parent[e["node"]])
+            while p >= 0 and p not in info.joint_of_node:
+                below = doc.local_matrix(p) @ below
+                p = int(node_parent[p])
+            if p < 0:
+                continue  # not under the skeleton: a static prop, not part of the character
+            points, tris, _, _, attrs = _read_mesh(doc, e["mesh"], e["name"], skinned=False)
+            offsets = np.tile(np.eye(4), (n_j, 1, 1))
+            offsets[info.joint_of_node[p]] = below
+            ji = np.full((points.shape[0], 1), info.joint_of_node[p], dtype=np.int64)
+            jw = np.ones((points.shape[0], 1))
+        name = e["node_name"] or e["name"]
+        while name in taken:
+            name += "_"
+        taken.add(name)
+        out.append(Attachment(name=name, vertices=points, triangles=tris, joint_indices=ji, joint_weights=jw,
+                              joint_offsets=offsets, render=_render_attributes(doc, tris, attrs)))
+    if out:
+        listed = ", ".join(a.name for a in out[:8])
+        more = f" and {len(out) - 8} more" if len(out) > 8 else ""
+        warnings.warn(f"{doc.where}: {len(out)} more meshes follow the skeleton ({listed}{more}): those parented "
+                      "rigidly to a joint with weight 1 to it; they are written beside the skin, not simulated",
+                      RigWarning, stacklevel=4)
+    return out
 
 def _render_attributes(doc: _Document, triangles: np.ndarray, attrs: dict) -> RenderAttributes:
     """UVs per triangle corner (glTF's v flipped to USD's st), rest normals and the materials of

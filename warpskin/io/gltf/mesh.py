@@ -122,10 +122,12 @@ def _attribute_sets(doc: _Document, attrs: dict[str, Any], what: str) -> list[in
     return found
 
 
-def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+def _read_mesh(doc: _Document, mesh_index: int, label: str, *, skinned: bool = True
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
     """Concatenated points ``[N, 3]``, triangles ``[T, 3]``, joint indices and weights ``[N, K]``,
     and the render attributes: ``{"uv": [N, 2] or None, "normal": [N, 3] or None,
-    "material": [T] glTF material index (-1: none)}``."""
+    "material": [T] glTF material index (-1: none)}``. With ``skinned=False`` (a mesh parented
+    rigidly to a joint) the joint arrays are empty ``[N, 0]``."""
     mesh = doc.meshes[mesh_index]
     prims = list(mesh.primitives or [])
     if not prims:
@@ -148,8 +150,8 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray,
         if pos.shape[1] != 3:
             raise doc.error(f"{what} POSITION has {pos.shape[1]} components, expected 3 (VEC3)")
         n = pos.shape[0]
-        sets = _attribute_sets(doc, attrs, what)
-        if not sets:
+        sets = _attribute_sets(doc, attrs, what) if skinned else []
+        if skinned and not sets:
             raise doc.error(f"{what} has no JOINTS_0/WEIGHTS_0 although the mesh is skinned")
         ji_parts, jw_parts = [], []
         rounding = 0.0  # worst-case weight-sum error from integer quantisation
@@ -166,7 +168,7 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray,
             ji_parts.append(ji)
             jw_parts.append(jw)
             rounding += 4 * 0.5 * doc.quantum(attrs[f"WEIGHTS_{s}"])
-        jw_all = np.concatenate(jw_parts, axis=1)
+        jw_all = np.concatenate(jw_parts, axis=1) if jw_parts else np.zeros((n, 0))
         if rounding > 0.0:
             # normalised-integer weights are rounded one by one: 128 + 128 = 256 of 255 is still
             # "0.5 + 0.5". Renormalise sums within that rounding; leave the rest to validation.
@@ -191,7 +193,7 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str) -> tuple[np.ndarray,
         material = prim.material
         mats.append(np.full(tri.shape[0], material if isinstance(material, int) and not isinstance(material, bool)
                             else -1, dtype=np.int64))
-        jis.append(np.concatenate(ji_parts, axis=1))
+        jis.append(np.concatenate(ji_parts, axis=1) if ji_parts else np.zeros((n, 0), dtype=np.int64))
         jws.append(jw_all)
         base += n
     width = max(a.shape[1] for a in jis)
