@@ -213,3 +213,44 @@ def gltf_reference_points(path, t: float, animation: str | None = None) -> dict[
             parts.append(np.einsum("vk,vkab,vb->va", jw, mats[ji], hom)[:, :3])
         out[i] = np.concatenate(parts)
     return out
+
+
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """Brute-force unsigned distance ``[N]`` from every point to a triangle mesh: the closest
+    point on each triangle by Ericson's region test (Real-Time Collision Detection, 5.1.5),
+    the minimum over all triangles."""
+    p = np.asarray(points, dtype=np.float64)
+    a, b, c = (np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)[:, i]] for i in range(3))
+    ab, ac = b - a, c - a
+    out = np.empty(len(p))
+    for s in range(0, len(p), chunk):
+        q = p[s:s + chunk, None, :]  # [n, 1, 3] against [T, 3]
+        ap, bp, cp = q - a, q - b, q - c
+        d1, d2 = np.einsum("ntk,tk->nt", ap, ab), np.einsum("ntk,tk->nt", ap, ac)
+        d3, d4 = np.einsum("ntk,tk->nt", bp, ab), np.einsum("ntk,tk->nt", bp, ac)
+        d5, d6 = np.einsum("ntk,tk->nt", cp, ab), np.einsum("ntk,tk->nt", cp, ac)
+        va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            denom = va + vb + vc
+            v_in, w_in = vb / denom, vc / denom
+            t_ab = d1 / (d1 - d3)
+            t_ac = d2 / (d2 - d6)
+            t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        # barycentric (v, w) of the closest point, region by region (the last rule that applies wins)
+        v = np.where(True, v_in, 0.0)
+        w = np.where(True, w_in, 0.0)
+        on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+        v, w = np.where(on_bc, 1 - t_bc, v), np.where(on_bc, t_bc, w)
+        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        v, w = np.where(on_ac, 0.0, v), np.where(on_ac, t_ac, w)
+        on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        v, w = np.where(on_ab, t_ab, v), np.where(on_ab, 0.0, w)
+        at_c = (d6 >= 0) & (d5 <= d6)
+        v, w = np.where(at_c, 0.0, v), np.where(at_c, 1.0, w)
+        at_b = (d3 >= 0) & (d4 <= d3)
+        v, w = np.where(at_b, 1.0, v), np.where(at_b, 0.0, w)
+        at_a = (d1 <= 0) & (d2 <= 0)
+        v, w = np.where(at_a, 0.0, v), np.where(at_a, 0.0, w)
+        closest = a + v[..., None] * ab + w[..., None] * ac
+        out[s:s + chunk] = np.linalg.norm(q - closest, axis=2).min(axis=1)
+    return out

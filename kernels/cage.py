@@ -1,0 +1,30 @@
+"""Inside/outside field of a character's meshes for its simulation cage (issue: any character
+in): the signed distance to the surface on a regular grid, its sign from the generalised winding
+number (Jacobson et al. 2013; Warp's fast dipole approximation, Barill et al. 2018), so that
+holes, open cuffs and overlapping pieces still have a well-defined inside."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def winding_distance_field_kernel(
+    mesh: wp.uint64,
+    lower: wp.vec3,
+    spacing: float,
+    max_dist: float,
+    # output
+    field: wp.array3d(dtype=wp.float32),
+):
+    """``field[i, j, k]``: distance from grid node ``lower + (i, j, k) spacing`` to the nearest
+    surface point, negative where the winding number is above 1/2 (inside); ``max_dist`` where no
+    face is that close (outside, far away)."""
+    i, j, k = wp.tid()
+    p = lower + wp.vec3(float(i), float(j), float(k)) * spacing
+    q = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, 2.0, 0.5)
+    value = max_dist
+    if q.result:
+        closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+        value = q.sign * wp.min(wp.length(p - closest), max_dist)
+    field[i, j, k] = value
