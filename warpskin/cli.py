@@ -596,10 +596,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
+        from .io.usd_export import remove_temporary_files
+
+        remove_temporary_files()
         print("warpskin: interrupted; nothing was written", file=sys.stderr)
         return 130
     except _Signalled as exc:
         import signal
+
+        from .io.usd_export import remove_temporary_files
+
+        remove_temporary_files()  # also a writer the signal caught before anything could abort it
 
         print(f"warpskin: stopped by {signal.Signals(exc.signum).name}; nothing was written", file=sys.stderr)
         return 128 + exc.signum

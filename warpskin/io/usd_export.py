@@ -81,6 +81,37 @@ def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
     return p
 
 
+#: Temporary files of writers not yet closed or aborted: a signal that lands between a writer's
+#: creation and the code that would abort it still finds them (:func:`remove_temporary_files`).
+_LIVE_TEMPORARIES: set[Path] = set()
+
+
+def _block_stop_signals():
+    import signal
+
+    sigs = {getattr(signal, n) for n in ("SIGTERM", "SIGHUP", "SIGINT") if hasattr(signal, n)}
+    if not hasattr(signal, "pthread_sigmask") or not sigs:
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+
+
+def _unblock(previous) -> None:
+    if previous is not None:
+        import signal
+
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def remove_temporary_files() -> None:
+    """Delete the temporary file of every writer still open (on SIGTERM/SIGHUP, at exit)."""
+    for tmp in list(_LIVE_TEMPORARIES):
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        _LIVE_TEMPORARIES.discard(tmp)
+
+
 class UsdSkinWriter:
     """Writes time-sampled skin surfaces to a USD stage.
 
@@ -122,10 +153,15 @@ class UsdSkinWriter:
         parent = self.path.parent if str(self.path.parent) else Path(".")
         if not parent.is_dir():
             raise ExportError(f"{self.path}: folder {parent} does not exist")
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{ext}", dir=parent)
-        os.close(fd)
-        os.unlink(tmp)  # USD creates the layer itself; the name is reserved by its randomness
-        self._tmp = Path(tmp)
+        blocked = _block_stop_signals()  # a stop signal waits until the temporary name is registered
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{ext}", dir=parent)
+            self._tmp = Path(tmp)
+            _LIVE_TEMPORARIES.add(self._tmp)
+            os.close(fd)
+            os.unlink(tmp)  # USD creates the layer itself; the name is reserved by its randomness
+        finally:
+            _unblock(blocked)
         self._vt, self._gf, self._usdgeom, self._sdf = Vt, Gf, UsdGeom, Sdf
         self._stage = Usd.Stage.CreateNew(str(self._tmp))
         if self._stage is None:  # pragma: no cover
@@ -482,6 +518,7 @@ class UsdSkinWriter:
             self._stage = None
             self._write_textures()
             os.replace(self._tmp, self.path)
+            _LIVE_TEMPORARIES.discard(self._tmp)
         except Exception as exc:
             self.abort()
             if isinstance(exc, ExportError):
@@ -514,6 +551,7 @@ class UsdSkinWriter:
             self._tmp.unlink()
         except FileNotFoundError:
             pass
+        _LIVE_TEMPORARIES.discard(self._tmp)
 
     def _check_open(self) -> None:
         if self._closed:
