@@ -1,0 +1,100 @@
+"""Embedding of a render mesh in a simulated cage (issue: any character in): every render
+point is bound to its closest cage triangle by barycentric coordinates and an offset in the
+local frame there (the interpolated vertex normal, and the triangle's first edge made
+tangent), so that the rest pose is reproduced exactly and a rigid motion of the cage moves it
+rigidly. Evaluated every frame on the device."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def closest_face_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    # outputs
+    face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+):
+    """The closest cage triangle to each point, with the barycentric weights of its three
+    vertices (Warp's (u, v) are the weights of the first two)."""
+    i = wp.tid()
+    q = wp.mesh_query_point_no_sign(mesh, points[i], max_dist)
+    if q.result:
+        face[i] = q.face
+        bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    else:
+        face[i] = -1
+
+
+@wp.kernel
+def accumulate_normals_kernel(
+    x: wp.array(dtype=wp.vec3),
+    triangles: wp.array2d(dtype=wp.int32),
+    # output (zeroed before)
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Area-weighted face normals summed onto the vertices."""
+    t = wp.tid()
+    a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+    n = wp.cross(x[b] - x[a], x[c] - x[a])
+    wp.atomic_add(normals, a, n)
+    wp.atomic_add(normals, b, n)
+    wp.atomic_add(normals, c, n)
+
+
+@wp.func
+def local_frame(x0: wp.vec3, x1: wp.vec3, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, w: wp.vec3) -> wp.mat33:
+    """Columns: tangent (the first edge, made orthogonal to the normal), bitangent, normal (the
+    normalised interpolation of the vertex normals)."""
+    n = wp.normalize(w[0] * wp.normalize(n0) + w[1] * wp.normalize(n1) + w[2] * wp.normalize(n2))
+    e = x1 - x0
+    t = wp.normalize(e - wp.dot(e, n) * n)
+    b = wp.cross(n, t)
+    return wp.matrix_from_cols(t, b, n)
+
+
+@wp.kernel
+def embed_kernel(
+    x: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    triangles: wp.array2d(dtype=wp.int32),
+    face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    offset: wp.array(dtype=wp.vec3),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """Render point ``i`` on the cage ``x``: the barycentric point plus its offset in the local
+    frame there."""
+    i = wp.tid()
+    f = face[i]
+    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
+    w = bary[i]
+    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
+    frame = local_frame(x[a], x[b], normals[a], normals[b], normals[c], w)
+    out[i] = p + frame * offset[i]
+
+
+@wp.kernel
+def rest_offsets_kernel(
+    x: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    triangles: wp.array2d(dtype=wp.int32),
+    face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    # output
+    offset: wp.array(dtype=wp.vec3),
+):
+    """The offsets that reproduce ``points`` on the rest cage ``x``: the inverse of
+    :func:`embed_kernel` (the frame is orthonormal, so its transpose)."""
+    i = wp.tid()
+    f = face[i]
+    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
+    w = bary[i]
+    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
+    frame = local_frame(x[a], x[b], normals[a], normals[b], normals[c], w)
+    offset[i] = wp.transpose(frame) * (points[i] - p)
