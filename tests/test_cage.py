@@ -98,3 +98,85 @@ def test_robot_expressive_gets_one_cage_around_its_14_meshes(assets, device):
     cage = build_cage(points, faces, device=device)
     tm = _check_cage(cage, points, 0.25 * cage.edge)
     assert tm.body_count == 1
+
+
+def test_weights_are_transferred_and_inpainted_against_numpy(device):
+    # a cage (sphere) around a smaller sphere whose weights are a smooth field of two joints;
+    # matched cage vertices take the barycentric blend at their closest point, the others (cut
+    # off by a small max_distance on one side) the harmonic extension of the matched ones
+    from warpskin.preprocess.cage import CharacterSoup, transfer_weights
+
+    inner = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    p = np.asarray(inner.vertices)
+    w0 = 0.5 + 0.4 * p[:, 0]
+    dense = np.stack([w0, 1 - w0], axis=1)
+    soup = CharacterSoup(p, np.asarray(inner.faces), dense, [("skin", 0, len(p))])
+    cage = trimesh.creation.icosphere(subdivisions=2, radius=1.1)
+    cv = np.asarray(cage.vertices) + np.array([0.06, 0.0, 0.0])  # off centre: the +x side is farther
+    dist = point_mesh_distance(cv, p, np.asarray(inner.faces))
+    cut = float(np.median(dist))
+    ji, jw, matched = transfer_weights(cv, np.asarray(cage.faces), soup, max_distance=cut, device=device)
+    assert 0 < matched.sum() < len(cv)
+    got = np.zeros((len(cv), 2))
+    np.put_along_axis(got, ji, jw, axis=1)
+    # matched: the blend at the closest point, to the accuracy of the piecewise-linear field
+    closest_w0 = 0.5 + 0.4 * (cv[matched] / np.linalg.norm(cv[matched], axis=1, keepdims=True))[:, 0]
+    assert np.abs(got[matched, 0] - closest_w0).max() < 0.02
+    # unmatched: harmonic (uniform Laplacian) with the matched fixed, solved densely here
+    n = len(cv)
+    adj = np.zeros((n, n))
+    for a, b in np.asarray(cage.edges_unique):
+        adj[a, b] = adj[b, a] = 1
+    lap = np.diag(adj.sum(1)) - adj
+    u, m = np.nonzero(~matched)[0], np.nonzero(matched)[0]
+    ref = got[:, 0].copy()
+    bary_field = got[m, 0]
+    ref[u] = np.linalg.solve(lap[np.ix_(u, u)], -lap[np.ix_(u, m)] @ bary_field)
+    np.testing.assert_allclose(got[u, 0], np.clip(ref[u], 0, 1), atol=1e-6)
+    np.testing.assert_allclose(jw.sum(axis=1), 1.0, atol=1e-12)
+
+
+def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device):
+    # CesiumMan with 8 holes cut and every seam split, as a rig (its UVs kept per corner):
+    # simulate with the defaults picks the cage, writes the file's own topology and UVs,
+    # embedded, and the simulated cage is no worse than LBS
+    from pxr import Usd, UsdGeom
+
+    from warpskin.io import load_rig
+    from warpskin.io.render import RenderAttributes
+    from warpskin.rig import Rig
+    from warpskin.run import simulate
+    from warpskin.scene import Scene
+
+    src = load_rig(assets / "CesiumMan" / "CesiumMan.glb")
+    ft = src.file_triangles
+    rng = np.random.default_rng(3)
+    bind = src.vertices[src.weld_map]
+    centres = bind[rng.choice(len(bind), 8, replace=False)]
+    keep = np.linalg.norm(bind[ft].mean(1)[:, None] - centres[None], axis=2).min(1) > 0.03
+    tris = ft[keep]
+    soup_tris = np.arange(3 * len(tris)).reshape(-1, 3)  # every seam split
+    ji = src.joint_indices[src.weld_map][tris.ravel()]
+    jw = src.joint_weights[src.weld_map][tris.ravel()]
+    broken = Rig.from_file_arrays(
+        name="BrokenMan", points=bind[tris.ravel()], triangles=soup_tris, skeleton=src.skeleton, joint_indices=ji,
+        joint_weights=jw, inverse_bind=src.inverse_bind, clips=src.clips, source="test", mesh_name="BrokenMan",
+        weld=False, validate=False, render=RenderAttributes(uvs=src.render.uvs[keep]))
+    assert not broken.validate(raise_on_error=False).closed
+    scene = Scene(name="BrokenMan", source=None, rig_spec={}, fps=24.0, preroll=0.1)
+    scene._rig = broken
+    result = simulate(scene, tmp_path / "broken.usdc", device=device, frames=(1, 4), with_lbs=True, progress=False,
+                      check_intersections=True)
+    s, m = result.summary, result.metrics
+    assert s["cage"] is not None and s["cage"]["weights_matched"] > 0.95
+    stage = Usd.Stage.Open(str(result.path))
+    skin = UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("skin"))
+    np.testing.assert_array_equal(np.asarray(skin.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3), soup_tris)
+    np.testing.assert_allclose(np.asarray(UsdGeom.PrimvarsAPI(skin).GetPrimvar("st").Get()).reshape(-1, 3, 2),
+                               src.render.uvs[keep], atol=1e-6)
+    pts = np.asarray(skin.GetPointsAttr().Get(4))
+    assert pts.shape == (3 * len(tris), 3) and np.isfinite(pts).all()
+    assert UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("cage")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+    v0 = m["volume_rest"]
+    assert np.all(np.abs(np.array(m["volume"]) / v0 - 1) <= np.abs(np.array(m["volume_lbs"]) / v0 - 1) + 1e-3)
+    assert np.all(np.array(m["intersecting_pairs"]) <= np.array(m["intersecting_pairs_lbs"]))

@@ -264,7 +264,7 @@ def cmd_simulate(args) -> int:
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
-        start_frame=args.start_frame, topology=args.topology,
+        start_frame=args.start_frame, topology=args.topology, cage=args.cage,
     )
     s = result.summary
     if args.json:
@@ -447,6 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topology", choices=["file", "welded"], default="file",
                    help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
+    s.add_argument("--cage", choices=["auto", "always", "none"], default="auto",
+                   help="simulate an automatic closed cage and write every mesh embedded in it: where the skin is not "
+                        "one closed manifold (auto, the default), always (its other meshes too), or never")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
     s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
     s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")

@@ -24,7 +24,8 @@ import numpy as np
 
 from ..rig import RigError
 
-__all__ = ["Cage", "build_cage", "default_cage_edge", "TARGET_VERTICES", "mesh_quality"]
+__all__ = ["Cage", "build_cage", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
+           "transfer_weights", "cage_rig"]
 
 #: Vertices of a default cage (the layered model's cost grows with them; a few thousand
 #: resolve a human's joints).
@@ -186,3 +187,122 @@ def mesh_quality(v: np.ndarray, f: np.ndarray) -> dict:
     aspect = longest ** 2 / np.maximum(area2, 1e-300)
     return {"aspect_max": float(aspect.max()), "aspect_p99": float(np.percentile(aspect, 99)),
             "edge_mean": float(edges.mean()), "edge_max": float(edges.max())}
+
+
+# --------------------------------------------------------------------------------------------
+# The character's meshes as one soup, weights on the cage, the cage as a rig
+# --------------------------------------------------------------------------------------------
+@dataclass
+class CharacterSoup:
+    """Every mesh of a rig at rest in stage space, as one triangle soup with LBS influences.
+
+    Attributes:
+        points: ``[N, 3]``: the skin's welded vertices first, then each attachment's.
+        triangles: ``[T, 3]``.
+        dense_weights: ``[N, J]`` skin weights (an attachment's own, in the rig's joints).
+        pieces: ``[(name, first point, point count)]``: ``"skin"`` then the attachments.
+    """
+
+    points: np.ndarray
+    triangles: np.ndarray
+    dense_weights: np.ndarray
+    pieces: list
+
+
+def character_soup(rig) -> CharacterSoup:
+    """The rig's skin (welded) and attachments at the skeleton's rest pose, in stage space."""
+    from ..rig import Clip
+    from ..run.output import rest_pose_points
+
+    j = rig.joint_count
+    skin = rest_pose_points(rig)[: rig.output_count]
+    pts, tris, pieces = [skin], [rig.output_triangles], [("skin", 0, len(skin))]
+    dense = [rig._dense_weights(rig.joint_indices, rig.joint_weights)[: rig.output_count]]
+    world = rig.joint_world_transforms(Clip("rest"), 0.0)
+    start = len(skin)
+    for a in getattr(rig, "attachments", []) or []:
+        p = a.points(world)
+        d = np.zeros((len(p), j))
+        np.add.at(d, (np.repeat(np.arange(len(p)), a.joint_indices.shape[1]), a.joint_indices.ravel()), a.joint_weights.ravel())
+        pts.append(p)
+        tris.append(np.asarray(a.triangles) + start)
+        dense.append(d)
+        pieces.append((a.name, start, len(p)))
+        start += len(p)
+    return CharacterSoup(np.concatenate(pts), np.concatenate(tris), np.concatenate(dense), pieces)
+
+
+def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup: CharacterSoup, *, max_distance: float,
+                     device=None, influences: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Skin weights on the cage: each cage vertex takes the barycentric blend of the weights at
+    its closest point on the character where that lies within ``max_distance``; the others are
+    inpainted (Abdrashitov et al. 2023): the weights that are harmonic over the cage (uniform
+    Laplacian) with the matched ones fixed. Then the largest ``influences`` per vertex,
+    normalised. Returns ``(joint_indices [V, K], joint_weights [V, K], matched [V] bool)``."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+    import warp as wp
+
+    from ..kernels import embedding as k_emb
+
+    cv = np.asarray(cage_vertices, dtype=np.float64)
+    n = cv.shape[0]
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(points=wp.array(soup.points.astype(np.float32), dtype=wp.vec3),
+                       indices=wp.array(soup.triangles.astype(np.int32).ravel(), dtype=wp.int32))
+        face = wp.zeros(n, dtype=wp.int32)
+        bary = wp.zeros(n, dtype=wp.vec3)
+        wp.launch(k_emb.closest_face_kernel, dim=n, inputs=[mesh.id, wp.array(cv.astype(np.float32), dtype=wp.vec3),
+                                                            float(max_distance)], outputs=[face, bary])
+        face, bary = face.numpy(), bary.numpy().astype(np.float64)
+    matched = face >= 0
+    dense = np.zeros((n, soup.dense_weights.shape[1]))
+    corners = soup.triangles[face[matched]]
+    dense[matched] = np.einsum("vc,vcj->vj", bary[matched], soup.dense_weights[corners])
+    if not matched.any():
+        raise RigError(f"no cage vertex lies within {max_distance:.3g} m of the character: no weights to transfer")
+    if not matched.all():
+        # harmonic inpainting: L_uu w_u = -L_um w_m with the uniform graph Laplacian L = D - A
+        t = np.asarray(cage_triangles, dtype=np.int64)
+        rows = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
+        cols = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
+        a = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+        a.data[:] = 1.0
+        lap = (sp.diags(np.asarray(a.sum(axis=1)).ravel()) - a).tocsr()
+        u, m = np.nonzero(~matched)[0], np.nonzero(matched)[0]
+        luu = lap[u][:, u].tocsc()
+        rhs = -(lap[u][:, m] @ dense[m])
+        dense[u] = spla.splu(luu).solve(np.asarray(rhs))
+    return _pick(dense, influences) + (matched,)
+
+
+def _pick(dense: np.ndarray, influences: int) -> tuple[np.ndarray, np.ndarray]:
+    dense = np.clip(dense, 0.0, None)
+    k = min(influences, dense.shape[1])
+    idx = np.argsort(-dense, axis=1)[:, :k]
+    w = np.take_along_axis(dense, idx, axis=1)
+    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+    return idx.astype(np.int64), w
+
+
+def cage_rig(rig, cage: Cage, *, device=None) -> tuple:
+    """The cage as a rig to simulate: the character's skeleton, clips and inverse binds, the
+    cage's triangles, weights transferred from the character (:func:`transfer_weights`, matched
+    within two cage edges), and its points taken from rest (stage space) into the bind space the
+    skinning matrices expect (each point through the inverse of its blended rest-pose skinning
+    matrix). Returns ``(rig, soup, matched)``."""
+    from ..rig import Clip, Rig
+
+    soup = character_soup(rig)
+    ji, jw, matched = transfer_weights(cage.vertices, cage.triangles, soup, max_distance=2.0 * cage.edge, device=device)
+    mats = rig.skinning_matrices(Clip("rest"), 0.0)
+    blended = np.einsum("vk,vkab->vab", jw, mats[ji])
+    hom = np.c_[cage.vertices, np.ones(len(cage.vertices))]
+    bind = np.linalg.solve(blended, hom[..., None])[..., 0][:, :3]
+    caged = Rig(
+        name=rig.name, vertices=bind, triangles=cage.triangles, skeleton=rig.skeleton, joint_indices=ji,
+        joint_weights=jw, inverse_bind=rig.inverse_bind, clips=rig.clips, source=f"{rig.source} (its automatic cage)",
+        mesh_name=f"{rig.mesh_name} (cage)", up_axis=rig.up_axis, meters_per_unit=rig.meters_per_unit,
+    )
+    caged.validate(raise_on_error=True)
+    return caged, soup, matched

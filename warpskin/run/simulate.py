@@ -5,6 +5,7 @@ optional report."""
 from __future__ import annotations
 
 import json
+import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -162,7 +163,7 @@ class _Measurements:
         m, b, st = self.m, self.b, self.st
         tris = b.rig.output_triangles
         self.max_deviation = np.maximum(self.max_deviation, self._pending["deviation"])
-        skin = points["skin"]  # the file's vertices (what was written)
+        skin = points.get("cage", points["skin"])  # the simulated surface: the file's vertices, or the cage
         e = self._pending
         lbs = e["lbs"]
         vel = e["velocities"]
@@ -192,6 +193,44 @@ class _Measurements:
             m["intersecting_pairs_lbs"].append(int(len(self_intersections(lbs, tris))))
 
 
+class _CagedCharacter:
+    """A character simulated through an automatic cage: the cage rig, and every render mesh
+    embedded in the cage at rest (stage space)."""
+
+    def __init__(self, rig, device) -> None:
+        from ..embedding import Embedding
+        from ..preprocess.cage import build_cage, cage_rig, character_soup
+
+        t0 = time.perf_counter()
+        soup = character_soup(rig)
+        self.cage = build_cage(soup.points, soup.triangles, device=device)
+        self.rig, self.soup, self.matched = cage_rig(rig, self.cage, device=device)
+        self.embedding = Embedding(soup.points, self.cage.vertices, self.cage.triangles, device=device)
+        self.source = rig
+        self.build_s = time.perf_counter() - t0
+        self._cage_rest = self.cage.vertices
+        # the simulated cage starts in bind space; the embedding was bound in rest stage space:
+        # the cage's LBS at rest is that rest (cage_rig), so frames come back in stage space
+
+    def attachment_meshes(self) -> list:
+        from ..io.render import smoothing_groups
+        from ..rig import weld_by_position
+
+        out = []
+        for a in self.source.attachments:
+            _, start, count = next(p for p in self.soup.pieces if p[0] == a.name)
+            kw = {"normal_groups": smoothing_groups(weld_by_position(a.vertices)[1],
+                                                    a.render.normals if a.render is not None else None)}
+            if a.render is not None and a.render.uvs is not None:
+                kw["uvs"] = a.render.uvs
+            out.append((a.name, a.triangles, self.soup.points[start:start + count], kw))
+        return out
+
+    def render_points(self, cage_points: np.ndarray) -> dict:
+        pts = self.embedding.evaluate(np.asarray(cage_points, dtype=np.float32)).numpy().astype(np.float64)
+        return {name: pts[start:start + count] for name, start, count in self.soup.pieces}
+
+
 def simulate(
     scene: Scene,
     out_path,
@@ -213,6 +252,7 @@ def simulate(
     allow_unstable: bool = False,
     start_frame: int | None = None,
     topology: str = "file",
+    cage: str = "auto",
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -244,6 +284,14 @@ def simulate(
     ``topology`` ``"file"`` (default) writes the skin (and LBS) with the file's own vertices,
     faces, UVs and materials, ``"welded"`` the closed surface as loaded.
 
+    ``cage``: ``"auto"`` (default) simulates an automatic closed cage around the character
+    (:func:`~warpskin.preprocess.cage.build_cage`, weights transferred) where its skin is not
+    one closed manifold, and writes every mesh embedded in it
+    (:class:`~warpskin.embedding.Embedding`) with the cage as a guide; a closed skin is
+    simulated directly, its other meshes (attachments) following their joints by LBS.
+    ``"always"`` cages any character (its attachments too); ``"none"`` never (the skin must
+    then be closed).
+
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
             message names the frame and the particle, vertex (the file's number), bone or
@@ -254,11 +302,22 @@ def simulate(
     check_output_path(out_path, inputs=scene.input_paths())  # before any work
     params = solver_params or scene.solver_params()
     params.check(str(scene.source or scene.name))
+    if cage not in ("auto", "always", "none"):
+        from ..errors import SceneError
+
+        raise SceneError(f"cage must be 'auto', 'always' or 'none', got {cage!r}")
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     plan = FramePlan.for_scene(scene, frames, max_dt=params.dt, start_frame=start_frame)
     preroll = scene.preroll if preroll is None else float(preroll)
     t_build = time.perf_counter()
+    render = rig  # what is written
+    caged = None
+    report = rig.report or rig.validate(raise_on_error=False)
+    closed_skin = report.closed and report.manifold
+    if builder is None and (cage == "always" or (cage == "auto" and not closed_skin)):
+        caged = _CagedCharacter(rig, device)
+        rig = caged.rig
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
     if collision is not None:
         builder.params.collision = collision
@@ -273,9 +332,18 @@ def simulate(
     n_out = sim.output_count
     tris = sim.output_triangles
     # the skin carries its distance from LBS per vertex and frame, for a DCC to colour it by
-    meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
-    if with_lbs:
-        meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
+    if caged is None:
+        meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
+        if with_lbs:
+            meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
+    else:  # the render meshes, embedded in the simulated cage; the cage as a guide
+        rt = render.output_triangles
+        meshes = [("skin", rt, render.vertices[: render.output_count],
+                   {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
+        if with_lbs:
+            meshes.append(("lbs", rt, render.vertices[: render.output_count], {"color": _LBS_COLOR, "purpose": "guide"}))
+        meshes += caged.attachment_meshes()
+        meshes.append(("cage", sim.triangles, caged.cage.vertices, {"color": (0.6, 0.6, 0.6), "purpose": "guide"}))
     if with_layers:  # the inner layers as simulated (guides)
         for k in range(1, 4):
             meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k], {"purpose": "guide"}))
@@ -295,6 +363,11 @@ def simulate(
             pts = stepper.frame(i)
             out = {"skin": pts["skin"][:n_out]}
             lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
+            if caged is not None:
+                out = caged.render_points(pts["skin"][: sim.vertex_count])
+                out["cage"] = pts["skin"][: sim.vertex_count]
+                lbs = linear_blend_skin(render.vertices[: render.output_count], render.joint_indices[: render.output_count],
+                                        render.joint_weights[: render.output_count], stepper.frame_poses[i])
             out["primvars"] = {"skin": {"deviationFromLbs": np.linalg.norm(out["skin"] - lbs, axis=1)}}
             if with_lbs:
                 out["lbs"] = lbs
@@ -303,7 +376,7 @@ def simulate(
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
             return out
 
-    output = CharacterOutput(sim, topology, clip)
+    output = CharacterOutput(sim, topology, clip) if caged is None else CharacterOutput(render, topology)
     writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
     record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress,
                          output=output).run(keep_failure=True)
@@ -321,7 +394,12 @@ def simulate(
         "particles": model.particle_count,
         "vertices": model.vertex_count,
         "topology": topology,
-        "file_vertices_written": sim.file_vertex_count if topology == "file" else n_out,
+        "file_vertices_written": render.file_vertex_count if topology == "file" else render.output_count,
+        "cage": None if caged is None else {
+            "vertices": int(caged.rig.vertex_count), "edge_m": caged.cage.edge, "build_s": caged.build_s,
+            "weights_matched": float(caged.matched.mean()), "embedded_points": int(caged.embedding.count),
+            "meshes": [p[0] for p in caged.soup.pieces],
+        },
         "refined_vertices_added": model.vertex_count - n_out,
         "frames": len(written),
         "substeps_per_frame": plan.substeps,
