@@ -219,3 +219,27 @@ def test_a_killed_run_leaves_no_temp_file(tmp_path, signame, code):
     assert proc.returncode == code
     assert f"stopped by {signame}" in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_info_reports_pieces_loops_and_the_simulation_path(assets, capsys):
+    # an open strip (SimpleSkin: one piece, one boundary loop, trimesh agrees) goes through the
+    # cage; the closed arm directly; RobotExpressive lists its other meshes
+    import trimesh
+
+    strip = assets / "SimpleSkin" / "SimpleSkin.gltf"
+    assert main(["info", str(strip), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    from warpskin.io import load_rig
+
+    rig = load_rig(strip)
+    tm = trimesh.Trimesh(rig.vertices, rig.triangles, process=False)
+    assert s["pieces"] == tm.body_count == 1
+    assert s["boundary_loops"] == len(trimesh.graph.connected_components(tm.edges[trimesh.grouping.group_rows(
+        tm.edges_sorted, require_count=1)])) == 1
+    assert s["simulation"] == "cage"
+    assert main(["info", "arm", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert (s["pieces"], s["boundary_loops"], s["simulation"]) == (1, 0, "direct")
+    assert main(["info", str(assets / "RobotExpressive" / "RobotExpressive.glb"), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert len(s["other_meshes"]) == 13 and "Torso" in s["other_meshes"]

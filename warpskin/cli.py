@@ -150,8 +150,13 @@ def cmd_info(args) -> int:
             out["error"] = str(exc)
             print(json.dumps(out, indent=2))
         raise
+    from .preprocess.cage import surface_report
+
     summary = rig.summary()
     out.update(summary)
+    out.update(surface_report(rig.triangles, rig.vertex_count))
+    out["other_meshes"] = [a.name for a in rig.attachments]
+    out["simulation"] = "direct" if (summary["closed"] and summary["manifold"]) else "cage"
     out["joint_names"] = rig.skeleton.joint_names
     out["parents"] = rig.skeleton.parents.tolist()
     if args.json:
@@ -172,7 +177,13 @@ def cmd_info(args) -> int:
     print("bounds [m]: " + " .. ".join("(" + ", ".join(f"{c:.4g}" for c in v) + ")" for v in (lo, hi)))
     closed = "closed" if summary["closed"] else f"OPEN ({summary['boundary_edges']} boundary edges)"
     manifold = "manifold" if summary["manifold"] else f"NOT manifold ({summary['nonmanifold_edges']} non-manifold edges)"
-    print(f"surface: {closed}, {manifold}; degenerate triangles: {summary['degenerate_triangles']}")
+    print(f"surface: {closed}, {manifold}; {out['pieces']} piece(s), {out['boundary_loops']} boundary loop(s); "
+          f"degenerate triangles: {summary['degenerate_triangles']}")
+    if out["other_meshes"]:
+        print(f"other meshes following the skeleton ({len(out['other_meshes'])}): {', '.join(out['other_meshes'])}")
+    how = ("its skin directly (closed, manifold)" if out["simulation"] == "direct"
+           else "an automatic closed cage around it, every mesh embedded (the skin is not one closed manifold)")
+    print(f"simulate would use: {how}")
     print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):

@@ -306,3 +306,26 @@ def cage_rig(rig, cage: Cage, *, device=None) -> tuple:
     )
     caged.validate(raise_on_error=True)
     return caged, soup, matched
+
+
+def surface_report(triangles: np.ndarray, vertex_count: int) -> dict:
+    """Pieces (connected components) and boundary loops of a triangle mesh (``warpskin info``)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    t = np.asarray(triangles, dtype=np.int64)
+    rows = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
+    cols = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
+    graph = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(vertex_count, vertex_count))
+    used = np.unique(t)
+    _, labels = connected_components(graph, directed=False)
+    pieces = int(np.unique(labels[used]).size)
+    edges = np.sort(np.stack([rows, cols], axis=1), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = uniq[counts == 1]
+    loops = 0
+    if boundary.size:
+        b = sp.csr_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(vertex_count, vertex_count))
+        _, bl = connected_components(b, directed=False)
+        loops = int(np.unique(bl[np.unique(boundary)]).size)
+    return {"pieces": pieces, "boundary_loops": loops}
