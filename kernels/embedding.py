@@ -56,6 +56,44 @@ def local_frame(x0: wp.vec3, x1: wp.vec3, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3,
     return wp.matrix_from_cols(t, b, n)
 
 
+@wp.func
+def vertex_normal(x: wp.array(dtype=wp.vec3), triangles: wp.array2d(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                  faces: wp.array(dtype=wp.int32), v: int) -> wp.vec3:
+    """Area-weighted normal of vertex ``v``, gathered over its faces (CSR ``offsets``/``faces``)."""
+    n = wp.vec3(0.0)
+    for k in range(offsets[v], offsets[v + 1]):
+        f = faces[k]
+        a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
+        n += wp.cross(x[b] - x[a], x[c] - x[a])
+    return n
+
+
+@wp.kernel
+def embed_gather_kernel(
+    x: wp.array(dtype=wp.vec3),
+    triangles: wp.array2d(dtype=wp.int32),
+    vertex_face_offsets: wp.array(dtype=wp.int32),
+    vertex_faces: wp.array(dtype=wp.int32),
+    face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    offset: wp.array(dtype=wp.vec3),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """:func:`embed_kernel` in one launch: each point gathers its triangle's vertex normals
+    itself (no normal pass, no atomics)."""
+    i = wp.tid()
+    f = face[i]
+    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
+    w = bary[i]
+    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
+    na = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, a)
+    nb = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, b)
+    nc = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, c)
+    frame = local_frame(x[a], x[b], na, nb, nc, w)
+    out[i] = p + frame * offset[i]
+
+
 @wp.kernel
 def embed_kernel(
     x: wp.array(dtype=wp.vec3),

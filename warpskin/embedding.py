@@ -72,6 +72,10 @@ class Embedding:
             self._offset = wp.zeros(self.count, dtype=wp.vec3)
             self._out = wp.zeros(self.count, dtype=wp.vec3)
             self._update_normals(rest)
+            order = np.argsort(ct.ravel(), kind="stable")  # vertex -> its faces (CSR), for the gather
+            counts = np.bincount(ct.ravel(), minlength=self.cage_vertex_count)
+            self._vf_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), dtype=wp.int32)
+            self._vf_faces = wp.array((order // 3).astype(np.int32), dtype=wp.int32)
             wp.launch(k.rest_offsets_kernel, dim=self.count,
                       inputs=[rest, self._normals, self._tris, self._face, self._bary, pts], outputs=[self._offset])
         self.face = face
@@ -100,8 +104,7 @@ class Embedding:
             x = wp.array(arr, dtype=wp.vec3, device=self.device)
         elif x.shape[0] < self.cage_vertex_count:
             raise InputError(f"embedding: cage points must hold {self.cage_vertex_count} vertices, got {x.shape[0]}")
-        self._update_normals(x)
-        wp.launch(k.embed_kernel, dim=self.count,
-                  inputs=[x, self._normals, self._tris, self._face, self._bary, self._offset], outputs=[self._out],
-                  device=self.device)
+        wp.launch(k.embed_gather_kernel, dim=self.count,
+                  inputs=[x, self._tris, self._vf_offsets, self._vf_faces, self._face, self._bary, self._offset],
+                  outputs=[self._out], device=self.device)
         return self._out
