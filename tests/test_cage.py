@@ -180,3 +180,13 @@ def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device)
     v0 = m["volume_rest"]
     assert np.all(np.abs(np.array(m["volume"]) / v0 - 1) <= np.abs(np.array(m["volume_lbs"]) / v0 - 1) + 1e-3)
     assert np.all(np.array(m["intersecting_pairs"]) <= np.array(m["intersecting_pairs_lbs"]))
+
+
+def test_bench_build_reports_the_cage():
+    # speed is reported, never asserted: the row carries the cage's size and its stage times
+    from warpskin.bench import run_build_bench
+
+    row = run_build_bench(["arm"])["scenes"]["arm"]
+    cage = row["cage"]
+    assert cage["render_points"] == 2918 and cage["vertices"] > 1000
+    assert cage["build_s"] >= cage["field_and_extraction_s"] > 0
