@@ -177,6 +177,13 @@ def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device)
     pts = np.asarray(skin.GetPointsAttr().Get(4))
     assert pts.shape == (3 * len(tris), 3) and np.isfinite(pts).all()
     assert UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("cage")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+    # the LBS guide is the broken character's own LBS (its inverse binds, not the cage's)
+    from oracles import rig_lbs
+
+    lbs = np.asarray(UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("lbs")).GetPointsAttr().Get(4), dtype=np.float64)
+    want = rig_lbs(broken, broken.skinning_matrices(broken.clip(None), 4 / 24))[broken.weld_map]
+    assert np.abs(lbs - want).max() < 1e-5 * broken.size()
+    assert np.linalg.norm(pts - want, axis=1).max() < 0.08 * broken.size()  # the embedded skin stays near it
     v0 = m["volume_rest"]
     assert np.all(np.abs(np.array(m["volume"]) / v0 - 1) <= np.abs(np.array(m["volume_lbs"]) / v0 - 1) + 1e-3)
     assert np.all(np.array(m["intersecting_pairs"]) <= np.array(m["intersecting_pairs_lbs"]))
@@ -190,3 +197,27 @@ def test_bench_build_reports_the_cage():
     cage = row["cage"]
     assert cage["render_points"] == 2918 and cage["vertices"] > 1000
     assert cage["build_s"] >= cage["field_and_extraction_s"] > 0
+
+
+def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
+    # --cage always: the 14 meshes (the skinned hands, 12 rigid parts) in one cage, simulated;
+    # every mesh written with its own vertices, finite (the cage bound at the rest pose: in the
+    # file's bind space it folded, 119 intersecting pairs, and no layer fitted)
+    from pxr import Usd, UsdGeom
+
+    from warpskin.cli import main
+    from warpskin.io import load_rig
+
+    glb = assets / "RobotExpressive" / "RobotExpressive.glb"
+    out = tmp_path / "robot.usdc"
+    assert main(["simulate", str(glb), "--clip", "Walking", "--frames", "0:3", "--cage", "always", "-o", str(out),
+                 "--quiet"]) == 0
+    rig = load_rig(glb)
+    stage = Usd.Stage.Open(str(out))
+    root = stage.GetDefaultPrim()
+    meshes = {p.GetName(): UsdGeom.Mesh(p) for p in root.GetChildren() if p.IsA(UsdGeom.Mesh)}
+    assert len(meshes) == 15  # 14 and the cage guide
+    expected = {"skin": rig.file_vertex_count, **{a.name.replace(".", "_"): len(a.vertices) for a in rig.attachments}}
+    for name, count in expected.items():
+        pts = np.asarray(meshes[name].GetPointsAttr().Get(3))
+        assert pts.shape == (count, 3) and np.isfinite(pts).all(), name

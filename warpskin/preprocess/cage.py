@@ -286,23 +286,22 @@ def _pick(dense: np.ndarray, influences: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cage_rig(rig, cage: Cage, *, device=None) -> tuple:
-    """The cage as a rig to simulate: the character's skeleton, clips and inverse binds, the
-    cage's triangles, weights transferred from the character (:func:`transfer_weights`, matched
-    within two cage edges), and its points taken from rest (stage space) into the bind space the
-    skinning matrices expect (each point through the inverse of its blended rest-pose skinning
-    matrix). Returns ``(rig, soup, matched)``."""
+    """The cage as a rig to simulate, bound at the character's rest pose: the character's
+    skeleton and clips, the cage's triangles and rest points (stage space) as its bind pose, so
+    its inverse binds are the inverses of the joints' rest world transforms; weights transferred
+    from the character (:func:`transfer_weights`, matched within two cage edges). (Taking the
+    cage into the file's bind space instead folds it where that differs from the rest pose:
+    RobotExpressive's, 119 intersecting pairs.) Returns ``(rig, soup, matched)``."""
     from ..rig import Clip, Rig
 
     soup = character_soup(rig)
     ji, jw, matched = transfer_weights(cage.vertices, cage.triangles, soup, max_distance=2.0 * cage.edge, device=device)
-    mats = rig.skinning_matrices(Clip("rest"), 0.0)
-    blended = np.einsum("vk,vkab->vab", jw, mats[ji])
-    hom = np.c_[cage.vertices, np.ones(len(cage.vertices))]
-    bind = np.linalg.solve(blended, hom[..., None])[..., 0][:, :3]
+    rest_world = rig.joint_world_transforms(Clip("rest"), 0.0)
     caged = Rig(
-        name=rig.name, vertices=bind, triangles=cage.triangles, skeleton=rig.skeleton, joint_indices=ji,
-        joint_weights=jw, inverse_bind=rig.inverse_bind, clips=rig.clips, source=f"{rig.source} (its automatic cage)",
-        mesh_name=f"{rig.mesh_name} (cage)", up_axis=rig.up_axis, meters_per_unit=rig.meters_per_unit,
+        name=rig.name, vertices=cage.vertices.copy(), triangles=cage.triangles, skeleton=rig.skeleton, joint_indices=ji,
+        joint_weights=jw, inverse_bind=np.linalg.inv(rest_world), clips=rig.clips,
+        source=f"{rig.source} (its automatic cage)", mesh_name=f"{rig.mesh_name} (cage)", up_axis=rig.up_axis,
+        meters_per_unit=rig.meters_per_unit,
     )
     caged.validate(raise_on_error=True)
     return caged, soup, matched

@@ -366,8 +366,10 @@ def simulate(
             if caged is not None:
                 out = caged.render_points(pts["skin"][: sim.vertex_count])
                 out["cage"] = pts["skin"][: sim.vertex_count]
+                # the render skin's own LBS (its inverse binds, not the cage's, which is bound at rest)
                 lbs = linear_blend_skin(render.vertices[: render.output_count], render.joint_indices[: render.output_count],
-                                        render.joint_weights[: render.output_count], stepper.frame_poses[i])
+                                        render.joint_weights[: render.output_count],
+                                        render.skinning_matrices(clip, plan.times[i]))
             out["primvars"] = {"skin": {"deviationFromLbs": np.linalg.norm(out["skin"] - lbs, axis=1)}}
             if with_lbs:
                 out["lbs"] = lbs
