@@ -199,3 +199,23 @@ def _validate_ok(path) -> bool:
     errors = [e for e in ctx.Validate(Usd.Stage.Open(str(path))) if e.GetType() == UsdValidation.ValidationErrorType.Error]
     assert not errors, [e.GetMessage() for e in errors]
     return True
+
+
+def test_smoothing_groups_keep_a_vertex_with_a_zero_normal_to_itself():
+    from warpskin.io.render import group_normals, smoothing_groups
+
+    weld = np.array([0, 0, 1, 2])
+    normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    groups = smoothing_groups(weld, normals)
+    assert groups.min() >= 0 and len(set(groups.tolist())) == 4
+    pts = np.array([[0.0, 0, 0], [0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]])
+    n = group_normals(pts, np.array([[0, 2, 3]]), groups)
+    np.testing.assert_allclose(n[[0, 2, 3]], np.tile([0.0, 0.0, 1.0], (3, 1)))
+
+
+def test_inner_layers_are_written_as_simulated(tmp_path):
+    _, stage = _bake(tmp_path, "simulate", "arm", "--frames", "0:1", "--layers")
+    skin = np.asarray(UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr().Get())
+    bone = UsdGeom.Mesh(prim(stage, "layer_bone"))
+    assert np.abs(np.asarray(bone.GetPointsAttr().Get()) - skin).max() > 1e-3  # the bone layer, not the skin
+    assert bone.GetPurposeAttr().Get() == UsdGeom.Tokens.guide

@@ -166,7 +166,8 @@ def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device)
     scene = Scene(name="BrokenMan", source=None, rig_spec={}, fps=24.0, preroll=0.1)
     scene._rig = broken
     result = simulate(scene, tmp_path / "broken.usdc", device=device, frames=(1, 4), with_lbs=True, progress=False,
-                      check_intersections=True)
+                      check_intersections=True, report_dir=tmp_path / "report")
+    assert (tmp_path / "report" / "offset_map.png").is_file()  # drawn from the render skin's deviation
     s, m = result.summary, result.metrics
     assert s["cage"] is not None and s["cage"]["weights_matched"] > 0.95
     stage = Usd.Stage.Open(str(result.path))
@@ -221,3 +222,7 @@ def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
     for name, count in expected.items():
         pts = np.asarray(meshes[name].GetPointsAttr().Get(3))
         assert pts.shape == (count, 3) and np.isfinite(pts).all(), name
+    from pxr import UsdShade
+
+    assert UsdShade.MaterialBindingAPI(meshes["Head"].GetPrim()).ComputeBoundMaterial()[0] or \
+        UsdGeom.Subset.GetAllGeomSubsets(meshes["Head"])  # the embedded parts keep their materials

@@ -243,3 +243,26 @@ def test_info_reports_pieces_loops_and_the_simulation_path(assets, capsys):
     assert main(["info", str(assets / "RobotExpressive" / "RobotExpressive.glb"), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert len(s["other_meshes"]) == 13 and "Torso" in s["other_meshes"]
+
+
+def test_nohup_keeps_a_run_going(tmp_path):
+    # a SIGHUP that the parent ignores (nohup) is not turned into a stop
+    import signal
+    import time
+
+    out = tmp_path / "arm.usdc"
+    proc = subprocess.Popen([sys.executable, "-m", "warpskin", "skin", "arm", "-o", str(out), "--quiet"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 300
+        while not [p for p in tmp_path.iterdir() if p.name.startswith(".arm.")] and proc.poll() is None:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGHUP)
+        proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and out.is_file()

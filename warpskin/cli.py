@@ -578,7 +578,7 @@ def _install_signal_handlers() -> dict:
     saved = {}
     for name in ("SIGTERM", "SIGHUP"):
         sig = getattr(signal, name, None)
-        if sig is not None:
+        if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:  # nohup keeps SIGHUP ignored
             saved[sig] = signal.signal(sig, _on_signal)
     return saved
 

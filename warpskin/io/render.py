@@ -104,6 +104,7 @@ def smoothing_groups(weld_map: np.ndarray, normals: np.ndarray | None) -> np.nda
                 continue
             same = members[k:][(group[members[k:]] < 0) & (nrm[members[k:]] @ nrm[i] >= SAME_NORMAL_COS)]
             group[same] = next_id
+            group[i] = next_id  # itself too, whatever its normal (a zero or NaN one matches nothing)
             next_id += 1
     return group
 

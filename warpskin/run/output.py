@@ -67,10 +67,16 @@ class CharacterOutput:
 
     def declare(self, writer, name: str, triangles: np.ndarray, rest: np.ndarray | None, kw: dict) -> str:
         """Add mesh ``name`` to ``writer``: a mesh of the character's welded output surface in
-        the chosen topology, at rest in stage space; any other mesh (inner layers) as given."""
-        if not self.is_character_mesh(triangles):
-            return writer.add_mesh(name, triangles, rest_points=rest, **kw)
+        the chosen topology, at rest in stage space; any other mesh as given (``kw["as_is"]``:
+        the inner layers, the cage; ``kw["render"]``: another mesh of the character with its
+        own render attributes, an embedded attachment)."""
         kw = dict(kw)
+        as_is = kw.pop("as_is", False)
+        render = kw.pop("render", None)
+        if render is not None:
+            self._render_kwargs(writer, render, kw)
+        if as_is or render is not None or not self.is_character_mesh(triangles):
+            return writer.add_mesh(name, triangles, rest_points=rest, **kw)
         if self.topology == "welded":
             return writer.add_mesh(name, triangles, rest_points=self.rest, **kw)
         rig, render = self.rig, self.rig.render
@@ -92,16 +98,22 @@ class CharacterOutput:
 
         rest_world = self.rig.joint_world_transforms(Clip("rest"), 0.0)
         for a in self.attachments:
-            render = a.render
-            _, wmap = weld_by_position(a.vertices)
-            kw = {"normal_groups": smoothing_groups(wmap, render.normals if render is not None else None)}
-            if render is not None and render.uvs is not None:
-                kw["uvs"] = render.uvs
-            if render is not None and render.materials:
-                paths = [writer.add_material(m) for m in render.materials]
-                tm = render.triangle_material
-                kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
+            kw = {"normal_groups": smoothing_groups(weld_by_position(a.vertices)[1],
+                                                    a.render.normals if a.render is not None else None)}
+            if a.render is not None:
+                self._render_kwargs(writer, a.render, kw)
             writer.add_mesh(a.name, a.triangles, rest_points=a.points(rest_world), **kw)
+
+    @staticmethod
+    def _render_kwargs(writer, render, kw: dict) -> None:
+        """UVs and materials of a mesh with its own render attributes, into ``kw``."""
+        if render.uvs is not None:
+            kw["uvs"] = render.uvs
+        if render.materials and kw.get("purpose") != "guide":
+            kw.pop("color", None)
+            paths = [writer.add_material(m) for m in render.materials]
+            tm = render.triangle_material
+            kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
 
     def attachment_points(self, t: float) -> dict[str, np.ndarray]:
         """Every attachment's points at clip time ``t`` [s]."""

@@ -221,8 +221,8 @@ class _CagedCharacter:
             _, start, count = next(p for p in self.soup.pieces if p[0] == a.name)
             kw = {"normal_groups": smoothing_groups(weld_by_position(a.vertices)[1],
                                                     a.render.normals if a.render is not None else None)}
-            if a.render is not None and a.render.uvs is not None:
-                kw["uvs"] = a.render.uvs
+            if a.render is not None:
+                kw["render"] = a.render  # its UVs and materials (CharacterOutput.declare)
             out.append((a.name, a.triangles, self.soup.points[start:start + count], kw))
         return out
 
@@ -343,10 +343,14 @@ def simulate(
         if with_lbs:
             meshes.append(("lbs", rt, render.vertices[: render.output_count], {"color": _LBS_COLOR, "purpose": "guide"}))
         meshes += caged.attachment_meshes()
-        meshes.append(("cage", sim.triangles, caged.cage.vertices, {"color": (0.6, 0.6, 0.6), "purpose": "guide"}))
+        meshes.append(("cage", sim.output_triangles, caged.cage.vertices,
+                       {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
     if with_layers:  # the inner layers as simulated (guides)
         for k in range(1, 4):
-            meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k], {"purpose": "guide"}))
+            meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k],
+                           {"purpose": "guide", "as_is": True}))
+
+    render_deviation = np.zeros(render.output_count)  # caged: per render vertex, over the frames
 
     class _Writes:
         """What ``simulate`` writes of a physics frame."""
@@ -363,14 +367,17 @@ def simulate(
             pts = stepper.frame(i)
             out = {"skin": pts["skin"][:n_out]}
             lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
-            if caged is not None:
-                out = caged.render_points(pts["skin"][: sim.vertex_count])
-                out["cage"] = pts["skin"][: sim.vertex_count]
+            if caged is not None:  # the cage's own vertices come first (a refined cage adds more after)
+                out = caged.render_points(pts["skin"][: sim.output_count])
+                out["cage"] = pts["skin"][: sim.output_count]
                 # the render skin's own LBS (its inverse binds, not the cage's, which is bound at rest)
                 lbs = linear_blend_skin(render.vertices[: render.output_count], render.joint_indices[: render.output_count],
                                         render.joint_weights[: render.output_count],
                                         render.skinning_matrices(clip, plan.times[i]))
-            out["primvars"] = {"skin": {"deviationFromLbs": np.linalg.norm(out["skin"] - lbs, axis=1)}}
+            deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
+            if caged is not None:
+                render_deviation[:] = np.maximum(render_deviation, deviation)
+            out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
             if with_lbs:
                 out["lbs"] = lbs
             if with_layers:
@@ -448,7 +455,7 @@ def simulate(
                  f"at {plan.fps:g} fps, {params.iterations} + {params.volume_iterations} iterations, collisions "
                  f"{'on' if col is not None else 'off'}, {model.device}")
         plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
-                            where=(output.rest, measures.max_deviation))
+                            where=(output.rest, measures.max_deviation if caged is None else render_deviation))
         summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
         (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=1))
     if record.failure is not None:

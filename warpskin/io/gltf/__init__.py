@@ -168,8 +168,11 @@ def _attachments(doc: _Document, entries: list[dict], info, node_parent: np.ndar
                 continue
             jw = jw / sums
         else:
-            below = doc.local_matrix(e["node"])
-            p = int(node_parent[e["node"]])
+            if e["node"] in info.joint_of_node:  # the mesh's own node is a joint: it follows that joint
+                below, p = np.eye(4), int(e["node"])
+            else:
+                below = doc.local_matrix(e["node"])
+                p = int(node_parent[e["node"]])
             while p >= 0 and p not in info.joint_of_node:
                 below = doc.local_matrix(p) @ below
                 p = int(node_parent[p])
