@@ -110,3 +110,18 @@ def test_bad_arguments(tmp_path, arm):
         with pytest.raises(ExportError, match="already added"):
             out.add_mesh("skin", arm.triangles)
         out.write_frame(0, {"skin": arm.vertices})
+
+
+def test_materials_of_one_name_stay_apart_and_shared_ones_are_written_once(tmp_path):
+    from pxr import Usd, UsdShade
+
+    from warpskin.io.render import Material
+
+    red, blue = Material("Body.001", (1.0, 0.0, 0.0, 1.0)), Material("Body_001", (0.0, 0.0, 1.0, 1.0))
+    with UsdSkinWriter(tmp_path / "m.usda", root="M") as out:
+        a, b, again = out.add_material(red), out.add_material(blue), out.add_material(Material("Body.001", red.base_color))
+    assert a != b and again == a
+    stage = Usd.Stage.Open(str(tmp_path / "m.usda"))
+    colours = [tuple(UsdShade.Material(stage.GetPrimAtPath(p)).ComputeSurfaceSource()[0].GetInput("diffuseColor").Get())
+               for p in (a, b)]
+    assert colours == [(1.0, 0.0, 0.0), (0.0, 0.0, 1.0)]

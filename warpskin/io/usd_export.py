@@ -178,6 +178,7 @@ class UsdSkinWriter:
 
         _Usd.ModelAPI(self._root.GetPrim()).SetKind(Kind.Tokens.component)
         self._textures: dict[str, bytes] = {}
+        self._material_paths: dict[tuple, str] = {}
         self._animated_primvars: dict[str, dict] = {}
         if comment:
             st.GetRootLayer().comment = comment
@@ -332,9 +333,17 @@ class UsdSkinWriter:
         looks = self._root.GetPath().AppendChild("Looks")
         if not self._stage.GetPrimAtPath(looks):
             self._stage.DefinePrim(looks, "Scope")
-        path = looks.AppendChild(_prim_name(material.name))
-        if self._stage.GetPrimAtPath(path):
-            return str(path)
+        import hashlib
+
+        identity = (material.name, tuple(float(c) for c in material.base_color),
+                    hashlib.sha1(material.texture).hexdigest() if material.texture else "")
+        if identity in self._material_paths:  # the same material again (several meshes share it)
+            return self._material_paths[identity]
+        base = _prim_name(material.name)
+        path, k = looks.AppendChild(base), 1
+        while self._stage.GetPrimAtPath(path):  # another material of that (sanitised) name
+            path, k = looks.AppendChild(f"{base}_{k}"), k + 1
+        self._material_paths[identity] = str(path)
         mat = UsdShade.Material.Define(self._stage, path)
         surface = UsdShade.Shader.Define(self._stage, path.AppendChild("PreviewSurface"))
         surface.CreateIdAttr("UsdPreviewSurface")

@@ -138,12 +138,19 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
     return rig
 
 
+def _clean(name: str) -> str:
+    from ..usd_export import _prim_name
+
+    return _prim_name(name)
+
+
 def _attachments(doc: _Document, entries: list[dict], info, node_parent: np.ndarray, rig: Rig) -> list[Attachment]:
     """The character's other meshes, each following the rig's joints by LBS: meshes without a
     skin whose node hangs (directly or through non-joint nodes) from a joint (weight 1 to it),
     and other skinned meshes whose joints are all the rig's. One warning names them."""
     out: list[Attachment] = []
-    taken = {rig.mesh_name}
+    taken = {_clean(n) for n in (rig.mesh_name, "skin", "lbs", "rest", "cage", "Looks", "layers",
+                                 "layer_fat", "layer_muscle", "layer_bone")}
     n_j = rig.joint_count
     for e in entries:
         if e["name"] == rig.mesh_name or e["node"] is None:
@@ -184,9 +191,9 @@ def _attachments(doc: _Document, entries: list[dict], info, node_parent: np.ndar
             ji = np.full((points.shape[0], 1), info.joint_of_node[p], dtype=np.int64)
             jw = np.ones((points.shape[0], 1))
         name = e["node_name"] or e["name"]
-        while name in taken:
+        while _clean(name) in taken:  # unique as a prim name, and not one warpskin writes
             name += "_"
-        taken.add(name)
+        taken.add(_clean(name))
         out.append(Attachment(name=name, vertices=points, triangles=tris, joint_indices=ji, joint_weights=jw,
                               joint_offsets=offsets, render=_render_attributes(doc, tris, attrs)))
     if out:
