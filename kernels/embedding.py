@@ -2,7 +2,8 @@
 point is bound to its closest cage triangle by barycentric coordinates and an offset in the
 local frame there (the interpolated vertex normal, and the triangle's first edge made
 tangent), so that the rest pose is reproduced exactly and a rigid motion of the cage moves it
-rigidly. Evaluated every frame on the device."""
+rigidly. Evaluated every frame on the device, one launch: each point gathers its triangle's
+vertex normals itself (no normal pass, no atomics)."""
 
 import warp as wp
 
@@ -29,47 +30,36 @@ def closest_face_kernel(
         face[i] = -1
 
 
-@wp.kernel
-def accumulate_normals_kernel(
-    x: wp.array(dtype=wp.vec3),
-    triangles: wp.array2d(dtype=wp.int32),
-    # output (zeroed before)
-    normals: wp.array(dtype=wp.vec3),
-):
-    """Area-weighted face normals summed onto the vertices."""
-    t = wp.tid()
-    a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-    n = wp.cross(x[b] - x[a], x[c] - x[a])
-    wp.atomic_add(normals, a, n)
-    wp.atomic_add(normals, b, n)
-    wp.atomic_add(normals, c, n)
-
-
-@wp.func
-def local_frame(x0: wp.vec3, x1: wp.vec3, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, w: wp.vec3) -> wp.mat33:
-    """Columns: tangent (the first edge, made orthogonal to the normal), bitangent, normal (the
-    normalised interpolation of the vertex normals)."""
-    n = wp.normalize(w[0] * wp.normalize(n0) + w[1] * wp.normalize(n1) + w[2] * wp.normalize(n2))
-    e = x1 - x0
-    t = wp.normalize(e - wp.dot(e, n) * n)
-    b = wp.cross(n, t)
-    return wp.matrix_from_cols(t, b, n)
-
-
 @wp.func
 def vertex_normal(x: wp.array(dtype=wp.vec3), triangles: wp.array2d(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
                   faces: wp.array(dtype=wp.int32), v: int) -> wp.vec3:
-    """Area-weighted normal of vertex ``v``, gathered over its faces (CSR ``offsets``/``faces``)."""
+    """Area-weighted unit normal of vertex ``v``, gathered over its faces (CSR ``offsets``/``faces``)."""
     n = wp.vec3(0.0)
     for k in range(offsets[v], offsets[v + 1]):
         f = faces[k]
         a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
         n += wp.cross(x[b] - x[a], x[c] - x[a])
-    return n
+    return wp.normalize(n)
+
+
+@wp.func
+def surface_point(x: wp.array(dtype=wp.vec3), triangles: wp.array2d(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                  faces: wp.array(dtype=wp.int32), f: int, w: wp.vec3):
+    """The barycentric point ``w`` of triangle ``f`` and the local frame there, as columns:
+    tangent (the first edge, made orthogonal to the normal), bitangent, normal (the normalised
+    interpolation of the vertex normals)."""
+    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
+    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
+    n = wp.normalize(w[0] * vertex_normal(x, triangles, offsets, faces, a)
+                     + w[1] * vertex_normal(x, triangles, offsets, faces, b)
+                     + w[2] * vertex_normal(x, triangles, offsets, faces, c))
+    e = x[b] - x[a]
+    t = wp.normalize(e - wp.dot(e, n) * n)
+    return p, wp.matrix_from_cols(t, wp.cross(n, t), n)
 
 
 @wp.kernel
-def embed_gather_kernel(
+def embed_kernel(
     x: wp.array(dtype=wp.vec3),
     triangles: wp.array2d(dtype=wp.int32),
     vertex_face_offsets: wp.array(dtype=wp.int32),
@@ -80,47 +70,19 @@ def embed_gather_kernel(
     # output
     out: wp.array(dtype=wp.vec3),
 ):
-    """:func:`embed_kernel` in one launch: each point gathers its triangle's vertex normals
-    itself (no normal pass, no atomics)."""
-    i = wp.tid()
-    f = face[i]
-    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
-    w = bary[i]
-    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
-    na = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, a)
-    nb = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, b)
-    nc = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, c)
-    frame = local_frame(x[a], x[b], na, nb, nc, w)
-    out[i] = p + frame * offset[i]
-
-
-@wp.kernel
-def embed_kernel(
-    x: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
-    triangles: wp.array2d(dtype=wp.int32),
-    face: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3),
-    offset: wp.array(dtype=wp.vec3),
-    # output
-    out: wp.array(dtype=wp.vec3),
-):
-    """Render point ``i`` on the cage ``x``: the barycentric point plus its offset in the local
+    """Render point ``i`` on the cage ``x``: its barycentric point plus its offset in the local
     frame there."""
     i = wp.tid()
-    f = face[i]
-    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
-    w = bary[i]
-    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
-    frame = local_frame(x[a], x[b], normals[a], normals[b], normals[c], w)
+    p, frame = surface_point(x, triangles, vertex_face_offsets, vertex_faces, face[i], bary[i])
     out[i] = p + frame * offset[i]
 
 
 @wp.kernel
 def rest_offsets_kernel(
     x: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
     triangles: wp.array2d(dtype=wp.int32),
+    vertex_face_offsets: wp.array(dtype=wp.int32),
+    vertex_faces: wp.array(dtype=wp.int32),
     face: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3),
     points: wp.array(dtype=wp.vec3),
@@ -130,9 +92,5 @@ def rest_offsets_kernel(
     """The offsets that reproduce ``points`` on the rest cage ``x``: the inverse of
     :func:`embed_kernel` (the frame is orthonormal, so its transpose)."""
     i = wp.tid()
-    f = face[i]
-    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
-    w = bary[i]
-    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
-    frame = local_frame(x[a], x[b], normals[a], normals[b], normals[c], w)
+    p, frame = surface_point(x, triangles, vertex_face_offsets, vertex_faces, face[i], bary[i])
     offset[i] = wp.transpose(frame) * (points[i] - p)

@@ -79,34 +79,28 @@ def _parse_frames(text: str | None) -> tuple[int, int] | None:
     return first, last
 
 
-def _positive(flag: str):
-    """An argparse type: a finite number > 0, or one line naming ``flag``."""
+def _number(flag: str, *, positive: bool):
+    """An argparse type: a finite number > 0 (``positive``) or >= 0, or one line naming ``flag``."""
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f"{flag} must be a positive number, got {text!r}")
+        if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+            raise argparse.ArgumentTypeError(f"{flag} must be a {'positive number' if positive else 'number >= 0'}, "
+                                             f"got {text!r}")
         return value
 
     return parse
+
+
+def _positive(flag: str):
+    return _number(flag, positive=True)
 
 
 def _non_negative(flag: str):
-    """An argparse type: a finite number >= 0."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and value >= 0):
-            raise argparse.ArgumentTypeError(f"{flag} must be a number >= 0, got {text!r}")
-        return value
-
-    return parse
+    return _number(flag, positive=False)
 
 
 def _count(flag: str, lowest: int):

@@ -68,27 +68,19 @@ class Embedding:
             face = self._face.numpy()
             if np.any(face < 0):
                 raise InputError(f"embedding: render point {int(np.nonzero(face < 0)[0][0])} found no cage triangle")
-            self._normals = wp.zeros(self.cage_vertex_count, dtype=wp.vec3)
             self._offset = wp.zeros(self.count, dtype=wp.vec3)
             self._out = wp.zeros(self.count, dtype=wp.vec3)
-            self._update_normals(rest)
             order = np.argsort(ct.ravel(), kind="stable")  # vertex -> its faces (CSR), for the gather
             counts = np.bincount(ct.ravel(), minlength=self.cage_vertex_count)
             self._vf_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), dtype=wp.int32)
             self._vf_faces = wp.array((order // 3).astype(np.int32), dtype=wp.int32)
             wp.launch(k.rest_offsets_kernel, dim=self.count,
-                      inputs=[rest, self._normals, self._tris, self._face, self._bary, pts], outputs=[self._offset])
+                      inputs=[rest, self._tris, self._vf_offsets, self._vf_faces, self._face, self._bary, pts],
+                      outputs=[self._offset])
         self.face = face
         self.bary = self._bary.numpy().astype(np.float64)
         self.offset = self._offset.numpy().astype(np.float64)
         self.distance = np.linalg.norm(self.offset, axis=1)
-
-    def _update_normals(self, x: wp.array) -> None:
-        from .kernels import embedding as k
-
-        self._normals.zero_()
-        wp.launch(k.accumulate_normals_kernel, dim=self._tris.shape[0], inputs=[x, self._tris], outputs=[self._normals],
-                  device=self.device)
 
     def evaluate(self, cage_points) -> wp.array:
         """The render points on the cage ``cage_points`` (``wp.array`` of vec3 ``[V]`` on the
@@ -104,7 +96,7 @@ class Embedding:
             x = wp.array(arr, dtype=wp.vec3, device=self.device)
         elif x.shape[0] < self.cage_vertex_count:
             raise InputError(f"embedding: cage points must hold {self.cage_vertex_count} vertices, got {x.shape[0]}")
-        wp.launch(k.embed_gather_kernel, dim=self.count,
+        wp.launch(k.embed_kernel, dim=self.count,
                   inputs=[x, self._tris, self._vf_offsets, self._vf_faces, self._face, self._bary, self._offset],
                   outputs=[self._out], device=self.device)
         return self._out

@@ -16,7 +16,7 @@ from ..errors import SceneError
 from ..io.render import smoothing_groups
 from ..transforms import linear_blend_skin
 
-__all__ = ["CharacterOutput", "TOPOLOGIES", "rest_pose_points"]
+__all__ = ["CharacterOutput", "TOPOLOGIES", "rest_pose_points", "attachment_kwargs"]
 
 #: ``file``: the file's own vertices, faces and UVs (default); ``welded``: the closed surface
 #: warpskin simulates (seam-split vertices merged).
@@ -31,6 +31,19 @@ def rest_pose_points(rig) -> np.ndarray:
 
     mats = rig.skinning_matrices(Clip("rest"), 0.0)
     return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, mats)
+
+
+def attachment_kwargs(attachment) -> dict:
+    """How an attachment is declared (:meth:`CharacterOutput.declare`): smoothing groups over
+    its own seams, and its render attributes."""
+    from ..rig import weld_by_position
+
+    render = attachment.render
+    kw = {"normal_groups": smoothing_groups(weld_by_position(attachment.vertices)[1],
+                                            render.normals if render is not None else None)}
+    if render is not None:
+        kw["render"] = render
+    return kw
 
 
 class CharacterOutput:
@@ -51,7 +64,6 @@ class CharacterOutput:
         self.rest = rest_pose_points(rig)[: self.n]
         render = rig.render
         self.groups = smoothing_groups(rig.weld_map, render.normals if render is not None else None)
-        self._material_paths: list[str] | None = None
         # the character's other meshes (rigid parts, other skinned meshes), written beside the
         # skin at the clip's poses
         self.clip = clip
@@ -79,38 +91,29 @@ class CharacterOutput:
             return writer.add_mesh(name, triangles, rest_points=rest, **kw)
         if self.topology == "welded":
             return writer.add_mesh(name, triangles, rest_points=self.rest, **kw)
-        rig, render = self.rig, self.rig.render
-        tris = rig.file_triangles
+        rig = self.rig
         kw["remap"] = rig.weld_map
         kw["normal_groups"] = self.groups
-        if render is not None and render.uvs is not None:
-            kw["uvs"] = render.uvs
-        if render is not None and render.materials and kw.get("purpose") != "guide":
-            kw.pop("color", None)  # the material's colour, not the review colour
-            paths = self._materials(writer)
-            tm = render.triangle_material
-            kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
-        return writer.add_mesh(name, tris, rest_points=self.rest[rig.weld_map], **kw)
+        if rig.render is not None:
+            self._render_kwargs(writer, rig.render, kw)
+        return writer.add_mesh(name, rig.file_triangles, rest_points=self.rest[rig.weld_map], **kw)
 
     def declare_attachments(self, writer) -> None:
         """Add every attachment as a sibling mesh in its own topology, at rest in stage space."""
-        from ..rig import Clip, weld_by_position
+        from ..rig import Clip
 
         rest_world = self.rig.joint_world_transforms(Clip("rest"), 0.0)
         for a in self.attachments:
-            kw = {"normal_groups": smoothing_groups(weld_by_position(a.vertices)[1],
-                                                    a.render.normals if a.render is not None else None)}
-            if a.render is not None:
-                self._render_kwargs(writer, a.render, kw)
-            writer.add_mesh(a.name, a.triangles, rest_points=a.points(rest_world), **kw)
+            self.declare(writer, a.name, a.triangles, a.points(rest_world), attachment_kwargs(a))
 
     @staticmethod
     def _render_kwargs(writer, render, kw: dict) -> None:
-        """UVs and materials of a mesh with its own render attributes, into ``kw``."""
+        """UVs and materials of a mesh with its own render attributes, into ``kw`` (the writer
+        writes a material shared by several meshes once)."""
         if render.uvs is not None:
             kw["uvs"] = render.uvs
         if render.materials and kw.get("purpose") != "guide":
-            kw.pop("color", None)
+            kw.pop("color", None)  # the material's colour, not the review colour
             paths = [writer.add_material(m) for m in render.materials]
             tm = render.triangle_material
             kw["materials"] = [(paths[k], np.nonzero(tm == k)[0]) for k in range(len(paths)) if np.any(tm == k)]
@@ -122,7 +125,3 @@ class CharacterOutput:
         world = self.rig.joint_world_transforms(self.clip, t)
         return {a.name: a.points(world) for a in self.attachments}
 
-    def _materials(self, writer) -> list[str]:
-        if self._material_paths is None:
-            self._material_paths = [writer.add_material(m) for m in self.rig.render.materials]
-        return self._material_paths

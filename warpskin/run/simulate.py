@@ -22,7 +22,7 @@ from ..scene import Scene
 from ..solver import SolverParams
 from ..transforms import linear_blend_skin
 from .physics import PhysicsStepper
-from .output import CharacterOutput
+from .output import CharacterOutput, attachment_kwargs
 from .plan import FramePlan
 from .runner import FrameRunner
 
@@ -208,22 +208,12 @@ class _CagedCharacter:
         self.embedding = Embedding(soup.points, self.cage.vertices, self.cage.triangles, device=device)
         self.source = rig
         self.build_s = time.perf_counter() - t0
-        self._cage_rest = self.cage.vertices
-        # the simulated cage starts in bind space; the embedding was bound in rest stage space:
-        # the cage's LBS at rest is that rest (cage_rig), so frames come back in stage space
 
     def attachment_meshes(self) -> list:
-        from ..io.render import smoothing_groups
-        from ..rig import weld_by_position
-
         out = []
         for a in self.source.attachments:
             _, start, count = next(p for p in self.soup.pieces if p[0] == a.name)
-            kw = {"normal_groups": smoothing_groups(weld_by_position(a.vertices)[1],
-                                                    a.render.normals if a.render is not None else None)}
-            if a.render is not None:
-                kw["render"] = a.render  # its UVs and materials (CharacterOutput.declare)
-            out.append((a.name, a.triangles, self.soup.points[start:start + count], kw))
+            out.append((a.name, a.triangles, self.soup.points[start:start + count], attachment_kwargs(a)))
         return out
 
     def render_points(self, cage_points: np.ndarray) -> dict:
