@@ -9,6 +9,8 @@ buffers and runs the step again).
 
 import warp as wp
 
+from .skinning import lbs_point
+
 wp.set_module_options({"enable_backward": False})
 
 #: A point counts as over a triangle while its smallest barycentric coordinate is above minus
@@ -641,3 +643,195 @@ def zero_counts_kernel(
     until the host has seen it."""
     counts[0] = 0
     counts[1] = 0
+
+
+# --------------------------------------------------------------------------------------------
+# The fail-safe (after the elasticity loop and the tether): the constraints above are found
+# from a proximity and a plane-crossing test, so a vertex that slides into a neighbour's
+# triangle from behind its plane, or runs past the search radius during the constraint loop
+# (a fold at a crease, a fast knee), is never listed and the skin passes through itself. So
+# every pair of the triangles as written (the file's, for a refined skin) is tested exactly (an
+# edge of one crossing the other); the vertices of a pair that intersects now, did not at the
+# start of the step, and whose LBS does not intersect either, go back to their start
+# positions: first carried by the step's motion of their bone-layer particle (pinned to LBS,
+# so the patch keeps up with the animation instead of freezing in place), and where that still
+# intersects, held there. Later rounds look only at triangles with a vertex the last one moved
+# (a put-back vertex can expose a pair with a neighbour that moved on). Pairs whose LBS
+# intersects (the animation drives the two surfaces into each other: the Fox's paws through
+# its legs) are left to the contacts: putting them back follows the animation in, and on the
+# Fox's Run doubled the pairs. Bridson et al. 2002 and Harmon et al. 2008 use fail-safes of
+# this kind (impact zones moved rigidly); here a zone moves with its bones.
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def fail_safe_bounds_kernel(
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    carry_offset: int,
+    pad: float,
+    # outputs
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+):
+    """Boxes of the triangles over every position the fail-safe can give a vertex: the step's,
+    the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
+    by ``pad``; one refit serves all rounds."""
+    t = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for k in range(3):
+        i = tri_indices[t, k]
+        lo = wp.min(lo, wp.min(x_old[i], x[i]))
+        hi = wp.max(hi, wp.max(x_old[i], x[i]))
+        if carry_offset > 0:
+            c = x_old[i] + (x[i + carry_offset] - x_old[i + carry_offset])
+            lo = wp.min(lo, c)
+            hi = wp.max(hi, c)
+    lowers[t] = lo - wp.vec3(pad)
+    uppers[t] = hi + wp.vec3(pad)
+
+
+@wp.func
+def segment_hits_triangle(s0: wp.vec3, s1: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, tol: float) -> bool:
+    """Does segment s0-s1 cross triangle abc (Moeller-Trumbore)? ``tol`` widens (> 0) or
+    narrows (< 0) the triangle and the segment by that fraction of their parameters."""
+    d = s1 - s0
+    e1 = b - a
+    e2 = c - a
+    h = wp.cross(d, e2)
+    det = wp.dot(e1, h)
+    if wp.abs(det) <= 1.0e-12 * wp.length(e1) * wp.length(e2) * wp.length(d):
+        return False  # the segment is parallel to the plane (or degenerate)
+    inv = 1.0 / det
+    s = s0 - a
+    u = inv * wp.dot(s, h)
+    q = wp.cross(s, e1)
+    v = inv * wp.dot(d, q)
+    t = inv * wp.dot(e2, q)
+    return u >= -tol and v >= -tol and u + v <= 1.0 + tol and t >= -tol and t <= 1.0 + tol
+
+
+@wp.func
+def triangle_points_intersect(pa0: wp.vec3, pa1: wp.vec3, pa2: wp.vec3, pb0: wp.vec3, pb1: wp.vec3, pb2: wp.vec3,
+                              tol: float) -> bool:
+    """Triangles (pa0, pa1, pa2) and (pb0, pb1, pb2) intersect: an edge of one crosses the
+    other (``tol`` as in :func:`segment_hits_triangle`)."""
+    # a triangle wholly on one side of the other's plane meets nothing of it (Moeller 1997's
+    # early-out; most candidate pairs end here), widened by tol times the edge scale
+    na = wp.cross(pa1 - pa0, pa2 - pa0)
+    la = wp.length(na)
+    eps_a = tol * la * (wp.length(pb1 - pb0) + wp.length(pb2 - pb0))
+    db0 = wp.dot(na, pb0 - pa0)
+    db1 = wp.dot(na, pb1 - pa0)
+    db2 = wp.dot(na, pb2 - pa0)
+    if (db0 > eps_a and db1 > eps_a and db2 > eps_a) or (db0 < -eps_a and db1 < -eps_a and db2 < -eps_a):
+        return False
+    nb = wp.cross(pb1 - pb0, pb2 - pb0)
+    lb = wp.length(nb)
+    eps_b = tol * lb * (wp.length(pa1 - pa0) + wp.length(pa2 - pa0))
+    da0 = wp.dot(nb, pa0 - pb0)
+    da1 = wp.dot(nb, pa1 - pb0)
+    da2 = wp.dot(nb, pa2 - pb0)
+    if (da0 > eps_b and da1 > eps_b and da2 > eps_b) or (da0 < -eps_b and da1 < -eps_b and da2 < -eps_b):
+        return False
+    return (segment_hits_triangle(pa0, pa1, pb0, pb1, pb2, tol) or segment_hits_triangle(pa1, pa2, pb0, pb1, pb2, tol)
+            or segment_hits_triangle(pa2, pa0, pb0, pb1, pb2, tol) or segment_hits_triangle(pb0, pb1, pa0, pa1, pa2, tol)
+            or segment_hits_triangle(pb1, pb2, pa0, pa1, pa2, tol) or segment_hits_triangle(pb2, pb0, pa0, pa1, pa2, tol))
+
+
+@wp.func
+def triangles_intersect(x: wp.array(dtype=wp.vec3), a0: int, a1: int, a2: int, b0: int, b1: int, b2: int,
+                        tol: float) -> bool:
+    """Two triangles (vertex indices into ``x``) intersect: an edge of one crosses the other."""
+    return triangle_points_intersect(x[a0], x[a1], x[a2], x[b0], x[b1], x[b2], tol)
+
+
+@wp.kernel
+def new_intersections_kernel(
+    bvh: wp.uint64,
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    tol: float,
+    moved: wp.array(dtype=wp.int32),
+    only_moved: int,
+    rest: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    # outputs
+    revert: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """One thread per triangle: pairs with a higher-numbered triangle (no shared vertex) that
+    intersect at ``x`` (widened by ``tol``), did not at ``x_old`` (narrowed by it), and whose
+    LBS (``rest`` skinned by ``skin_matrices``; widened by ``tol``) does not intersect, mark their six vertices in
+    ``revert``; ``count`` adds the pairs. With ``only_moved`` (the
+    rounds after the first) only triangles with a vertex the last round ``moved`` look, at
+    every other triangle: no other pair can have changed."""
+    t = wp.tid()
+    a0 = tri_indices[t, 0]
+    a1 = tri_indices[t, 1]
+    a2 = tri_indices[t, 2]
+    if only_moved != 0 and moved[a0] == 0 and moved[a1] == 0 and moved[a2] == 0:
+        return
+    query = wp.bvh_query_aabb(bvh, lowers[t], uppers[t])
+    u = int(0)
+    while wp.bvh_query_next(query, u):
+        if u == t or (only_moved == 0 and u < t):
+            continue
+        b0 = tri_indices[u, 0]
+        b1 = tri_indices[u, 1]
+        b2 = tri_indices[u, 2]
+        if a0 == b0 or a0 == b1 or a0 == b2 or a1 == b0 or a1 == b1 or a1 == b2 or a2 == b0 or a2 == b1 or a2 == b2:
+            continue
+        if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,
+                                                                                           -tol):
+            # where the animation itself drives the two through each other (their LBS
+            # intersects), putting them back would follow it in: that is the contacts' part
+            la0 = lbs_point(rest[a0], joint_indices, joint_weights, a0, skin_matrices)
+            la1 = lbs_point(rest[a1], joint_indices, joint_weights, a1, skin_matrices)
+            la2 = lbs_point(rest[a2], joint_indices, joint_weights, a2, skin_matrices)
+            lb0 = lbs_point(rest[b0], joint_indices, joint_weights, b0, skin_matrices)
+            lb1 = lbs_point(rest[b1], joint_indices, joint_weights, b1, skin_matrices)
+            lb2 = lbs_point(rest[b2], joint_indices, joint_weights, b2, skin_matrices)
+            if triangle_points_intersect(la0, la1, la2, lb0, lb1, lb2, tol):
+                continue
+            revert[a0] = 1
+            revert[a1] = 1
+            revert[a2] = 1
+            revert[b0] = 1
+            revert[b1] = 1
+            revert[b2] = 1
+            wp.atomic_add(count, 0, 1)
+
+
+@wp.kernel
+def revert_kernel(
+    x_old: wp.array(dtype=wp.vec3),
+    carry_offset: int,
+    # outputs
+    revert: wp.array(dtype=wp.int32),
+    carried: wp.array(dtype=wp.int32),
+    moved: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.vec3),
+):
+    """Marked skin vertices back to their start-of-step positions: the first time in a step
+    carried by the step's motion of their bone-layer particle (index + ``carry_offset``;
+    pinned to LBS, so the zone keeps up with the animation), marked again (the carried patch
+    still intersects) or without inner layers (``carry_offset`` 0) held there. ``moved`` says
+    which vertices this round moved; clears the marks."""
+    i = wp.tid()
+    if revert[i] != 0:
+        if carry_offset > 0 and carried[i] == 0:
+            j = i + carry_offset
+            x[i] = x_old[i] + (x[j] - x_old[j])
+            carried[i] = 1
+        else:
+            x[i] = x_old[i]
+        revert[i] = 0
+        moved[i] = 1
+    else:
+        moved[i] = 0

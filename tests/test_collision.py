@@ -261,6 +261,90 @@ def test_detected_point_triangle_pairs_match_brute_force(device):
         assert (x[i] - p0[t]) @ n[t] < col.radius * 1.001
 
 
+def _pushed_through(device, rounds=4):
+    """The coarse arm at rest and the same skin one step later: everything translated by T
+    (bones included), and a patch of forearm skin pushed through the far side of the forearm
+    (2.6 tissue depths along minus its normal). Returns the rig, the collision, both states,
+    T, the patch and its centre vertex."""
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig, ModelParams(volume=False))
+    builder.params.collision = CollisionParams(fail_safe_rounds=rounds)
+    model = builder.finalize(device)
+    col = SelfCollision(model)
+    v = rig.vertex_count
+    a, b = model.state(), model.state()
+    initial_state(builder, a, rig.skinning_matrices("flex", 0.0))
+    x0 = a.x.numpy().astype(np.float64)
+    axis = np.argmax(np.ptp(x0[:v], axis=0))  # the arm's length
+    lo, hi = x0[:v, axis].min(), x0[:v, axis].max()
+    c = int(np.argmin(np.abs(x0[:v, axis] - (lo + 0.8 * (hi - lo))) + 1e-3 * np.arange(v) / v))  # mid-forearm
+    depth = np.linalg.norm(x0[c] - x0[3 * v + c])
+    normal = (x0[c] - x0[3 * v + c]) / depth
+    patch = np.nonzero(np.linalg.norm(x0[:v] - x0[c], axis=1) < 0.5 * depth)[0]
+    shift = np.array([0.011, -0.007, 0.005]) * rig.size()
+    x1 = x0 + shift
+    x1[patch] -= 2.6 * depth * normal
+    b.x.assign(x1.astype(np.float32))
+    # the step's pose: the rest pose translated by T (LBS: the clean skin moved along)
+    mats = rig.skinning_matrices("flex", 0.0).copy()
+    mats[:, :3, 3] += shift  # translation after the skinning matrix
+    return rig, col, a, b, shift, patch, wp.array(mats.astype(np.float32), dtype=wp.mat44, device=device)
+
+
+def test_fail_safe_puts_back_a_patch_pushed_through_and_carries_it_with_its_bones(device):
+    # a clean skin, one step later translated by T with a patch pushed through the far side of
+    # the forearm: after the fail-safe no pair intersects (exact float64 check,
+    # solver-independent), every vertex of a new pair is where it started plus T (its bone
+    # particle's motion), every vertex far from the patch is untouched, the inner layers too
+    rig, col, a, b, shift, patch, mats = _pushed_through(device)
+    v = rig.vertex_count
+    tris = rig.triangles
+    x0, x1 = a.x.numpy().astype(np.float64), b.x.numpy().astype(np.float64)
+    assert len(self_intersections(x0[:v], tris)) == 0
+    new = self_intersections(x1[:v], tris)
+    assert len(new) > 10 and len(patch) >= 3
+    col.fail_safe(a.x, b.x, mats)
+    x = b.x.numpy().astype(np.float64)
+    after = self_intersections(x[:v], tris)
+    print(f"patch {len(patch)} vertices, new pairs {len(new)}, after the fail-safe {len(after)}, "
+          f"pairs found {int(col.fail_safe_pairs.numpy()[0])}")
+    assert len(after) == 0
+    np.testing.assert_array_equal(x[v:], x1[v:])
+    tol = 1e-6 * rig.size()
+    carried = np.linalg.norm(x[:v] - (x0[:v] + shift), axis=1) < tol
+    kept = np.linalg.norm(x[:v] - x1[:v], axis=1) < tol  # (a vertex carried to x1 differs by rounding)
+    assert np.all(carried | kept)
+    assert np.all(carried[np.unique(tris[new.ravel()])]) and np.all(carried[patch])
+    # a local repair: only the pushed patch changes (the far side's vertices, put back too, are
+    # carried to where the step had them)
+    assert set(np.nonzero(~kept)[0].tolist()) == set(patch.tolist())
+    assert int(col.fail_safe_pairs.numpy()[0]) >= len(new)
+
+
+def test_fail_safe_leaves_pairs_the_animation_drives_through_each_other(device):
+    # the coarse arm's LBS from 1.2 s to 1.5 s presses the forearm through the upper arm: every
+    # new pair intersects under LBS too (the step is LBS), so the fail-safe leaves them all to
+    # the contacts and changes nothing
+    rig, col, contacts, a, b = _pressed_arm(device, 1 << 15)
+    v = rig.vertex_count
+    x0, x1 = a.x.numpy().copy(), b.x.numpy().copy()  # (a CPU array's numpy() is a view)
+    new = {tuple(p) for p in self_intersections(x1[:v], rig.triangles).tolist()} - \
+        {tuple(p) for p in self_intersections(x0[:v], rig.triangles).tolist()}
+    assert len(new) > 10
+    mats = wp.array(rig.skinning_matrices("flex", 1.5).astype(np.float32), dtype=wp.mat44, device=device)
+    col.fail_safe(a.x, b.x, mats)
+    np.testing.assert_array_equal(b.x.numpy(), x1)
+    assert int(col.fail_safe_pairs.numpy()[0]) == 0
+
+
+def test_fail_safe_off_keeps_the_step(device):
+    rig, col, a, b, shift, patch, mats = _pushed_through(device, rounds=0)
+    x1 = b.x.numpy().copy()  # (a CPU array's numpy() is a view)
+    col.fail_safe(a.x, b.x, mats)
+    np.testing.assert_array_equal(b.x.numpy(), x1)
+    assert int(col.fail_safe_pairs.numpy()[0]) == 0
+
+
 def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path, device):
     # the shipped arm scene at its full resolution (2918 vertices, the paper's 2916), with its
     # own solver settings: flexed to 150 degrees (frame 45) and held (to frame 60); every frame
@@ -304,10 +388,10 @@ def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path, de
 
 
 def test_simulate_grows_overflowing_contact_buffers_and_repeats_the_frame(tmp_path, device):
-    # the coarse arm pressed to 150 degrees with buffers for 8 candidates: every overflow grows
+    # the coarse arm pressing to 150 degrees with buffers for 8 candidates: every overflow grows
     # them and repeats the frame from its start (re-capturing the graphs), so the run equals one
     # whose buffers never overflowed (bit for bit on the CPU, where the contact order is fixed)
-    text = COARSE + "frames = [40, 46]\n[solver]\niterations = 4\n[collision]\ncapacity = {}\n"
+    text = COARSE + "frames = [36, 46]\n[solver]\niterations = 4\n[collision]\ncapacity = {}\n"
     runs = []
     for cap in (8, 1 << 16):
         p = tmp_path / f"cap{cap}.toml"
@@ -318,7 +402,7 @@ def test_simulate_grows_overflowing_contact_buffers_and_repeats_the_frame(tmp_pa
     assert small.summary["collision_capacity"] >= 256 and small.summary["graph_capture"]
     stages = [Usd.Stage.Open(str(r.path)) for r in runs]
     pts = [UsdGeom.Mesh(prim(s, "skin")).GetPointsAttr() for s in stages]
-    for t in range(7):
+    for t in range(11):
         a, b = np.array(pts[0].Get(t)), np.array(pts[1].Get(t))
         if device == "cpu":
             np.testing.assert_array_equal(a, b)
@@ -333,6 +417,9 @@ def test_collision_params_rejected():
         CollisionParams(restitution=2.0).check()
     with pytest.raises(Exception, match=r"fold_cos must be in \[-1, 1\]"):
         CollisionParams(fold_cos=1.5).check()
+    for bad in (-1, 1.5, "4", True):
+        with pytest.raises(Exception, match="fail_safe_rounds must be an integer >= 0"):
+            CollisionParams(fail_safe_rounds=bad).check()
 
 
 def _folded_strip(angle_deg: float, *, jitter: float = 0.02, row_shift: float = 0.41):
@@ -513,16 +600,26 @@ def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path, d
 
 def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets, device):
     # CesiumMan's first walk pose passes the skin through itself under LBS; the scene's 0.5 s
-    # pre-roll from the (clean) bind pose reaches it by collision
+    # pre-roll from the (clean) bind pose reaches it by collision. Frames 7-12 bend the knees:
+    # the contact constraints alone kept 8 pairs there (at the back of the knees), which the
+    # fail-safe removes, carrying the skin along (the skin stays within 5 % of the diagonal
+    # of LBS, and no sub-volume worse than LBS's)
     scene = load_scene("cesium_man")
     rig = scene.rig()
     assert scene.preroll == 0.5 and len(self_intersections(rig.vertices, rig.triangles)) == 0
-    result = simulate(scene, tmp_path / "walk.usdc", device=device, frames=(1, 2), with_lbs=True,
+    result = simulate(scene, tmp_path / "walk.usdc", device=device, frames=(1, 13), with_lbs=True,
                       check_intersections=True, progress=False)
-    m = result.metrics
-    print(f"CesiumMan frames 1-2: intersecting pairs {m['intersecting_pairs']}, LBS {m['intersecting_pairs_lbs']}")
+    m, s = result.metrics, result.summary
+    print(f"CesiumMan frames 1-13: intersecting pairs {m['intersecting_pairs']}, LBS {m['intersecting_pairs_lbs']}, "
+          f"fail-safe pairs per frame {m['fail_safe_pairs']}, offset {max(m['max_offset_from_lbs']) / s['body_diagonal_m']:.3f}")
     assert min(m["intersecting_pairs_lbs"]) > 40
     assert max(m["intersecting_pairs"]) == 0
+    assert s["fail_safe_pairs"] > 0 and s["fail_safe_pairs"] >= sum(m["fail_safe_pairs"])
+    assert max(m["max_offset_from_lbs"]) <= 0.05 * s["body_diagonal_m"]
+    rest = np.array(m["subvolume_rest"])
+    sub = np.abs(np.array(m["subvolume"]) / rest - 1).max(axis=1)
+    sub_lbs = np.abs(np.array(m["subvolume_lbs"]) / rest - 1).max(axis=1)
+    assert np.all(sub <= sub_lbs + 1e-3)
 
 
 def test_preroll_from_a_self_intersecting_bind_pose_warns(tmp_path):

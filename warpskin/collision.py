@@ -65,6 +65,14 @@ class CollisionParams:
             through the other leg) cannot keep its volume at all and turns inside out. 0.05
             keeps it (the paw within 1e-4) and the arm's crease free of intersections (at 0.1
             the coarse test arm's pre-roll keeps 2 pairs, at 0.3 the arm has 200).
+        fail_safe_rounds: After the elasticity loop of every step, pairs of the skin's
+            triangles as written that intersect, did not at the start of the step and do not
+            under LBS are found exactly and their vertices put back where they started (carried
+            along by their bones, held where that still intersects), in up to this many rounds
+            (:meth:`SelfCollision.fail_safe`); 0 turns it off. The constraints alone miss a
+            vertex that slides into a neighbouring triangle from behind its plane or runs past
+            the search radius in the constraint loop (CesiumMan's walk kept 8 pairs at the back
+            of its knees for six frames; now none).
     """
 
     enabled: bool = True
@@ -79,6 +87,7 @@ class CollisionParams:
     rebuild_spread: float = 0.1
     passes: int = 4
     volume_weight: float = 0.05
+    fail_safe_rounds: int = 4
 
     def check(self, where: str = "collision") -> None:
         if self.thickness is not None and not (math.isfinite(self.thickness) and self.thickness > 0):
@@ -98,6 +107,8 @@ class CollisionParams:
             raise SceneError(f"{where}: volume_weight must be in [0, 1], got {self.volume_weight!r}")
         if isinstance(self.passes, bool) or int(self.passes) != self.passes or self.passes < 1:
             raise SceneError(f"{where}: passes must be an integer >= 1, got {self.passes!r}")
+        if isinstance(self.fail_safe_rounds, bool) or not isinstance(self.fail_safe_rounds, int) or self.fail_safe_rounds < 0:
+            raise SceneError(f"{where}: fail_safe_rounds must be an integer >= 0, got {self.fail_safe_rounds!r}")
         if isinstance(self.capacity, bool) or int(self.capacity) != self.capacity or self.capacity < 1:
             raise SceneError(f"{where}: capacity must be a positive integer, got {self.capacity!r}")
 
@@ -164,7 +175,8 @@ class CollisionData:
         edge_indices ``[E, 2]``, tri_edges ``[T, 3]``, edge_owner ``[E]``, rigid_bone ``[V]``
         (the bone a vertex moves rigidly with, else -1), rest_lowers/rest_uppers ``[T]`` (rest
         triangle boxes); thickness [m], radius [m] (search radius), rest_gap [m], fold_cos,
-        friction, restitution, passes, rebuild_spread; edge_count, triangle_count; diagonal [m].
+        friction, restitution, passes, rebuild_spread, fail_safe_rounds;
+        edge_count, triangle_count; diagonal [m].
     """
 
 
@@ -183,6 +195,7 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
     d.passes = int(params.passes)
     d.volume_weight = float(params.volume_weight)
     d.rebuild_spread = float(params.rebuild_spread)
+    d.fail_safe_rounds = int(params.fail_safe_rounds)
     d.diagonal = topo.diagonal
     d.edge_count = int(topo.edges.shape[0])
     d.triangle_count = int(tris.shape[0])
@@ -194,6 +207,13 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
         d.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
         d.rest_lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
         d.rest_uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
+        # the fail-safe tests the surface as written: the file's triangles of a refined skin
+        # (chords of the simulated one: RobotExpressive's refined hand folds within them,
+        # invisibly, and putting those folds back crossed the chords), else the skin's own
+        out = np.asarray(rig.output_triangles)
+        d.output_triangles = None if out.shape == tris.shape and np.array_equal(out, tris) else \
+            wp.array(out.astype(np.int32), dtype=wp.int32)
+        d.output_triangle_count = int(out.shape[0])
     return d
 
 
@@ -216,10 +236,29 @@ class SelfCollision:
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
+            self.revert = wp.zeros(v, dtype=wp.int32)
+            self.moved = wp.zeros(v, dtype=wp.int32)
+            self.carried = wp.zeros(v, dtype=wp.int32)
+            # running count of the pairs the fail-safe found (read and reset by the caller)
+            self.fail_safe_pairs = wp.zeros(1, dtype=wp.int32)
         # the skin the tree was built for (host, read once: the rest skin the model uploaded)
         self._built_at = model.particle_q0.numpy()[:v].astype(np.float64)
         self.rebuilds = 0
         self.thickness, self.radius, self.rest_gap = c.thickness, c.radius, c.rest_gap
+        # the fail-safe carries a skin vertex by its bone-layer particle (layer-major: + 3 V),
+        # on the written triangles (a tree of their own where the skin was refined)
+        self._carry = 3 * v if model.particle_count >= 4 * v else 0
+        if c.output_triangles is None:
+            self._fs_tris, self._fs_lowers, self._fs_uppers, self._fs_bvh = model.tri_indices, self.lowers, self.uppers, None
+        else:
+            with wp.ScopedDevice(self.device):
+                self._fs_tris = c.output_triangles
+                self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
+                self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
+                wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
+                          inputs=[model.particle_q0, model.particle_q0, self._fs_tris, c.thickness],
+                          outputs=[self._fs_lowers, self._fs_uppers])
+                self._fs_bvh = wp.Bvh(self._fs_lowers, self._fs_uppers)
 
     def maybe_rebuild(self, skin: np.ndarray) -> bool:
         """Host check between frames (never inside a captured graph): rebuild the BVH in place
@@ -282,6 +321,35 @@ class SelfCollision:
                           c.thickness],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
+
+    def fail_safe(self, x_old: wp.array, x: wp.array, skin_matrices: wp.array) -> None:
+        """Put back the vertices of every pair of the written skin triangles that intersects at
+        ``x``, did not at ``x_old`` and does not under LBS (``skin_matrices``, this step's
+        pose): to ``x_old`` plus the step's motion of their bone-layer particles, and where
+        that still intersects, to ``x_old``; in ``fail_safe_rounds`` rounds (see
+        :func:`warpskin.kernels.collision.new_intersections_kernel`). Adds the pairs found to
+        :attr:`fail_safe_pairs`. Pairs that already intersected at ``x_old``, or under LBS,
+        are left to the constraints."""
+        c = self.data
+        if c.fail_safe_rounds <= 0:
+            return
+        dev = self.device
+        m = self.model
+        bvh = self.bvh if self._fs_bvh is None else self._fs_bvh
+        tris, lowers, uppers, count = self._fs_tris, self._fs_lowers, self._fs_uppers, c.output_triangle_count
+        self.carried.zero_()
+        # boxes over the step's, the start's and the carried positions (padded by a thousandth of
+        # the thickness against float rounding): one refit for all rounds
+        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, self._carry, 1.0e-3 * c.thickness],
+                  outputs=[lowers, uppers], device=dev)
+        bvh.refit()
+        for r in range(c.fail_safe_rounds):
+            wp.launch(k.new_intersections_kernel, dim=count,
+                      inputs=[bvh.id, x_old, x, tris, lowers, uppers, 1.0e-4, self.moved, int(r > 0), m.particle_q0,
+                              m.coupling_joint_indices, m.coupling_joint_weights, skin_matrices],
+                      outputs=[self.revert, self.fail_safe_pairs], device=dev)
+            wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, self._carry],
+                      outputs=[self.revert, self.carried, self.moved, x], device=dev)
 
     def volume_weights(self, contacts, weight_scale: wp.array) -> None:
         wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0], inputs=[contacts.colliding, self.data.volume_weight],

@@ -76,7 +76,7 @@ _SCHEMA: dict[str, set[str]] = {
                "max_volume_error", "max_speed"},
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
-                  "fold_cos", "rebuild_spread", "volume_weight"},
+                  "fold_cos", "rebuild_spread", "volume_weight", "fail_safe_rounds"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }

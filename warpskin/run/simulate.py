@@ -61,12 +61,14 @@ class _Measurements:
         self.diagonal = builder.rig.size()
         self._pending: dict = {}
         self._clamped = int(stepper.solver.tether_clamped.numpy()[0])  # the pre-roll's
+        col = stepper.collision
+        self._fail_safe = int(col.fail_safe_pairs.numpy()[0]) if col is not None else 0
         rig = builder.rig
         subs = builder.subvolumes
         self.m: dict = {k: [] for k in ("time", "frame", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
                                          "max_offset_from_lbs", "relative_speed_rms", "step_ms", "residuals",
                                          "contacts_point_triangle", "contacts_edge_edge", "constraints_active", "intersecting_pairs",
-                                         "intersecting_pairs_lbs", "tether_clamped")}
+                                         "intersecting_pairs_lbs", "tether_clamped", "fail_safe_pairs")}
         self.m["volume_rest"] = signed_volume(rig.vertices[: rig.output_count], rig.output_triangles)
         self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
         self.lbs: np.ndarray | None = None
@@ -182,6 +184,10 @@ class _Measurements:
         clamped = int(st.solver.tether_clamped.numpy()[0])  # a running count: this frame's share
         m["tether_clamped"].append(clamped - self._clamped)
         self._clamped = clamped
+        if st.collision is not None:  # pairs the fail-safe put back in this frame (running count)
+            fs = int(st.collision.fail_safe_pairs.numpy()[0])
+            m["fail_safe_pairs"].append(fs - self._fail_safe)
+            self._fail_safe = fs
         c = st.contacts
         if c is not None:
             counts = c.counts.numpy()
@@ -418,6 +424,7 @@ def simulate(
         "preroll_s": stepper.preroll,
         "preroll_steps": stepper.preroll_steps,
         "bvh_rebuilds": col.rebuilds if col is not None else 0,
+        "fail_safe_pairs": int(col.fail_safe_pairs.numpy()[0]) if col is not None else 0,
         "tether": params.tether,
         "tether_clamped_particle_steps": int(stepper.solver.tether_clamped.numpy()[0]),
         "max_offset_from_lbs_m": float(max(metrics["max_offset_from_lbs"])) if metrics["max_offset_from_lbs"] else 0.0,
