@@ -99,8 +99,9 @@ def test_after_a_step_every_particle_is_within_its_tether(device):
 
 def test_with_the_volume_loop_no_skin_particle_ends_a_step_beyond_the_cap(device):
     # the volume loop runs after the tether and restores a sub-volume through the particles it
-    # may move; the cap (tether_max x diagonal) holds again after it, so no skin particle ends
-    # a step farther than that from its LBS target (NumPy LBS), however hard it was thrown
+    # may move; the cap (tether_max x diagonal) follows every volume iteration, so no skin
+    # particle ends a step farther than that from its LBS target (NumPy LBS), however hard it
+    # was thrown
     rig = coarse_arm()
     builder = SkinModelBuilder(rig)
     model = builder.finalize(device)
