@@ -72,7 +72,8 @@ class CollisionParams:
             (:meth:`SelfCollision.fail_safe`); 0 turns it off. The constraints alone miss a
             vertex that slides into a neighbouring triangle from behind its plane or runs past
             the search radius in the constraint loop (CesiumMan's walk kept 8 pairs at the back
-            of its knees for six frames; now none).
+            of its knees for six frames; now none). ``simulate`` turns it off on an automatic
+            cage unless the scene sets it (CesiumMan's cage: 42 pairs without it, 119 with it).
     """
 
     enabled: bool = True
