@@ -173,10 +173,6 @@ class SkinSolver:
                 from .collision import SelfCollision
 
                 self.collision = SelfCollision(model)
-        # a second fail-safe pass after the volume loop, which can push a pair through (the
-        # pre-roll sets it, so that the first frame starts clean: RiggedFigure's ended with 4
-        # pairs; on every step it lost the Fox Run's foot 45 % of its volume, exit 3)
-        self.late_fail_safe = False
         g = self.params.gravity
         self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
 
@@ -333,8 +329,6 @@ class SkinSolver:
                               inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights,
                                       control.skin_matrices, self.tether_cap, m.vertex_count],
                               outputs=[state_out.x, self.tether_clamped], device=dev)
-        if col is not None and self.late_fail_safe:
-            col.fail_safe(state_in.x, state_out.x, control.skin_matrices)
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],

@@ -320,7 +320,7 @@ def simulate(
     elif caged is not None and "fail_safe_rounds" not in scene.extra.get("collision", {}):
         # a cage lies outside the skin, so its LBS passes through itself far more (CesiumMan's:
         # 339 pairs against 98), and there the fail-safe leaves more pairs than it removes (42
-        # without it, 119 with it): off on a cage unless the scene asks for it
+        # without it, 95 with it): off on a cage unless the scene asks for it
         builder.params.collision.fail_safe_rounds = 0
     model = builder.finalize(device)
     build_s = time.perf_counter() - t_build
