@@ -770,7 +770,8 @@ def new_intersections_kernel(
     LBS (``rest`` skinned by ``skin_matrices``; widened by ``tol``) does not intersect, mark their six vertices in
     ``revert``; ``count`` adds the pairs. With ``only_moved`` (the
     rounds after the first) only triangles with a vertex the last round ``moved`` look, at
-    every other triangle: no other pair can have changed."""
+    every other triangle (a pair of two such, from the lower-numbered one): no other pair can
+    have changed."""
     t = wp.tid()
     a0 = tri_indices[t, 0]
     a1 = tri_indices[t, 1]
@@ -785,6 +786,8 @@ def new_intersections_kernel(
         b0 = tri_indices[u, 0]
         b1 = tri_indices[u, 1]
         b2 = tri_indices[u, 2]
+        if u < t and (moved[b0] != 0 or moved[b1] != 0 or moved[b2] != 0):
+            continue  # both moved: thread u tests the pair (each pair once)
         if a0 == b0 or a0 == b1 or a0 == b2 or a1 == b0 or a1 == b1 or a1 == b2 or a2 == b0 or a2 == b1 or a2 == b2:
             continue
         if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,

@@ -614,7 +614,7 @@ def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets, device
           f"fail-safe pairs per frame {m['fail_safe_pairs']}, offset {max(m['max_offset_from_lbs']) / s['body_diagonal_m']:.3f}")
     assert min(m["intersecting_pairs_lbs"]) > 40
     assert max(m["intersecting_pairs"]) == 0
-    assert s["fail_safe_pairs"] > 0 and s["fail_safe_pairs"] >= sum(m["fail_safe_pairs"])
+    assert sum(m["fail_safe_pairs"]) > 0  # it acted in the written frames (the knee bend)
     assert max(m["max_offset_from_lbs"]) <= 0.05 * s["body_diagonal_m"]
     rest = np.array(m["subvolume_rest"])
     sub = np.abs(np.array(m["subvolume"]) / rest - 1).max(axis=1)

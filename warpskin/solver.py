@@ -42,11 +42,12 @@ class SolverParams:
         volume_stiffness: Stiffness of the volume constraints in [0, 1].
         tether: Every particle stays within ``tether x its vertex's tissue depth + tether_floor
             x the body's diagonal`` of its LBS target (a maximum-distance constraint, applied
-            once per step between the elasticity and the volume loop; the volume loop may then
-            move a particle past it by its sub-volume's correction), so that no part swings far from the
+            once per step after the elasticity loop; the volume loop may then move a particle
+            past it by its sub-volume's correction), so that no part swings far from the
             animation and thin tissue (head, hands, feet) wobbles less than the bulk; 0 turns
             it off. Tissue depth: the distance from the skin vertex to its bone layer at rest.
-            Each volume iteration is followed by the cap (``tether_max``), a hard bound.
+            Each volume iteration is followed by the cap (``tether_max``), a hard bound (without
+            volume constraints, the cap follows the self-collision fail-safe).
         tether_floor: See ``tether``; a fraction of the rest bounding-box diagonal.
         tether_max: No tether radius exceeds this fraction of the diagonal, so that a run the
             tether holds is not stopped by the ``max_offset`` check (deep tissue of a
@@ -248,6 +249,14 @@ class SkinSolver:
         if self.volume is not None:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
+    def _cap(self, x: wp.array, control: Control) -> None:
+        """The tether's cap (``tether_max`` x the diagonal) on the skin particles."""
+        m = self.model
+        wp.launch(k_con.tether_kernel, dim=m.vertex_count,
+                  inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
+                          self.tether_cap, m.vertex_count],
+                  outputs=[x, self.tether_clamped], device=self.device)
+
     # ------------------------------------------------------------------ the step
     def step(self, state_in: State, state_out: State, control: Control, contacts: Contacts | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] into ``state_out`` (Algorithm 1). The caller swaps
@@ -325,10 +334,9 @@ class SkinSolver:
                 for _ in range(p.volume_iterations):
                     self.volume.project(state_out.x, m.particle_inv_mass, self.volume_weight_scale,
                                         self.volume_centres, 1, p.volume_stiffness)
-                    wp.launch(k_con.tether_kernel, dim=m.vertex_count,
-                              inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights,
-                                      control.skin_matrices, self.tether_cap, m.vertex_count],
-                              outputs=[state_out.x, self.tether_clamped], device=dev)
+                    self._cap(state_out.x, control)
+        if self.tether_radius is not None and col is not None and self.volume is None:
+            self._cap(state_out.x, control)  # what the fail-safe held back stays within the cap
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],
