@@ -635,6 +635,18 @@ def volume_weights_kernel(
 
 
 @wp.kernel
+def pin_reverted_kernel(
+    reverted: wp.array(dtype=wp.int32),
+    # outputs
+    weight_scale: wp.array(dtype=wp.float32),
+):
+    """The vertices the fail-safe put back stay put in the volume iterations that follow."""
+    i = wp.tid()
+    if reverted[i] != 0:
+        weight_scale[i] = 0.0
+
+
+@wp.kernel
 def zero_counts_kernel(
     # outputs
     counts: wp.array(dtype=wp.int32),
@@ -825,15 +837,16 @@ def revert_kernel(
     carried by the step's motion of their bone-layer particle (index + ``carry_offset``;
     pinned to LBS, so the zone keeps up with the animation), marked again (the carried patch
     still intersects) or without inner layers (``carry_offset`` 0) held there. ``moved`` says
-    which vertices this round moved; clears the marks."""
+    which vertices this round moved; ``carried`` which ones any round of the call put back
+    (zeroed by the caller); clears the marks."""
     i = wp.tid()
     if revert[i] != 0:
         if carry_offset > 0 and carried[i] == 0:
             j = i + carry_offset
             x[i] = x_old[i] + (x[j] - x_old[j])
-            carried[i] = 1
         else:
             x[i] = x_old[i]
+        carried[i] = 1
         revert[i] = 0
         moved[i] = 1
     else:

@@ -321,6 +321,30 @@ def test_fail_safe_puts_back_a_patch_pushed_through_and_carries_it_with_its_bone
     assert int(col.fail_safe_pairs.numpy()[0]) >= len(new)
 
 
+def test_fail_safe_without_carry_holds_the_pairs_and_pins_them_for_the_volume_loop(device):
+    # the pass after the volume loop (carry=False): the same pushed-through patch goes back to
+    # exactly where it was (no carrying by the bone particles, which moved by T here), no
+    # pair is left (exact float64 check), every vertex that changed is bit for bit its
+    # start, and pin_reverted gives exactly those vertices weight 0 for the volume iterations
+    rig, col, a, b, shift, patch, mats = _pushed_through(device)
+    v = rig.vertex_count
+    tris = rig.triangles
+    x0, x1 = a.x.numpy().copy(), b.x.numpy().copy()  # (a CPU array's numpy() is a view)
+    new = self_intersections(x1[:v].astype(np.float64), tris)
+    assert len(new) > 10
+    col.fail_safe(a.x, b.x, mats, carry=False)
+    x = b.x.numpy().copy()
+    assert len(self_intersections(x[:v].astype(np.float64), tris)) == 0
+    changed = np.nonzero(np.any(x[:v] != x1[:v], axis=1))[0]
+    np.testing.assert_array_equal(x[changed], x0[changed])
+    assert set(patch.tolist()) <= set(changed.tolist()) and set(np.unique(tris[new.ravel()]).tolist()) <= set(changed.tolist())
+    np.testing.assert_array_equal(x[v:], x1[v:])
+    scale = wp.ones(v, dtype=wp.float32, device=device)
+    col.pin_reverted(scale)
+    np.testing.assert_array_equal(np.nonzero(scale.numpy() == 0.0)[0], changed)
+    assert np.all(scale.numpy()[np.setdiff1d(np.arange(v), changed)] == 1.0)
+
+
 def test_fail_safe_leaves_pairs_the_animation_drives_through_each_other(device):
     # the coarse arm's LBS from 1.2 s to 1.5 s presses the forearm through the upper arm: every
     # new pair intersects under LBS too (the step is LBS), so the fail-safe leaves them all to

@@ -323,14 +323,16 @@ class SelfCollision:
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
-    def fail_safe(self, x_old: wp.array, x: wp.array, skin_matrices: wp.array) -> None:
+    def fail_safe(self, x_old: wp.array, x: wp.array, skin_matrices: wp.array, carry: bool = True) -> None:
         """Put back the vertices of every pair of the written skin triangles that intersects at
         ``x``, did not at ``x_old`` and does not under LBS (``skin_matrices``, this step's
         pose): to ``x_old`` plus the step's motion of their bone-layer particles, and where
         that still intersects, to ``x_old``; in ``fail_safe_rounds`` rounds (see
         :func:`warpskin.kernels.collision.new_intersections_kernel`). Adds the pairs found to
         :attr:`fail_safe_pairs`. Pairs that already intersected at ``x_old``, or under LBS,
-        are left to the constraints."""
+        are left to the constraints. Without ``carry`` the vertices are held at ``x_old``
+        (the pass after the volume loop, whose ``x_old`` is this step's positions before it:
+        the bone layer has not moved since)."""
         c = self.data
         if c.fail_safe_rounds <= 0:
             return
@@ -339,9 +341,10 @@ class SelfCollision:
         bvh = self.bvh if self._fs_bvh is None else self._fs_bvh
         tris, lowers, uppers, count = self._fs_tris, self._fs_lowers, self._fs_uppers, c.output_triangle_count
         self.carried.zero_()
+        carry_offset = self._carry if carry else 0
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
-        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, self._carry, 1.0e-3 * c.thickness],
+        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness],
                   outputs=[lowers, uppers], device=dev)
         bvh.refit()
         for r in range(c.fail_safe_rounds):
@@ -349,8 +352,13 @@ class SelfCollision:
                       inputs=[bvh.id, x_old, x, tris, lowers, uppers, 1.0e-4, self.moved, int(r > 0), m.particle_q0,
                               m.coupling_joint_indices, m.coupling_joint_weights, skin_matrices],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
-            wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, self._carry],
+            wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset],
                       outputs=[self.revert, self.carried, self.moved, x], device=dev)
+
+    def pin_reverted(self, weight_scale: wp.array) -> None:
+        """Pin (``weight_scale`` 0) the vertices the last :meth:`fail_safe` put back."""
+        wp.launch(k.pin_reverted_kernel, dim=self.model.vertex_count, inputs=[self.carried], outputs=[weight_scale],
+                  device=self.device)
 
     def volume_weights(self, contacts, weight_scale: wp.array) -> None:
         wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0], inputs=[contacts.colliding, self.data.volume_weight],
