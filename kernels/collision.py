@@ -635,6 +635,19 @@ def volume_weights_kernel(
 
 
 @wp.kernel
+def moved_farther_kernel(
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    distance: float,
+    # outputs
+    moved: wp.array(dtype=wp.int32),
+):
+    """``moved``: 1 where a skin vertex is farther than ``distance`` from ``x_old``."""
+    i = wp.tid()
+    moved[i] = wp.where(wp.length_sq(x[i] - x_old[i]) > distance * distance, 1, 0)
+
+
+@wp.kernel
 def pin_reverted_kernel(
     reverted: wp.array(dtype=wp.int32),
     # outputs

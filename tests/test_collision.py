@@ -345,6 +345,26 @@ def test_fail_safe_without_carry_holds_the_pairs_and_pins_them_for_the_volume_lo
     assert np.all(scale.numpy()[np.setdiff1d(np.arange(v), changed)] == 1.0)
 
 
+def test_fail_safe_min_move_looks_only_from_triangles_that_moved(device):
+    # the pushed patch moved by T plus 2.6 tissue depths, the rest by T: with min_move just
+    # above |T| only the patch's triangles look, and they find every pair (the same result as
+    # looking from all); with min_move above the push, no triangle looks and nothing changes
+    results = []
+    for factor in (None, 1.05, 40.0):
+        rig, col, a, b, shift, patch, mats = _pushed_through(device)
+        x1 = b.x.numpy().copy()  # (a CPU array's numpy() is a view)
+        depth = np.linalg.norm(x1[patch[0]] - shift - a.x.numpy()[patch[0]]) / 2.6
+        assert np.linalg.norm(shift) * 40.0 > 2.7 * depth + np.linalg.norm(shift)
+        mm = None if factor is None else factor * float(np.linalg.norm(shift))
+        col.fail_safe(a.x, b.x, mats, carry=False, min_move=mm)
+        results.append((b.x.numpy().copy(), int(col.fail_safe_pairs.numpy()[0]), x1))
+    (x_all, n_all, _), (x_moved, n_moved, _), (x_none, n_none, x1) = results
+    np.testing.assert_array_equal(x_moved, x_all)
+    assert n_moved == n_all > 10
+    np.testing.assert_array_equal(x_none, x1)
+    assert n_none == 0
+
+
 def test_fail_safe_leaves_pairs_the_animation_drives_through_each_other(device):
     # the coarse arm's LBS from 1.2 s to 1.5 s presses the forearm through the upper arm: every
     # new pair intersects under LBS too (the step is LBS), so the fail-safe leaves them all to

@@ -348,7 +348,8 @@ class SkinSolver:
             # found them, pinned, and the loop runs again so that the others restore what they
             # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %)
             if col is not None and col.data.fail_safe_rounds > 0:
-                col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False)
+                col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
+                              min_move=1.0e-2 * col.data.thickness)
                 col.pin_reverted(self.volume_weight_scale)
                 self._volume_loop(state_out.x, control)
         if self.tether_radius is not None and col is not None and self.volume is None:
