@@ -28,3 +28,20 @@ def winding_distance_field_kernel(
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         value = q.sign * wp.min(wp.length(p - closest), max_dist)
     field[i, j, k] = value
+
+
+@wp.kernel
+def inside_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    # output
+    inside: wp.array(dtype=wp.int32),
+):
+    """``inside[i]``: 1 where ``points[i]`` is inside the closed ``mesh`` (winding number above
+    1/2), else 0."""
+    i = wp.tid()
+    q = wp.mesh_query_point_sign_winding_number(mesh, points[i], max_dist, 2.0, 0.5)
+    inside[i] = 0
+    if q.result and q.sign < 0.0:
+        inside[i] = 1

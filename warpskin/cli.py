@@ -118,6 +118,21 @@ def _count(flag: str, lowest: int):
     return parse
 
 
+def _cage_arg(text: str):
+    """An argparse type: ``auto``, ``always``, ``none``, or an existing cage mesh file."""
+    from .io.cage_file import CAGE_EXTENSIONS
+
+    if text in ("auto", "always", "none"):
+        return text
+    path = Path(text)
+    if path.suffix.lower() not in CAGE_EXTENSIONS:
+        raise argparse.ArgumentTypeError(f"--cage must be auto, always, none or a mesh file "
+                                         f"({', '.join(CAGE_EXTENSIONS)}), got {text!r}")
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"--cage {text}: no such file")
+    return path
+
+
 # ------------------------------------------------------------------------------------ commands
 def cmd_scenes(args) -> int:
     from .scene import list_scenes
@@ -452,9 +467,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--topology", choices=["file", "welded"], default="file",
                    help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
-    s.add_argument("--cage", choices=["auto", "always", "none"], default="auto",
+    s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
                    help="simulate an automatic closed cage and write every mesh embedded in it: where the skin is not "
-                        "one closed manifold (auto, the default), always (its other meshes too), or never")
+                        "one closed manifold (auto, the default), always (its other meshes too), or never; or FILE, "
+                        "your own closed cage (.obj, .glb, .gltf, .usd, .usda, .usdc, .usdz) around the character's "
+                        "rest pose, in the character file's units")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
     s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
     s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")

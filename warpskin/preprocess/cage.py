@@ -137,6 +137,77 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
                 timings_s=timings)
 
 
+def cage_from_mesh(mesh, rig, *, device=None, min_inside: float = 0.5) -> Cage:
+    """A user's own cage (:func:`warpskin.io.cage_file.read_cage_mesh`) for ``rig``: scaled as
+    the character was (``rig.meters_per_unit``), checked to be one closed, manifold,
+    consistently wound surface (an inward-wound one is turned, with one warning) that holds at
+    least ``min_inside`` of the character's points at rest (the space or the units are wrong
+    otherwise). Unused vertices are dropped.
+
+    Raises:
+        RigError: one line naming the file, what is wrong and where (the file's vertex numbers).
+    """
+    import warnings
+
+    import warp as wp
+
+    from ..errors import RigWarning
+    from ..kernels import cage as k_cage
+    from ..metrics import signed_volume
+    from ..rig import mesh_edge_report
+
+    t0 = time.perf_counter()
+    src = mesh.source
+    p = np.asarray(mesh.points, dtype=np.float64) * float(rig.meters_per_unit)
+    tri = np.asarray(mesh.triangles, dtype=np.int64)
+    ids = np.asarray(mesh.file_ids)
+    rep = mesh_edge_report(tri, p.shape[0])
+
+    def edge(e) -> str:
+        return f"between vertices {int(ids[e[0]])} and {int(ids[e[1]])}"
+
+    if len(rep["boundary_edges"]):
+        raise RigError(f"{src}: the cage is not closed: {len(rep['boundary_edges'])} boundary edges, e.g. "
+                       f"{edge(rep['boundary_edges'][0])} (the file's numbers); close its holes")
+    if len(rep["nonmanifold_edges"]):
+        raise RigError(f"{src}: the cage is not manifold: {len(rep['nonmanifold_edges'])} edges shared by more than two "
+                       f"faces, e.g. {edge(rep['nonmanifold_edges'][0])}")
+    if len(rep["nonmanifold_vertices"]):
+        raise RigError(f"{src}: the cage is not manifold at {len(rep['nonmanifold_vertices'])} vertices (their faces are "
+                       f"not one fan), e.g. vertex {int(ids[rep['nonmanifold_vertices'][0]])}")
+    if len(rep["inconsistent_edges"]):
+        raise RigError(f"{src}: the cage's faces are not wound consistently: {len(rep['inconsistent_edges'])} edges run "
+                       f"the same way in both faces, e.g. {edge(rep['inconsistent_edges'][0])}; unify its normals")
+    used = np.unique(tri.ravel())
+    remap = np.full(p.shape[0], -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    p, tri = p[used], remap[tri]
+    vol = signed_volume(p, tri)
+    if not (vol != 0.0 and math.isfinite(vol)):
+        raise RigError(f"{src}: the cage encloses no volume")
+    if vol < 0:
+        tri = tri[:, ::-1].copy()
+        warnings.warn(f"{src}: the cage's faces point inward; turned outward", RigWarning, stacklevel=2)
+    soup = character_soup(rig)
+    with wp.ScopedDevice(device):
+        wm = wp.Mesh(points=wp.array(p.astype(np.float32), dtype=wp.vec3),
+                     indices=wp.array(tri.astype(np.int32).ravel(), dtype=wp.int32), support_winding_number=True)
+        pts = wp.array(soup.points.astype(np.float32), dtype=wp.vec3)
+        inside = wp.zeros(len(soup.points), dtype=wp.int32)
+        far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([p, soup.points]), axis=0))) + 1.0
+        wp.launch(k_cage.inside_kernel, dim=len(soup.points), inputs=[wm.id, pts, far], outputs=[inside])
+        share = float(inside.numpy().mean())
+    if share < min_inside:
+        box = lambda q: "[" + ", ".join(f"{a:.3g}..{b:.3g}" for a, b in zip(q.min(0), q.max(0))) + "] m"  # noqa: E731
+        raise RigError(f"{src}: the cage holds {100 * share:.0f} % of the character's points at rest (needs at least "
+                       f"{100 * min_inside:.0f} %): cage {box(p)}, character {box(soup.points)}; model it around the "
+                       f"character's rest pose, in the character file's units")
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    mean_edge = float(np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1).mean())
+    return Cage(vertices=p, triangles=tri, edge=mean_edge, offset=0.0, build_s=time.perf_counter() - t0,
+                timings_s={"read_and_check": time.perf_counter() - t0})
+
+
 def _weld(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Merge vertices closer than ``tol`` (marching cubes emits one per cut edge and cell) and
     drop triangles that collapse."""

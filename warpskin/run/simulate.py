@@ -203,13 +203,19 @@ class _CagedCharacter:
     """A character simulated through an automatic cage: the cage rig, and every render mesh
     embedded in the cage at rest (stage space)."""
 
-    def __init__(self, rig, device) -> None:
+    def __init__(self, rig, device, cage_file=None) -> None:
         from ..embedding import Embedding
-        from ..preprocess.cage import build_cage, cage_rig, character_soup
+        from ..preprocess.cage import build_cage, cage_from_mesh, cage_rig, character_soup
 
         t0 = time.perf_counter()
         soup = character_soup(rig)
-        self.cage = build_cage(soup.points, soup.triangles, device=device)
+        if cage_file is not None:  # the user's own
+            from ..io.cage_file import read_cage_mesh
+
+            self.cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=device)
+        else:
+            self.cage = build_cage(soup.points, soup.triangles, device=device)
+        self.user_cage = cage_file is not None
         self.rig, self.soup, self.matched = cage_rig(rig, self.cage, device=device)
         self.embedding = Embedding(soup.points, self.cage.vertices, self.cage.triangles, device=device)
         self.source = rig
@@ -248,7 +254,7 @@ def simulate(
     allow_unstable: bool = False,
     start_frame: int | None = None,
     topology: str = "file",
-    cage: str = "auto",
+    cage: str | Path = "auto",
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -286,7 +292,10 @@ def simulate(
     (:class:`~warpskin.embedding.Embedding`) with the cage as a guide; a closed skin is
     simulated directly, its other meshes (attachments) following their joints by LBS.
     ``"always"`` cages any character (its attachments too); ``"none"`` never (the skin must
-    then be closed).
+    then be closed). A mesh file (:data:`~warpskin.io.cage_file.CAGE_EXTENSIONS`) is the user's
+    own cage, used as the automatic one would be
+    (:func:`~warpskin.preprocess.cage.cage_from_mesh`: closed, manifold, around the rest pose,
+    in the character file's units).
 
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
@@ -295,13 +304,18 @@ def simulate(
     """
     import time
 
-    check_output_path(out_path, inputs=scene.input_paths())  # before any work
+    cage_file = None
+    if isinstance(cage, Path) or cage not in ("auto", "always", "none"):
+        from ..errors import SceneError
+        from ..io.cage_file import CAGE_EXTENSIONS
+
+        if not isinstance(cage, (str, Path)) or Path(cage).suffix.lower() not in CAGE_EXTENSIONS:
+            raise SceneError(f"cage must be 'auto', 'always', 'none' or a mesh file ({', '.join(CAGE_EXTENSIONS)}), "
+                             f"got {cage!r}")
+        cage_file = Path(cage)
+    check_output_path(out_path, inputs=[*scene.input_paths(), *([cage_file] if cage_file else [])])  # before any work
     params = solver_params or scene.solver_params()
     params.check(str(scene.source or scene.name))
-    if cage not in ("auto", "always", "none"):
-        from ..errors import SceneError
-
-        raise SceneError(f"cage must be 'auto', 'always' or 'none', got {cage!r}")
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     plan = FramePlan.for_scene(scene, frames, max_dt=params.dt, start_frame=start_frame)
@@ -311,8 +325,8 @@ def simulate(
     caged = None
     report = rig.report or rig.validate(raise_on_error=False)
     closed_skin = report.closed and report.manifold
-    if builder is None and (cage == "always" or (cage == "auto" and not closed_skin)):
-        caged = _CagedCharacter(rig, device)
+    if builder is None and (cage_file is not None or cage == "always" or (cage == "auto" and not closed_skin)):
+        caged = _CagedCharacter(rig, device, cage_file)
         rig = caged.rig
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
     if collision is not None:
@@ -409,6 +423,7 @@ def simulate(
             "vertices": int(caged.rig.vertex_count), "edge_m": caged.cage.edge, "build_s": caged.build_s,
             "weights_matched": float(caged.matched.mean()), "embedded_points": int(caged.embedding.count),
             "meshes": [p[0] for p in caged.soup.pieces],
+            "source": str(cage_file) if cage_file is not None else "automatic",
         },
         "refined_vertices_added": model.vertex_count - n_out,
         "frames": len(written),
