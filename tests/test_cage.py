@@ -198,6 +198,8 @@ def test_bench_build_reports_the_cage():
     cage = row["cage"]
     assert cage["render_points"] == 2918 and cage["vertices"] > 1000
     assert cage["build_s"] >= cage["field_and_extraction_s"] > 0
+    assert cage["embedding_ms"] > 0 and cage["render_lbs_kernel_ms"] > 0 and cage["render_lbs_vertices"] == 2918
+    assert cage["embedding_over_lbs"] == pytest.approx(cage["embedding_ms"] / cage["render_lbs_kernel_ms"])
 
 
 def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
@@ -211,13 +213,24 @@ def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
 
     glb = assets / "RobotExpressive" / "RobotExpressive.glb"
     out = tmp_path / "robot.usdc"
-    assert main(["simulate", str(glb), "--clip", "Walking", "--frames", "0:3", "--cage", "always", "-o", str(out),
-                 "--quiet"]) == 0
+    assert main(["simulate", str(glb), "--clip", "Walking", "--frames", "0:3", "--cage", "always", "--lbs", "-o",
+                 str(out), "--quiet"]) == 0
     rig = load_rig(glb)
     stage = Usd.Stage.Open(str(out))
     root = stage.GetDefaultPrim()
     meshes = {p.GetName(): UsdGeom.Mesh(p) for p in root.GetChildren() if p.IsA(UsdGeom.Mesh)}
-    assert len(meshes) == 15  # 14 and the cage guide
+    assert len(meshes) == 29  # 14, the cage guide and with --lbs an LBS guide beside each of the 14
+    # each embedded mesh's LBS guide is what `warpskin skin` (the LBS bake) writes for it
+    assert main(["skin", str(glb), "--clip", "Walking", "--frames", "0:3", "-o", str(tmp_path / "lbs.usdc")]) == 0
+    lbs_stage = Usd.Stage.Open(str(tmp_path / "lbs.usdc"))
+    lbs_root = lbs_stage.GetDefaultPrim()
+    for a in rig.attachments:
+        name = a.name.replace(".", "_")
+        guide = meshes[f"{name}_lbs"]
+        assert guide.GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+        want = np.asarray(UsdGeom.Mesh(lbs_root.GetChild(name)).GetPointsAttr().Get(3), dtype=np.float64)
+        np.testing.assert_allclose(np.asarray(guide.GetPointsAttr().Get(3), dtype=np.float64), want,
+                                   atol=1e-6 * rig.size())
     expected = {"skin": rig.file_vertex_count, **{a.name.replace(".", "_"): len(a.vertices) for a in rig.attachments}}
     for name, count in expected.items():
         pts = np.asarray(meshes[name].GetPointsAttr().Get(3))

@@ -119,8 +119,25 @@ def _cage_build(rig) -> dict:
     tetra = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
     build_cage(tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]), edge=0.2)  # compile outside the timing
     cage = build_cage(soup.points, soup.triangles)
-    return {"render_points": int(len(soup.points)), "vertices": int(len(cage.vertices)), "build_s": cage.build_s,
-            **{f"{k}_s": v for k, v in cage.timings_s.items()}}
+    row = {"render_points": int(len(soup.points)), "vertices": int(len(cage.vertices)), "build_s": cage.build_s,
+           **{f"{k}_s": v for k, v in cage.timings_s.items()}}
+    # per frame: the render points from the cage (the embedding's launches), against the LBS
+    # kernel of the render skin, both on the CPU device and on device-resident inputs
+    from .embedding import Embedding
+    from .rig import Clip
+    from .skinning import Skinner
+
+    dev = wp.get_device("cpu")
+    emb = Embedding(soup.points, cage.vertices, cage.triangles, device=dev)
+    x = wp.array(cage.vertices.astype(np.float32), dtype=wp.vec3, device=dev)
+    emb.evaluate(x)
+    lbs = Skinner(rig, method="lbs", device=str(dev))
+    lbs.skin(rig.skinning_matrices(Clip("rest"), 0.0))
+    row["embedding_ms"] = _best_ms(lambda f: emb.evaluate(x), 200, 3, dev)
+    row["render_lbs_kernel_ms"] = _best_ms(lambda f: lbs.launch(), 200, 3, dev)
+    row["render_lbs_vertices"] = int(rig.vertex_count)
+    row["embedding_over_lbs"] = row["embedding_ms"] / row["render_lbs_kernel_ms"]
+    return row
 
 
 def run_solver_bench(targets: list[str], *, device: str | None = None, steps: int = 10, repeat: int = 3) -> dict:

@@ -74,9 +74,12 @@ class Embedding:
             counts = np.bincount(ct.ravel(), minlength=self.cage_vertex_count)
             self._vf_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), dtype=wp.int32)
             self._vf_faces = wp.array((order // 3).astype(np.int32), dtype=wp.int32)
+            # the cage vertices of the triangles some point is bound to: their normals, per frame
+            self._used = wp.array(np.unique(ct[face].ravel()).astype(np.int32), dtype=wp.int32)
+            self._normals = wp.zeros(self.cage_vertex_count, dtype=wp.vec3)
+            self._vertex_normals(rest)
             wp.launch(k.rest_offsets_kernel, dim=self.count,
-                      inputs=[rest, self._tris, self._vf_offsets, self._vf_faces, self._face, self._bary, pts],
-                      outputs=[self._offset])
+                      inputs=[rest, self._tris, self._normals, self._face, self._bary, pts], outputs=[self._offset])
         self.face = face
         self.bary = self._bary.numpy().astype(np.float64)
         self.offset = self._offset.numpy().astype(np.float64)
@@ -96,7 +99,14 @@ class Embedding:
             x = wp.array(arr, dtype=wp.vec3, device=self.device)
         elif x.shape[0] < self.cage_vertex_count:
             raise InputError(f"embedding: cage points must hold {self.cage_vertex_count} vertices, got {x.shape[0]}")
-        wp.launch(k.embed_kernel, dim=self.count,
-                  inputs=[x, self._tris, self._vf_offsets, self._vf_faces, self._face, self._bary, self._offset],
+        self._vertex_normals(x)
+        wp.launch(k.embed_kernel, dim=self.count, inputs=[x, self._tris, self._normals, self._face, self._bary, self._offset],
                   outputs=[self._out], device=self.device)
         return self._out
+
+    def _vertex_normals(self, x: wp.array) -> None:
+        from .kernels import embedding as k
+
+        wp.launch(k.used_vertex_normals_kernel, dim=self._used.shape[0],
+                  inputs=[x, self._tris, self._vf_offsets, self._vf_faces, self._used], outputs=[self._normals],
+                  device=self.device)

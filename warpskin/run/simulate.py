@@ -358,6 +358,9 @@ def simulate(
         if with_lbs:
             meshes.append(("lbs", rt, render.vertices[: render.output_count], {"color": _LBS_COLOR, "purpose": "guide"}))
         meshes += caged.attachment_meshes()
+        if with_lbs:  # each embedded mesh's own LBS beside it, as for the skin
+            meshes += [(f"{name}_lbs", t, p, {"color": _LBS_COLOR, "purpose": "guide"})
+                       for name, t, p, _ in caged.attachment_meshes()]
         meshes.append(("cage", sim.output_triangles, caged.cage.vertices,
                        {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
     if with_layers:  # the inner layers as simulated (guides)
@@ -395,6 +398,10 @@ def simulate(
             out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
             if with_lbs:
                 out["lbs"] = lbs
+                if caged is not None and render.attachments:
+                    world = render.joint_world_transforms(clip, plan.times[i])
+                    for a in render.attachments:
+                        out[f"{a.name}_lbs"] = a.points(world)
             if with_layers:
                 for k in range(1, 4):
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
