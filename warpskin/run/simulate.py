@@ -331,11 +331,6 @@ def simulate(
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
     if collision is not None:
         builder.params.collision = collision
-    elif caged is not None and "fail_safe_rounds" not in scene.extra.get("collision", {}):
-        # a cage lies outside the skin, so its LBS passes through itself far more (CesiumMan's:
-        # 339 pairs against 98), and there the fail-safe leaves more pairs than it removes (42
-        # without it, 95 with it): off on a cage unless the scene asks for it
-        builder.params.collision.fail_safe_rounds = 0
     model = builder.finalize(device)
     build_s = time.perf_counter() - t_build
     if check_intersections is None:
