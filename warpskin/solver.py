@@ -253,6 +253,8 @@ class SkinSolver:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
     def _volume_loop(self, x: wp.array, control: Control) -> None:
+        """``volume_iterations`` of the sub-volume constraints on ``x``, each followed by the
+        tether's cap where there is a tether."""
         p = self.params
         if self.tether_radius is None:
             self.volume.project(x, self.model.particle_inv_mass, self.volume_weight_scale, self.volume_centres,

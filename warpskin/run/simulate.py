@@ -200,8 +200,8 @@ class _Measurements:
 
 
 class _CagedCharacter:
-    """A character simulated through an automatic cage: the cage rig, and every render mesh
-    embedded in the cage at rest (stage space)."""
+    """A character simulated through a cage (automatic, or the user's ``cage_file``): the cage
+    rig, and every render mesh embedded in the cage at rest (stage space)."""
 
     def __init__(self, rig, device, cage_file=None) -> None:
         from ..embedding import Embedding
@@ -215,7 +215,6 @@ class _CagedCharacter:
             self.cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=device)
         else:
             self.cage = build_cage(soup.points, soup.triangles, device=device)
-        self.user_cage = cage_file is not None
         self.rig, self.soup, self.matched = cage_rig(rig, self.cage, device=device)
         self.embedding = Embedding(soup.points, self.cage.vertices, self.cage.triangles, device=device)
         self.source = rig
