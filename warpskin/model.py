@@ -101,6 +101,23 @@ class ModelParams:
 COARSE_EDGE = 0.9
 
 
+def written_surface(rig: Rig):
+    """The loaded mesh of a refined ``rig`` as one closed "sub-volume" without fans
+    (:class:`~warpskin.preprocess.sub_volumes.SubVolumes`), for a volume constraint on what is
+    written."""
+    from .metrics import signed_volume
+    from .preprocess.sub_volumes import SubVolumes
+
+    tris = np.asarray(rig.output_triangles, dtype=np.int64)
+    n = rig.output_count
+    return SubVolumes(
+        names=["written mesh"], triangles=tris, tri_offsets=np.array([0, len(tris)]), tri_indices=np.arange(len(tris)),
+        fan_offsets=np.array([0, 0]), fan_triangles=np.zeros((0, 3), dtype=np.int64), center_rest=np.zeros((0, 3)),
+        center_joint=np.zeros(0, dtype=np.int64), loops=[], rest_volume=np.array([signed_volume(rig.vertices[:n], tris)]),
+        plane_joint=np.zeros(0, dtype=np.int64), plane_t=np.zeros(0), plane_normal=np.zeros((0, 3)),
+        plane_sides=np.zeros((0, 2), dtype=np.int64), vertex_count=rig.vertex_count)
+
+
 def refine_coarse(rig: Rig, max_edge: float | None = None) -> Rig:
     """``rig`` refined for the simulation (:meth:`Rig.refined`) where its skin is coarse, or
     everywhere an edge is longer than an explicit ``max_edge``; ``rig`` itself otherwise."""
@@ -367,6 +384,11 @@ class SkinModel:
 
         self.subvolume_count = len(b.subvolumes.names) if b.subvolumes is not None else 0
         self.volume = upload_volume_layout(b.volume_layout, b.subvolumes, device) if b.subvolumes is not None else None
+        # a refined skin is written with the loaded mesh's triangles, chords of the simulated
+        # surface: its volume is one more constraint, on the loaded vertices (host form, see
+        # SkinSolver), and output_count says which vertices those are
+        self.output_count = int(rig.output_count)
+        self.written_surface = written_surface(rig) if (rig.refined_skin and b.subvolumes is not None) else None
         from .collision import upload_collision
 
         self.collision_params = b.params.collision
