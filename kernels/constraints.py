@@ -64,14 +64,13 @@ def tether_kernel(
 def split_weights_kernel(
     weight_scale: wp.array(dtype=wp.float32),
     output_count: int,
-    vertex_count: int,
     added: int,
     # outputs
     split: wp.array(dtype=wp.float32),
 ):
     """``weight_scale`` on the loaded skin vertices (``< output_count``; ``added`` 0) or on the
-    vertices a refinement added (``output_count`` to ``vertex_count``; ``added`` 1), 0
-    elsewhere."""
+    vertices a refinement added (``>= output_count``; ``added`` 1), 0 on the others; one
+    thread per skin vertex."""
     i = wp.tid()
-    keep = (added == 0 and i < output_count) or (added != 0 and i >= output_count and i < vertex_count)
+    keep = (i >= output_count) == (added != 0)
     split[i] = wp.where(keep, weight_scale[i], 0.0)

@@ -172,11 +172,11 @@ class SkinSolver:
             # a refined skin: the written mesh's volume on the loaded vertices, then the
             # sub-volumes again on the added ones (see step)
             self.written_volume = None
-            if self.volume is not None and getattr(model, "written_surface", None) is not None:
+            if self.volume is not None and model.written_surface is not None:
                 from .volume import VolumeConstraints
 
                 self.written_volume = VolumeConstraints(model.written_surface, device=dev)
-                self.split_weight_scale = wp.zeros(n, dtype=wp.float32)
+                self.split_weight_scale = wp.zeros(v, dtype=wp.float32)
             self.collision = None
             if model.collision is not None:
                 from .collision import SelfCollision
@@ -260,17 +260,18 @@ class SkinSolver:
         if self.volume is not None:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
-    def _volume_loop(self, x: wp.array, control: Control) -> None:
-        """``volume_iterations`` of the sub-volume constraints on ``x``, each followed by the
-        tether's cap where there is a tether."""
+    def _volume_loop(self, x: wp.array, control: Control, weight_scale: wp.array | None = None) -> None:
+        """``volume_iterations`` of the sub-volume constraints on ``x`` (weights
+        :attr:`volume_weight_scale` unless given), each followed by the tether's cap where
+        there is a tether."""
         p = self.params
+        w = self.volume_weight_scale if weight_scale is None else weight_scale
         if self.tether_radius is None:
-            self.volume.project(x, self.model.particle_inv_mass, self.volume_weight_scale, self.volume_centres,
-                                p.volume_iterations, p.volume_stiffness)
+            self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, p.volume_iterations,
+                                p.volume_stiffness)
         else:
             for _ in range(p.volume_iterations):
-                self.volume.project(x, self.model.particle_inv_mass, self.volume_weight_scale, self.volume_centres, 1,
-                                    p.volume_stiffness)
+                self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, 1, p.volume_stiffness)
                 self._cap(x, control)
 
     def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
@@ -283,28 +284,22 @@ class SkinSolver:
         paws' sub-volumes.) The volume loop's own weights (contacts, the fail-safe's pins)
         apply in both; with ``collide``, the fail-safe holds what the projection pushes through."""
         m = self.model
-        p = self.params
         dev = self.device
-        wp.launch(k_con.split_weights_kernel, dim=m.particle_count,
-                  inputs=[self.volume_weight_scale, m.output_count, m.vertex_count, 0], outputs=[self.split_weight_scale],
-                  device=dev)
-        col = self.collision if collide else None
+        wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 0],
+                  outputs=[self.split_weight_scale], device=dev)
+        col = self.collision if collide and self.collision.data.fail_safe_rounds > 0 else None
         if col is not None:
             wp.copy(self.x_before_volume, x, count=m.vertex_count)
         self.written_volume.project(x, m.particle_inv_mass, self.split_weight_scale, self.written_volume.centers, 1,
-                                    p.volume_stiffness)
-        if col is not None and col.data.fail_safe_rounds > 0:
+                                    self.params.volume_stiffness)
+        if col is not None:
             # what the projection pushed through goes back (without this, RiggedFigure had 4
             # pairs where LBS has none); the added vertices do not change the written mesh
             col.fail_safe(self.x_before_volume, x, control.skin_matrices, carry=False,
                           min_move=1.0e-2 * col.data.thickness)
-        wp.launch(k_con.split_weights_kernel, dim=m.particle_count,
-                  inputs=[self.volume_weight_scale, m.output_count, m.vertex_count, 1], outputs=[self.split_weight_scale],
-                  device=dev)
-        for _ in range(p.volume_iterations):
-            self.volume.project(x, m.particle_inv_mass, self.split_weight_scale, self.volume_centres, 1, p.volume_stiffness)
-            if self.tether_radius is not None:
-                self._cap(x, control)
+        wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 1],
+                  outputs=[self.split_weight_scale], device=dev)
+        self._volume_loop(x, control, self.split_weight_scale)
 
     def _cap(self, x: wp.array, control: Control) -> None:
         """The tether's cap (``tether_max`` x the diagonal) on the skin particles."""
@@ -382,15 +377,17 @@ class SkinSolver:
         # its own 24 fps: a front-paw vertex at 10.1 % of the diagonal, exit 3); interleaved,
         # what the cap takes back is restored by the particles that still have room
         if self.volume is not None:
+            fail_safe = col is not None and col.data.fail_safe_rounds > 0
             if col is not None:
                 col.volume_weights(contacts, self.volume_weight_scale)
+            if fail_safe:
                 wp.copy(self.x_before_volume, state_out.x, count=m.vertex_count)
             self._volume_loop(state_out.x, control)
             # the volume loop can push a pair through (the Fox's Run: 2-16 new pairs in a step,
             # which then stay): a second fail-safe pass puts those vertices back where the loop
             # found them, pinned, and the loop runs again so that the others restore what they
             # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %)
-            if col is not None and col.data.fail_safe_rounds > 0:
+            if fail_safe:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
                               min_move=1.0e-2 * col.data.thickness)
                 col.pin_reverted(self.volume_weight_scale)

@@ -137,12 +137,13 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
                 timings_s=timings)
 
 
-def cage_from_mesh(mesh, rig, *, device=None, min_inside: float = 0.5) -> Cage:
+def cage_from_mesh(mesh, rig, *, device=None, min_inside: float = 0.5, soup: CharacterSoup | None = None) -> Cage:
     """A user's own cage (:func:`warpskin.io.cage_file.read_cage_mesh`) for ``rig``: scaled as
     the character was (``rig.meters_per_unit``), checked to be one closed, manifold,
     consistently wound surface (an inward-wound one is turned, with one warning) that holds at
     least ``min_inside`` of the character's points at rest (the space or the units are wrong
-    otherwise). Unused vertices are dropped.
+    otherwise). Unused vertices are dropped. ``soup``: the rig's :func:`character_soup`, if
+    the caller has it.
 
     Raises:
         RigError: one line naming the file, what is wrong and where (the file's vertex numbers).
@@ -188,7 +189,7 @@ def cage_from_mesh(mesh, rig, *, device=None, min_inside: float = 0.5) -> Cage:
     if vol < 0:
         tri = tri[:, ::-1].copy()
         warnings.warn(f"{src}: the cage's faces point inward; turned outward", RigWarning, stacklevel=2)
-    soup = character_soup(rig)
+    soup = soup if soup is not None else character_soup(rig)
     with wp.ScopedDevice(device):
         wm = wp.Mesh(points=wp.array(p.astype(np.float32), dtype=wp.vec3),
                      indices=wp.array(tri.astype(np.int32).ravel(), dtype=wp.int32), support_winding_number=True)

@@ -212,7 +212,7 @@ class _CagedCharacter:
         if cage_file is not None:  # the user's own
             from ..io.cage_file import read_cage_mesh
 
-            self.cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=device)
+            self.cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=device, soup=soup)
         else:
             self.cage = build_cage(soup.points, soup.triangles, device=device)
         self.rig, self.soup, self.matched = cage_rig(rig, self.cage, device=device)
