@@ -147,6 +147,70 @@ def facing(u: wp.vec3, w: wp.vec3, d: wp.vec3, fold_cos: float) -> bool:
 # acos(fold_cos) apart, and not each behind the other): in a wrinkle or a crease they face each
 # other and collide by proximity; across a convex corner they do not.
 # --------------------------------------------------------------------------------------------
+@wp.func
+def point_triangle_candidate(
+    i: int,
+    t: int,
+    x_old: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    rigid_bone: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    rest_gap: float,
+    vertex_normals: wp.array(dtype=wp.vec3),
+    fold_cos: float,
+    thickness: float,
+    radius: float,
+    capacity: int,
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    overflow: wp.array(dtype=wp.int32),
+    colliding: wp.array(dtype=wp.int32),
+):
+    """Vertex ``i`` against triangle ``t`` (whose box overlaps the vertex's swept box): list the
+    pair when it is a contact (see the section comment)."""
+    ia = tri_indices[t, 0]
+    ib = tri_indices[t, 1]
+    ic = tri_indices[t, 2]
+    if ia == i or ib == i or ic == i:
+        return
+    if excluded(i, ia, rigid_bone) and excluded(i, ib, rigid_bone) and excluded(i, ic, rigid_bone):
+        return
+    p0 = x_old[i]
+    p1 = x_pred[i]
+    patch = same_patch(i, ia, rest, rest_gap) or same_patch(i, ib, rest, rest_gap) or same_patch(i, ic, rest, rest_gap)
+    a = x_pred[ia]
+    b = x_pred[ib]
+    c = x_pred[ic]
+    n = unit_normal(a, b, c)
+    if wp.length(n) == 0.0:
+        return
+    d1 = wp.dot(p1 - a, n)
+    a0 = x_old[ia]
+    n0 = wp.cross(x_old[ib] - a0, x_old[ic] - a0)
+    d0 = wp.dot(p0 - a0, n0)
+    crossing = d0 >= 0.0 and d1 < 0.0
+    near = d1 < radius and d1 > -thickness  # ahead within the search radius, behind within h
+    if patch and not facing(vertex_normals[i], n, (a + b + c) / 3.0 - p1, fold_cos):
+        near = False
+    if not (crossing or near):
+        return
+    bary = closest_on_triangle(p1, a, b, c)
+    if wp.min(wp.min(bary[0], bary[1]), bary[2]) < -INSIDE_TOLERANCE:
+        return
+    slot = wp.atomic_add(pt_count, 0, 1)
+    if slot < capacity:
+        pt_vertex[slot] = i
+        pt_triangle[slot] = t
+        colliding[i] = 1
+        colliding[ia] = 1
+        colliding[ib] = 1
+        colliding[ic] = 1
+    else:
+        overflow[0] = 1
+
+
 @wp.kernel
 def detect_point_triangle_kernel(
     bvh: wp.uint64,
@@ -168,6 +232,8 @@ def detect_point_triangle_kernel(
     overflow: wp.array(dtype=wp.int32),
     colliding: wp.array(dtype=wp.int32),
 ):
+    """One thread per point (any point, in a triangle or not): the reference form of the
+    point-triangle half of :func:`detect_kernel`, which lists the same pairs."""
     i = wp.tid()
     p0 = x_old[i]
     p1 = x_pred[i]
@@ -175,43 +241,9 @@ def detect_point_triangle_kernel(
     query = wp.bvh_query_aabb(bvh, wp.min(p0, p1), wp.max(p0, p1))
     t = int(0)
     while wp.bvh_query_next(query, t):
-        ia = tri_indices[t, 0]
-        ib = tri_indices[t, 1]
-        ic = tri_indices[t, 2]
-        if ia == i or ib == i or ic == i:
-            continue
-        if excluded(i, ia, rigid_bone) and excluded(i, ib, rigid_bone) and excluded(i, ic, rigid_bone):
-            continue
-        patch = same_patch(i, ia, rest, rest_gap) or same_patch(i, ib, rest, rest_gap) or same_patch(i, ic, rest, rest_gap)
-        a = x_pred[ia]
-        b = x_pred[ib]
-        c = x_pred[ic]
-        n = unit_normal(a, b, c)
-        if wp.length(n) == 0.0:
-            continue
-        d1 = wp.dot(p1 - a, n)
-        a0 = x_old[ia]
-        n0 = wp.cross(x_old[ib] - a0, x_old[ic] - a0)
-        d0 = wp.dot(p0 - a0, n0)
-        crossing = d0 >= 0.0 and d1 < 0.0
-        near = d1 < radius and d1 > -thickness  # ahead within the search radius, behind within h
-        if patch and not facing(vertex_normals[i], n, (a + b + c) / 3.0 - p1, fold_cos):
-            near = False
-        if not (crossing or near):
-            continue
-        bary = closest_on_triangle(p1, a, b, c)
-        if wp.min(wp.min(bary[0], bary[1]), bary[2]) < -INSIDE_TOLERANCE:
-            continue
-        slot = wp.atomic_add(pt_count, 0, 1)
-        if slot < capacity:
-            pt_vertex[slot] = i
-            pt_triangle[slot] = t
-            colliding[i] = 1
-            colliding[ia] = 1
-            colliding[ib] = 1
-            colliding[ic] = 1
-        else:
-            overflow[0] = 1
+        point_triangle_candidate(i, t, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
+                                 fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
+                                 colliding)
 
 
 # --------------------------------------------------------------------------------------------
@@ -268,9 +300,130 @@ def lines_meet_far_from_edges(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3
 
 
 @wp.func
+def boxes_contain(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) -> bool:
+    """Box a contains box b."""
+    return (lo_a[0] <= lo_b[0] and lo_a[1] <= lo_b[1] and lo_a[2] <= lo_b[2] and hi_b[0] <= hi_a[0]
+            and hi_b[1] <= hi_a[1] and hi_b[2] <= hi_a[2])
+
+
+@wp.func
+def box_gap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) -> float:
+    """Distance between two boxes (0 where they overlap): a lower bound of the distance of any
+    point of one to any point of the other."""
+    g = wp.max(wp.max(lo_a - hi_b, lo_b - hi_a), wp.vec3(0.0))
+    return wp.length(g)
+
+
+@wp.func
 def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) -> bool:
     return (lo_a[0] <= hi_b[0] and lo_b[0] <= hi_a[0] and lo_a[1] <= hi_b[1] and lo_b[1] <= hi_a[1]
             and lo_a[2] <= hi_b[2] and lo_b[2] <= hi_a[2])
+
+
+@wp.func
+def edge_edge_candidates(
+    e: int,
+    t: int,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    x_old: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    tri_edges: wp.array2d(dtype=wp.int32),
+    edge_owner: wp.array(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    rigid_bone: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    rest_gap: float,
+    vertex_normals: wp.array(dtype=wp.vec3),
+    fold_cos: float,
+    radius: float,
+    capacity: int,
+    ee_count: wp.array(dtype=wp.int32),
+    ee_a: wp.array(dtype=wp.int32),
+    ee_b: wp.array(dtype=wp.int32),
+    ee_sign: wp.array(dtype=wp.float32),
+    overflow: wp.array(dtype=wp.int32),
+    colliding: wp.array(dtype=wp.int32),
+):
+    """Edge ``e`` (swept box ``lo``-``hi``) against the edges of triangle ``t``: list the pairs
+    that are contacts (see the section comment)."""
+    if not boxes_overlap(lowers[t], uppers[t], lo, hi):
+        return
+    i1 = edge_indices[e, 0]
+    i2 = edge_indices[e, 1]
+    p1 = x_pred[i1]
+    p2 = x_pred[i2]
+    for k in range(3):
+        f = tri_edges[t, k]
+        if f <= e:
+            continue  # each unordered pair once
+        # f lies in two triangles, both returned for a near pair: take it through the first
+        # (its owner) whose box overlaps the query, so the pair is listed once
+        o = edge_owner[f]
+        if o != t and boxes_overlap(lowers[o], uppers[o], lo, hi):
+            continue
+        i3 = edge_indices[f, 0]
+        i4 = edge_indices[f, 1]
+        if i3 == i1 or i3 == i2 or i4 == i1 or i4 == i2:
+            continue
+        if excluded(i1, i3, rigid_bone) and excluded(i2, i4, rigid_bone) and excluded(i1, i4, rigid_bone):
+            continue
+        p3 = x_pred[i3]
+        p4 = x_pred[i4]
+        # side at the start of the step: sign of (p4 - p1) . n with n = (p2 - p1) x (p4 - p3)
+        o1 = x_old[i1]
+        n0 = wp.cross(x_old[i2] - o1, x_old[i4] - x_old[i3])
+        c0 = wp.dot(x_old[i4] - o1, n0)
+        n1 = wp.cross(p2 - p1, p4 - p3)
+        c1 = wp.dot(p4 - p1, n1)
+        # a pair that cannot have flipped is a contact only by proximity: most candidates are
+        # rejected here by their boxes (farther apart than the radius, with a margin against
+        # rounding) or as one unfolded patch, before the closest points are computed
+        if not (c0 * c1 < 0.0):
+            if box_gap(wp.min(p1, p2), wp.max(p1, p2), wp.min(p3, p4), wp.max(p3, p4)) > radius * (1.0 + 1.0e-4):
+                continue
+        patch = (same_patch(i1, i3, rest, rest_gap) or same_patch(i1, i4, rest, rest_gap)
+                 or same_patch(i2, i3, rest, rest_gap) or same_patch(i2, i4, rest, rest_gap))
+        if patch and facing(vertex_normals[i1] + vertex_normals[i2], vertex_normals[i3] + vertex_normals[i4],
+                            (p3 + p4) * 0.5 - (p1 + p2) * 0.5, fold_cos):
+            patch = False  # folded over: the two edges face each other
+        if patch and not (c0 * c1 < 0.0):
+            continue
+        st = segment_closest(p1, p2, p3, p4)
+        q1 = p1 + st[0] * (p2 - p1)
+        q2 = p3 + st[1] * (p4 - p3)
+        dist = wp.length(q2 - q1)
+        flipped = c0 * c1 < 0.0 and st[0] > 0.0 and st[0] < 1.0 and st[1] > 0.0 and st[1] < 1.0
+        if (dist >= radius or patch) and not flipped:
+            continue
+        if wp.abs(c0) < 1.0e-30:
+            continue  # no reliable side: leave it to the point-triangle constraints
+        slot = wp.atomic_add(ee_count, 0, 1)
+        if slot < capacity:
+            ee_a[slot] = e
+            ee_b[slot] = f
+            sgn = float(1.0)
+            if c0 < 0.0:
+                sgn = -1.0
+            ee_sign[slot] = sgn
+            colliding[i1] = 1
+            colliding[i2] = 1
+            colliding[i3] = 1
+            colliding[i4] = 1
+        else:
+            overflow[0] = 1
+
+
+@wp.func
+def edge_box_lower(x_old: wp.array(dtype=wp.vec3), x_pred: wp.array(dtype=wp.vec3), i1: int, i2: int) -> wp.vec3:
+    return wp.min(wp.min(x_pred[i1], x_pred[i2]), wp.min(x_old[i1], x_old[i2]))
+
+
+@wp.func
+def edge_box_upper(x_old: wp.array(dtype=wp.vec3), x_pred: wp.array(dtype=wp.vec3), i1: int, i2: int) -> wp.vec3:
+    return wp.max(wp.max(x_pred[i1], x_pred[i2]), wp.max(x_old[i1], x_old[i2]))
 
 
 @wp.kernel
@@ -298,69 +451,125 @@ def detect_edge_edge_kernel(
     overflow: wp.array(dtype=wp.int32),
     colliding: wp.array(dtype=wp.int32),
 ):
+    """One thread per edge: the reference form of the edge-edge half of :func:`detect_kernel`,
+    which lists the same pairs."""
     e = wp.tid()
     i1 = edge_indices[e, 0]
     i2 = edge_indices[e, 1]
-    p1 = x_pred[i1]
-    p2 = x_pred[i2]
-    lo = wp.min(wp.min(p1, p2), wp.min(x_old[i1], x_old[i2]))  # triangle boxes carry the radius
-    hi = wp.max(wp.max(p1, p2), wp.max(x_old[i1], x_old[i2]))
+    lo = edge_box_lower(x_old, x_pred, i1, i2)  # triangle boxes carry the radius
+    hi = edge_box_upper(x_old, x_pred, i1, i2)
     query = wp.bvh_query_aabb(bvh, lo, hi)
     t = int(0)
     while wp.bvh_query_next(query, t):
-        for k in range(3):
-            f = tri_edges[t, k]
-            if f <= e:
-                continue  # each unordered pair once
-            # f lies in two triangles, both returned for a near pair: take it through the first
-            # (its owner) whose box overlaps the query, so the pair is listed once
-            if not boxes_overlap(lowers[t], uppers[t], lo, hi):
-                continue
-            o = edge_owner[f]
-            if o != t and boxes_overlap(lowers[o], uppers[o], lo, hi):
-                continue
-            i3 = edge_indices[f, 0]
-            i4 = edge_indices[f, 1]
-            if i3 == i1 or i3 == i2 or i4 == i1 or i4 == i2:
-                continue
-            if excluded(i1, i3, rigid_bone) and excluded(i2, i4, rigid_bone) and excluded(i1, i4, rigid_bone):
-                continue
-            p3 = x_pred[i3]
-            p4 = x_pred[i4]
-            st = segment_closest(p1, p2, p3, p4)
-            q1 = p1 + st[0] * (p2 - p1)
-            q2 = p3 + st[1] * (p4 - p3)
-            dist = wp.length(q2 - q1)
-            patch = (same_patch(i1, i3, rest, rest_gap) or same_patch(i1, i4, rest, rest_gap)
-                     or same_patch(i2, i3, rest, rest_gap) or same_patch(i2, i4, rest, rest_gap))
-            if patch and facing(vertex_normals[i1] + vertex_normals[i2], vertex_normals[i3] + vertex_normals[i4],
-                                (p3 + p4) * 0.5 - (p1 + p2) * 0.5, fold_cos):
-                patch = False  # folded over: the two edges face each other
-            # side at the start of the step: sign of (p4 - p1) . n with n = (p2 - p1) x (p4 - p3)
-            o1 = x_old[i1]
-            n0 = wp.cross(x_old[i2] - o1, x_old[i4] - x_old[i3])
-            c0 = wp.dot(x_old[i4] - o1, n0)
-            n1 = wp.cross(p2 - p1, p4 - p3)
-            c1 = wp.dot(p4 - p1, n1)
-            flipped = c0 * c1 < 0.0 and st[0] > 0.0 and st[0] < 1.0 and st[1] > 0.0 and st[1] < 1.0
-            if (dist >= radius or patch) and not flipped:
-                continue
-            if wp.abs(c0) < 1.0e-30:
-                continue  # no reliable side: leave it to the point-triangle constraints
-            slot = wp.atomic_add(ee_count, 0, 1)
-            if slot < capacity:
-                ee_a[slot] = e
-                ee_b[slot] = f
-                sgn = float(1.0)
-                if c0 < 0.0:
-                    sgn = -1.0
-                ee_sign[slot] = sgn
-                colliding[i1] = 1
-                colliding[i2] = 1
-                colliding[i3] = 1
-                colliding[i4] = 1
-            else:
-                overflow[0] = 1
+        edge_edge_candidates(e, t, lo, hi, x_old, x_pred, edge_indices, tri_edges, edge_owner, lowers, uppers,
+                             rigid_bone, rest, rest_gap, vertex_normals, fold_cos, radius, capacity, ee_count, ee_a,
+                             ee_b, ee_sign, overflow, colliding)
+
+
+# --------------------------------------------------------------------------------------------
+# Both kinds in one pass, one thread per skin triangle: each vertex and each edge is owned by
+# one of its triangles (the first), and a triangle queries the tree once with the box of what
+# it owns, then tests each owned feature against the returned triangles whose boxes overlap
+# that feature's own box: exactly the pairs of the two kernels above (one tree query per
+# triangle instead of one per vertex and one per edge: the queries dominate on the CPU).
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def detect_kernel(
+    bvh: wp.uint64,
+    x_old: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_owns: wp.array(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    tri_edges: wp.array2d(dtype=wp.int32),
+    edge_owner: wp.array(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    rigid_bone: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    rest_gap: float,
+    vertex_normals: wp.array(dtype=wp.vec3),
+    fold_cos: float,
+    thickness: float,
+    radius: float,
+    capacity: int,
+    # outputs
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    ee_count: wp.array(dtype=wp.int32),
+    ee_a: wp.array(dtype=wp.int32),
+    ee_b: wp.array(dtype=wp.int32),
+    ee_sign: wp.array(dtype=wp.float32),
+    overflow: wp.array(dtype=wp.int32),
+    colliding: wp.array(dtype=wp.int32),
+    list_pairs: int,
+    pair_capacity: int,
+    tri_pairs: wp.array2d(dtype=wp.int32),
+    pair_count: wp.array(dtype=wp.int32),
+):
+    """``tri_owns`` bits 0-2: the triangle owns its corner k; bits 3-5: its edge k (corner k to
+    k + 1). With ``list_pairs``, every pair of triangles with no shared vertex whose boxes the
+    query pairs (the tree's boxes carry the radius, the query box does not) goes into
+    ``tri_pairs`` once (lower index first), for the fail-safe of the step (see
+    :func:`listed_new_intersections_kernel`); ``pair_count`` counts them all, also those
+    beyond ``pair_capacity``, which are not written (the fail-safe then does without the
+    list)."""
+    t = wp.tid()
+    owns = tri_owns[t]
+    if owns == 0 and list_pairs == 0:
+        return
+    i0 = tri_indices[t, 0]
+    i1 = tri_indices[t, 1]
+    i2 = tri_indices[t, 2]
+    # the swept box of each corner
+    lo0 = wp.min(x_old[i0], x_pred[i0])
+    hi0 = wp.max(x_old[i0], x_pred[i0])
+    lo1 = wp.min(x_old[i1], x_pred[i1])
+    hi1 = wp.max(x_old[i1], x_pred[i1])
+    lo2 = wp.min(x_old[i2], x_pred[i2])
+    hi2 = wp.max(x_old[i2], x_pred[i2])
+    query = wp.bvh_query_aabb(bvh, wp.min(wp.min(lo0, lo1), lo2), wp.max(wp.max(hi0, hi1), hi2))
+    u = int(0)
+    while wp.bvh_query_next(query, u):
+        if list_pairs != 0 and u > t:
+            b0 = tri_indices[u, 0]
+            b1 = tri_indices[u, 1]
+            b2 = tri_indices[u, 2]
+            if not (i0 == b0 or i0 == b1 or i0 == b2 or i1 == b0 or i1 == b1 or i1 == b2 or i2 == b0 or i2 == b1
+                    or i2 == b2):
+                slot = wp.atomic_add(pair_count, 0, 1)
+                if slot < pair_capacity:  # (a list that does not fit is not used)
+                    tri_pairs[slot, 0] = t
+                    tri_pairs[slot, 1] = u
+        if owns == 0:
+            continue
+        lu = lowers[u]
+        hu = uppers[u]
+        if owns & 1 != 0 and boxes_overlap(lu, hu, lo0, hi0):
+            point_triangle_candidate(i0, u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
+                                     fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
+                                     colliding)
+        if owns & 2 != 0 and boxes_overlap(lu, hu, lo1, hi1):
+            point_triangle_candidate(i1, u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
+                                     fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
+                                     colliding)
+        if owns & 4 != 0 and boxes_overlap(lu, hu, lo2, hi2):
+            point_triangle_candidate(i2, u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
+                                     fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
+                                     colliding)
+        if owns & 8 != 0:
+            edge_edge_candidates(tri_edges[t, 0], u, wp.min(lo0, lo1), wp.max(hi0, hi1), x_old, x_pred, edge_indices,
+                                 tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap, vertex_normals,
+                                 fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign, overflow, colliding)
+        if owns & 16 != 0:
+            edge_edge_candidates(tri_edges[t, 1], u, wp.min(lo1, lo2), wp.max(hi1, hi2), x_old, x_pred, edge_indices,
+                                 tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap, vertex_normals,
+                                 fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign, overflow, colliding)
+        if owns & 32 != 0:
+            edge_edge_candidates(tri_edges[t, 2], u, wp.min(lo2, lo0), wp.max(hi2, hi0), x_old, x_pred, edge_indices,
+                                 tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap, vertex_normals,
+                                 fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign, overflow, colliding)
 
 
 # --------------------------------------------------------------------------------------------
@@ -664,10 +873,11 @@ def zero_counts_kernel(
     # outputs
     counts: wp.array(dtype=wp.int32),
 ):
-    """Reset the point-triangle and edge-edge counters; the overflow flag (counts[2]) stays
-    until the host has seen it."""
+    """Reset the point-triangle, edge-edge and triangle-pair counters; the overflow flag
+    (counts[2]) stays until the host has seen it."""
     counts[0] = 0
     counts[1] = 0
+    counts[3] = 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -694,13 +904,24 @@ def fail_safe_bounds_kernel(
     tri_indices: wp.array2d(dtype=wp.int32),
     carry_offset: int,
     pad: float,
+    det_lowers: wp.array(dtype=wp.vec3),
+    det_uppers: wp.array(dtype=wp.vec3),
+    escape_margin: float,
+    pair_count: wp.array(dtype=wp.int32),
+    pair_capacity: int,
     # outputs
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
+    escaped: wp.array(dtype=wp.int32),
 ):
     """Boxes of the triangles over every position the fail-safe can give a vertex: the step's,
     the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
-    by ``pad``; one refit serves all rounds."""
+    by ``pad``; one refit serves all rounds. With ``escape_margin`` >= 0, ``escaped`` marks the
+    triangles whose box reaches past their detection box (``det_lowers``/``det_uppers``, the
+    swept box plus the search radius) shrunk by ``escape_margin`` (half the radius): two
+    triangles that did not escape and whose boxes overlap are in the detection's pair list.
+    Where that list did not fit (``pair_count`` above ``pair_capacity``), every triangle is
+    marked."""
     t = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
@@ -712,8 +933,14 @@ def fail_safe_bounds_kernel(
             c = x_old[i] + (x[i + carry_offset] - x_old[i + carry_offset])
             lo = wp.min(lo, c)
             hi = wp.max(hi, c)
-    lowers[t] = lo - wp.vec3(pad)
-    uppers[t] = hi + wp.vec3(pad)
+    lo = lo - wp.vec3(pad)
+    hi = hi + wp.vec3(pad)
+    lowers[t] = lo
+    uppers[t] = hi
+    if escape_margin >= 0.0:
+        m = wp.vec3(escape_margin)
+        inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
+        escaped[t] = wp.where(inside and pair_count[0] <= pair_capacity, 0, 1)
 
 
 @wp.func
@@ -771,6 +998,49 @@ def triangles_intersect(x: wp.array(dtype=wp.vec3), a0: int, a1: int, a2: int, b
     return triangle_points_intersect(x[a0], x[a1], x[a2], x[b0], x[b1], x[b2], tol)
 
 
+@wp.func
+def new_intersection(
+    a0: int,
+    a1: int,
+    a2: int,
+    b0: int,
+    b1: int,
+    b2: int,
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tol: float,
+    rest: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    revert: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """Two triangles with no shared vertex that intersect at ``x`` (widened by ``tol``), did not
+    at ``x_old`` (narrowed by it), and whose LBS (``rest`` skinned by ``skin_matrices``;
+    widened by ``tol``) does not intersect: mark their six vertices in ``revert`` and add the
+    pair to ``count``."""
+    if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,
+                                                                                       -tol):
+        # where the animation itself drives the two through each other (their LBS
+        # intersects), putting them back would follow it in: that is the contacts' part
+        la0 = lbs_point(rest[a0], joint_indices, joint_weights, a0, skin_matrices)
+        la1 = lbs_point(rest[a1], joint_indices, joint_weights, a1, skin_matrices)
+        la2 = lbs_point(rest[a2], joint_indices, joint_weights, a2, skin_matrices)
+        lb0 = lbs_point(rest[b0], joint_indices, joint_weights, b0, skin_matrices)
+        lb1 = lbs_point(rest[b1], joint_indices, joint_weights, b1, skin_matrices)
+        lb2 = lbs_point(rest[b2], joint_indices, joint_weights, b2, skin_matrices)
+        if triangle_points_intersect(la0, la1, la2, lb0, lb1, lb2, tol):
+            return
+        revert[a0] = 1
+        revert[a1] = 1
+        revert[a2] = 1
+        revert[b0] = 1
+        revert[b1] = 1
+        revert[b2] = 1
+        wp.atomic_add(count, 0, 1)
+
+
 @wp.kernel
 def new_intersections_kernel(
     bvh: wp.uint64,
@@ -782,6 +1052,8 @@ def new_intersections_kernel(
     tol: float,
     moved: wp.array(dtype=wp.int32),
     only_moved: int,
+    escaped: wp.array(dtype=wp.int32),
+    only_escaped: int,
     rest: wp.array(dtype=wp.vec3),
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
@@ -790,50 +1062,94 @@ def new_intersections_kernel(
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """One thread per triangle: pairs with a higher-numbered triangle (no shared vertex) that
-    intersect at ``x`` (widened by ``tol``), did not at ``x_old`` (narrowed by it), and whose
-    LBS (``rest`` skinned by ``skin_matrices``; widened by ``tol``) does not intersect, mark their six vertices in
-    ``revert``; ``count`` adds the pairs. With ``only_moved`` (the
-    rounds after the first) only triangles with a vertex the last round ``moved`` look, at
+    """One thread per triangle: the pairs with another triangle (no shared vertex) whose box
+    overlaps its own, tested by :func:`new_intersection`, each pair once. With ``only_moved``
+    (the rounds after the first) only triangles with a vertex the last round ``moved`` look, at
     every other triangle (a pair of two such, from the lower-numbered one): no other pair can
-    have changed."""
+    have changed. With ``only_escaped`` (the first round, where the detection's pair list has
+    the pairs of every two triangles that did not escape their detection box) only the
+    ``escaped`` triangles look, at the others and at the higher-numbered escaped ones; with
+    ``only_moved`` as well, a pair is tested when either triangle moved."""
     t = wp.tid()
+    if only_escaped != 0 and escaped[t] == 0:
+        return
     a0 = tri_indices[t, 0]
     a1 = tri_indices[t, 1]
     a2 = tri_indices[t, 2]
-    if only_moved != 0 and moved[a0] == 0 and moved[a1] == 0 and moved[a2] == 0:
+    moved_t = moved[a0] != 0 or moved[a1] != 0 or moved[a2] != 0
+    if only_moved != 0 and only_escaped == 0 and not moved_t:
         return
     query = wp.bvh_query_aabb(bvh, lowers[t], uppers[t])
     u = int(0)
     while wp.bvh_query_next(query, u):
-        if u == t or (only_moved == 0 and u < t):
+        if u == t:
             continue
         b0 = tri_indices[u, 0]
         b1 = tri_indices[u, 1]
         b2 = tri_indices[u, 2]
-        if u < t and (moved[b0] != 0 or moved[b1] != 0 or moved[b2] != 0):
-            continue  # both moved: thread u tests the pair (each pair once)
+        moved_u = moved[b0] != 0 or moved[b1] != 0 or moved[b2] != 0
+        if only_escaped != 0:
+            if escaped[u] != 0 and u < t:
+                continue  # thread u tests it
+            if only_moved != 0 and not (moved_t or moved_u):
+                continue
+        else:
+            if only_moved == 0 and u < t:
+                continue
+            if u < t and moved_u:
+                continue  # both moved: thread u tests the pair (each pair once)
         if a0 == b0 or a0 == b1 or a0 == b2 or a1 == b0 or a1 == b1 or a1 == b2 or a2 == b0 or a2 == b1 or a2 == b2:
             continue
-        if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,
-                                                                                           -tol):
-            # where the animation itself drives the two through each other (their LBS
-            # intersects), putting them back would follow it in: that is the contacts' part
-            la0 = lbs_point(rest[a0], joint_indices, joint_weights, a0, skin_matrices)
-            la1 = lbs_point(rest[a1], joint_indices, joint_weights, a1, skin_matrices)
-            la2 = lbs_point(rest[a2], joint_indices, joint_weights, a2, skin_matrices)
-            lb0 = lbs_point(rest[b0], joint_indices, joint_weights, b0, skin_matrices)
-            lb1 = lbs_point(rest[b1], joint_indices, joint_weights, b1, skin_matrices)
-            lb2 = lbs_point(rest[b2], joint_indices, joint_weights, b2, skin_matrices)
-            if triangle_points_intersect(la0, la1, la2, lb0, lb1, lb2, tol):
-                continue
-            revert[a0] = 1
-            revert[a1] = 1
-            revert[a2] = 1
-            revert[b0] = 1
-            revert[b1] = 1
-            revert[b2] = 1
-            wp.atomic_add(count, 0, 1)
+        new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
+                         revert, count)
+
+
+@wp.kernel
+def listed_new_intersections_kernel(
+    tri_pairs: wp.array2d(dtype=wp.int32),
+    pair_count: wp.array(dtype=wp.int32),
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    tol: float,
+    moved: wp.array(dtype=wp.int32),
+    only_moved: int,
+    escaped: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    # outputs
+    revert: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """The first round of the fail-safe from the detection's pair list (one thread per slot):
+    the pairs of two triangles that did not escape, whose boxes overlap (with ``only_moved``:
+    and one of which moved), tested by :func:`new_intersection`; the escaped triangles' pairs
+    are :func:`new_intersections_kernel`'s (``only_escaped``)."""
+    s = wp.tid()
+    if s >= pair_count[0]:
+        return  # (a list that did not fit has every triangle escaped)
+    t = tri_pairs[s, 0]
+    u = tri_pairs[s, 1]
+    if escaped[t] != 0 or escaped[u] != 0:
+        return
+    if not boxes_overlap(lowers[t], uppers[t], lowers[u], uppers[u]):
+        return
+    a0 = tri_indices[t, 0]
+    a1 = tri_indices[t, 1]
+    a2 = tri_indices[t, 2]
+    b0 = tri_indices[u, 0]
+    b1 = tri_indices[u, 1]
+    b2 = tri_indices[u, 2]
+    if only_moved != 0:
+        if not (moved[a0] != 0 or moved[a1] != 0 or moved[a2] != 0 or moved[b0] != 0 or moved[b1] != 0
+                or moved[b2] != 0):
+            return
+    new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
+                     revert, count)
 
 
 @wp.kernel

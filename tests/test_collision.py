@@ -197,14 +197,14 @@ def _pairs(col):
     return set(pt), set(ee)
 
 
-def _pressed_arm(device, capacity):
+def _pressed_arm(device, capacity, pair_capacity=None):
     """The coarse arm's skin at LBS 150 degrees (forearm pressed into the upper arm): the
     rig, the detection, its contacts and the two states it ran on."""
     rig = coarse_arm()
     builder = SkinModelBuilder(rig, ModelParams(volume=False))
     model = builder.finalize(device)
     col = SelfCollision(model)
-    contacts = model.contacts(capacity)
+    contacts = model.contacts(capacity, pair_capacity)
     a, b = model.state(), model.state()
     initial_state(builder, a, rig.skinning_matrices("flex", 1.2))
     initial_state(builder, b, rig.skinning_matrices("flex", 1.5))
@@ -212,18 +212,59 @@ def _pressed_arm(device, capacity):
     return rig, col, contacts, a, b
 
 
+def _triangle_pairs(contacts):
+    n = int(contacts.counts.numpy()[3])
+    pairs = [tuple(p) for p in contacts.tri_pairs.numpy()[:n].tolist()]
+    assert len(set(pairs)) == len(pairs), "a triangle pair listed twice"
+    return set(pairs)
+
+
 def test_overflow_grows_and_finds_the_same_pairs(device):
-    rig, _, big, a, b = _pressed_arm(device, 1 << 15)
+    rig, _, big, a, b = _pressed_arm(device, 1 << 15, 1 << 20)
     assert not big.overflowed()
     ref = _pairs(big)
-    assert len(ref[0]) > 10 and len(ref[1]) > 10
-    _, col, small, a2, b2 = _pressed_arm(device, 8)
+    ref_tri = _triangle_pairs(big)
+    assert len(ref[0]) > 10 and len(ref[1]) > 10 and len(ref_tri) > 1000
+    _, col, small, a2, b2 = _pressed_arm(device, 8, 1 << 20)
     assert small.overflowed()  # the flag, never a silent drop
     while small.overflowed():
         small.grow()
         col.detect(a2.x, b2.x, small)
     assert small.capacity > 8
     assert _pairs(small) == ref
+    assert _triangle_pairs(small) == ref_tri
+    # the fail-safe's pair list is no contact: one that does not fit raises no flag (the
+    # fail-safe does without it), and grows between frames to what the last step listed
+    _, col, short, a3, b3 = _pressed_arm(device, 1 << 15, 64)
+    assert not short.overflowed() and int(short.counts.numpy()[3]) == len(ref_tri)
+    assert not short.grow_pairs(64)  # at its limit
+    assert short.grow_pairs(1 << 20) and short.pair_capacity >= len(ref_tri)
+    col.detect(a3.x, b3.x, short)
+    assert _triangle_pairs(short) == ref_tri and _pairs(short) == ref
+
+
+def test_triangle_pair_list_matches_brute_force(device):
+    # the fail-safe's list: every two skin triangles with no shared vertex whose swept boxes
+    # are within the search radius of each other on every axis, once, lower index first
+    rig, col, contacts, a, b = _pressed_arm(device, 1 << 15, 1 << 20)
+    tris = rig.triangles
+    x0 = a.x.numpy()[: rig.vertex_count].astype(np.float64)[tris]
+    x1 = b.x.numpy()[: rig.vertex_count].astype(np.float64)[tris]
+    lo = np.minimum(x0.min(axis=1), x1.min(axis=1))
+    hi = np.maximum(x0.max(axis=1), x1.max(axis=1))
+    r = col.radius
+    gap = np.maximum(lo[:, None, :] - hi[None, :, :], lo[None, :, :] - hi[:, None, :]).max(axis=2)  # [T, T]
+    shared = (tris[:, None, :, None] == tris[None, :, None, :]).any(axis=(2, 3))
+    # the regular procedural mesh repeats its gaps: pairs within a band of the radius (float32
+    # boxes against float64 ones) may go either way, every other pair must be decided exactly
+    band = 1e-4 * r
+    def pairs(mask):
+        t, u = np.nonzero(mask & ~shared)
+        return {(int(i), int(j)) for i, j in zip(t, u) if i < j}
+    must, may = pairs(gap < r - band), pairs(np.abs(gap - r) <= band)
+    assert len(must) > 1000
+    got = _triangle_pairs(contacts)
+    assert must <= got and got <= must | may
 
 
 def test_detected_point_triangle_pairs_match_brute_force(device):
@@ -363,6 +404,66 @@ def test_fail_safe_min_move_looks_only_from_triangles_that_moved(device):
     assert n_moved == n_all > 10
     np.testing.assert_array_equal(x_none, x1)
     assert n_none == 0
+
+
+def test_fail_safe_from_the_pair_list_equals_the_query_from_every_triangle(device):
+    # the coarse arm bending into contact under the solver; after some steps, the skin jittered
+    # by 0.7 thicknesses (seeded) makes new pairs; the fail-safe from this step's detection
+    # list (escaped triangles querying the tree) and from a tree query per triangle give the
+    # same positions bit for bit and the same pair count, carried, held, and with min_move;
+    # both halves have work: some new pairs have two triangles that stayed in their boxes
+    from warpskin.solver import SkinSolver, SolverParams
+
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig, ModelParams(volume=False))
+    model = builder.finalize(device)
+    solver = SkinSolver(model, SolverParams(iterations=4))
+    col = solver.collision
+    contacts = model.contacts()
+    a, b, ctl = model.state(), model.state(), model.control()
+    v, tris = rig.vertex_count, rig.triangles
+    initial_state(builder, a, rig.skinning_matrices("flex", 0.9))
+    rng = np.random.default_rng(5)
+    found = both_listed = 0
+    for step in range(12):
+        ctl.set_pose(rig.skinning_matrices("flex", 0.9 + 0.01 * (step + 1)))
+        solver.step(a, b, ctl, contacts, 0.01)
+        assert not contacts.overflowed()
+        if step % 3 == 2:
+            x_old = a.x.numpy().copy()  # (a CPU array's numpy() is a view)
+            x = b.x.numpy().copy()
+            x[:v] += rng.normal(scale=0.7 * col.thickness, size=(v, 3)).astype(np.float32)
+
+            def fail_safe(c, **kw):
+                xw = wp.array(x, dtype=wp.vec3, device=device)
+                col.fail_safe_pairs.zero_()
+                col.fail_safe(a.x, xw, ctl.skin_matrices, contacts=c, **kw)
+                return xw.numpy().copy(), int(col.fail_safe_pairs.numpy()[0])
+
+            variants = ({}, {"carry": False}, {"carry": False, "min_move": 0.5 * col.thickness})
+            ref = [fail_safe(None, **kw) for kw in variants]
+            for r, kw in zip(ref, variants):
+                got = fail_safe(contacts, **kw)
+                np.testing.assert_array_equal(got[0], r[0])
+                assert got[1] == r[1]
+                found += r[1]
+            escaped = col.escaped.numpy().astype(bool)
+            assert 0 < escaped.sum() < 0.5 * len(tris)
+            print(f"escaped {escaped.sum()} of {len(tris)}")
+            new = {tuple(q) for q in self_intersections(x[:v].astype(np.float64), tris).tolist()} - \
+                {tuple(q) for q in self_intersections(x_old[:v].astype(np.float64), tris).tolist()}
+            both_listed += sum(1 for t, u in new if not escaped[t] and not escaped[u])
+            # a list that does not fit its buffer: every triangle queries the tree, same result
+            short = model.contacts(pair_capacity=16)
+            col.detect(a.x, b.x, short)
+            for r, kw in zip(ref, variants):
+                got = fail_safe(short, **kw)
+                assert col.escaped.numpy().all()
+                np.testing.assert_array_equal(got[0], r[0])
+                assert got[1] == r[1]
+        a, b = b, a
+    print(f"pairs found {found}, new pairs of two listed triangles {both_listed}")
+    assert found > 20 and both_listed > 0
 
 
 def test_fail_safe_leaves_pairs_the_animation_drives_through_each_other(device):

@@ -286,7 +286,7 @@ def test_a_convex_rim_is_not_a_fold(assets, device):
     b.assign(a)
     contacts = model.contacts()
     solver.collision.detect(a.x, b.x, contacts)
-    assert contacts.counts.numpy()[2] == 0  # no overflow
+    assert contacts.counts.numpy()[2] == 0  # no overflow of the contact buffers
     before = b.x.numpy().copy()
     solver.collision.project(b.x, model.particle_inv_mass, contacts)
     assert int(contacts.active.numpy()[0]) == 0  # no constraint violated at rest

@@ -10,7 +10,9 @@ The topology (edges, their triangles, rigid vertices) is made on the host by the
 contact buffers are a :class:`~warpskin.model.Contacts` (``model.contacts()``).
 
 Per step (Algorithm 1): :meth:`SelfCollision.detect` once on the predicted positions (BVH over
-the skin triangles' swept boxes, refit every step), :meth:`project` inside every elasticity
+the skin triangles' swept boxes, refit every step; one query per triangle finds the
+point-triangle and edge-edge candidates of the vertices and edges it owns, and lists the nearby
+triangle pairs that the fail-safe's first round tests), :meth:`project` inside every elasticity
 iteration, :meth:`volume_weights` before the volume loop (colliding particles get 5 % of their
 weight: they move little, so the volume loop does not push them back into the contact) and
 :meth:`friction_restitution` after the velocity update. Detection fills the pre-sized contact
@@ -29,7 +31,8 @@ import warp as wp
 from .errors import InputError, SceneError
 from .kernels import collision as k
 
-__all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges"]
+__all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges",
+           "triangle_ownership"]
 
 
 @dataclass
@@ -171,6 +174,21 @@ def collision_topology(rig) -> CollisionTopology:
     )
 
 
+def triangle_ownership(triangles: np.ndarray, tri_edges: np.ndarray, edge_owner: np.ndarray) -> np.ndarray:
+    """What each triangle owns for the one-query-per-triangle detection: bit ``k`` (0-2) its
+    corner ``k`` (a vertex is owned by the first triangle that has it), bit ``3 + k`` its edge
+    ``k`` (corner ``k`` to ``k + 1``; ``edge_owner``). Every vertex and edge has one owner."""
+    t = np.asarray(triangles, dtype=np.int64)
+    n_tri = t.shape[0]
+    vertex_owner = np.full(int(t.max()) + 1, n_tri, dtype=np.int64)
+    np.minimum.at(vertex_owner, t.ravel(), np.repeat(np.arange(n_tri), 3))
+    rows = np.arange(n_tri)[:, None]
+    corner = vertex_owner[t] == rows
+    edge = np.asarray(edge_owner)[np.asarray(tri_edges)] == rows
+    bits = (corner * (1 << np.arange(3))).sum(axis=1) + (edge * (8 << np.arange(3))).sum(axis=1)
+    return bits.astype(np.int32)
+
+
 class CollisionData:
     """The collision part of a :class:`~warpskin.model.SkinModel`: device topology and the
     contact scalars of its :class:`CollisionParams`.
@@ -208,6 +226,7 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
         d.edge_indices = wp.array(topo.edges.astype(np.int32), dtype=wp.int32)
         d.tri_edges = wp.array(topo.tri_edges.astype(np.int32), dtype=wp.int32)
         d.edge_owner = wp.array(topo.edge_owner.astype(np.int32), dtype=wp.int32)
+        d.tri_owns = wp.array(triangle_ownership(tris, topo.tri_edges, topo.edge_owner), dtype=wp.int32)
         d.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
         d.rest_lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
         d.rest_uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
@@ -252,17 +271,18 @@ class SelfCollision:
         # the fail-safe carries a skin vertex by its bone-layer particle (layer-major: + 3 V),
         # on the written triangles (a tree of their own where the skin was refined)
         self._carry = 3 * v if model.particle_count >= 4 * v else 0
-        if c.output_triangles is None:
-            self._fs_tris, self._fs_lowers, self._fs_uppers, self._fs_bvh = model.tri_indices, self.lowers, self.uppers, None
-        else:
-            with wp.ScopedDevice(self.device):
-                self._fs_tris = c.output_triangles
-                self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
-                self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
-                wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
-                          inputs=[model.particle_q0, model.particle_q0, self._fs_tris, c.thickness],
-                          outputs=[self._fs_lowers, self._fs_uppers])
-                self._fs_bvh = wp.Bvh(self._fs_lowers, self._fs_uppers)
+        # the fail-safe's own tree (the detection's keeps its boxes for the escape test); on a
+        # skin written as simulated, its first round takes the detection's pair list
+        self._fs_tris = model.tri_indices if c.output_triangles is None else c.output_triangles
+        self._listed = c.output_triangles is None
+        with wp.ScopedDevice(self.device):
+            self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
+            self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
+            self.escaped = wp.zeros(c.output_triangle_count, dtype=wp.int32)
+            wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
+                      inputs=[model.particle_q0, model.particle_q0, self._fs_tris, c.thickness],
+                      outputs=[self._fs_lowers, self._fs_uppers])
+            self._fs_bvh = wp.Bvh(self._fs_lowers, self._fs_uppers)
 
     def maybe_rebuild(self, skin: np.ndarray) -> bool:
         """Host check between frames (never inside a captured graph): rebuild the BVH in place
@@ -272,7 +292,8 @@ class SelfCollision:
         spread = float(np.linalg.norm(d - d.mean(axis=0), axis=1).max())
         if spread <= self.data.rebuild_spread * self.data.diagonal:
             return False
-        self.bvh.rebuild()  # in place: graphs captured with this BVH stay valid
+        self.bvh.rebuild()  # in place: graphs captured with these trees stay valid
+        self._fs_bvh.rebuild()
         self._built_at = np.array(skin, dtype=np.float64)
         self.rebuilds += 1
         return True
@@ -293,17 +314,14 @@ class SelfCollision:
                   outputs=[self.vertex_normals], device=dev)
         # zero the two counters, keep the overflow flag (cleared by the caller after checking)
         wp.launch(k.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
-        wp.launch(k.detect_point_triangle_kernel, dim=m.vertex_count,
-                  inputs=[self.bvh.id, x_old, x_pred, m.tri_indices, c.rigid_bone, m.particle_q0,
-                          c.rest_gap, self.vertex_normals, c.fold_cos, c.thickness, c.radius, contacts.capacity],
-                  outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.overflow_flag,
-                           contacts.colliding], device=dev)
-        wp.launch(k.detect_edge_edge_kernel, dim=c.edge_count,
-                  inputs=[self.bvh.id, x_old, x_pred, c.edge_indices, c.tri_edges, c.edge_owner, self.lowers,
-                          self.uppers, c.rigid_bone, m.particle_q0, c.rest_gap, self.vertex_normals, c.fold_cos, c.radius,
-                          contacts.capacity],
-                  outputs=[contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign, contacts.overflow_flag,
-                           contacts.colliding], device=dev)
+        wp.launch(k.detect_kernel, dim=c.triangle_count,
+                  inputs=[self.bvh.id, x_old, x_pred, m.tri_indices, c.tri_owns, c.edge_indices, c.tri_edges,
+                          c.edge_owner, self.lowers, self.uppers, c.rigid_bone, m.particle_q0, c.rest_gap,
+                          self.vertex_normals, c.fold_cos, c.thickness, c.radius, contacts.capacity],
+                  outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.ee_count, contacts.ee_a,
+                           contacts.ee_b, contacts.ee_sign, contacts.overflow_flag, contacts.colliding,
+                           int(self._listed and c.fail_safe_rounds > 0), contacts.pair_capacity, contacts.tri_pairs,
+                           contacts.pair_count], device=dev)
 
     def project(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
         """``passes`` Jacobi passes over all point-triangle and edge-edge constraints;
@@ -327,7 +345,7 @@ class SelfCollision:
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
     def fail_safe(self, x_old: wp.array, x: wp.array, skin_matrices: wp.array, carry: bool = True,
-                  min_move: float | None = None) -> None:
+                  min_move: float | None = None, contacts=None) -> None:
         """Put back the vertices of every pair of the written skin triangles that intersects at
         ``x``, did not at ``x_old`` and does not under LBS (``skin_matrices``, this step's
         pose): to ``x_old`` plus the step's motion of their bone-layer particles, and where
@@ -340,29 +358,48 @@ class SelfCollision:
         only from the triangles with a vertex that moved farther than that from ``x_old``: a
         pair of two others was closer than twice it at ``x_old`` if it intersects now (the
         pass after the volume loop, which moves most of the skin by far less than the
-        contact thickness: one query per moved triangle instead of one per triangle)."""
+        contact thickness: one query per moved triangle instead of one per triangle).
+
+        With ``contacts`` (this step's, detected by :meth:`detect`) on a skin written as
+        simulated, the first round tests the detection's list of nearby triangle pairs instead
+        of querying the tree from every triangle: every triangle whose positions here stay
+        within its detection box less half the search radius is in that list with every
+        triangle it can touch, and only the others (the escaped ones) query the tree (all of
+        them where the list did not fit its buffer). The same pairs are tested (a test checks
+        it), for a fraction of the cost on the CPU."""
         c = self.data
         if c.fail_safe_rounds <= 0:
             return
         dev = self.device
         m = self.model
-        bvh = self.bvh if self._fs_bvh is None else self._fs_bvh
-        tris, lowers, uppers, count = self._fs_tris, self._fs_lowers, self._fs_uppers, c.output_triangle_count
+        bvh, tris, lowers, uppers, count = self._fs_bvh, self._fs_tris, self._fs_lowers, self._fs_uppers, \
+            c.output_triangle_count
+        listed = contacts is not None and self._listed
         self.carried.zero_()
         carry_offset = self._carry if carry else 0
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
-        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness],
-                  outputs=[lowers, uppers], device=dev)
+        wp.launch(k.fail_safe_bounds_kernel, dim=count,
+                  inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness, self.lowers, self.uppers,
+                          0.5 * c.radius if listed else -1.0, contacts.pair_count if listed else self.fail_safe_pairs,
+                          contacts.pair_capacity if listed else 0],
+                  outputs=[lowers, uppers, self.escaped], device=dev)
         bvh.refit()
         if min_move is not None:
             wp.launch(k.moved_farther_kernel, dim=m.vertex_count, inputs=[x_old, x, float(min_move)], outputs=[self.moved],
                       device=dev)
+        lbs = [m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, skin_matrices]
         for r in range(c.fail_safe_rounds):
+            only_moved = int(r > 0 or min_move is not None)
+            only_escaped = int(listed and r == 0)
+            if only_escaped:
+                wp.launch(k.listed_new_intersections_kernel, dim=contacts.pair_capacity,
+                          inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
+                                  self.moved, only_moved, self.escaped, *lbs],
+                          outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.new_intersections_kernel, dim=count,
-                      inputs=[bvh.id, x_old, x, tris, lowers, uppers, 1.0e-4, self.moved, int(r > 0 or min_move is not None),
-                              m.particle_q0,
-                              m.coupling_joint_indices, m.coupling_joint_weights, skin_matrices],
+                      inputs=[bvh.id, x_old, x, tris, lowers, uppers, 1.0e-4, self.moved, only_moved, self.escaped,
+                              only_escaped, *lbs],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset],
                       outputs=[self.revert, self.carried, self.moved, x], device=dev)

@@ -404,16 +404,18 @@ class SkinModel:
         muscle activation of a rest-shape drive (zero)."""
         return Control(self)
 
-    def contacts(self, capacity: int | None = None) -> Contacts | None:
+    def contacts(self, capacity: int | None = None, pair_capacity: int | None = None) -> Contacts | None:
         """Collision buffers (``None`` when the model has self-collision switched off).
 
         Args:
             capacity: Candidate pairs per kind (default ``[collision] capacity``); they grow
                 on overflow with :meth:`Contacts.grow`.
+            pair_capacity: Nearby triangle pairs the detection lists for the fail-safe
+                (default 16 per skin triangle); grown the same way.
         """
         if self.collision is None:
             return None
-        return Contacts(self, int(capacity if capacity is not None else self.collision_params.capacity))
+        return Contacts(self, int(capacity if capacity is not None else self.collision_params.capacity), pair_capacity)
 
 
 class State:
@@ -467,24 +469,33 @@ class Contacts:
     """Skin self-collision buffers: candidate point-triangle and edge-edge pairs found by the
     detection of a step, their counts, the overflow flag and the per-particle colliding flags.
 
-    ``counts`` is ``[point-triangle, edge-edge, overflow]``; detection never writes past
-    :attr:`capacity` but raises the flag, and the caller (the frame runner) checks
+    ``counts`` is ``[point-triangle, edge-edge, overflow, triangle pairs]``; detection never
+    writes past :attr:`capacity` but raises the flag, and the caller (the frame runner) checks
     :meth:`overflowed`, calls :meth:`grow` and repeats the frame, so no contact is dropped
     silently. Growing reallocates the pair buffers: graphs captured with the old ones must be
     captured again.
     """
 
-    def __init__(self, model: SkinModel, capacity: int) -> None:
-        if isinstance(capacity, bool) or int(capacity) != capacity or capacity < 1:
-            raise InputError(f"contact capacity must be a positive integer, got {capacity!r}")
+    def __init__(self, model: SkinModel, capacity: int, pair_capacity: int | None = None) -> None:
+        for name, value in (("contact capacity", capacity), ("pair capacity", pair_capacity)):
+            if (value is not None or name == "contact capacity") and (
+                    not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1):
+                raise InputError(f"{name} must be a positive integer, got {value!r}")
         self.device = model.device
         with wp.ScopedDevice(self.device):
-            self.counts = wp.zeros(3, dtype=wp.int32)  # point-triangle, edge-edge, overflow flag
+            # point-triangle, edge-edge, overflow flag, triangle pairs
+            self.counts = wp.zeros(4, dtype=wp.int32)
             # views of the counters (never reallocated), made once
             self.pt_count, self.ee_count, self.overflow_flag = self.counts[0:1], self.counts[1:2], self.counts[2:3]
+            self.pair_count = self.counts[3:4]
             self.colliding = wp.zeros(model.particle_count, dtype=wp.int32)
             self.active = wp.zeros(1, dtype=wp.int32)  # violated constraints in the last pass
         self._alloc(int(capacity))
+        # the detection's list of nearby triangle pairs, for the fail-safe (see
+        # SelfCollision.fail_safe): about 8 per triangle in a step; see grow_pairs
+        if pair_capacity is None:
+            pair_capacity = 16 * model.collision.triangle_count if model.collision is not None else 1
+        self._alloc_pairs(int(pair_capacity))
 
     def _alloc(self, capacity: int) -> None:
         self.capacity = capacity
@@ -494,6 +505,10 @@ class Contacts:
             self.ee_a = wp.zeros(capacity, dtype=wp.int32)
             self.ee_b = wp.zeros(capacity, dtype=wp.int32)
             self.ee_sign = wp.zeros(capacity, dtype=wp.float32)
+
+    def _alloc_pairs(self, capacity: int) -> None:
+        self.pair_capacity = capacity
+        self.tri_pairs = wp.zeros((capacity, 2), dtype=wp.int32, device=self.device)
 
     def overflowed(self) -> bool:
         """Host check (syncs): did a detection since the last :meth:`clear_overflow` overflow?"""
@@ -511,6 +526,21 @@ class Contacts:
             cap *= 2
         self._alloc(cap)
         self.counts.zero_()
+
+    def grow_pairs(self, limit: int) -> bool:
+        """Host check (syncs), between frames: when the last detection listed more triangle
+        pairs than :attr:`pair_capacity`, double it until they fit, up to ``limit``; returns
+        whether it grew (graphs captured with the old buffer must be captured again). A list
+        that does not fit is never an error: the fail-safe then queries the tree from every
+        triangle, as it would without a list."""
+        n = int(self.counts.numpy()[3])
+        if n <= self.pair_capacity or self.pair_capacity >= limit:
+            return False
+        cap = self.pair_capacity
+        while cap < n and cap < limit:
+            cap *= 2
+        self._alloc_pairs(min(cap, limit))
+        return True
 
 
 __all__ += ["LAYER_NAMES"]

@@ -370,7 +370,7 @@ class SkinSolver:
         # what it put back: after it, the held paws of the Fox's Run lost up to 45 % of their
         # volume; what the volume loop pushes through is the second pass's, below)
         if col is not None:
-            col.fail_safe(state_in.x, state_out.x, control.skin_matrices)
+            col.fail_safe(state_in.x, state_out.x, control.skin_matrices, contacts=contacts)
         # 11-13: volume loop; with the tether, each volume iteration is followed by the cap
         # (the volume loop moves skin particles only): a sub-volume squeezed by contacts
         # corrects through its few free particles and can throw one past it (the Fox's Walk at
@@ -389,7 +389,7 @@ class SkinSolver:
             # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %)
             if fail_safe:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
-                              min_move=1.0e-2 * col.data.thickness)
+                              min_move=1.0e-2 * col.data.thickness, contacts=contacts)
                 col.pin_reverted(self.volume_weight_scale)
                 self._volume_loop(state_out.x, control)
         if self.written_volume is not None:

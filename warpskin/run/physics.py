@@ -31,6 +31,9 @@ __all__ = ["PhysicsStepper", "initial_state"]
 
 #: Times a frame (or the pre-roll) is run again with doubled contact buffers before giving up.
 MAX_GROWTHS = 8
+#: The fail-safe's list of nearby triangle pairs grows (between frames) up to this many per skin
+#: triangle; a step that lists more (a violent motion) does without it.
+PAIR_LIMIT = 64
 
 
 def initial_state(builder, state, skin_matrices: np.ndarray) -> None:
@@ -227,6 +230,10 @@ class PhysicsStepper:
             contacts.grow()
             self.overflow_retries += 1
             growths += 1
+            self.graphs = self._capture_graphs()
+        # the fail-safe's pair list, short in the last step: larger from the next frame on (a
+        # short list only costs time: the fail-safe then queries the tree from every triangle)
+        if contacts is not None and contacts.grow_pairs(PAIR_LIMIT * self.model.collision.triangle_count):
             self.graphs = self._capture_graphs()
 
     def _read(self) -> None:
