@@ -730,7 +730,9 @@ def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path, d
     # the coarse arm's LBS at 150 degrees passes through itself; started there, the skin keeps
     # part of it; a pre-roll from the bind pose (straight, clean) reaches the pose by collision
     p = tmp_path / "arm.toml"
-    p.write_text(COARSE + "frames = [45, 46]\n[solver]\niterations = 10\n")
+    # the arm scene's cap (8 %): the crease skin kept out of the collapse lies farther than the
+    # default 5 % from LBS
+    p.write_text(COARSE + "frames = [45, 46]\n[solver]\niterations = 10\ntether_max = 0.08\n")
     scene = load_scene(p)
     kw = dict(device=device, with_lbs=True, check_intersections=True, progress=False)
     cold = simulate(scene, tmp_path / "cold.usdc", **kw)
