@@ -504,14 +504,15 @@ def detect_kernel(
     overflow: wp.array(dtype=wp.int32),
     colliding: wp.array(dtype=wp.int32),
     list_pairs: int,
+    list_gap: float,
     pair_capacity: int,
     tri_pairs: wp.array2d(dtype=wp.int32),
     pair_count: wp.array(dtype=wp.int32),
 ):
     """``tri_owns`` bits 0-2: the triangle owns its corner k; bits 3-5: its edge k (corner k to
     k + 1). With ``list_pairs``, every pair of triangles with no shared vertex whose boxes the
-    query pairs (the tree's boxes carry the radius, the query box does not) goes into
-    ``tri_pairs`` once (lower index first), for the fail-safe of the step (see
+    query pairs (the tree's boxes carry the radius, the query box does not) and whose swept
+    boxes are within ``list_gap`` of each other goes into ``tri_pairs`` once (lower index first), for the fail-safe of the step (see
     :func:`listed_new_intersections_kernel`); ``pair_count`` counts them all, also those
     beyond ``pair_capacity``, which are not written (the fail-safe then does without the
     list)."""
@@ -529,10 +530,13 @@ def detect_kernel(
     hi1 = wp.max(x_old[i1], x_pred[i1])
     lo2 = wp.min(x_old[i2], x_pred[i2])
     hi2 = wp.max(x_old[i2], x_pred[i2])
-    query = wp.bvh_query_aabb(bvh, wp.min(wp.min(lo0, lo1), lo2), wp.max(wp.max(hi0, hi1), hi2))
+    qlo = wp.min(wp.min(lo0, lo1), lo2)
+    qhi = wp.max(wp.max(hi0, hi1), hi2)
+    query = wp.bvh_query_aabb(bvh, qlo, qhi)
     u = int(0)
     while wp.bvh_query_next(query, u):
-        if list_pairs != 0 and u > t:
+        if list_pairs != 0 and u > t and boxes_overlap(qlo - wp.vec3(list_gap), qhi + wp.vec3(list_gap),
+                                                       lowers[u] + wp.vec3(radius), uppers[u] - wp.vec3(radius)):
             b0 = tri_indices[u, 0]
             b1 = tri_indices[u, 1]
             b2 = tri_indices[u, 2]
@@ -918,8 +922,9 @@ def fail_safe_bounds_kernel(
     the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
     by ``pad``; one refit serves all rounds. With ``escape_margin`` >= 0, ``escaped`` marks the
     triangles whose box reaches past their detection box (``det_lowers``/``det_uppers``, the
-    swept box plus the search radius) shrunk by ``escape_margin`` (half the radius): two
-    triangles that did not escape and whose boxes overlap are in the detection's pair list.
+    swept box plus the search radius) shrunk by ``escape_margin`` (the radius less the reach,
+    ``warpskin.collision.ESCAPE_REACH``): two triangles that did not escape and whose boxes
+    overlap have swept boxes within twice the reach, and are in the detection's pair list.
     Where that list did not fit (``pair_count`` above ``pair_capacity``), every triangle is
     marked."""
     t = wp.tid()

@@ -240,6 +240,12 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
     return d
 
 
+#: A triangle escapes the detection's pair list when its fail-safe box reaches farther than this
+#: many search radii beyond its swept box; the list holds the pairs whose swept boxes are within
+#: twice that of each other (at most 0.5: the tree returns the pairs within one radius).
+ESCAPE_REACH = 0.25
+
+
 class SelfCollision:
     """Skin self-collision of one model: the BVH and the scratch buffers (allocated here), the
     launches of detection, projection, volume weights and friction; the pairs go into a
@@ -275,6 +281,7 @@ class SelfCollision:
         # skin written as simulated, its first round takes the detection's pair list
         self._fs_tris = model.tri_indices if c.output_triangles is None else c.output_triangles
         self._listed = c.output_triangles is None
+        self._reach = ESCAPE_REACH * c.radius
         with wp.ScopedDevice(self.device):
             self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
             self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
@@ -320,7 +327,8 @@ class SelfCollision:
                           self.vertex_normals, c.fold_cos, c.thickness, c.radius, contacts.capacity],
                   outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.ee_count, contacts.ee_a,
                            contacts.ee_b, contacts.ee_sign, contacts.overflow_flag, contacts.colliding,
-                           int(self._listed and c.fail_safe_rounds > 0), contacts.pair_capacity, contacts.tri_pairs,
+                           int(self._listed and c.fail_safe_rounds > 0), 2.0 * self._reach,
+                           contacts.pair_capacity, contacts.tri_pairs,
                            contacts.pair_count], device=dev)
 
     def project(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
@@ -363,7 +371,7 @@ class SelfCollision:
         With ``contacts`` (this step's, detected by :meth:`detect`) on a skin written as
         simulated, the first round tests the detection's list of nearby triangle pairs instead
         of querying the tree from every triangle: every triangle whose positions here stay
-        within its detection box less half the search radius is in that list with every
+        within ``ESCAPE_REACH`` search radii of its swept box is in that list with every
         triangle it can touch, and only the others (the escaped ones) query the tree (all of
         them where the list did not fit its buffer). The same pairs are tested (a test checks
         it), for a fraction of the cost on the CPU."""
@@ -381,7 +389,7 @@ class SelfCollision:
         # the thickness against float rounding): one refit for all rounds
         wp.launch(k.fail_safe_bounds_kernel, dim=count,
                   inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness, self.lowers, self.uppers,
-                          0.5 * c.radius if listed else -1.0, contacts.pair_count if listed else self.fail_safe_pairs,
+                          c.radius - self._reach if listed else -1.0, contacts.pair_count if listed else self.fail_safe_pairs,
                           contacts.pair_capacity if listed else 0],
                   outputs=[lowers, uppers, self.escaped], device=dev)
         bvh.refit()

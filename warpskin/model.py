@@ -411,7 +411,7 @@ class SkinModel:
             capacity: Candidate pairs per kind (default ``[collision] capacity``); they grow
                 on overflow with :meth:`Contacts.grow`.
             pair_capacity: Nearby triangle pairs the detection lists for the fail-safe
-                (default 16 per skin triangle); grown the same way.
+                (default 8 per skin triangle); grown the same way.
         """
         if self.collision is None:
             return None
@@ -492,9 +492,9 @@ class Contacts:
             self.active = wp.zeros(1, dtype=wp.int32)  # violated constraints in the last pass
         self._alloc(int(capacity))
         # the detection's list of nearby triangle pairs, for the fail-safe (see
-        # SelfCollision.fail_safe): about 8 per triangle in a step; see grow_pairs
+        # SelfCollision.fail_safe): about 3 per triangle in a step; see grow_pairs
         if pair_capacity is None:
-            pair_capacity = 16 * model.collision.triangle_count if model.collision is not None else 1
+            pair_capacity = 8 * model.collision.triangle_count if model.collision is not None else 1
         self._alloc_pairs(int(pair_capacity))
 
     def _alloc(self, capacity: int) -> None:
