@@ -77,8 +77,8 @@ class CollisionParams:
             the search radius in the constraint loop (CesiumMan's walk kept 8 pairs at the back
             of its knees for six frames; now none). A second pass after the volume loop holds
             what that loop pushed through where the loop found it, and the loop runs again with
-            those vertices pinned (the Fox's Run: at most 10 pairs, never more than LBS,
-            instead of 42 in 12 frames worse; CesiumMan's automatic cage: 0 pairs where its LBS
+            those vertices pinned (the Fox's Run: never more pairs than LBS, instead of 42 in
+            12 frames worse at the time; CesiumMan's automatic cage: 0 pairs where its LBS
             has 339, against 42 without the fail-safe and 95 with the first pass alone).
     """
 
