@@ -416,16 +416,6 @@ def edge_edge_candidates(
             overflow[0] = 1
 
 
-@wp.func
-def edge_box_lower(x_old: wp.array(dtype=wp.vec3), x_pred: wp.array(dtype=wp.vec3), i1: int, i2: int) -> wp.vec3:
-    return wp.min(wp.min(x_pred[i1], x_pred[i2]), wp.min(x_old[i1], x_old[i2]))
-
-
-@wp.func
-def edge_box_upper(x_old: wp.array(dtype=wp.vec3), x_pred: wp.array(dtype=wp.vec3), i1: int, i2: int) -> wp.vec3:
-    return wp.max(wp.max(x_pred[i1], x_pred[i2]), wp.max(x_old[i1], x_old[i2]))
-
-
 @wp.kernel
 def detect_edge_edge_kernel(
     bvh: wp.uint64,
@@ -456,8 +446,8 @@ def detect_edge_edge_kernel(
     e = wp.tid()
     i1 = edge_indices[e, 0]
     i2 = edge_indices[e, 1]
-    lo = edge_box_lower(x_old, x_pred, i1, i2)  # triangle boxes carry the radius
-    hi = edge_box_upper(x_old, x_pred, i1, i2)
+    lo = wp.min(wp.min(x_pred[i1], x_pred[i2]), wp.min(x_old[i1], x_old[i2]))  # triangle boxes carry the radius
+    hi = wp.max(wp.max(x_pred[i1], x_pred[i2]), wp.max(x_old[i1], x_old[i2]))
     query = wp.bvh_query_aabb(bvh, lo, hi)
     t = int(0)
     while wp.bvh_query_next(query, t):
@@ -512,8 +502,8 @@ def detect_kernel(
     """``tri_owns`` bits 0-2: the triangle owns its corner k; bits 3-5: its edge k (corner k to
     k + 1). With ``list_pairs``, every pair of triangles with no shared vertex whose boxes the
     query pairs (the tree's boxes carry the radius, the query box does not) and whose swept
-    boxes are within ``list_gap`` of each other goes into ``tri_pairs`` once (lower index first), for the fail-safe of the step (see
-    :func:`listed_new_intersections_kernel`); ``pair_count`` counts them all, also those
+    boxes are within ``list_gap`` of each other goes into ``tri_pairs`` once (lower index
+    first), for the fail-safe of the step (see :func:`listed_new_intersections_kernel`); ``pair_count`` counts them all, also those
     beyond ``pair_capacity``, which are not written (the fail-safe then does without the
     list)."""
     t = wp.tid()
@@ -523,15 +513,11 @@ def detect_kernel(
     i0 = tri_indices[t, 0]
     i1 = tri_indices[t, 1]
     i2 = tri_indices[t, 2]
-    # the swept box of each corner
-    lo0 = wp.min(x_old[i0], x_pred[i0])
-    hi0 = wp.max(x_old[i0], x_pred[i0])
-    lo1 = wp.min(x_old[i1], x_pred[i1])
-    hi1 = wp.max(x_old[i1], x_pred[i1])
-    lo2 = wp.min(x_old[i2], x_pred[i2])
-    hi2 = wp.max(x_old[i2], x_pred[i2])
-    qlo = wp.min(wp.min(lo0, lo1), lo2)
-    qhi = wp.max(wp.max(hi0, hi1), hi2)
+    # the swept box of each corner (rows)
+    lo = wp.matrix_from_rows(wp.min(x_old[i0], x_pred[i0]), wp.min(x_old[i1], x_pred[i1]), wp.min(x_old[i2], x_pred[i2]))
+    hi = wp.matrix_from_rows(wp.max(x_old[i0], x_pred[i0]), wp.max(x_old[i1], x_pred[i1]), wp.max(x_old[i2], x_pred[i2]))
+    qlo = wp.min(wp.min(lo[0], lo[1]), lo[2])
+    qhi = wp.max(wp.max(hi[0], hi[1]), hi[2])
     query = wp.bvh_query_aabb(bvh, qlo, qhi)
     u = int(0)
     while wp.bvh_query_next(query, u):
@@ -548,32 +534,17 @@ def detect_kernel(
                     tri_pairs[slot, 1] = u
         if owns == 0:
             continue
-        lu = lowers[u]
-        hu = uppers[u]
-        if owns & 1 != 0 and boxes_overlap(lu, hu, lo0, hi0):
-            point_triangle_candidate(i0, u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
-                                     fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
-                                     colliding)
-        if owns & 2 != 0 and boxes_overlap(lu, hu, lo1, hi1):
-            point_triangle_candidate(i1, u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
-                                     fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
-                                     colliding)
-        if owns & 4 != 0 and boxes_overlap(lu, hu, lo2, hi2):
-            point_triangle_candidate(i2, u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
-                                     fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
-                                     colliding)
-        if owns & 8 != 0:
-            edge_edge_candidates(tri_edges[t, 0], u, wp.min(lo0, lo1), wp.max(hi0, hi1), x_old, x_pred, edge_indices,
-                                 tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap, vertex_normals,
-                                 fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign, overflow, colliding)
-        if owns & 16 != 0:
-            edge_edge_candidates(tri_edges[t, 1], u, wp.min(lo1, lo2), wp.max(hi1, hi2), x_old, x_pred, edge_indices,
-                                 tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap, vertex_normals,
-                                 fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign, overflow, colliding)
-        if owns & 32 != 0:
-            edge_edge_candidates(tri_edges[t, 2], u, wp.min(lo2, lo0), wp.max(hi2, hi0), x_old, x_pred, edge_indices,
-                                 tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap, vertex_normals,
-                                 fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign, overflow, colliding)
+        for k in range(3):
+            if (owns >> k) & 1 != 0 and boxes_overlap(lowers[u], uppers[u], lo[k], hi[k]):
+                point_triangle_candidate(tri_indices[t, k], u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap,
+                                         vertex_normals, fold_cos, thickness, radius, capacity, pt_count, pt_vertex,
+                                         pt_triangle, overflow, colliding)
+            if (owns >> (3 + k)) & 1 != 0:  # edge k: corner k to corner k + 1
+                k1 = (k + 1) % 3
+                edge_edge_candidates(tri_edges[t, k], u, wp.min(lo[k], lo[k1]), wp.max(hi[k], hi[k1]), x_old, x_pred,
+                                     edge_indices, tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap,
+                                     vertex_normals, fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign,
+                                     overflow, colliding)
 
 
 # --------------------------------------------------------------------------------------------
@@ -908,25 +879,13 @@ def fail_safe_bounds_kernel(
     tri_indices: wp.array2d(dtype=wp.int32),
     carry_offset: int,
     pad: float,
-    det_lowers: wp.array(dtype=wp.vec3),
-    det_uppers: wp.array(dtype=wp.vec3),
-    escape_margin: float,
-    pair_count: wp.array(dtype=wp.int32),
-    pair_capacity: int,
     # outputs
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
-    escaped: wp.array(dtype=wp.int32),
 ):
     """Boxes of the triangles over every position the fail-safe can give a vertex: the step's,
     the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
-    by ``pad``; one refit serves all rounds. With ``escape_margin`` >= 0, ``escaped`` marks the
-    triangles whose box reaches past their detection box (``det_lowers``/``det_uppers``, the
-    swept box plus the search radius) shrunk by ``escape_margin`` (the radius less the reach,
-    ``warpskin.collision.ESCAPE_REACH``): two triangles that did not escape and whose boxes
-    overlap have swept boxes within twice the reach, and are in the detection's pair list.
-    Where that list did not fit (``pair_count`` above ``pair_capacity``), every triangle is
-    marked."""
+    by ``pad``; one refit serves all rounds."""
     t = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
@@ -938,14 +897,32 @@ def fail_safe_bounds_kernel(
             c = x_old[i] + (x[i + carry_offset] - x_old[i + carry_offset])
             lo = wp.min(lo, c)
             hi = wp.max(hi, c)
-    lo = lo - wp.vec3(pad)
-    hi = hi + wp.vec3(pad)
-    lowers[t] = lo
-    uppers[t] = hi
-    if escape_margin >= 0.0:
-        m = wp.vec3(escape_margin)
-        inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
-        escaped[t] = wp.where(inside and pair_count[0] <= pair_capacity, 0, 1)
+    lowers[t] = lo - wp.vec3(pad)
+    uppers[t] = hi + wp.vec3(pad)
+
+
+@wp.kernel
+def escaped_kernel(
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    det_lowers: wp.array(dtype=wp.vec3),
+    det_uppers: wp.array(dtype=wp.vec3),
+    margin: float,
+    pair_count: wp.array(dtype=wp.int32),
+    pair_capacity: int,
+    # outputs
+    escaped: wp.array(dtype=wp.int32),
+):
+    """The triangles whose fail-safe box (``lowers``/``uppers``) reaches past their detection
+    box (``det_lowers``/``det_uppers``: the swept box plus the search radius) shrunk by
+    ``margin`` (the radius less the reach, ``warpskin.collision.ESCAPE_REACH``): two triangles
+    that did not escape and whose boxes overlap have swept boxes within twice the reach, and
+    are in the detection's pair list. Where that list did not fit (``pair_count`` above
+    ``pair_capacity``), every triangle escapes."""
+    t = wp.tid()
+    m = wp.vec3(margin)
+    inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lowers[t], uppers[t])
+    escaped[t] = wp.where(inside and pair_count[0] <= pair_capacity, 0, 1)
 
 
 @wp.func

@@ -387,12 +387,13 @@ class SelfCollision:
         carry_offset = self._carry if carry else 0
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
-        wp.launch(k.fail_safe_bounds_kernel, dim=count,
-                  inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness, self.lowers, self.uppers,
-                          c.radius - self._reach if listed else -1.0, contacts.pair_count if listed else self.fail_safe_pairs,
-                          contacts.pair_capacity if listed else 0],
-                  outputs=[lowers, uppers, self.escaped], device=dev)
+        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness],
+                  outputs=[lowers, uppers], device=dev)
         bvh.refit()
+        if listed:
+            wp.launch(k.escaped_kernel, dim=count,
+                      inputs=[lowers, uppers, self.lowers, self.uppers, c.radius - self._reach, contacts.pair_count,
+                              contacts.pair_capacity], outputs=[self.escaped], device=dev)
         if min_move is not None:
             wp.launch(k.moved_farther_kernel, dim=m.vertex_count, inputs=[x_old, x, float(min_move)], outputs=[self.moved],
                       device=dev)

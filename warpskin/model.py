@@ -477,10 +477,13 @@ class Contacts:
     """
 
     def __init__(self, model: SkinModel, capacity: int, pair_capacity: int | None = None) -> None:
-        for name, value in (("contact capacity", capacity), ("pair capacity", pair_capacity)):
-            if (value is not None or name == "contact capacity") and (
-                    not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1):
+        def positive(name, value):
+            if isinstance(value, bool) or int(value) != value or value < 1:
                 raise InputError(f"{name} must be a positive integer, got {value!r}")
+
+        positive("contact capacity", capacity)
+        if pair_capacity is not None:
+            positive("pair capacity", pair_capacity)
         self.device = model.device
         with wp.ScopedDevice(self.device):
             # point-triangle, edge-edge, overflow flag, triangle pairs
