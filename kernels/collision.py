@@ -1040,6 +1040,8 @@ def new_intersections_kernel(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
+    reverted: wp.array(dtype=wp.int32),
+    after_round: int,
     # outputs
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
@@ -1051,7 +1053,12 @@ def new_intersections_kernel(
     have changed. With ``only_escaped`` (the first round, where the detection's pair list has
     the pairs of every two triangles that did not escape their detection box) only the
     ``escaped`` triangles look, at the others and at the higher-numbered escaped ones; with
-    ``only_moved`` as well, a pair is tested when either triangle moved."""
+    ``only_moved`` as well, a pair is tested when either triangle moved. With ``after_round``
+    >= 0 nothing runs unless :func:`revert_kernel` of that round put a vertex back
+    (``reverted``): a round after one that found nothing has nothing to test."""
+    if after_round >= 0:
+        if reverted[after_round] == 0:
+            return
     t = wp.tid()
     if only_escaped != 0 and escaped[t] == 0:
         return
@@ -1138,20 +1145,30 @@ def listed_new_intersections_kernel(
 def revert_kernel(
     x_old: wp.array(dtype=wp.vec3),
     carry_offset: int,
+    after_round: int,
+    this_round: int,
     # outputs
     revert: wp.array(dtype=wp.int32),
     carried: wp.array(dtype=wp.int32),
     moved: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3),
+    reverted: wp.array(dtype=wp.int32),
 ):
     """Marked skin vertices back to their start-of-step positions: the first time in a step
     carried by the step's motion of their bone-layer particle (index + ``carry_offset``;
     pinned to LBS, so the zone keeps up with the animation), marked again (the carried patch
     still intersects) or without inner layers (``carry_offset`` 0) held there. ``moved`` says
     which vertices this round moved; ``carried`` which ones any round of the call put back
-    (zeroed by the caller); clears the marks."""
+    (zeroed by the caller); clears the marks. ``reverted[this_round]`` (zeroed by the caller)
+    becomes nonzero when a vertex was put back; like the round's tests, nothing runs when
+    ``after_round`` >= 0 and ``reverted[after_round]`` is zero (no mark is set then, and
+    ``moved`` keeps the last round's, which the later rounds, skipped too, do not read)."""
+    if after_round >= 0:
+        if reverted[after_round] == 0:
+            return
     i = wp.tid()
     if revert[i] != 0:
+        reverted[this_round] = 1
         if carry_offset > 0 and carried[i] == 0:
             j = i + carry_offset
             x[i] = x_old[i] + (x[j] - x_old[j])

@@ -270,6 +270,8 @@ class SelfCollision:
             self.carried = wp.zeros(v, dtype=wp.int32)
             # running count of the pairs the fail-safe found (read and reset by the caller)
             self.fail_safe_pairs = wp.zeros(1, dtype=wp.int32)
+            # per fail-safe round, whether it put a vertex back (a round after one that did not is skipped)
+            self.reverted = wp.zeros(max(c.fail_safe_rounds, 1), dtype=wp.int32)
         # the skin the tree was built for (host, read once: the rest skin the model uploaded)
         self._built_at = model.particle_q0.numpy()[:v].astype(np.float64)
         self.rebuilds = 0
@@ -384,6 +386,7 @@ class SelfCollision:
             c.output_triangle_count
         listed = contacts is not None and self._listed
         self.carried.zero_()
+        self.reverted.zero_()
         carry_offset = self._carry if carry else 0
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
@@ -406,12 +409,13 @@ class SelfCollision:
                           inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
                                   self.moved, only_moved, self.escaped, *lbs],
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
+            # a round after one that put nothing back is skipped (its kernels return at once)
             wp.launch(k.new_intersections_kernel, dim=count,
                       inputs=[bvh.id, x_old, x, tris, lowers, uppers, 1.0e-4, self.moved, only_moved, self.escaped,
-                              only_escaped, *lbs],
+                              only_escaped, *lbs, self.reverted, r - 1],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
-            wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset],
-                      outputs=[self.revert, self.carried, self.moved, x], device=dev)
+            wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
+                      outputs=[self.revert, self.carried, self.moved, x, self.reverted], device=dev)
 
     def pin_reverted(self, weight_scale: wp.array) -> None:
         """Pin (``weight_scale`` 0) the vertices the last :meth:`fail_safe` put back."""
