@@ -48,10 +48,15 @@ def tether_kernel(
     # outputs
     x: wp.array(dtype=wp.vec3),
     clamped: wp.array(dtype=wp.int32),
+    targets: wp.array(dtype=wp.vec3),
 ):
+    """One thread per particle; the skin's targets (``p < vertex_count``) are written to
+    ``targets`` for the caps in the volume loop (:func:`warpskin.kernels.volume.volume_correction_kernel`)."""
     p = wp.tid()
     i = p % vertex_count
     t = lbs_point(particle_q0[p], joint_indices, joint_weights, i, skin_matrices)
+    if p < vertex_count:
+        targets[p] = t
     d = x[p] - t
     r = tether_radius[i]
     dl = wp.length(d)

@@ -216,15 +216,33 @@ def volume_correction_kernel(
     pair_subvolume: wp.array(dtype=wp.int32),
     pair_gradient: wp.array(dtype=wp.vec3d),
     subvolume_lambda: wp.array(dtype=wp.float64),
+    use_cap: int,
+    cap_targets: wp.array(dtype=wp.vec3),
+    cap_radius: wp.array(dtype=wp.float32),
     # outputs
     x: wp.array(dtype=wp.vec3),
+    capped: wp.array(dtype=wp.int32),
 ):
+    """One thread per skin vertex. With ``use_cap``, every vertex (pinned ones too) then
+    ends within ``cap_radius[i]`` of ``cap_targets[i]`` (the tether's cap, counted in
+    ``capped``; the same arithmetic as :func:`warpskin.kernels.constraints.tether_kernel`)."""
     i = wp.tid()
     w = inv_mass[i] * weight_scale[i]
-    if w == 0.0:
-        return
-    dp = wp.vec3d()
-    for k in range(vertex_pair_offsets[i], vertex_pair_offsets[i + 1]):
-        p = vertex_pairs[k]
-        dp += subvolume_lambda[pair_subvolume[p]] * pair_gradient[p]
-    x[i] = x[i] + wp.vec3(wp.float64(w) * dp)
+    xi = x[i]
+    if w != 0.0:
+        dp = wp.vec3d()
+        for k in range(vertex_pair_offsets[i], vertex_pair_offsets[i + 1]):
+            p = vertex_pairs[k]
+            dp += subvolume_lambda[pair_subvolume[p]] * pair_gradient[p]
+        xi = xi + wp.vec3(wp.float64(w) * dp)
+    if use_cap != 0:
+        t = cap_targets[i]
+        d = xi - t
+        r = cap_radius[i]
+        dl = wp.length(d)
+        if dl > r:
+            xi = t + d * (r / dl)
+            wp.atomic_add(capped, 0, 1)
+    elif w == 0.0:
+        return  # a pinned vertex is not written: it stays bit-identical
+    x[i] = xi

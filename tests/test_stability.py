@@ -46,10 +46,13 @@ def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
     x[far] += rng.normal(size=(40, 3))  # about a metre away
     xw = wp.array(x.astype(np.float32), dtype=wp.vec3, device=model.device)
     clamped = wp.zeros(1, dtype=wp.int32, device=model.device)
+    targets = wp.zeros(model.vertex_count, dtype=wp.vec3, device=model.device)
     wp.launch(k.tether_kernel, dim=model.particle_count,
               inputs=[model.particle_q0, model.coupling_joint_indices, model.coupling_joint_weights, ctrl.skin_matrices,
-                      solver.tether_radius, model.vertex_count], outputs=[xw, clamped], device=model.device)
+                      solver.tether_radius, model.vertex_count], outputs=[xw, clamped, targets], device=model.device)
     out = xw.numpy().astype(np.float64)
+    # the skin's targets, kept for the volume loop's caps, are its LBS positions
+    np.testing.assert_allclose(targets.numpy(), target[: model.vertex_count], atol=1e-5)
     depth = np.linalg.norm(builder.layers.positions[3] - builder.layers.positions[0], axis=1)
     r4 = np.tile(1.5 * depth + 0.01 * model.diagonal, 4)
     dist = np.linalg.norm(out - target, axis=1)

@@ -256,6 +256,51 @@ def test_one_iteration_matches_numpy_pbd_with_inverse_masses(device):
         np.testing.assert_allclose(ratio, lam[s], rtol=2e-2)
 
 
+def test_the_fused_cap_is_each_iteration_then_a_radial_clamp(device):
+    """``project(..., cap=)`` against the uncapped iteration followed by a NumPy clamp of every
+    skin vertex (pinned ones too) to its radius around its target, three times over."""
+    model, vc, state, ws = _setup(device)
+    v = model.vertex_count
+    rng = np.random.default_rng(11)
+    x0 = _perturbed(model, seed=12, scale=0.004)
+    scale = np.ones(model.particle_count, dtype=np.float32)
+    pinned = rng.choice(v, size=v // 10, replace=False)
+    scale[pinned] = 0.0
+    ws.assign(scale)
+    targets = (x0[:v] + rng.normal(scale=0.003, size=(v, 3))).astype(np.float32)
+    # generic radii: some vertices far inside their sphere, some far outside (none near it)
+    gap = np.linalg.norm(x0[:v].astype(np.float64) - targets, axis=1)
+    radius = (gap * rng.choice([0.3, 3.0], size=v)).astype(np.float32)
+    t_dev = wp.array(targets, dtype=wp.vec3, device=model.device)
+    r_dev = wp.array(radius, dtype=wp.float32, device=model.device)
+    capped = wp.zeros(1, dtype=wp.int32, device=model.device)
+    state.x.assign(x0)
+    vc.project(state.x, model.particle_inv_mass, ws, vc.centers, iterations=3, cap=(t_dev, r_dev, capped))
+    fused = state.x.numpy().copy()
+
+    ref = x0.copy()
+    clamps = 0
+    for _ in range(3):
+        state.x.assign(ref)
+        vc.project(state.x, model.particle_inv_mass, ws, vc.centers, iterations=1)
+        ref = state.x.numpy().copy()
+        d = ref[:v].astype(np.float64) - targets
+        dl = np.linalg.norm(d, axis=1)
+        out = dl > radius
+        ref[:v][out] = targets[out] + d[out] * (radius[out] / dl[out])[:, None]
+        clamps += int(out.sum())
+    np.testing.assert_allclose(fused[:v], ref[:v], rtol=0, atol=2e-6)
+    assert capped.numpy()[0] == clamps and clamps >= v // 3
+    # within the radius up to float32 rounding of the coordinates (about 0.6 m: 6e-8 m)
+    assert (np.linalg.norm(fused[:v].astype(np.float64) - targets, axis=1) <= radius + 1e-6).all()
+    assert set(np.nonzero(np.abs(fused[pinned] - x0[pinned]).max(axis=1) > 0)[0]) <= set(
+        np.nonzero(gap[pinned] > radius[pinned])[0])  # a pinned vertex moves only by its clamp
+    np.testing.assert_array_equal(fused[v:], x0[v:])  # the inner layers stay
+    with pytest.raises(InputError, match="cap radius"):
+        vc.project(state.x, model.particle_inv_mass, ws, vc.centers, iterations=1,
+                   cap=(t_dev, wp.zeros(3, dtype=wp.float32, device=model.device), capped))
+
+
 def test_iterations_converge_with_pinned_particles_and_kinematic_centers(device):
     model, vc, state, ws = _setup(device)
     sv = _host(model).subvolumes

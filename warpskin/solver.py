@@ -155,6 +155,8 @@ class SkinSolver:
                 # the hard bound after the volume loop: the cap alone (see tether_max)
                 self.tether_cap = wp.full(v, float(p.tether_max * model.diagonal), dtype=wp.float32)
             self.tether_clamped = wp.zeros(1, dtype=wp.int32)
+            # the skin's LBS targets of the step (written by the tether, read by the volume loop's caps)
+            self.tether_targets = wp.zeros(v, dtype=wp.vec3)
             # fast summation buffers
             self.prefix_mx = wp.zeros(n, dtype=wp.vec3d)
             self.prefix_mxx = wp.zeros(n, dtype=wp.mat33d)
@@ -263,19 +265,17 @@ class SkinSolver:
         if self.volume is not None:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
-    def _volume_loop(self, x: wp.array, control: Control, weight_scale: wp.array | None = None) -> None:
+    def _volume_loop(self, x: wp.array, weight_scale: wp.array | None = None) -> None:
         """``volume_iterations`` of the sub-volume constraints on ``x`` (weights
         :attr:`volume_weight_scale` unless given), each followed by the tether's cap where
         there is a tether."""
         p = self.params
         w = self.volume_weight_scale if weight_scale is None else weight_scale
-        if self.tether_radius is None:
-            self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, p.volume_iterations,
-                                p.volume_stiffness)
-        else:
-            for _ in range(p.volume_iterations):
-                self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, 1, p.volume_stiffness)
-                self._cap(x, control)
+        # the cap is fused into each iteration's correction launch, against the targets the
+        # step's tether wrote (the skinning matrices do not change within a step)
+        cap = None if self.tether_radius is None else (self.tether_targets, self.tether_cap, self.tether_clamped)
+        self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, p.volume_iterations,
+                            p.volume_stiffness, cap=cap)
 
     def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
         """A refined skin is written with the loaded mesh's triangles, chords of the simulated
@@ -302,7 +302,7 @@ class SkinSolver:
                           min_move=1.0e-2 * col.data.thickness)
         wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 1],
                   outputs=[self.split_weight_scale], device=dev)
-        self._volume_loop(x, control, self.split_weight_scale)
+        self._volume_loop(x, self.split_weight_scale)
 
     def _cap(self, x: wp.array, control: Control) -> None:
         """The tether's cap (``tether_max`` x the diagonal) on the skin particles."""
@@ -310,7 +310,7 @@ class SkinSolver:
         wp.launch(k_con.tether_kernel, dim=m.vertex_count,
                   inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
                           self.tether_cap, m.vertex_count],
-                  outputs=[x, self.tether_clamped], device=self.device)
+                  outputs=[x, self.tether_clamped, self.tether_targets], device=self.device)
 
     # ------------------------------------------------------------------ the step
     def step(self, state_in: State, state_out: State, control: Control, contacts: Contacts | None, dt: float) -> None:
@@ -367,7 +367,7 @@ class SkinSolver:
             wp.launch(k_con.tether_kernel, dim=n,
                       inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
                               self.tether_radius, m.vertex_count],
-                      outputs=[state_out.x, self.tether_clamped], device=dev)
+                      outputs=[state_out.x, self.tether_clamped, self.tether_targets], device=dev)
         # the fail-safe: a skin triangle pair the constraints let through is put back where the
         # step's start was free of it (before the volume loop, which restores the volume around
         # what it put back: after it, the held paws of the Fox's Run lost up to 45 % of their
@@ -385,7 +385,7 @@ class SkinSolver:
                 col.volume_weights(contacts, self.volume_weight_scale)
             if fail_safe:
                 wp.copy(self.x_before_volume, state_out.x, count=m.vertex_count)
-            self._volume_loop(state_out.x, control)
+            self._volume_loop(state_out.x)
             # the volume loop can push a pair through (the Fox's Run: 2-16 new pairs in a step,
             # which then stay): a second fail-safe pass puts those vertices back where the loop
             # found them, pinned, and the loop runs again so that the others restore what they
@@ -394,7 +394,7 @@ class SkinSolver:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
                               min_move=1.0e-2 * col.data.thickness, contacts=contacts)
                 col.pin_reverted(self.volume_weight_scale)
-                self._volume_loop(state_out.x, control)
+                self._volume_loop(state_out.x)
         if self.written_volume is not None:
             self._written_volume(state_out.x, control, col is not None)
         if self.tether_radius is not None and col is not None and self.volume is None:

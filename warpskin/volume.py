@@ -302,6 +302,10 @@ class VolumeConstraints:
             self.subvolume_lambda = wp.zeros(self.subvolume_count, dtype=wp.float64)
             self.pair_gradient = wp.zeros(self.pair_count, dtype=wp.vec3d)
             self.pair_weighted_norm = wp.zeros(self.pair_count, dtype=wp.float64)
+            # what the correction launch binds where there is no cap
+            self._no_targets = wp.zeros(0, dtype=wp.vec3)
+            self._no_radius = wp.zeros(0, dtype=wp.float32)
+            self._no_count = wp.zeros(1, dtype=wp.int32)
         # recorded launches per (arrays, stiffness): a simulation alternates two states
         self._cmd_cache: dict = {}
 
@@ -374,6 +378,7 @@ class VolumeConstraints:
         centers: wp.array,
         iterations: int,
         stiffness: float = 1.0,
+        cap: tuple | None = None,
     ) -> None:
         """Project the volume constraints ``iterations`` times, in place.
 
@@ -392,15 +397,26 @@ class VolumeConstraints:
             centers: Fan centers [m], vec3, ``[C]`` (:meth:`center_positions`); read only.
             iterations: ``N_volume``.
             stiffness: ``k`` in [0, 1]; 1 removes the linearised error in one iteration.
+            cap: ``(targets, radius, capped)``: after each iteration every skin vertex ``i``
+                is put back within ``radius[i]`` [m] (float32, at least ``V``) of
+                ``targets[i]`` [m] (vec3, at least ``V``) where it is farther, each such clamp
+                counted in ``capped[0]`` (int32) (the solver's tether; fused into the
+                correction launch).
         """
         if int(iterations) != iterations or iterations < 0:
             raise InputError(f"VolumeConstraints.project: iterations must be an integer >= 0, got {iterations}")
         if not (0.0 <= float(stiffness) <= 1.0):
             raise InputError(f"VolumeConstraints.project: stiffness must be in [0, 1], got {stiffness}")
         self._check_all(x, inv_mass, weight_scale, centers)
+        if cap is not None:
+            if not isinstance(cap, tuple) or len(cap) != 3:
+                raise InputError("VolumeConstraints.project: cap must be a tuple (targets, radius, capped)")
+            self._check("cap targets", cap[0], wp.vec3, self.vertex_count)
+            self._check("cap radius", cap[1], wp.float32, self.vertex_count)
+            self._check("cap count", cap[2], wp.int32, 1)
         if iterations == 0 or self.subvolume_count == 0:
             return
-        cmds = self._commands(x, inv_mass, weight_scale, centers, float(stiffness))
+        cmds = self._commands(x, inv_mass, weight_scale, centers, float(stiffness), cap)
         for _ in range(int(iterations)):
             for cmd in cmds:
                 cmd.launch()
@@ -410,10 +426,15 @@ class VolumeConstraints:
         self._check("inv_mass", inv_mass, wp.float32, self.vertex_count)
         self._check("weight_scale", weight_scale, wp.float32, self.vertex_count)
 
-    def _commands(self, x, inv_mass, weight_scale, centers, stiffness: float) -> tuple:
+    def _commands(self, x, inv_mass, weight_scale, centers, stiffness: float, cap: tuple | None = None) -> tuple:
         """The three recorded launches of one iteration, bound to these arrays (cached per
         arrays and stiffness: a simulation alternates between two states' positions)."""
-        arrays = (x, inv_mass, weight_scale, centers)
+        if cap is None:
+            cap = (self._no_targets, self._no_radius, self._no_count)
+            use_cap = 0
+        else:
+            use_cap = 1
+        arrays = (x, inv_mass, weight_scale, centers, *cap)
         key = (*map(id, arrays), stiffness)  # the cache holds the arrays, so their ids stay theirs
         hit = self._cmd_cache.get(key)
         if hit is not None:
@@ -471,8 +492,11 @@ class VolumeConstraints:
                 self.pair_subvolume,
                 self.pair_gradient,
                 self.subvolume_lambda,
+                use_cap,
+                cap[0],
+                cap[1],
             ],
-            outputs=[x],
+            outputs=[x, cap[2]],
             device=d,
             record_cmd=True,
         )
