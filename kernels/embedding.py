@@ -33,23 +33,23 @@ def closest_face_kernel(
 
 
 @wp.func
-def vertex_normal(x: wp.array(dtype=wp.vec3), triangles: wp.array2d(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
-                  faces: wp.array(dtype=wp.int32), v: int) -> wp.vec3:
-    """Area-weighted unit normal of vertex ``v``, gathered over its faces (CSR ``offsets``/``faces``)."""
+def vertex_normal(x: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32), wedges: wp.array(dtype=wp.vec2i),
+                  v: int) -> wp.vec3:
+    """Area-weighted unit normal of vertex ``v``: over its faces ``(v, b, c)``, counter-clockwise,
+    each given by its other two vertices (CSR ``offsets``/``wedges``), ``sum (x_b - x_v) x (x_c - x_v)``."""
     n = wp.vec3(0.0)
+    xv = x[v]
     for k in range(offsets[v], offsets[v + 1]):
-        f = faces[k]
-        a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
-        n += wp.cross(x[b] - x[a], x[c] - x[a])
+        w = wedges[k]
+        n += wp.cross(x[w[0]] - xv, x[w[1]] - xv)
     return wp.normalize(n)
 
 
 @wp.kernel
 def used_vertex_normals_kernel(
     x: wp.array(dtype=wp.vec3),
-    triangles: wp.array2d(dtype=wp.int32),
-    vertex_face_offsets: wp.array(dtype=wp.int32),
-    vertex_faces: wp.array(dtype=wp.int32),
+    vertex_wedge_offsets: wp.array(dtype=wp.int32),
+    vertex_wedges: wp.array(dtype=wp.vec2i),
     used: wp.array(dtype=wp.int32),
     # output
     normals: wp.array(dtype=wp.vec3),
@@ -57,19 +57,20 @@ def used_vertex_normals_kernel(
     """Unit normals of the cage vertices ``used`` (the others are left as they are)."""
     k = wp.tid()
     v = used[k]
-    normals[v] = vertex_normal(x, triangles, vertex_face_offsets, vertex_faces, v)
+    normals[v] = vertex_normal(x, vertex_wedge_offsets, vertex_wedges, v)
 
 
 @wp.func
-def surface_point(x: wp.array(dtype=wp.vec3), triangles: wp.array2d(dtype=wp.int32), normals: wp.array(dtype=wp.vec3),
-                  f: int, w: wp.vec3):
-    """The barycentric point ``w`` of triangle ``f`` and the local frame there, as columns:
-    tangent (the first edge, made orthogonal to the normal), bitangent, normal (the normalised
-    interpolation of the vertex ``normals``)."""
-    a, b, c = triangles[f, 0], triangles[f, 1], triangles[f, 2]
-    p = w[0] * x[a] + w[1] * x[b] + w[2] * x[c]
-    n = wp.normalize(w[0] * normals[a] + w[1] * normals[b] + w[2] * normals[c])
-    e = x[b] - x[a]
+def surface_point(x: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), tri: wp.vec3i, w: wp.vec3):
+    """The barycentric point ``w`` of the triangle with vertices ``tri`` and the local frame
+    there, as columns: tangent (the first edge, made orthogonal to the normal), bitangent,
+    normal (the normalised interpolation of the vertex ``normals``)."""
+    xa = x[tri[0]]
+    xb = x[tri[1]]
+    xc = x[tri[2]]
+    p = w[0] * xa + w[1] * xb + w[2] * xc
+    n = wp.normalize(w[0] * normals[tri[0]] + w[1] * normals[tri[1]] + w[2] * normals[tri[2]])
+    e = xb - xa
     t = wp.normalize(e - wp.dot(e, n) * n)
     return p, wp.matrix_from_cols(t, wp.cross(n, t), n)
 
@@ -77,27 +78,25 @@ def surface_point(x: wp.array(dtype=wp.vec3), triangles: wp.array2d(dtype=wp.int
 @wp.kernel
 def embed_kernel(
     x: wp.array(dtype=wp.vec3),
-    triangles: wp.array2d(dtype=wp.int32),
     normals: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
+    point_triangle: wp.array(dtype=wp.vec3i),
     bary: wp.array(dtype=wp.vec3),
     offset: wp.array(dtype=wp.vec3),
     # output
     out: wp.array(dtype=wp.vec3),
 ):
     """Render point ``i`` on the cage ``x``: its barycentric point plus its offset in the local
-    frame there."""
+    frame there (``point_triangle[i]``: the vertices of its cage triangle)."""
     i = wp.tid()
-    p, frame = surface_point(x, triangles, normals, face[i], bary[i])
+    p, frame = surface_point(x, normals, point_triangle[i], bary[i])
     out[i] = p + frame * offset[i]
 
 
 @wp.kernel
 def rest_offsets_kernel(
     x: wp.array(dtype=wp.vec3),
-    triangles: wp.array2d(dtype=wp.int32),
     normals: wp.array(dtype=wp.vec3),
-    face: wp.array(dtype=wp.int32),
+    point_triangle: wp.array(dtype=wp.vec3i),
     bary: wp.array(dtype=wp.vec3),
     points: wp.array(dtype=wp.vec3),
     # output
@@ -106,5 +105,5 @@ def rest_offsets_kernel(
     """The offsets that reproduce ``points`` on the rest cage ``x``: the inverse of
     :func:`embed_kernel` (the frame is orthonormal, so its transpose)."""
     i = wp.tid()
-    p, frame = surface_point(x, triangles, normals, face[i], bary[i])
+    p, frame = surface_point(x, normals, point_triangle[i], bary[i])
     offset[i] = wp.transpose(frame) * (points[i] - p)

@@ -57,7 +57,6 @@ class Embedding:
         self.count = p.shape[0]
         self.cage_vertex_count = cv.shape[0]
         with wp.ScopedDevice(self.device):
-            self._tris = wp.array(ct.astype(np.int32), dtype=wp.int32)
             rest = wp.array(cv.astype(np.float32), dtype=wp.vec3)
             mesh = wp.Mesh(points=rest, indices=wp.array(ct.astype(np.int32).ravel(), dtype=wp.int32))
             pts = wp.array(p.astype(np.float32), dtype=wp.vec3)
@@ -70,16 +69,23 @@ class Embedding:
                 raise InputError(f"embedding: render point {int(np.nonzero(face < 0)[0][0])} found no cage triangle")
             self._offset = wp.zeros(self.count, dtype=wp.vec3)
             self._out = wp.zeros(self.count, dtype=wp.vec3)
-            order = np.argsort(ct.ravel(), kind="stable")  # vertex -> its faces (CSR), for the gather
-            counts = np.bincount(ct.ravel(), minlength=self.cage_vertex_count)
-            self._vf_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), dtype=wp.int32)
-            self._vf_faces = wp.array((order // 3).astype(np.int32), dtype=wp.int32)
+            # vertex -> the other two vertices of each of its faces, counter-clockwise (CSR), for the
+            # normals' gather: fewer reads than face ids and their three vertices each
+            corner = ct.ravel()
+            others = np.stack([np.roll(ct, -1, axis=1).ravel(), np.roll(ct, -2, axis=1).ravel()], axis=1)
+            order = np.argsort(corner, kind="stable")
+            counts = np.bincount(corner, minlength=self.cage_vertex_count)
+            self._vw_offsets = wp.array(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), dtype=wp.int32)
+            self._vw_wedges = wp.array(others[order].astype(np.int32), dtype=wp.vec2i)
+            # each point's triangle as its three vertices (one read instead of a face id and its row)
+            self._point_tri = wp.array(ct[face].astype(np.int32), dtype=wp.vec3i)
             # the cage vertices of the triangles some point is bound to: their normals, per frame
             self._used = wp.array(np.unique(ct[face].ravel()).astype(np.int32), dtype=wp.int32)
             self._normals = wp.zeros(self.cage_vertex_count, dtype=wp.vec3)
+            self._cmd_cache: dict = {}
             self._vertex_normals(rest)
             wp.launch(k.rest_offsets_kernel, dim=self.count,
-                      inputs=[rest, self._tris, self._normals, self._face, self._bary, pts], outputs=[self._offset])
+                      inputs=[rest, self._normals, self._point_tri, self._bary, pts], outputs=[self._offset])
         self.face = face
         self.bary = self._bary.numpy().astype(np.float64)
         self.offset = self._offset.numpy().astype(np.float64)
@@ -97,16 +103,31 @@ class Embedding:
             if arr.shape != (self.cage_vertex_count, 3):
                 raise InputError(f"embedding: cage points must be [{self.cage_vertex_count}, 3], got {arr.shape}")
             x = wp.array(arr, dtype=wp.vec3, device=self.device)
-        elif x.shape[0] < self.cage_vertex_count:
-            raise InputError(f"embedding: cage points must hold {self.cage_vertex_count} vertices, got {x.shape[0]}")
-        self._vertex_normals(x)
-        wp.launch(k.embed_kernel, dim=self.count, inputs=[x, self._tris, self._normals, self._face, self._bary, self._offset],
-                  outputs=[self._out], device=self.device)
+        elif x.dtype != wp.vec3 or x.device != self.device or x.shape[0] < self.cage_vertex_count:
+            raise InputError(f"embedding: cage points must be a vec3 array of at least {self.cage_vertex_count} vertices "
+                             f"on {self.device}, got {x.dtype.__name__} [{x.shape[0]}] on {x.device}")
+        for cmd in self._commands(x):
+            cmd.launch()
         return self._out
 
-    def _vertex_normals(self, x: wp.array) -> None:
+    def _commands(self, x: wp.array) -> tuple:
+        """The normals and the points, as launches recorded for ``x`` (a simulation alternates
+        between two states' positions; recorded launches skip the per-call argument packing,
+        most of the embedding's cost on the CPU beside the kernels themselves)."""
         from .kernels import embedding as k
 
-        wp.launch(k.used_vertex_normals_kernel, dim=self._used.shape[0],
-                  inputs=[x, self._tris, self._vf_offsets, self._vf_faces, self._used], outputs=[self._normals],
-                  device=self.device)
+        hit = self._cmd_cache.get(id(x))
+        if hit is not None and hit[0] is x:
+            return hit[1]
+        if len(self._cmd_cache) >= 4:
+            self._cmd_cache.clear()
+        normals = wp.launch(k.used_vertex_normals_kernel, dim=self._used.shape[0],
+                            inputs=[x, self._vw_offsets, self._vw_wedges, self._used], outputs=[self._normals],
+                            device=self.device, record_cmd=True)
+        points = wp.launch(k.embed_kernel, dim=self.count, inputs=[x, self._normals, self._point_tri, self._bary, self._offset],
+                           outputs=[self._out], device=self.device, record_cmd=True)
+        self._cmd_cache[id(x)] = (x, (normals, points))  # holds x, so its id stays its own
+        return normals, points
+
+    def _vertex_normals(self, x: wp.array) -> None:
+        self._commands(x)[0].launch()
