@@ -206,6 +206,8 @@ def test_the_written_volume_is_restored_on_the_loaded_vertices_and_the_sub_volum
     before_s = np.abs(subs.volumes(x[:v], centres) / v_subs - 1).max()
     assert before_w > 0.01 and before_s > 0.003
     solver.volume_weight_scale.fill_(1.0)
+    solver._tether(a.x, c)  # as in a step: the targets of the volume loop's caps (the sinking is far inside them)
+    assert solver.tether_clamped.numpy()[0] == 0
     solver._written_volume(a.x, c)
     y = a.x.numpy().astype(np.float64)
     after_w = abs(signed_volume(y[:n], tris) / v_written - 1)

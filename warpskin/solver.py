@@ -268,7 +268,7 @@ class SkinSolver:
     def _volume_loop(self, x: wp.array, weight_scale: wp.array | None = None) -> None:
         """``volume_iterations`` of the sub-volume constraints on ``x`` (weights
         :attr:`volume_weight_scale` unless given), each followed by the tether's cap where
-        there is a tether."""
+        there is a tether (against the targets :meth:`_tether` wrote earlier in the step)."""
         p = self.params
         w = self.volume_weight_scale if weight_scale is None else weight_scale
         # the cap is fused into each iteration's correction launch, against the targets the
@@ -303,6 +303,15 @@ class SkinSolver:
         wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 1],
                   outputs=[self.split_weight_scale], device=dev)
         self._volume_loop(x, self.split_weight_scale)
+
+    def _tether(self, x: wp.array, control: Control) -> None:
+        """The tether on every particle; writes the skin's LBS targets of ``control`` that the
+        volume loop's caps use (so it runs first in a step)."""
+        m = self.model
+        wp.launch(k_con.tether_kernel, dim=m.particle_count,
+                  inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
+                          self.tether_radius, m.vertex_count],
+                  outputs=[x, self.tether_clamped, self.tether_targets], device=self.device)
 
     def _cap(self, x: wp.array, control: Control) -> None:
         """The tether's cap (``tether_max`` x the diagonal) on the skin particles."""
@@ -364,10 +373,7 @@ class SkinSolver:
         # the tether: no particle farther from its LBS target than its radius (before the volume
         # loop, which restores what the clamp took from a sub-volume)
         if self.tether_radius is not None:
-            wp.launch(k_con.tether_kernel, dim=n,
-                      inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
-                              self.tether_radius, m.vertex_count],
-                      outputs=[state_out.x, self.tether_clamped, self.tether_targets], device=dev)
+            self._tether(state_out.x, control)
         # the fail-safe: a skin triangle pair the constraints let through is put back where the
         # step's start was free of it (before the volume loop, which restores the volume around
         # what it put back: after it, the held paws of the Fox's Run lost up to 45 % of their
