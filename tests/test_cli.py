@@ -204,8 +204,15 @@ def test_a_killed_run_leaves_no_temp_file(tmp_path, signame, code):
     import time
 
     out = tmp_path / "arm.usdc"
+
+    def default_disposition():
+        # as from a terminal: a test run under nohup hands an ignored SIGHUP down, which the
+        # CLI rightly keeps ignored (it then finished and exited 0 here)
+        signal.signal(getattr(signal, signame), signal.SIG_DFL)
+
     proc = subprocess.Popen([sys.executable, "-m", "warpskin", "simulate", "arm", "-o", str(out), "--quiet"],
-                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=default_disposition)
     try:
         deadline = time.monotonic() + 300  # kernels may compile first on a fresh cache
         while not [p for p in tmp_path.iterdir() if p.name.startswith(".arm.")]:
