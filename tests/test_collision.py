@@ -3,6 +3,8 @@ separation, detection against brute force, buffer overflow and growth (every dev
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import warp as wp
@@ -241,6 +243,20 @@ def test_overflow_grows_and_finds_the_same_pairs(device):
     assert short.grow_pairs(1 << 20) and short.pair_capacity >= len(ref_tri)
     col.detect(a3.x, b3.x, short)
     assert _triangle_pairs(short) == ref_tri and _pairs(short) == ref
+
+
+def test_contact_capacities_must_be_positive_integers(device):
+    from warpskin.errors import InputError
+
+    model = SkinModelBuilder(coarse_arm(), ModelParams(volume=False)).finalize(device)
+    for bad in ("64", 2.5, True, 0):
+        with pytest.raises(InputError, match=re.escape(f"contact capacity must be a positive integer, got {bad!r}")):
+            model.contacts(bad)
+    for bad in (2.0, -1):
+        with pytest.raises(InputError, match=re.escape(f"pair capacity must be a positive integer, got {bad!r}")):
+            model.contacts(64, bad)
+    c = model.contacts(np.int64(64), 128)
+    assert c.capacity == 64 and c.pair_capacity == 128
 
 
 def test_triangle_pair_list_matches_brute_force(device):

@@ -279,7 +279,7 @@ def test_the_fused_cap_is_each_iteration_then_a_radial_clamp(device):
     fused = state.x.numpy().copy()
 
     ref = x0.copy()
-    clamps = 0
+    clamps = near = 0
     for _ in range(3):
         state.x.assign(ref)
         vc.project(state.x, model.particle_inv_mass, ws, vc.centers, iterations=1)
@@ -289,8 +289,11 @@ def test_the_fused_cap_is_each_iteration_then_a_radial_clamp(device):
         out = dl > radius
         ref[:v][out] = targets[out] + d[out] * (radius[out] / dl[out])[:, None]
         clamps += int(out.sum())
+        # float32 may decide these either way: a vertex clamped before lies on its sphere
+        near += int((np.abs(dl - radius) < 1e-5 * radius).sum())
     np.testing.assert_allclose(fused[:v], ref[:v], rtol=0, atol=2e-6)
-    assert capped.numpy()[0] == clamps and clamps >= v // 3
+    assert clamps - near >= v // 3  # clamps decided well away from the sphere
+    assert clamps - near <= capped.numpy()[0] <= clamps + near
     # within the radius up to float32 rounding of the coordinates (about 0.6 m: 6e-8 m)
     assert (np.linalg.norm(fused[:v].astype(np.float64) - targets, axis=1) <= radius + 1e-6).all()
     assert set(np.nonzero(np.abs(fused[pinned] - x0[pinned]).max(axis=1) > 0)[0]) <= set(

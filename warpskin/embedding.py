@@ -83,7 +83,7 @@ class Embedding:
             self._used = wp.array(np.unique(ct[face].ravel()).astype(np.int32), dtype=wp.int32)
             self._normals = wp.zeros(self.cage_vertex_count, dtype=wp.vec3)
             self._cmd_cache: dict = {}
-            self._vertex_normals(rest)
+            self._commands(rest)[0].launch()  # the rest normals
             wp.launch(k.rest_offsets_kernel, dim=self.count,
                       inputs=[rest, self._normals, self._point_tri, self._bary, pts], outputs=[self._offset])
         self.face = face
@@ -128,6 +128,3 @@ class Embedding:
                            outputs=[self._out], device=self.device, record_cmd=True)
         self._cmd_cache[id(x)] = (x, (normals, points))  # holds x, so its id stays its own
         return normals, points
-
-    def _vertex_normals(self, x: wp.array) -> None:
-        self._commands(x)[0].launch()

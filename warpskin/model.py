@@ -415,7 +415,7 @@ class SkinModel:
         """
         if self.collision is None:
             return None
-        return Contacts(self, int(capacity if capacity is not None else self.collision_params.capacity), pair_capacity)
+        return Contacts(self, capacity if capacity is not None else int(self.collision_params.capacity), pair_capacity)
 
 
 class State:
@@ -478,7 +478,7 @@ class Contacts:
 
     def __init__(self, model: SkinModel, capacity: int, pair_capacity: int | None = None) -> None:
         def positive(name, value):
-            if isinstance(value, bool) or int(value) != value or value < 1:
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
                 raise InputError(f"{name} must be a positive integer, got {value!r}")
 
         positive("contact capacity", capacity)

@@ -304,21 +304,15 @@ class SkinSolver:
                   outputs=[self.split_weight_scale], device=dev)
         self._volume_loop(x, self.split_weight_scale)
 
-    def _tether(self, x: wp.array, control: Control) -> None:
-        """The tether on every particle; writes the skin's LBS targets of ``control`` that the
+    def _tether(self, x: wp.array, control: Control, cap_only: bool = False) -> None:
+        """The tether on every particle, or with ``cap_only`` its cap (``tether_max`` x the
+        diagonal) on the skin particles; writes the skin's LBS targets of ``control`` that the
         volume loop's caps use (so it runs first in a step)."""
         m = self.model
-        wp.launch(k_con.tether_kernel, dim=m.particle_count,
+        radius, dim = (self.tether_cap, m.vertex_count) if cap_only else (self.tether_radius, m.particle_count)
+        wp.launch(k_con.tether_kernel, dim=dim,
                   inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
-                          self.tether_radius, m.vertex_count],
-                  outputs=[x, self.tether_clamped, self.tether_targets], device=self.device)
-
-    def _cap(self, x: wp.array, control: Control) -> None:
-        """The tether's cap (``tether_max`` x the diagonal) on the skin particles."""
-        m = self.model
-        wp.launch(k_con.tether_kernel, dim=m.vertex_count,
-                  inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
-                          self.tether_cap, m.vertex_count],
+                          radius, m.vertex_count],
                   outputs=[x, self.tether_clamped, self.tether_targets], device=self.device)
 
     # ------------------------------------------------------------------ the step
@@ -404,7 +398,7 @@ class SkinSolver:
         if self.written_volume is not None:
             self._written_volume(state_out.x, control, col is not None)
         if self.tether_radius is not None and col is not None and self.volume is None:
-            self._cap(state_out.x, control)  # what the fail-safe held back stays within the cap
+            self._tether(state_out.x, control, cap_only=True)  # what the fail-safe held back stays within the cap
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],
