@@ -216,13 +216,21 @@ def gltf_reference_points(path, t: float, animation: str | None = None) -> dict[
 
 
 def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 64) -> np.ndarray:
-    """Brute-force unsigned distance ``[N]`` from every point to a triangle mesh: the closest
-    point on each triangle by Ericson's region test (Real-Time Collision Detection, 5.1.5),
-    the minimum over all triangles."""
+    """Brute-force unsigned distance ``[N]`` from every point to a triangle mesh (see
+    :func:`closest_on_mesh`)."""
+    return closest_on_mesh(points, vertices, triangles, chunk)[0]
+
+
+def closest_on_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 64) -> tuple:
+    """Brute-force closest points on a triangle mesh: the closest point on each triangle by
+    Ericson's region test (Real-Time Collision Detection, 5.1.5), the minimum over all
+    triangles. Returns ``(distance [N], triangle [N], barycentric weights [N, 3])``."""
     p = np.asarray(points, dtype=np.float64)
     a, b, c = (np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)[:, i]] for i in range(3))
     ab, ac = b - a, c - a
     out = np.empty(len(p))
+    tri = np.empty(len(p), dtype=np.int64)
+    bary = np.empty((len(p), 3))
     for s in range(0, len(p), chunk):
         q = p[s:s + chunk, None, :]  # [n, 1, 3] against [T, 3]
         ap, bp, cp = q - a, q - b, q - c
@@ -252,5 +260,11 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.
         at_a = (d1 <= 0) & (d2 <= 0)
         v, w = np.where(at_a, 0.0, v), np.where(at_a, 0.0, w)
         closest = a + v[..., None] * ab + w[..., None] * ac
-        out[s:s + chunk] = np.linalg.norm(q - closest, axis=2).min(axis=1)
-    return out
+        dist = np.linalg.norm(q - closest, axis=2)
+        best = dist.argmin(axis=1)
+        rows = np.arange(len(best))
+        out[s:s + chunk] = dist[rows, best]
+        tri[s:s + chunk] = best
+        vb_, wb_ = v[rows, best], w[rows, best]
+        bary[s:s + chunk] = np.stack([1.0 - vb_ - wb_, vb_, wb_], axis=1)
+    return out, tri, bary

@@ -137,9 +137,10 @@ def test_weights_are_transferred_and_inpainted_against_numpy(device):
 
 
 def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device):
-    # CesiumMan with 8 holes cut and every seam split, as a rig (its UVs kept per corner):
-    # simulate with the defaults picks the cage, writes the file's own topology and UVs,
-    # embedded, and the simulated cage is no worse than LBS
+    # CesiumMan with 8 holes cut, split in two at the waist, every seam split, and a floating eye
+    # sphere skinned to the head, as a rig (its UVs kept per corner): simulate with the defaults
+    # picks the cage, writes the file's own topology and UVs, embedded, the eye as one rigid
+    # piece (its shape kept exactly), and the simulated cage is no worse than LBS
     from pxr import Usd, UsdGeom
 
     from warpskin.io import load_rig
@@ -153,15 +154,32 @@ def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device)
     rng = np.random.default_rng(3)
     bind = src.vertices[src.weld_map]
     centres = bind[rng.choice(len(bind), 8, replace=False)]
-    keep = np.linalg.norm(bind[ft].mean(1)[:, None] - centres[None], axis=2).min(1) > 0.03
+    mid = bind[ft].mean(1)
+    keep = np.linalg.norm(mid[:, None] - centres[None], axis=2).min(1) > 0.03
+    keep &= np.abs(mid[:, 2] - 0.95) > 0.012  # a band cut at the waist (bind space is Z up): two pieces
     tris = ft[keep]
-    soup_tris = np.arange(3 * len(tris)).reshape(-1, 3)  # every seam split
-    ji = src.joint_indices[src.weld_map][tris.ravel()]
-    jw = src.joint_weights[src.weld_map][tris.ravel()]
+    # the eye: a sphere in front of the face (the face looks along +X in bind space), on the head joint
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.015)
+    eye_tris = np.asarray(sphere.faces)
+    eye_pts = (np.asarray(sphere.vertices) + np.array([0.138, 0.035, 1.42]))[eye_tris.ravel()]
+    head = src.skeleton.joint_names.index("Skeleton_neck_joint_2")
+    k = src.joint_indices.shape[1]
+    eye_ji = np.zeros((len(eye_pts), k), dtype=src.joint_indices.dtype)
+    eye_ji[:, 0] = head
+    eye_jw = np.zeros((len(eye_pts), k))
+    eye_jw[:, 0] = 1.0
+    points = np.concatenate([bind[tris.ravel()], eye_pts])
+    soup_tris = np.arange(len(points)).reshape(-1, 3)  # every seam split
+    eye = np.arange(len(points)) >= 3 * len(tris)
+    ji = np.concatenate([src.joint_indices[src.weld_map][tris.ravel()], eye_ji])
+    jw = np.concatenate([src.joint_weights[src.weld_map][tris.ravel()], eye_jw])
+    uvs = np.concatenate([src.render.uvs[keep], np.full((len(eye_tris), 3, 2), 0.5)])
     broken = Rig.from_file_arrays(
-        name="BrokenMan", points=bind[tris.ravel()], triangles=soup_tris, skeleton=src.skeleton, joint_indices=ji,
+        name="BrokenMan", points=points, triangles=soup_tris, skeleton=src.skeleton, joint_indices=ji,
         joint_weights=jw, inverse_bind=src.inverse_bind, clips=src.clips, source="test", mesh_name="BrokenMan",
-        weld=False, validate=False, render=RenderAttributes(uvs=src.render.uvs[keep]))
+        weld=False, validate=False, render=RenderAttributes(uvs=uvs))
     assert not broken.validate(raise_on_error=False).closed
     scene = Scene(name="BrokenMan", source=None, rig_spec={}, fps=24.0, preroll=0.1)
     scene._rig = broken
@@ -170,13 +188,14 @@ def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device)
     assert (tmp_path / "report" / "offset_map.png").is_file()  # drawn from the render skin's deviation
     s, m = result.summary, result.metrics
     assert s["cage"] is not None and s["cage"]["weights_matched"] > 0.95
+    assert s["cage"]["rigid_pieces"] == 1  # the eye (the body's pieces have many joints)
     stage = Usd.Stage.Open(str(result.path))
     skin = UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("skin"))
     np.testing.assert_array_equal(np.asarray(skin.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3), soup_tris)
     np.testing.assert_allclose(np.asarray(UsdGeom.PrimvarsAPI(skin).GetPrimvar("st").Get()).reshape(-1, 3, 2),
-                               src.render.uvs[keep], atol=1e-6)
+                               uvs, atol=1e-6)
     pts = np.asarray(skin.GetPointsAttr().Get(4))
-    assert pts.shape == (3 * len(tris), 3) and np.isfinite(pts).all()
+    assert pts.shape == (len(points), 3) and np.isfinite(pts).all()
     assert UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("cage")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
     # the LBS guide is the broken character's own LBS (its inverse binds, not the cage's)
     from oracles import rig_lbs
@@ -185,6 +204,10 @@ def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device)
     want = rig_lbs(broken, broken.skinning_matrices(broken.clip(None), 4 / 24))[broken.weld_map]
     assert np.abs(lbs - want).max() < 1e-5 * broken.size()
     assert np.linalg.norm(pts - want, axis=1).max() < 0.08 * broken.size()  # the embedded skin stays near it
+    # the eye keeps its shape (LBS moves it rigidly, and so does its cage region's rigid fit)
+    spread = lambda p: np.linalg.norm(p[:, None] - p[None], axis=2)  # noqa: E731
+    assert np.abs(spread(pts[eye]) - spread(want[eye])).max() < 1e-5 * broken.size()
+    assert np.linalg.norm(pts[eye] - want[eye], axis=1).max() < 0.05 * broken.size()
     v0 = m["volume_rest"]
     assert np.all(np.abs(np.array(m["volume"]) / v0 - 1) <= np.abs(np.array(m["volume_lbs"]) / v0 - 1) + 1e-3)
     assert np.all(np.array(m["intersecting_pairs"]) <= np.array(m["intersecting_pairs_lbs"]))
@@ -204,7 +227,7 @@ def test_bench_build_reports_the_cage():
 
 def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
     # --cage always: the 14 meshes (the skinned hands, 12 rigid parts) in one cage, simulated;
-    # every mesh written with its own vertices, finite (the cage bound at the rest pose: in the
+    # every mesh written with its own vertices, finite, the rigid parts rigid (the cage bound at the rest pose: in the
     # file's bind space it folded, 119 intersecting pairs, and no layer fitted)
     from pxr import Usd, UsdGeom
 
@@ -239,3 +262,66 @@ def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
 
     assert UsdShade.MaterialBindingAPI(meshes["Head"].GetPrim()).ComputeBoundMaterial()[0] or \
         UsdGeom.Subset.GetAllGeomSubsets(meshes["Head"])  # the embedded parts keep their materials
+    # the 12 rigidly parented parts are rigid pieces: each moves as one rigid body with its cage
+    # region (every distance within it kept), near its LBS; with --rigid-pieces joint each is its LBS
+
+    def spread(p):
+        k = np.linspace(0, len(p) - 1, min(len(p), 80)).astype(int)
+        return np.linalg.norm(p[k, None] - p[None, k], axis=2)
+
+    from warpskin.preprocess.cage import character_soup
+
+    body = np.linalg.norm(np.ptp(character_soup(rig).points, axis=0))  # the whole robot's diagonal
+    rigid = [a for a in rig.attachments if np.all(a.joint_weights.max(axis=1) >= 0.999)]
+    assert len(rigid) == 12
+    for a in rigid:
+        name = a.name.replace(".", "_")
+        got = np.asarray(meshes[name].GetPointsAttr().Get(3), dtype=np.float64)
+        want = np.asarray(meshes[f"{name}_lbs"].GetPointsAttr().Get(3), dtype=np.float64)
+        assert np.abs(spread(got) - spread(want)).max() < 1e-5 * rig.size(), name
+        assert np.linalg.norm(got - want, axis=1).max() < 0.05 * body, name
+    out2 = tmp_path / "robot_joint.usdc"
+    assert main(["simulate", str(glb), "--clip", "Walking", "--frames", "0:3", "--cage", "always", "--lbs",
+                 "--rigid-pieces", "joint", "-o", str(out2), "--quiet"]) == 0
+    stage2 = Usd.Stage.Open(str(out2))
+    root2 = stage2.GetDefaultPrim()
+    for a in rigid:
+        name = a.name.replace(".", "_")
+        got = np.asarray(UsdGeom.Mesh(root2.GetChild(name)).GetPointsAttr().Get(3), dtype=np.float64)
+        want = np.asarray(UsdGeom.Mesh(lbs_root.GetChild(name)).GetPointsAttr().Get(3), dtype=np.float64)
+        np.testing.assert_allclose(got, want, atol=1e-6 * rig.size(), err_msg=name)
+
+
+def test_rigid_pieces_are_the_components_that_lbs_moves_rigidly():
+    # a soup built to know the answer: in mesh "a", two eyes on joint 2 (one of them with its
+    # seams split, copies at one position) and a blob whose one vertex is 0.99 on joint 2; in
+    # mesh "b", a ball on joint 1 and one on joint 2; the pieces are per mesh and joint
+    from warpskin.preprocess.cage import CharacterSoup, rigid_pieces
+
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    v, f = np.asarray(ball.vertices), np.asarray(ball.faces)
+    parts = [("a", v, f, 2), ("a", v[f.ravel()] + 1.0, np.arange(3 * len(f)).reshape(-1, 3), 2),
+             ("a", v + 2.0, f, None), ("b", v + 3.0, f, 1), ("b", v + 4.0, f, 2)]
+    pts, tris, dense, pieces, start = [], [], [], [], 0
+    for k, (mesh, p, t, joint) in enumerate(parts):
+        w = np.zeros((len(p), 3))
+        if joint is None:
+            w[:, 2] = 1.0
+            w[5] = [0.0, 0.01, 0.99]
+        else:
+            w[:, joint] = 1.0
+        pts.append(p)
+        tris.append(t + start)
+        dense.append(w)
+        if not pieces or pieces[-1][0] != mesh:
+            pieces.append([mesh, start, 0])
+        pieces[-1][2] += len(p)
+        start += len(p)
+    soup = CharacterSoup(np.concatenate(pts), np.concatenate(tris), np.concatenate(dense), [tuple(p) for p in pieces])
+    got = rigid_pieces(soup)
+    sizes = [len(p[1]) for p in parts]
+    part = np.repeat(np.arange(len(parts)), sizes)
+    assert len(set(got[(part == 0) | (part == 1)].tolist())) == 1  # both eyes (one seam-split): one piece
+    assert np.all(got[part == 2] == -1)  # one vertex at 0.99: bound point by point
+    assert len({got[part == 0][0], got[part == 3][0], got[part == 4][0]}) == 3  # per mesh and joint
+    assert sorted(set(got.tolist())) == [-1, 0, 1, 2]

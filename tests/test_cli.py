@@ -250,6 +250,7 @@ def test_info_reports_pieces_loops_and_the_simulation_path(assets, capsys):
     assert main(["info", str(assets / "RobotExpressive" / "RobotExpressive.glb"), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert len(s["other_meshes"]) == 13 and "Torso" in s["other_meshes"]
+    assert s["rigid_pieces"] == 12  # the rigidly parented parts (the hands' weights vary)
 
 
 def test_nohup_keeps_a_run_going(tmp_path):

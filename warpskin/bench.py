@@ -112,7 +112,8 @@ def run_build_bench(targets: list[str]) -> dict:
 
 def _cage_build(rig) -> dict:
     """An automatic cage around the rig's meshes (what ``simulate --cage`` builds first): its
-    vertices and seconds per stage, with the render points it was built around."""
+    vertices and seconds per stage, with the render points it was built around; the cage's
+    multi-layer model (``model_s``) and the embedding per frame against the render skin's LBS."""
     from .preprocess.cage import build_cage, character_soup
 
     soup = character_soup(rig)
@@ -121,19 +122,30 @@ def _cage_build(rig) -> dict:
     cage = build_cage(soup.points, soup.triangles)
     row = {"render_points": int(len(soup.points)), "vertices": int(len(cage.vertices)), "build_s": cage.build_s,
            **{f"{k}_s": v for k, v in cage.timings_s.items()}}
-    # per frame: the render points from the cage (the embedding's launches), against the LBS
-    # kernel of the render skin, both on the CPU device and on device-resident inputs
+    # per frame: the render points from the cage (the embedding's launch, the normals from the
+    # cage's fat layer as a simulation binds it), against the LBS kernel of the render skin, both
+    # on the CPU device and on device-resident inputs
     from .embedding import Embedding
+    from .model import SkinModelBuilder
+    from .preprocess.cage import cage_rig
     from .rig import Clip
     from .skinning import Skinner
 
     dev = wp.get_device("cpu")
-    emb = Embedding(soup.points, cage.vertices, cage.triangles, device=dev)
-    x = wp.array(cage.vertices.astype(np.float32), dtype=wp.vec3, device=dev)
+    t0 = time.perf_counter()
+    fat = SkinModelBuilder(cage_rig(rig, cage)[0]).build().layers.positions[1][: len(cage.vertices)]
+    row["model_s"] = time.perf_counter() - t0
+    emb = Embedding(soup.points, cage.vertices, cage.triangles, inner=fat, device=dev)
+    x = wp.array(np.concatenate([cage.vertices, fat]).astype(np.float32), dtype=wp.vec3, device=dev)
     emb.evaluate(x)
     lbs = Skinner(rig, method="lbs", device=str(dev))
     lbs.skin(rig.skinning_matrices(Clip("rest"), 0.0))
     row["embedding_ms"] = _best_ms(lambda f: emb.evaluate(x), 200, 3, dev)
+    # the cage on its own (no layers): its surface normals gathered per frame first
+    alone = Embedding(soup.points, cage.vertices, cage.triangles, device=dev)
+    xs = wp.array(cage.vertices.astype(np.float32), dtype=wp.vec3, device=dev)
+    alone.evaluate(xs)
+    row["embedding_surface_normals_ms"] = _best_ms(lambda f: alone.evaluate(xs), 200, 3, dev)
     row["render_lbs_kernel_ms"] = _best_ms(lambda f: lbs.launch(), 200, 3, dev)
     row["render_lbs_vertices"] = int(rig.vertex_count)
     row["embedding_over_lbs"] = row["embedding_ms"] / row["render_lbs_kernel_ms"]

@@ -159,13 +159,15 @@ def cmd_info(args) -> int:
             out["error"] = str(exc)
             print(json.dumps(out, indent=2))
         raise
-    from .preprocess.cage import surface_report
+    from .preprocess.cage import character_soup, rigid_pieces, surface_report
 
     summary = rig.summary()
     out.update(summary)
     out.update(surface_report(rig.triangles, rig.vertex_count))
     out["other_meshes"] = [a.name for a in rig.attachments]
     out["simulation"] = "direct" if (summary["closed"] and summary["manifold"]) else "cage"
+    pieces = rigid_pieces(character_soup(rig))
+    out["rigid_pieces"] = int(pieces.max()) + 1 if pieces.size else 0
     out["joint_names"] = rig.skeleton.joint_names
     out["parents"] = rig.skeleton.parents.tolist()
     if args.json:
@@ -193,6 +195,9 @@ def cmd_info(args) -> int:
     how = ("its skin directly (closed, manifold)" if out["simulation"] == "direct"
            else "an automatic closed cage around it, every mesh embedded (the skin is not one closed manifold)")
     print(f"simulate would use: {how}")
+    if out["rigid_pieces"]:
+        print(f"rigid pieces (meshes or parts that LBS moves rigidly, one joint each): {out['rigid_pieces']}; through a "
+              "cage they move as rigid bodies with their cage region (--rigid-pieces joint: with their joints)")
     print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
@@ -284,7 +289,7 @@ def cmd_simulate(args) -> int:
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
-        start_frame=args.start_frame, topology=args.topology, cage=args.cage,
+        start_frame=args.start_frame, topology=args.topology, cage=args.cage, rigid_pieces=args.rigid_pieces,
     )
     s = result.summary
     if args.json:
@@ -472,6 +477,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "one closed manifold (auto, the default), always (its other meshes too), or never; or FILE, "
                         "your own closed cage (.obj, .glb, .gltf, .usd, .usda, .usdc, .usdz) around the character's "
                         "rest pose, in the character file's units")
+    s.add_argument("--rigid-pieces", choices=["cage", "joint"], default="cage",
+                   help="through a cage, the pieces LBS moves rigidly (eyes or teeth skinned to one joint, rigidly "
+                        "parented parts): rigid bodies moving with the cage region they lie in (cage, the default) "
+                        "or following their joints exactly (joint)")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
     s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
     s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")

@@ -304,6 +304,45 @@ def character_soup(rig) -> CharacterSoup:
     return CharacterSoup(np.concatenate(pts), np.concatenate(tris), np.concatenate(dense), pieces)
 
 
+def rigid_pieces(soup: CharacterSoup, rigid_weight: float = 0.999) -> np.ndarray:
+    """The pieces of a character that LBS moves rigidly: connected components of its meshes
+    (seam copies at one position joined) whose every point has one joint with weight at least
+    ``rigid_weight``, the same joint for all (an eye or teeth skinned to the head, a rigidly
+    parented armour plate, RobotExpressive's body parts); the components of one mesh on one joint
+    are one piece (they move together: the robot's head is 29 components). Returns ``[N]``: the
+    piece of each soup point, numbered from 0, or -1 (bound to the cage point by point)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(soup.points)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, weld = np.unique(soup.points, axis=0, return_inverse=True)
+    weld = weld.ravel()
+    t = weld[np.asarray(soup.triangles, dtype=np.int64)]
+    m = int(weld.max()) + 1
+    rows, cols = np.concatenate([t[:, 0], t[:, 1]]), np.concatenate([t[:, 1], t[:, 2]])
+    _, comp = connected_components(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(m, m)), directed=False)
+    label = comp[weld]
+    dominant = np.argmax(soup.dense_weights, axis=1)
+    strong = soup.dense_weights[np.arange(n), dominant] >= rigid_weight
+    count = label.max() + 1
+    weak = np.bincount(label, weights=~strong, minlength=count) > 0
+    lo = np.full(count, np.iinfo(np.int64).max)
+    hi = np.full(count, -1)
+    np.minimum.at(lo, label, dominant)
+    np.maximum.at(hi, label, dominant)
+    rigid = ~weak & (lo == hi)
+    mesh = np.zeros(n, dtype=np.int64)
+    for k, (_, start, size) in enumerate(soup.pieces):
+        mesh[start:start + size] = k
+    out = np.full(n, -1, dtype=np.int64)
+    sel = rigid[label]
+    if sel.any():  # one piece per mesh and joint
+        _, out[sel] = np.unique(np.stack([mesh[sel], dominant[sel]], axis=1), axis=0, return_inverse=True)
+    return out
+
+
 def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup: CharacterSoup, *, max_distance: float,
                      device=None, influences: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Skin weights on the cage: each cage vertex takes the barycentric blend of the weights at

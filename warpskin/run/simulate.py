@@ -201,10 +201,9 @@ class _Measurements:
 
 class _CagedCharacter:
     """A character simulated through a cage (automatic, or the user's ``cage_file``): the cage
-    rig, and every render mesh embedded in the cage at rest (stage space)."""
+    rig, and (:meth:`bind`) every render mesh embedded in the cage at rest (stage space)."""
 
     def __init__(self, rig, device, cage_file=None) -> None:
-        from ..embedding import Embedding
         from ..preprocess.cage import build_cage, cage_from_mesh, cage_rig, character_soup
 
         t0 = time.perf_counter()
@@ -216,9 +215,32 @@ class _CagedCharacter:
         else:
             self.cage = build_cage(soup.points, soup.triangles, device=device)
         self.rig, self.soup, self.matched = cage_rig(rig, self.cage, device=device)
-        self.embedding = Embedding(soup.points, self.cage.vertices, self.cage.triangles, device=device)
         self.source = rig
+        self.device = device
+        self.embedding = None
         self.build_s = time.perf_counter() - t0
+
+    def bind(self, builder, rigid_pieces: str = "cage") -> None:
+        """Embed every render mesh in the cage's model: the normal at a cage vertex is the
+        direction from its fat-layer particle to it (one launch per frame, no normal pass).
+        The pieces that LBS moves rigidly (:func:`~warpskin.preprocess.cage.rigid_pieces`: eyes,
+        teeth, rigidly parented parts) move as rigid bodies with the cage region they lie in
+        (``rigid_pieces="cage"``) or follow their joints by LBS (``"joint"``)."""
+        from ..embedding import Embedding
+        from ..preprocess.cage import rigid_pieces as find_rigid
+
+        t0 = time.perf_counter()
+        self.rigid = find_rigid(self.soup)
+        self.rigid_mode = rigid_pieces
+        n = len(self.cage.vertices)  # the cage's own vertices come first (a refined cage adds more after)
+        self.embedding = Embedding(self.soup.points, self.cage.vertices, self.cage.triangles,
+                                   inner=builder.layers.positions[1][:n],
+                                   rigid=self.rigid if rigid_pieces == "cage" else None, device=self.device)
+        self.build_s += time.perf_counter() - t0
+
+    @property
+    def rigid_piece_count(self) -> int:
+        return int(self.rigid.max()) + 1 if self.rigid.size else 0
 
     def attachment_meshes(self) -> list:
         out = []
@@ -227,8 +249,15 @@ class _CagedCharacter:
             out.append((a.name, a.triangles, self.soup.points[start:start + count], attachment_kwargs(a)))
         return out
 
-    def render_points(self, cage_points: np.ndarray) -> dict:
-        pts = self.embedding.evaluate(np.asarray(cage_points, dtype=np.float32)).numpy().astype(np.float64)
+    def render_points(self, cage_points: np.ndarray, fat_points: np.ndarray, lbs) -> dict:
+        """Every render mesh's points on the cage's skin and fat layers (their first ``V`` rows);
+        with rigid pieces following their joints, theirs from ``lbs()`` (the soup's LBS)."""
+        n = self.embedding.cage_vertex_count
+        x = np.concatenate([cage_points[:n], fat_points[:n]]).astype(np.float32)
+        pts = self.embedding.evaluate(x).numpy().astype(np.float64)
+        if self.rigid_mode == "joint" and self.rigid_piece_count:
+            sel = self.rigid >= 0
+            pts[sel] = lbs()[sel]
         return {name: pts[start:start + count] for name, start, count in self.soup.pieces}
 
 
@@ -254,6 +283,7 @@ def simulate(
     start_frame: int | None = None,
     topology: str = "file",
     cage: str | Path = "auto",
+    rigid_pieces: str = "cage",
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -294,7 +324,9 @@ def simulate(
     then be closed). A mesh file (:data:`~warpskin.io.cage_file.CAGE_EXTENSIONS`) is the user's
     own cage, used as the automatic one would be
     (:func:`~warpskin.preprocess.cage.cage_from_mesh`: closed, manifold, around the rest pose,
-    in the character file's units).
+    in the character file's units). ``rigid_pieces``: through a cage, the pieces that LBS moves
+    rigidly (eyes or teeth skinned to one joint, rigidly parented parts) move as rigid bodies with
+    the cage region they lie in (``"cage"``, default) or follow their joints (``"joint"``).
 
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
@@ -304,6 +336,10 @@ def simulate(
     import time
 
     cage_file = None
+    if rigid_pieces not in ("cage", "joint"):
+        from ..errors import SceneError
+
+        raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {rigid_pieces!r}")
     if isinstance(cage, Path) or cage not in ("auto", "always", "none"):
         from ..errors import SceneError
         from ..io.cage_file import CAGE_EXTENSIONS
@@ -331,6 +367,8 @@ def simulate(
     if collision is not None:
         builder.params.collision = collision
     model = builder.finalize(device)
+    if caged is not None:
+        caged.bind(builder, rigid_pieces)
     build_s = time.perf_counter() - t_build
     if check_intersections is None:
         check_intersections = report_dir is not None
@@ -380,12 +418,17 @@ def simulate(
             out = {"skin": pts["skin"][:n_out]}
             lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
             if caged is not None:  # the cage's own vertices come first (a refined cage adds more after)
-                out = caged.render_points(pts["skin"][: sim.output_count])
-                out["cage"] = pts["skin"][: sim.output_count]
                 # the render skin's own LBS (its inverse binds, not the cage's, which is bound at rest)
                 lbs = linear_blend_skin(render.vertices[: render.output_count], render.joint_indices[: render.output_count],
                                         render.joint_weights[: render.output_count],
                                         render.skinning_matrices(clip, plan.times[i]))
+
+                def soup_lbs(skin_lbs=lbs, t=plan.times[i]):
+                    world = render.joint_world_transforms(clip, t)
+                    return np.concatenate([skin_lbs, *[a.points(world) for a in render.attachments]])
+
+                out = caged.render_points(pts["skin"], pts["layer_fat"], soup_lbs)
+                out["cage"] = pts["skin"][: sim.output_count]
             deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
             if caged is not None:
                 render_deviation[:] = np.maximum(render_deviation, deviation)
@@ -423,6 +466,7 @@ def simulate(
         "cage": None if caged is None else {
             "vertices": int(caged.rig.vertex_count), "edge_m": caged.cage.edge, "build_s": caged.build_s,
             "weights_matched": float(caged.matched.mean()), "embedded_points": int(caged.embedding.count),
+            "rigid_pieces": caged.rigid_piece_count, "rigid_pieces_follow": rigid_pieces,
             "meshes": [p[0] for p in caged.soup.pieces],
             "source": str(cage_file) if cage_file is not None else "automatic",
         },
