@@ -56,6 +56,31 @@ def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coa
     assert (1.0 - dot).max() < 1e-6  # the same rotations (up to sign)
 
 
+def test_residuals_are_each_iterations_largest_correction(device, coarse_builder):
+    # the elasticity loop run iteration by iteration: each iteration's residual is the largest
+    # distance a particle moved in it (NumPy, from the positions before and after)
+    model = coarse_builder.finalize(device)
+    rig = coarse_builder.rig
+    solver = SkinSolver(model, SolverParams(iterations=4))
+    a, b, c = model.state(), model.state(), model.control()
+    initial_state(coarse_builder, a, rig.skinning_matrices("flex", 0.0))
+    c.set_pose(rig.skinning_matrices("flex", 0.3))  # far from the start pose: every iteration corrects
+    solver.step(a, b, c, None, 0.005)
+    want = []
+    x = wp.clone(a.x)
+    q_src, q_dst = wp.clone(a.q), wp.zeros_like(a.q)
+    solver.update_moments(q_src)
+    for it in range(4):
+        before = x.numpy().astype(np.float64)
+        solver.region_fit(x, q_src, q_dst)
+        solver.blend_and_constrain(x, q_dst, it)
+        want.append(np.linalg.norm(x.numpy() - before, axis=1).max())
+        q_src, q_dst = q_dst, q_src
+    got = solver.residuals.numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert want[0] > 1e-4 and want[-1] < want[0]
+
+
 @pytest.mark.parametrize("fast", [False, True])
 def test_rigid_motion_keeps_the_rest_shape(device, coarse_builder, fast):
     model = coarse_builder.finalize(device)

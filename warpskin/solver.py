@@ -143,8 +143,10 @@ class SkinSolver:
             self.coupling_targets = wp.zeros(v, dtype=wp.vec3)
             self.joint_centres = wp.zeros(model.joint_count, dtype=wp.vec3)
             self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
-            # largest position correction of each elasticity iteration of the last step [m]
-            self.residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
+            # every particle's squared position correction in each elasticity iteration of the
+            # last step [m^2]; :attr:`residuals` reduces them when read
+            self.corrections = wp.zeros((self.params.iterations, n), dtype=wp.float32)
+            self._residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
             # the tether: radius per vertex [m], and a running count of the particles it clamped
             p = self.params
             self.tether_radius = None
@@ -193,6 +195,15 @@ class SkinSolver:
         g = self.params.gravity
         self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
 
+    @property
+    def residuals(self) -> wp.array:
+        """The largest position correction [m] of each elasticity iteration of the last step,
+        ``[iterations]`` (reduced from :attr:`corrections` by one launch when read; never read
+        inside a step)."""
+        wp.launch(k_sm.largest_correction_kernel, dim=self._iterations, inputs=[self.corrections],
+                  outputs=[self._residuals], device=self.device)
+        return self._residuals
+
     # ------------------------------------------------------------------ pieces of a step
     def update_moments(self, q: wp.array) -> None:
         """Oriented-particle moment matrices of orientations ``q`` (before a fit that follows
@@ -238,7 +249,7 @@ class SkinSolver:
     def blend_and_constrain(self, x: wp.array, q_regions: wp.array, iteration: int = 0) -> None:
         """One elasticity iteration's per-particle goal blend of the region fits (into ``x``),
         with the kinematic coupling and the joint constraints; updates the moment matrices and
-        :attr:`residuals` ``[iteration]``."""
+        row ``iteration`` of :attr:`corrections`."""
         m = self.model
         wp.launch(
             k_sm.blend_and_constrain_kernel,
@@ -247,7 +258,7 @@ class SkinSolver:
                     m.particle_region_slots, m.particle_stiffness, 3 * m.vertex_count, self.coupling_targets,
                     m.coupling_stiffness, m.joint_offsets, m.joint_ids, m.joint_rest_distance,
                     self.joint_centres, m.particle_moment, iteration],
-            outputs=[x, self.moment_matrix, self.residuals],
+            outputs=[x, self.moment_matrix, self.corrections],
             device=self.device,
         )
 
@@ -356,7 +367,6 @@ class SkinSolver:
             col.detect(state_in.x, state_out.x, contacts)
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
-        self.residuals.zero_()
         for it in range(p.iterations):
             self.region_fit(state_out.x, q_src, q_dst)
             self.blend_and_constrain(state_out.x, q_dst, it)
