@@ -390,12 +390,13 @@ class SelfCollision:
         carry_offset = self._carry if carry else 0
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
-        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, carry_offset, 1.0e-3 * c.thickness],
+        pad = 1.0e-3 * c.thickness
+        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, carry_offset, pad],
                   outputs=[lowers, uppers], device=dev)
         bvh.refit()
         if listed:
             wp.launch(k.escaped_kernel, dim=count,
-                      inputs=[lowers, uppers, self.lowers, self.uppers, c.radius - self._reach, contacts.pair_count,
+                      inputs=[x, tris, pad, self.lowers, self.uppers, c.radius - self._reach, contacts.pair_count,
                               contacts.pair_capacity], outputs=[self.escaped], device=dev)
         if min_move is not None:
             wp.launch(k.moved_farther_kernel, dim=m.vertex_count, inputs=[x_old, x, float(min_move)], outputs=[self.moved],
@@ -411,7 +412,7 @@ class SelfCollision:
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
             wp.launch(k.new_intersections_kernel, dim=count,
-                      inputs=[bvh.id, x_old, x, tris, lowers, uppers, 1.0e-4, self.moved, only_moved, self.escaped,
+                      inputs=[bvh.id, x_old, x, tris, pad, 1.0e-4, self.moved, only_moved, self.escaped,
                               only_escaped, *lbs, self.reverted, r - 1],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
