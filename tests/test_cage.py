@@ -325,3 +325,13 @@ def test_rigid_pieces_are_the_components_that_lbs_moves_rigidly():
     assert np.all(got[part == 2] == -1)  # one vertex at 0.99: bound point by point
     assert len({got[part == 0][0], got[part == 3][0], got[part == 4][0]}) == 3  # per mesh and joint
     assert sorted(set(got.tolist())) == [-1, 0, 1, 2]
+
+
+def test_a_bad_rigid_pieces_choice_is_refused_before_any_work(tmp_path):
+    from warpskin.errors import SceneError
+    from warpskin.run import simulate
+    from warpskin.scene import load_scene
+
+    with pytest.raises(SceneError, match="rigid_pieces must be 'cage' or 'joint', got 'bones'"):
+        simulate(load_scene("arm"), tmp_path / "x.usdc", rigid_pieces="bones", progress=False)
+    assert not list(tmp_path.iterdir())
