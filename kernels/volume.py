@@ -137,13 +137,10 @@ def volume_gradient_kernel(
     pair_entry_offsets: wp.array(dtype=wp.int32),
     entry_points: wp.array2d(dtype=wp.int32),
     subvolume_origin: wp.array(dtype=wp.int32),
-    gate: wp.array(dtype=wp.int32),
     # outputs
     pair_gradient: wp.array(dtype=wp.vec3d),
     pair_weighted_norm: wp.array(dtype=wp.float64),
 ):
-    if gate[0] == 0:
-        return  # an iteration that is not needed in this step (see VolumeConstraints.project)
     p = wp.tid()
     i = pair_vertex[p]
     origin = closed_point(x, centers, vertex_count, subvolume_origin[pair_subvolume[p]])
@@ -179,13 +176,10 @@ def volume_lambda_kernel(
     pair_weighted_norm: wp.array(dtype=wp.float64),
     rest_volume: wp.array(dtype=wp.float64),
     stiffness: float,
-    gate: wp.array(dtype=wp.int32),
     # outputs
     subvolume_volume: wp.array(dtype=wp.float64),
     subvolume_lambda: wp.array(dtype=wp.float64),
 ):
-    if gate[0] == 0:
-        return  # uniform over the block: every lane returns
     s, lane = wp.tid()
     lanes = wp.block_dim()
     origin = closed_point(x, centers, vertex_count, subvolume_origin[s])
@@ -225,17 +219,13 @@ def volume_correction_kernel(
     use_cap: int,
     cap_targets: wp.array(dtype=wp.vec3),
     cap_radius: wp.array(dtype=wp.float32),
-    gate: wp.array(dtype=wp.int32),
     # outputs
     x: wp.array(dtype=wp.vec3),
     capped: wp.array(dtype=wp.int32),
 ):
     """One thread per skin vertex. With ``use_cap``, every vertex (pinned ones too) then
     ends within ``cap_radius[i]`` of ``cap_targets[i]`` (the tether's cap, counted in
-    ``capped``; the same arithmetic as :func:`warpskin.kernels.constraints.tether_kernel`).
-    Nothing moves where ``gate[0]`` is 0."""
-    if gate[0] == 0:
-        return
+    ``capped``; the same arithmetic as :func:`warpskin.kernels.constraints.tether_kernel`)."""
     i = wp.tid()
     w = inv_mass[i] * weight_scale[i]
     xi = x[i]

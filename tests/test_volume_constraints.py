@@ -363,29 +363,6 @@ def test_projection_is_deterministic(device):
     assert runs[0] == runs[1] == runs[2]
 
 
-def test_a_closed_gate_moves_nothing_and_an_open_one_is_the_ungated_projection(device):
-    # the gate is read on the device: closed, the iterations leave every position and the cap's
-    # count bit for bit as they were; open, they are the plain projection (with the cap too)
-    model, vc, state, ws = _setup(device)
-    x0 = _perturbed(model, seed=9, scale=0.003)
-    v = model.vertex_count
-    targets = wp.array(x0[:v], dtype=wp.vec3, device=model.device)
-    radius = wp.full(v, 0.001, dtype=wp.float32, device=model.device)
-    results = {}
-    for name, gate in (("none", None), ("open", wp.ones(1, dtype=wp.int32, device=model.device)),
-                       ("closed", wp.zeros(1, dtype=wp.int32, device=model.device))):
-        state.x.assign(x0)
-        count = wp.zeros(1, dtype=wp.int32, device=model.device)
-        vc.project(state.x, model.particle_inv_mass, ws, vc.centers, 3, cap=(targets, radius, count), gate=gate)
-        results[name] = (state.x.numpy().tobytes(), int(count.numpy()[0]))
-    assert results["open"] == results["none"]
-    assert results["closed"] == (x0.tobytes(), 0)
-    assert results["none"][0] != x0.tobytes() and results["none"][1] > 0  # the projection did move and clamp
-    with pytest.raises(InputError, match="gate must have dtype int32"):
-        vc.project(state.x, model.particle_inv_mass, ws, vc.centers, 1,
-                   gate=wp.zeros(1, dtype=wp.float32, device=model.device))
-
-
 # --------------------------------------------------------------------------------------------
 # volumes and centers
 # --------------------------------------------------------------------------------------------

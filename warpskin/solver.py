@@ -276,18 +276,17 @@ class SkinSolver:
         if self.volume is not None:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
-    def _volume_loop(self, x: wp.array, weight_scale: wp.array | None = None, gate: wp.array | None = None) -> None:
+    def _volume_loop(self, x: wp.array, weight_scale: wp.array | None = None) -> None:
         """``volume_iterations`` of the sub-volume constraints on ``x`` (weights
         :attr:`volume_weight_scale` unless given), each followed by the tether's cap where
-        there is a tether (against the targets :meth:`_tether` wrote earlier in the step);
-        with ``gate``, only in a step where ``gate[0]`` is set (read on the device)."""
+        there is a tether (against the targets :meth:`_tether` wrote earlier in the step)."""
         p = self.params
         w = self.volume_weight_scale if weight_scale is None else weight_scale
         # the cap is fused into each iteration's correction launch, against the targets the
         # step's tether wrote (the skinning matrices do not change within a step)
         cap = None if self.tether_radius is None else (self.tether_targets, self.tether_cap, self.tether_clamped)
         self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, p.volume_iterations,
-                            p.volume_stiffness, cap=cap, gate=gate)
+                            p.volume_stiffness, cap=cap)
 
     def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
         """A refined skin is written with the loaded mesh's triangles, chords of the simulated
@@ -400,14 +399,12 @@ class SkinSolver:
             # the volume loop can push a pair through (the Fox's Run: 2-16 new pairs in a step,
             # which then stay): a second fail-safe pass puts those vertices back where the loop
             # found them, pinned, and the loop runs again so that the others restore what they
-            # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %); in a step
-            # where the pass put nothing back the loop has nothing to restore and is skipped (its
-            # kernels read the pass's flag on the device)
+            # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %)
             if fail_safe:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
                               min_move=1.0e-2 * col.data.thickness, contacts=contacts)
                 col.pin_reverted(self.volume_weight_scale)
-                self._volume_loop(state_out.x, gate=col.reverted)
+                self._volume_loop(state_out.x)
         if self.written_volume is not None:
             self._written_volume(state_out.x, control, col is not None)
         if self.tether_radius is not None and col is not None and self.volume is None:

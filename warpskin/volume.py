@@ -306,7 +306,6 @@ class VolumeConstraints:
             self._no_targets = wp.zeros(0, dtype=wp.vec3)
             self._no_radius = wp.zeros(0, dtype=wp.float32)
             self._no_count = wp.zeros(1, dtype=wp.int32)
-            self._open_gate = wp.ones(1, dtype=wp.int32)  # iterations that always run
         # recorded launches per (arrays, stiffness): a simulation alternates two states
         self._cmd_cache: dict = {}
 
@@ -380,7 +379,6 @@ class VolumeConstraints:
         iterations: int,
         stiffness: float = 1.0,
         cap: tuple | None = None,
-        gate: wp.array | None = None,
     ) -> None:
         """Project the volume constraints ``iterations`` times, in place.
 
@@ -404,10 +402,6 @@ class VolumeConstraints:
                 ``targets[i]`` [m] (vec3, at least ``V``) where it is farther, each such clamp
                 counted in ``capped[0]`` (int32) (the solver's tether; fused into the
                 correction launch).
-            gate: int32 array: the iterations change nothing where ``gate[0]`` is 0 when they
-                run (read on the device, so a recorded or captured step decides per step without
-                a host read: the solver's second volume loop runs only where the fail-safe's
-                second pass put a vertex back); ``None``: always.
         """
         if int(iterations) != iterations or iterations < 0:
             raise InputError(f"VolumeConstraints.project: iterations must be an integer >= 0, got {iterations}")
@@ -420,11 +414,9 @@ class VolumeConstraints:
             self._check("cap targets", cap[0], wp.vec3, self.vertex_count)
             self._check("cap radius", cap[1], wp.float32, self.vertex_count)
             self._check("cap count", cap[2], wp.int32, 1)
-        if gate is not None:
-            self._check("gate", gate, wp.int32, 1)
         if iterations == 0 or self.subvolume_count == 0:
             return
-        cmds = self._commands(x, inv_mass, weight_scale, centers, float(stiffness), cap, gate)
+        cmds = self._commands(x, inv_mass, weight_scale, centers, float(stiffness), cap)
         for _ in range(int(iterations)):
             for cmd in cmds:
                 cmd.launch()
@@ -434,8 +426,7 @@ class VolumeConstraints:
         self._check("inv_mass", inv_mass, wp.float32, self.vertex_count)
         self._check("weight_scale", weight_scale, wp.float32, self.vertex_count)
 
-    def _commands(self, x, inv_mass, weight_scale, centers, stiffness: float, cap: tuple | None = None,
-                  gate: wp.array | None = None) -> tuple:
+    def _commands(self, x, inv_mass, weight_scale, centers, stiffness: float, cap: tuple | None = None) -> tuple:
         """The three recorded launches of one iteration, bound to these arrays (cached per
         arrays and stiffness: a simulation alternates between two states' positions)."""
         if cap is None:
@@ -443,8 +434,7 @@ class VolumeConstraints:
             use_cap = 0
         else:
             use_cap = 1
-        gate = self._open_gate if gate is None else gate
-        arrays = (x, inv_mass, weight_scale, centers, *cap, gate)
+        arrays = (x, inv_mass, weight_scale, centers, *cap)
         key = (*map(id, arrays), stiffness)  # the cache holds the arrays, so their ids stay theirs
         hit = self._cmd_cache.get(key)
         if hit is not None:
@@ -466,7 +456,6 @@ class VolumeConstraints:
                 self.pair_entry_offsets,
                 self.entry_points,
                 self.subvolume_origin,
-                gate,
             ],
             outputs=[self.pair_gradient, self.pair_weighted_norm],
             device=d,
@@ -486,7 +475,6 @@ class VolumeConstraints:
                 self.pair_weighted_norm,
                 self.rest_volume,
                 stiffness,
-                gate,
             ],
             outputs=[self.subvolume_volume, self.subvolume_lambda],
             block_dim=self.block_dim,
@@ -507,7 +495,6 @@ class VolumeConstraints:
                 use_cap,
                 cap[0],
                 cap[1],
-                gate,
             ],
             outputs=[x, cap[2]],
             device=d,
