@@ -32,12 +32,17 @@ def _scene(tmp_path, extra=""):
     return load_scene(p)
 
 
-def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coarse_builder):
-    model = coarse_builder.finalize(device)
-    rig = coarse_builder.rig
-    solver = SkinSolver(model, SolverParams(iterations=5))
+def _at_rest(device, builder, iterations):
+    """The coarse arm's model, a solver, two states (the first at the LBS rest pose of "flex") and a control."""
+    model = builder.finalize(device)
+    solver = SkinSolver(model, SolverParams(iterations=iterations))
     a, b, c = model.state(), model.state(), model.control()
-    initial_state(coarse_builder, a, rig.skinning_matrices("flex", 0.0))
+    initial_state(builder, a, builder.rig.skinning_matrices("flex", 0.0))
+    return model, builder.rig, solver, a, b, c
+
+
+def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coarse_builder):
+    model, rig, solver, a, b, c = _at_rest(device, coarse_builder, 5)
     for k in range(12):  # a deforming, moving state
         c.set_pose(rig.skinning_matrices("flex", 0.05 * (k + 1)))
         solver.step(a, b, c, None, 0.005)
@@ -59,11 +64,7 @@ def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coa
 def test_residuals_are_each_iterations_largest_correction(device, coarse_builder):
     # the elasticity loop run iteration by iteration: each iteration's residual is the largest
     # distance a particle moved in it (NumPy, from the positions before and after)
-    model = coarse_builder.finalize(device)
-    rig = coarse_builder.rig
-    solver = SkinSolver(model, SolverParams(iterations=4))
-    a, b, c = model.state(), model.state(), model.control()
-    initial_state(coarse_builder, a, rig.skinning_matrices("flex", 0.0))
+    model, rig, solver, a, b, c = _at_rest(device, coarse_builder, 4)
     c.set_pose(rig.skinning_matrices("flex", 0.3))  # far from the start pose: every iteration corrects
     solver.step(a, b, c, None, 0.005)
     want = []
