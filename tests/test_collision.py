@@ -123,7 +123,9 @@ def test_edge_edge_parallel_branch(device):
     assert np.abs(g[:, :2]).max() < 1e-6
 
 
-def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h=0.01):
+def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h=0.01, chunk=1, counted=None):
+    """One Jacobi pass over the given contacts (``counted`` of them counted, default all), a
+    thread per ``chunk`` contacts."""
     x = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
     w = wp.array(inv_mass.astype(np.float32), dtype=wp.float32, device=device)
     tris = wp.array(np.asarray(tri, dtype=np.int32).reshape(-1, 3), dtype=wp.int32, device=device)
@@ -131,19 +133,20 @@ def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h
     delta = wp.zeros(n, dtype=wp.vec3, device=device)
     count = wp.zeros(n, dtype=wp.int32, device=device)
     active = wp.zeros(1, dtype=wp.int32, device=device)
+    threads = -(-max(len(pt or ()), len(ee or ())) // chunk)
     if pt is not None:
-        cnt = wp.array([len(pt)], dtype=wp.int32, device=device)
-        wp.launch(k.project_point_triangle_kernel, dim=len(pt),
+        cnt = wp.array([len(pt) if counted is None else counted], dtype=wp.int32, device=device)
+        wp.launch(k.project_point_triangle_kernel, dim=threads,
                   inputs=[x, w, tris, cnt, wp.array([v for v, _ in pt], dtype=wp.int32, device=device),
-                          wp.array([t for _, t in pt], dtype=wp.int32, device=device), h],
+                          wp.array([t for _, t in pt], dtype=wp.int32, device=device), h, chunk],
                   outputs=[delta, count, active], device=device)
     if ee is not None:
-        cnt = wp.array([len(ee)], dtype=wp.int32, device=device)
+        cnt = wp.array([len(ee) if counted is None else counted], dtype=wp.int32, device=device)
         e = wp.array(np.asarray(edges, dtype=np.int32), dtype=wp.int32, device=device)
-        wp.launch(k.project_edge_edge_kernel, dim=len(ee),
+        wp.launch(k.project_edge_edge_kernel, dim=threads,
                   inputs=[x, w, e, cnt, wp.array([a for a, _, _ in ee], dtype=wp.int32, device=device),
                           wp.array([b for _, b, _ in ee], dtype=wp.int32, device=device),
-                          wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), h],
+                          wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), h, chunk],
                   outputs=[delta, count, active], device=device)
     wp.launch(k.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
     return x.numpy().astype(np.float64), int(active.numpy()[0])
@@ -178,6 +181,62 @@ def test_crossing_edges_are_separated_by_one_projection(device):
     assert active == 1
     assert _ee_reference(x, sgn, 0.0) == pytest.approx(h, rel=1e-3)
     assert x[2, 2] > x[0, 2]  # edge 2 is back above edge 1
+
+
+def test_contact_kernels_take_the_counted_contacts_in_chunks(device):
+    # a crumpled sheet: 40 point-triangle and 40 edge-edge contacts of random (generic) points,
+    # the buffers holding 13 more garbage entries past the count; a thread per 1, 4 or 64
+    # slots projects the same contacts (bit for bit on the CPU, whose threads run in order),
+    # and the same as buffers holding only the counted ones
+    rng = np.random.default_rng(7)
+    n = 30
+    points = rng.uniform(-0.1, 0.1, (n, 3))
+    inv_mass = rng.uniform(0.5, 2.0, n)
+    tri = rng.choice(n, (12, 3), replace=True)
+    tri = tri[[len(set(t)) == 3 for t in tri]]
+    edges = [[a, b] for a, b in rng.choice(n, (20, 2)) if a != b]
+    pt_all = [(int(rng.integers(n)), int(rng.integers(len(tri)))) for _ in range(53)]
+    pt_all = [(v, t) for v, t in pt_all if v not in tri[t]]
+    ee_all = [(int(a), int(b), float(s)) for a, b, s in
+              zip(rng.integers(len(edges), size=53), rng.integers(len(edges), size=53), rng.choice([-1.0, 1.0], 53))]
+    ee_all = [(a, b, s) for a, b, s in ee_all if not set(edges[a]) & set(edges[b])]
+    count = min(len(pt_all), len(ee_all)) - 13
+    h = 0.02
+    ref, active_ref = _project_once(device, points, inv_mass, tri, pt=pt_all[:count], ee=ee_all[:count], edges=edges,
+                                    h=h)
+    assert active_ref > count // 2  # most of them are violated: the projection moves points
+    assert np.abs(ref - points).max() > 1e-3
+    for chunk in (1, 4, 64):
+        x, active = _project_once(device, points, inv_mass, tri, pt=pt_all, ee=ee_all, edges=edges, h=h, chunk=chunk,
+                                  counted=count)
+        assert active == active_ref
+        if wp.get_device(device).is_cpu:
+            np.testing.assert_array_equal(x, ref)
+        else:  # the atomics' order differs between runs on a GPU
+            np.testing.assert_allclose(x, ref, atol=1e-6)
+    # friction and restitution over the same point-triangle contacts, random velocities
+    v0 = rng.normal(size=(n, 3))
+
+    def velocities(pt, counted, chunk):
+        arr = lambda a, dt: wp.array(np.asarray(a), dtype=dt, device=device)  # noqa: E731
+        v, dv = arr(v0.astype(np.float32), wp.vec3), wp.zeros(n, dtype=wp.vec3, device=device)
+        dv_count = wp.zeros(n, dtype=wp.int32, device=device)
+        wp.launch(k.friction_restitution_kernel, dim=-(-len(pt) // chunk),
+                  inputs=[arr(points.astype(np.float32), wp.vec3), v, arr(inv_mass.astype(np.float32), wp.float32),
+                          arr(np.asarray(tri, dtype=np.int32), wp.int32), arr([counted], wp.int32),
+                          arr([p for p, _ in pt], wp.int32), arr([t for _, t in pt], wp.int32), 0.4, 0.3, chunk],
+                  outputs=[dv, dv_count], device=device)
+        wp.launch(k.apply_deltas_kernel, dim=n, inputs=[dv, dv_count], outputs=[v], device=device)
+        return v.numpy()
+
+    ref_v = velocities(pt_all[:count], count, 1)
+    assert np.abs(ref_v - v0).max() > 1e-2
+    for chunk in (4, 64):
+        got = velocities(pt_all, count, chunk)
+        if wp.get_device(device).is_cpu:
+            np.testing.assert_array_equal(got, ref_v)
+        else:
+            np.testing.assert_allclose(got, ref_v, atol=1e-5)
 
 
 # ---------------------------------------------------------------- detection and the whole solver

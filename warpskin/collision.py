@@ -245,6 +245,10 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
 #: twice that of each other (at most 0.5: the tree returns the pairs within one radius).
 ESCAPE_REACH = 0.25
 
+#: Contact slots per thread of the contact kernels on the CPU, whose threads run one after
+#: another (see :func:`warpskin.kernels.collision.contact_range`); one on a GPU.
+CPU_CONTACT_CHUNK = 64
+
 
 class SelfCollision:
     """Skin self-collision of one model: the BVH and the scratch buffers (allocated here), the
@@ -284,6 +288,7 @@ class SelfCollision:
         self._fs_tris = model.tri_indices if c.output_triangles is None else c.output_triangles
         self._listed = c.output_triangles is None
         self._reach = ESCAPE_REACH * c.radius
+        self.chunk = CPU_CONTACT_CHUNK if wp.get_device(self.device).is_cpu else 1
         with wp.ScopedDevice(self.device):
             self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
             self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
@@ -339,18 +344,23 @@ class SelfCollision:
         for _ in range(self.data.passes):
             self._project_pass(x, inv_mass, contacts)
 
+    def _contact_threads(self, contacts) -> int:
+        """Threads of a contact kernel: one per :attr:`chunk` slots of the buffers."""
+        return -(-contacts.capacity // self.chunk)
+
     def _project_pass(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
         dev = self.device
         c = self.data
         m = self.model
         contacts.active.zero_()
-        wp.launch(k.project_point_triangle_kernel, dim=contacts.capacity,
+        dim = self._contact_threads(contacts)
+        wp.launch(k.project_point_triangle_kernel, dim=dim,
                   inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
-                          c.thickness],
+                          c.thickness, self.chunk],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
-        wp.launch(k.project_edge_edge_kernel, dim=contacts.capacity,
+        wp.launch(k.project_edge_edge_kernel, dim=dim,
                   inputs=[x, inv_mass, c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
-                          c.thickness],
+                          c.thickness, self.chunk],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
@@ -432,8 +442,8 @@ class SelfCollision:
         dev = self.device
         c = self.data
         m = self.model
-        wp.launch(k.friction_restitution_kernel, dim=contacts.capacity,
+        wp.launch(k.friction_restitution_kernel, dim=self._contact_threads(contacts),
                   inputs=[x, v, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
-                          c.friction, c.restitution],
+                          c.friction, c.restitution, self.chunk],
                   outputs=[self.delta, self.delta_count], device=dev)
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[v], device=dev)
