@@ -652,8 +652,11 @@ def project_point_triangle_kernel(
 # distributed by the closest-point parameters.
 # --------------------------------------------------------------------------------------------
 @wp.func
-def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn: float, thickness: float):
-    """Returns (C, g1, g2, g3, g4) for the paper's edge-edge constraint.
+def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn: float, thickness: float,
+                         violated_only: bool):
+    """Returns (C, g1, g2, g3, g4) for the paper's edge-edge constraint; with ``violated_only``
+    the gradients are zero (not computed) where C >= 0 (the projection skips those: on the arm
+    more than half of the listed pairs in a step).
 
     The paper's C is the distance between the two edges' infinite lines along their common
     normal; that is the edges' distance where the lines' closest points lie on (or within one
@@ -671,6 +674,9 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
         if lq < 1.0e-20:
             z = wp.vec3(0.0)
             return 0.0, z, z, z, z
+        if violated_only and lq - thickness >= 0.0:
+            z = wp.vec3(0.0)
+            return lq - thickness, z, z, z, z
         uq = dq / lq
         return lq - thickness, -(1.0 - sf[0]) * uq, -sf[0] * uq, (1.0 - sf[1]) * uq, sf[1] * uq
     n = wp.cross(e12, e34)
@@ -678,10 +684,13 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
     scale = wp.max(wp.dot(e12, e12), wp.dot(e34, e34))
     if ln2 > 1.0e-12 * scale * scale:
         ln = wp.sqrt(ln2)
+        c = sgn * wp.dot(e14, n) / ln - thickness
+        if violated_only and c >= 0.0:
+            z = wp.vec3(0.0)
+            return c, z, z, z, z
         me14 = e14 - n * (wp.dot(n, e14) / ln2)  # M e14
         u34 = wp.cross(me14, e34)  # (e14^T M) e34*  as a vector: e14^T M (e34 x .)
         u12 = wp.cross(me14, e12)
-        c = sgn * wp.dot(e14, n) / ln - thickness
         g1 = sgn * (u34 - n) / ln
         g2 = -sgn * u34 / ln
         g3 = -sgn * u12 / ln
@@ -693,11 +702,13 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
     q2 = p3 + st[1] * e34
     d = q2 - q1
     ld = wp.length(d)
+    z0 = wp.vec3(0.0)
     if ld < 1.0e-20:
-        z = wp.vec3(0.0)
-        return 0.0, z, z, z, z
-    u = d / ld
+        return 0.0, z0, z0, z0, z0
     c = sgn * ld - thickness
+    if violated_only and c >= 0.0:
+        return c, z0, z0, z0, z0
+    u = d / ld
     g1 = -sgn * (1.0 - st[0]) * u
     g2 = -sgn * st[0] * u
     g3 = sgn * (1.0 - st[1]) * u
@@ -724,7 +735,7 @@ def project_edge_edge(
     i2 = edge_indices[ee_a[k], 1]
     i3 = edge_indices[ee_b[k], 0]
     i4 = edge_indices[ee_b[k], 1]
-    c, g1, g2, g3, g4 = edge_edge_constraint(x[i1], x[i2], x[i3], x[i4], ee_sign[k], thickness)
+    c, g1, g2, g3, g4 = edge_edge_constraint(x[i1], x[i2], x[i3], x[i4], ee_sign[k], thickness, True)
     if c >= 0.0:
         return
     w1 = inv_mass[i1]

@@ -17,8 +17,9 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def _edge_edge_eval(p: wp.array(dtype=wp.vec3), sgn: float, h: float, out_c: wp.array(dtype=float), out_g: wp.array(dtype=wp.vec3)):
-    c, g1, g2, g3, g4 = k.edge_edge_constraint(p[0], p[1], p[2], p[3], sgn, h)
+def _edge_edge_eval(p: wp.array(dtype=wp.vec3), sgn: float, h: float, violated_only: int, out_c: wp.array(dtype=float),
+                    out_g: wp.array(dtype=wp.vec3)):
+    c, g1, g2, g3, g4 = k.edge_edge_constraint(p[0], p[1], p[2], p[3], sgn, h, violated_only != 0)
     out_c[0] = c
     out_g[0] = g1
     out_g[1] = g2
@@ -26,11 +27,11 @@ def _edge_edge_eval(p: wp.array(dtype=wp.vec3), sgn: float, h: float, out_c: wp.
     out_g[3] = g4
 
 
-def _ee(points, sgn, h, device):
+def _ee(points, sgn, h, device, violated_only=False):
     p = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
     c = wp.zeros(1, dtype=float, device=device)
     g = wp.zeros(4, dtype=wp.vec3, device=device)
-    wp.launch(_edge_edge_eval, dim=1, inputs=[p, sgn, h, c, g], device=device)
+    wp.launch(_edge_edge_eval, dim=1, inputs=[p, sgn, h, int(violated_only), c, g], device=device)
     return float(c.numpy()[0]), g.numpy().astype(np.float64)
 
 
@@ -121,6 +122,31 @@ def test_edge_edge_parallel_branch(device):
     assert g[2, 2] + g[3, 2] == pytest.approx(1.0, abs=1e-5)
     assert g[0, 2] + g[1, 2] == pytest.approx(-1.0, abs=1e-5)
     assert np.abs(g[:, :2]).max() < 1e-6
+
+
+def test_edge_edge_violated_only_skips_only_the_gradients_of_satisfied_pairs(device):
+    # the projection's form: the same C everywhere; where C < 0 the same gradients, bit for
+    # bit; where C >= 0 zero gradients. Lines meeting near and far, and parallel edges, each
+    # with a thin thickness and one 0.05 past their distance (both signs)
+    rng = np.random.default_rng(11)
+    configs = [_edges_whose_lines_meet(rng, inside=True) for _ in range(3)]
+    configs += [_edges_whose_lines_meet(rng, inside=False) for _ in range(3)]
+    configs.append(np.array([[0, 0, 0], [1, 0, 0], [0.2, 0, 0.02], [0.8, 0, 0.02]], dtype=float))
+    seen = set()
+    for p in configs:
+        for sgn in (1.0, -1.0):
+            c0, _ = _ee(p, sgn, 0.0, device)
+            for h in (0.004, abs(c0) + 0.05):
+                c, g = _ee(p, sgn, h, device)
+                c_lazy, g_lazy = _ee(p, sgn, h, device, violated_only=True)
+                assert c_lazy == c
+                if c < 0.0:
+                    np.testing.assert_array_equal(g_lazy, g)
+                    assert np.abs(g).max() > 0.1
+                else:
+                    assert not g_lazy.any()
+                seen.add(c < 0.0)
+    assert seen == {True, False}
 
 
 def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h=0.01, chunk=1, counted=None):
