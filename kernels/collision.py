@@ -307,6 +307,15 @@ def boxes_contain(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) ->
 
 
 @wp.func
+def triangle_box(x: wp.array(dtype=wp.vec3), tri_indices: wp.array2d(dtype=wp.int32), t: int, pad: float):
+    """The box of triangle ``t`` at ``x``, padded by ``pad``: (lower, upper)."""
+    xa = x[tri_indices[t, 0]]
+    xb = x[tri_indices[t, 1]]
+    xc = x[tri_indices[t, 2]]
+    return wp.min(wp.min(xa, xb), xc) - wp.vec3(pad), wp.max(wp.max(xa, xb), xc) + wp.vec3(pad)
+
+
+@wp.func
 def box_gap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3) -> float:
     """Distance between two boxes (0 where they overlap): a lower bound of the distance of any
     point of one to any point of the other."""
@@ -664,6 +673,7 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
     edges whose lines meet far beyond their ends) the lines' distance is near zero for edges
     far apart, so there C is the unsigned distance of the edges' closest points minus the
     thickness."""
+    z = wp.vec3(0.0)
     e12 = p2 - p1
     e34 = p4 - p3
     e14 = p4 - p1
@@ -672,10 +682,8 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
         dq = (p3 + sf[1] * e34) - (p1 + sf[0] * e12)
         lq = wp.length(dq)
         if lq < 1.0e-20:
-            z = wp.vec3(0.0)
             return 0.0, z, z, z, z
         if violated_only and lq - thickness >= 0.0:
-            z = wp.vec3(0.0)
             return lq - thickness, z, z, z, z
         uq = dq / lq
         return lq - thickness, -(1.0 - sf[0]) * uq, -sf[0] * uq, (1.0 - sf[1]) * uq, sf[1] * uq
@@ -686,7 +694,6 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
         ln = wp.sqrt(ln2)
         c = sgn * wp.dot(e14, n) / ln - thickness
         if violated_only and c >= 0.0:
-            z = wp.vec3(0.0)
             return c, z, z, z, z
         me14 = e14 - n * (wp.dot(n, e14) / ln2)  # M e14
         u34 = wp.cross(me14, e34)  # (e14^T M) e34*  as a vector: e14^T M (e34 x .)
@@ -702,12 +709,11 @@ def edge_edge_constraint(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3, sgn
     q2 = p3 + st[1] * e34
     d = q2 - q1
     ld = wp.length(d)
-    z0 = wp.vec3(0.0)
     if ld < 1.0e-20:
-        return 0.0, z0, z0, z0, z0
+        return 0.0, z, z, z, z
     c = sgn * ld - thickness
     if violated_only and c >= 0.0:
-        return c, z0, z0, z0, z0
+        return c, z, z, z, z
     u = d / ld
     g1 = -sgn * (1.0 - st[0]) * u
     g2 = -sgn * st[0] * u
@@ -1009,11 +1015,7 @@ def escaped_kernel(
     did not fit (``pair_count`` above ``pair_capacity``), every triangle escapes."""
     t = wp.tid()
     m = wp.vec3(margin)
-    xa = x[tri_indices[t, 0]]
-    xb = x[tri_indices[t, 1]]
-    xc = x[tri_indices[t, 2]]
-    lo = wp.min(wp.min(xa, xb), xc) - wp.vec3(pad)
-    hi = wp.max(wp.max(xa, xb), xc) + wp.vec3(pad)
+    lo, hi = triangle_box(x, tri_indices, t, pad)
     inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
     escaped[t] = wp.where(inside and pair_count[0] <= pair_capacity, 0, 1)
 
@@ -1166,10 +1168,8 @@ def new_intersections_kernel(
     # in the tree holds every position a round can give it; the box over all of this one's
     # positions is far larger where it moved far (the triangles that escaped the pair list), and
     # finds far more
-    xa0 = x[a0]
-    xa1 = x[a1]
-    xa2 = x[a2]
-    query = wp.bvh_query_aabb(bvh, wp.min(wp.min(xa0, xa1), xa2) - wp.vec3(pad), wp.max(wp.max(xa0, xa1), xa2) + wp.vec3(pad))
+    qlo, qhi = triangle_box(x, tri_indices, t, pad)
+    query = wp.bvh_query_aabb(bvh, qlo, qhi)
     u = int(0)
     while wp.bvh_query_next(query, u):
         if u == t:

@@ -146,12 +146,12 @@ def _cage_build(rig) -> dict:
     alone.evaluate(xs)
     # sub-millisecond launches: the best of many short blocks, the three taken in turn so that a
     # busy spell of the machine meets each of them alike
-    best = {"embedding_ms": float("inf"), "embedding_surface_normals_ms": float("inf"), "render_lbs_kernel_ms": float("inf")}
+    timed = {"embedding_ms": lambda f: emb.evaluate(x), "embedding_surface_normals_ms": lambda f: alone.evaluate(xs),
+             "render_lbs_kernel_ms": lambda f: lbs.launch()}
+    row.update({key: float("inf") for key in timed})
     for _ in range(15):
-        for key, fn in (("embedding_ms", lambda f: emb.evaluate(x)), ("embedding_surface_normals_ms", lambda f: alone.evaluate(xs)),
-                        ("render_lbs_kernel_ms", lambda f: lbs.launch())):
-            best[key] = min(best[key], _best_ms(fn, 100, 1, dev))
-    row.update(best)
+        for key, fn in timed.items():
+            row[key] = min(row[key], _best_ms(fn, 100, 1, dev))
     row["render_lbs_vertices"] = int(rig.vertex_count)
     row["embedding_over_lbs"] = row["embedding_ms"] / row["render_lbs_kernel_ms"]
     return row
