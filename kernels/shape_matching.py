@@ -219,7 +219,7 @@ def blend_and_constrain_kernel(
     # outputs
     x: wp.array(dtype=wp.vec3),
     moment_matrix: wp.array(dtype=wp.mat33),
-    correction: wp.array2d(dtype=wp.float32),
+    correction: wp.array(dtype=wp.float32),
 ):
     i = wp.tid()
     # the oriented-particle moment of particle i for the next fit: mu_i R(q_i), q_i = region i's rotation
@@ -240,16 +240,19 @@ def blend_and_constrain_kernel(
     for c in range(joint_offsets[i], joint_offsets[i + 1]):
         xi = project_joint_lower_bound(xi, joint_centres[joint_ids[c]], joint_rest_distance[c])
     x[i] = xi
-    # the particle's squared position correction in this iteration [m^2] (a plain store: the
-    # iteration's residual, the largest, is reduced only when read; an atomic max of the length
-    # per particle made this kernel 9-13 % slower on one CPU core, 1.5 ms of the arm's step, and
-    # all particles contend for one address on a GPU)
-    correction[iteration, i] = wp.length_sq(xi - x_before)
+    # the particle's squared position correction in this iteration [m^2], row ``iteration`` of
+    # the flat ``[iterations x particles]`` buffer (a plain store: the iteration's residual, the
+    # largest, is reduced only when read; all particles would contend for one address with an
+    # atomic maximum on a GPU). The buffer is one-dimensional because one two-dimensional array
+    # argument costs every thread of a CPU kernel Warp's contiguous fast path: 85 more
+    # instructions per particle here, 8 % of the kernel (callgrind, the arm)
+    correction[iteration * x.shape[0] + i] = wp.length_sq(xi - x_before)
 
 
 @wp.kernel
 def largest_correction_kernel(
-    correction: wp.array2d(dtype=wp.float32),
+    correction: wp.array(dtype=wp.float32),
+    count: int,
     # output
     residual: wp.array(dtype=wp.float32),
 ):
@@ -257,8 +260,8 @@ def largest_correction_kernel(
     their squares (one thread per iteration)."""
     k = wp.tid()
     r = float(0.0)
-    for i in range(correction.shape[1]):
-        r = wp.max(r, correction[k, i])
+    for i in range(k * count, (k + 1) * count):
+        r = wp.max(r, correction[i])
     residual[k] = wp.sqrt(r)
 
 

@@ -144,8 +144,8 @@ class SkinSolver:
             self.joint_centres = wp.zeros(model.joint_count, dtype=wp.vec3)
             self.moment_matrix = wp.zeros(n, dtype=wp.mat33)
             # every particle's squared position correction in each elasticity iteration of the
-            # last step [m^2]; :attr:`residuals` reduces them when read
-            self.corrections = wp.zeros((self.params.iterations, n), dtype=wp.float32)
+            # last step [m^2], flat (iteration-major); :attr:`residuals` reduces them when read
+            self.corrections = wp.zeros(self.params.iterations * n, dtype=wp.float32)
             self._residuals = wp.zeros(self.params.iterations, dtype=wp.float32)
             # the tether: radius per vertex [m], and a running count of the particles it clamped
             p = self.params
@@ -200,7 +200,7 @@ class SkinSolver:
         """The largest position correction [m] of each elasticity iteration of the last step,
         ``[iterations]`` (reduced from :attr:`corrections` by one launch when read; never read
         inside a step)."""
-        wp.launch(k_sm.largest_correction_kernel, dim=self._iterations, inputs=[self.corrections],
+        wp.launch(k_sm.largest_correction_kernel, dim=self._iterations, inputs=[self.corrections, self.model.particle_count],
                   outputs=[self._residuals], device=self.device)
         return self._residuals
 
