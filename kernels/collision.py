@@ -1076,6 +1076,25 @@ def triangles_intersect(x: wp.array(dtype=wp.vec3), a0: int, a1: int, a2: int, b
 
 
 @wp.func
+def could_intersect(pa0: wp.vec3, pa1: wp.vec3, pa2: wp.vec3, pb0: wp.vec3, pb1: wp.vec3, pb2: wp.vec3, tol: float,
+                    pad: float) -> bool:
+    """A cheap rejection before :func:`triangle_points_intersect` with tolerance ``tol``: two
+    triangles that intersect so have boxes that overlap once each is widened by 4 ``tol`` times
+    its own extent (the widened triangle reaches at most 3 ``tol`` of its extent past its box,
+    the widened segment ``tol``) and by ``pad`` against rounding. Most pairs the fail-safe
+    tests are neighbours on the surface whose boxes in the tree (over every position a round
+    can give them) overlap and whose boxes where they are now do not."""
+    lo_a = wp.min(wp.min(pa0, pa1), pa2)
+    hi_a = wp.max(wp.max(pa0, pa1), pa2)
+    lo_b = wp.min(wp.min(pb0, pb1), pb2)
+    hi_b = wp.max(wp.max(pb0, pb1), pb2)
+    w = 4.0 * wp.abs(tol)
+    ga = (hi_a - lo_a) * w + wp.vec3(pad)
+    gb = (hi_b - lo_b) * w + wp.vec3(pad)
+    return boxes_overlap(lo_a - ga, hi_a + ga, lo_b - gb, hi_b + gb)
+
+
+@wp.func
 def new_intersection(
     a0: int,
     a1: int,
@@ -1086,6 +1105,7 @@ def new_intersection(
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tol: float,
+    pad: float,
     rest: wp.array(dtype=wp.vec3),
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
@@ -1096,9 +1116,18 @@ def new_intersection(
     """Two triangles with no shared vertex that intersect at ``x`` (widened by ``tol``), did not
     at ``x_old`` (narrowed by it), and whose LBS (``rest`` skinned by ``skin_matrices``;
     widened by ``tol``) does not intersect: mark their six vertices in ``revert`` and add the
-    pair to ``count``."""
-    if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,
-                                                                                       -tol):
+    pair to ``count``. Pairs whose boxes at ``x`` are apart (:func:`could_intersect`, ``pad``)
+    are rejected before the exact test."""
+    pa0 = x[a0]
+    pa1 = x[a1]
+    pa2 = x[a2]
+    pb0 = x[b0]
+    pb1 = x[b1]
+    pb2 = x[b2]
+    if not could_intersect(pa0, pa1, pa2, pb0, pb1, pb2, tol, pad):
+        return
+    if triangle_points_intersect(pa0, pa1, pa2, pb0, pb1, pb2, tol) and not triangles_intersect(
+            x_old, a0, a1, a2, b0, b1, b2, -tol):
         # where the animation itself drives the two through each other (their LBS
         # intersects), putting them back would follow it in: that is the contacts' part
         la0 = lbs_point(rest[a0], joint_indices, joint_weights, a0, skin_matrices)
@@ -1190,20 +1219,21 @@ def new_intersections_kernel(
                 continue  # both moved: thread u tests the pair (each pair once)
         if a0 == b0 or a0 == b1 or a0 == b2 or a1 == b0 or a1 == b1 or a1 == b2 or a2 == b0 or a2 == b1 or a2 == b2:
             continue
-        new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
+        new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, pad, rest, joint_indices, joint_weights, skin_matrices,
                          revert, count)
 
 
-@wp.kernel
-def listed_new_intersections_kernel(
+@wp.func
+def listed_pair(
+    s: int,
     tri_pairs: wp.array2d(dtype=wp.int32),
-    pair_count: wp.array(dtype=wp.int32),
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
     tol: float,
+    pad: float,
     moved: wp.array(dtype=wp.int32),
     only_moved: int,
     escaped: wp.array(dtype=wp.int32),
@@ -1211,17 +1241,11 @@ def listed_new_intersections_kernel(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
-    # outputs
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """The first round of the fail-safe from the detection's pair list (one thread per slot):
-    the pairs of two triangles that did not escape, whose boxes overlap (with ``only_moved``:
-    and one of which moved), tested by :func:`new_intersection`; the escaped triangles' pairs
-    are :func:`new_intersections_kernel`'s (``only_escaped``)."""
-    s = wp.tid()
-    if s >= pair_count[0]:
-        return  # (a list that did not fit has every triangle escaped)
+    """Pair ``s`` of the detection's list, tested by :func:`new_intersection` unless a triangle
+    escaped, their boxes are apart or (``only_moved``) neither moved."""
     t = tri_pairs[s, 0]
     u = tri_pairs[s, 1]
     if escaped[t] != 0 or escaped[u] != 0:
@@ -1238,8 +1262,42 @@ def listed_new_intersections_kernel(
         if not (moved[a0] != 0 or moved[a1] != 0 or moved[a2] != 0 or moved[b0] != 0 or moved[b1] != 0
                 or moved[b2] != 0):
             return
-    new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
+    new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, pad, rest, joint_indices, joint_weights, skin_matrices,
                      revert, count)
+
+
+@wp.kernel
+def listed_new_intersections_kernel(
+    tri_pairs: wp.array2d(dtype=wp.int32),
+    pair_count: wp.array(dtype=wp.int32),
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    tol: float,
+    pad: float,
+    moved: wp.array(dtype=wp.int32),
+    only_moved: int,
+    escaped: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    chunk: int,
+    # outputs
+    revert: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """The first round of the fail-safe from the detection's pair list, ``chunk`` slots per
+    thread as the contact kernels (:func:`contact_range`; a list that did not fit is not read:
+    every triangle escaped): the pairs of two triangles that did not escape, whose boxes overlap
+    (with ``only_moved``: and one of which moved), tested by :func:`new_intersection`; the
+    escaped triangles' pairs are :func:`new_intersections_kernel`'s (``only_escaped``)."""
+    first, last = contact_range(wp.tid(), chunk, pair_count[0], tri_pairs.shape[0])
+    for s in range(first, last):
+        listed_pair(s, tri_pairs, x_old, x, tri_indices, lowers, uppers, tol, pad, moved, only_moved, escaped, rest,
+                    joint_indices, joint_weights, skin_matrices, revert, count)
 
 
 @wp.kernel

@@ -245,8 +245,9 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
 #: twice that of each other (at most 0.5: the tree returns the pairs within one radius).
 ESCAPE_REACH = 0.25
 
-#: Contact slots per thread of the contact kernels on the CPU, whose threads run one after
-#: another (see :func:`warpskin.kernels.collision.contact_range`); one on a GPU.
+#: Contact slots per thread of the contact kernels and of the fail-safe's pass over the pair
+#: list on the CPU, whose threads run one after another (see
+#: :func:`warpskin.kernels.collision.contact_range`); one on a GPU.
 CPU_CONTACT_CHUNK = 64
 
 
@@ -416,9 +417,9 @@ class SelfCollision:
             only_moved = int(r > 0 or min_move is not None)
             only_escaped = int(listed and r == 0)
             if only_escaped:
-                wp.launch(k.listed_new_intersections_kernel, dim=contacts.pair_capacity,
-                          inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
-                                  self.moved, only_moved, self.escaped, *lbs],
+                wp.launch(k.listed_new_intersections_kernel, dim=-(-contacts.pair_capacity // self.chunk),
+                          inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4, pad,
+                                  self.moved, only_moved, self.escaped, *lbs, self.chunk],
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
             wp.launch(k.new_intersections_kernel, dim=count,
