@@ -569,6 +569,15 @@ def contact_range(thread: int, chunk: int, count: int, capacity: int):
     return first, wp.max(first, last)
 
 
+@wp.func
+def triangle_range(thread: int, chunk: int, count: int):
+    """The items ``[first, last)`` of ``count`` one thread of a per-triangle fail-safe kernel
+    takes: ``chunk`` in a row (a thread per item on a GPU, per ``chunk`` on the CPU, where most
+    of a round's threads have nothing to do and their cost is the launch's)."""
+    first = thread * chunk
+    return first, wp.max(first, wp.min(count, first + chunk))
+
+
 # --------------------------------------------------------------------------------------------
 # Point-triangle projection, C = n . (p - a) - h >= 0, n the unit normal of abc. With the
 # normal held fixed (Mueller et al. 2007): grad_p = n, grad_a = -b0 n, grad_b = -b1 n,
@@ -968,26 +977,28 @@ def fail_safe_bounds_kernel(
     tri_indices: wp.array2d(dtype=wp.int32),
     carry_offset: int,
     pad: float,
+    chunk: int,
     # outputs
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
 ):
     """Boxes of the triangles over every position the fail-safe can give a vertex: the step's,
     the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
-    by ``pad``; one refit serves all rounds."""
-    t = wp.tid()
-    lo = wp.vec3(1.0e30)
-    hi = wp.vec3(-1.0e30)
-    for k in range(3):
-        i = tri_indices[t, k]
-        lo = wp.min(lo, wp.min(x_old[i], x[i]))
-        hi = wp.max(hi, wp.max(x_old[i], x[i]))
-        if carry_offset > 0:
-            c = x_old[i] + (x[i + carry_offset] - x_old[i + carry_offset])
-            lo = wp.min(lo, c)
-            hi = wp.max(hi, c)
-    lowers[t] = lo - wp.vec3(pad)
-    uppers[t] = hi + wp.vec3(pad)
+    by ``pad``; one refit serves all rounds. ``chunk`` triangles per thread (:func:`triangle_range`)."""
+    first, last = triangle_range(wp.tid(), chunk, tri_indices.shape[0])
+    for t in range(first, last):
+        lo = wp.vec3(1.0e30)
+        hi = wp.vec3(-1.0e30)
+        for k in range(3):
+            i = tri_indices[t, k]
+            lo = wp.min(lo, wp.min(x_old[i], x[i]))
+            hi = wp.max(hi, wp.max(x_old[i], x[i]))
+            if carry_offset > 0:
+                c = x_old[i] + (x[i + carry_offset] - x_old[i + carry_offset])
+                lo = wp.min(lo, c)
+                hi = wp.max(hi, c)
+        lowers[t] = lo - wp.vec3(pad)
+        uppers[t] = hi + wp.vec3(pad)
 
 
 @wp.kernel
@@ -1000,6 +1011,7 @@ def escaped_kernel(
     margin: float,
     pair_count: wp.array(dtype=wp.int32),
     pair_capacity: int,
+    chunk: int,
     # outputs
     escaped: wp.array(dtype=wp.int32),
 ):
@@ -1012,12 +1024,15 @@ def escaped_kernel(
     the triangles that moved, over all their positions. Judged on the box over every position
     the fail-safe can give a vertex, the step's start included, 605 of the arm's 5832 triangles
     escaped in the pass after the volume loop in its unflexing frames, 28 now.) Where that list
-    did not fit (``pair_count`` above ``pair_capacity``), every triangle escapes."""
-    t = wp.tid()
+    did not fit (``pair_count`` above ``pair_capacity``), every triangle escapes. ``chunk``
+    triangles per thread (:func:`triangle_range`)."""
     m = wp.vec3(margin)
-    lo, hi = triangle_box(x, tri_indices, t, pad)
-    inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
-    escaped[t] = wp.where(inside and pair_count[0] <= pair_capacity, 0, 1)
+    fits = pair_count[0] <= pair_capacity
+    first, last = triangle_range(wp.tid(), chunk, tri_indices.shape[0])
+    for t in range(first, last):
+        lo, hi = triangle_box(x, tri_indices, t, pad)
+        inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
+        escaped[t] = wp.where(inside and fits, 0, 1)
 
 
 @wp.func
@@ -1076,25 +1091,6 @@ def triangles_intersect(x: wp.array(dtype=wp.vec3), a0: int, a1: int, a2: int, b
 
 
 @wp.func
-def could_intersect(pa0: wp.vec3, pa1: wp.vec3, pa2: wp.vec3, pb0: wp.vec3, pb1: wp.vec3, pb2: wp.vec3, tol: float,
-                    pad: float) -> bool:
-    """A cheap rejection before :func:`triangle_points_intersect` with tolerance ``tol``: two
-    triangles that intersect so have boxes that overlap once each is widened by 4 ``tol`` times
-    its own extent (the widened triangle reaches at most 3 ``tol`` of its extent past its box,
-    the widened segment ``tol``) and by ``pad`` against rounding. Most pairs the fail-safe
-    tests are neighbours on the surface whose boxes in the tree (over every position a round
-    can give them) overlap and whose boxes where they are now do not."""
-    lo_a = wp.min(wp.min(pa0, pa1), pa2)
-    hi_a = wp.max(wp.max(pa0, pa1), pa2)
-    lo_b = wp.min(wp.min(pb0, pb1), pb2)
-    hi_b = wp.max(wp.max(pb0, pb1), pb2)
-    w = 4.0 * wp.abs(tol)
-    ga = (hi_a - lo_a) * w + wp.vec3(pad)
-    gb = (hi_b - lo_b) * w + wp.vec3(pad)
-    return boxes_overlap(lo_a - ga, hi_a + ga, lo_b - gb, hi_b + gb)
-
-
-@wp.func
 def new_intersection(
     a0: int,
     a1: int,
@@ -1105,7 +1101,6 @@ def new_intersection(
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tol: float,
-    pad: float,
     rest: wp.array(dtype=wp.vec3),
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
@@ -1116,18 +1111,9 @@ def new_intersection(
     """Two triangles with no shared vertex that intersect at ``x`` (widened by ``tol``), did not
     at ``x_old`` (narrowed by it), and whose LBS (``rest`` skinned by ``skin_matrices``;
     widened by ``tol``) does not intersect: mark their six vertices in ``revert`` and add the
-    pair to ``count``. Pairs whose boxes at ``x`` are apart (:func:`could_intersect`, ``pad``)
-    are rejected before the exact test."""
-    pa0 = x[a0]
-    pa1 = x[a1]
-    pa2 = x[a2]
-    pb0 = x[b0]
-    pb1 = x[b1]
-    pb2 = x[b2]
-    if not could_intersect(pa0, pa1, pa2, pb0, pb1, pb2, tol, pad):
-        return
-    if triangle_points_intersect(pa0, pa1, pa2, pb0, pb1, pb2, tol) and not triangles_intersect(
-            x_old, a0, a1, a2, b0, b1, b2, -tol):
+    pair to ``count``."""
+    if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,
+                                                                                       -tol):
         # where the animation itself drives the two through each other (their LBS
         # intersects), putting them back would follow it in: that is the contacts' part
         la0 = lbs_point(rest[a0], joint_indices, joint_weights, a0, skin_matrices)
@@ -1147,8 +1133,9 @@ def new_intersection(
         wp.atomic_add(count, 0, 1)
 
 
-@wp.kernel
-def new_intersections_kernel(
+@wp.func
+def new_intersections_from(
+    t: int,
     bvh: wp.uint64,
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
@@ -1163,27 +1150,10 @@ def new_intersections_kernel(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
-    reverted: wp.array(dtype=wp.int32),
-    after_round: int,
-    # outputs
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """One thread per triangle: the pairs with another triangle (no shared vertex) whose box in
-    the tree (over every position the fail-safe can give it) overlaps the box of where this one
-    is now (padded by ``pad``), tested by :func:`new_intersection`, each pair once. With ``only_moved``
-    (the rounds after the first) only triangles with a vertex the last round ``moved`` look, at
-    every other triangle (a pair of two such, from the lower-numbered one): no other pair can
-    have changed. With ``only_escaped`` (the first round, where the detection's pair list has
-    the pairs of every two triangles that did not escape their detection box) only the
-    ``escaped`` triangles look, at the others and at the higher-numbered escaped ones; with
-    ``only_moved`` as well, a pair is tested when either triangle moved. With ``after_round``
-    >= 0 nothing runs unless :func:`revert_kernel` of that round put a vertex back
-    (``reverted``): a round after one that found nothing has nothing to test."""
-    if after_round >= 0:
-        if reverted[after_round] == 0:
-            return
-    t = wp.tid()
+    """Triangle ``t``'s part of :func:`new_intersections_kernel`."""
     if only_escaped != 0 and escaped[t] == 0:
         return
     a0 = tri_indices[t, 0]
@@ -1209,7 +1179,7 @@ def new_intersections_kernel(
         moved_u = moved[b0] != 0 or moved[b1] != 0 or moved[b2] != 0
         if only_escaped != 0:
             if escaped[u] != 0 and u < t:
-                continue  # thread u tests it
+                continue  # triangle u tests it
             if only_moved != 0 and not (moved_t or moved_u):
                 continue
         else:
@@ -1219,8 +1189,51 @@ def new_intersections_kernel(
                 continue  # both moved: thread u tests the pair (each pair once)
         if a0 == b0 or a0 == b1 or a0 == b2 or a1 == b0 or a1 == b1 or a1 == b2 or a2 == b0 or a2 == b1 or a2 == b2:
             continue
-        new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, pad, rest, joint_indices, joint_weights, skin_matrices,
+        new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
                          revert, count)
+
+
+@wp.kernel
+def new_intersections_kernel(
+    bvh: wp.uint64,
+    x_old: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    pad: float,
+    tol: float,
+    moved: wp.array(dtype=wp.int32),
+    only_moved: int,
+    escaped: wp.array(dtype=wp.int32),
+    only_escaped: int,
+    rest: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    reverted: wp.array(dtype=wp.int32),
+    after_round: int,
+    chunk: int,
+    # outputs
+    revert: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    """``chunk`` triangles per thread (one on a GPU; see :func:`triangle_range`): the pairs with another triangle (no shared vertex) whose box in
+    the tree (over every position the fail-safe can give it) overlaps the box of where this one
+    is now (padded by ``pad``), tested by :func:`new_intersection`, each pair once. With ``only_moved``
+    (the rounds after the first) only triangles with a vertex the last round ``moved`` look, at
+    every other triangle (a pair of two such, from the lower-numbered one): no other pair can
+    have changed. With ``only_escaped`` (the first round, where the detection's pair list has
+    the pairs of every two triangles that did not escape their detection box) only the
+    ``escaped`` triangles look, at the others and at the higher-numbered escaped ones; with
+    ``only_moved`` as well, a pair is tested when either triangle moved. With ``after_round``
+    >= 0 nothing runs unless :func:`revert_kernel` of that round put a vertex back
+    (``reverted``): a round after one that found nothing has nothing to test."""
+    if after_round >= 0:
+        if reverted[after_round] == 0:
+            return
+    first, last = triangle_range(wp.tid(), chunk, tri_indices.shape[0])
+    for t in range(first, last):
+        new_intersections_from(t, bvh, x_old, x, tri_indices, pad, tol, moved, only_moved, escaped, only_escaped, rest,
+                               joint_indices, joint_weights, skin_matrices, revert, count)
 
 
 @wp.func
@@ -1233,7 +1246,6 @@ def listed_pair(
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
     tol: float,
-    pad: float,
     moved: wp.array(dtype=wp.int32),
     only_moved: int,
     escaped: wp.array(dtype=wp.int32),
@@ -1262,7 +1274,7 @@ def listed_pair(
         if not (moved[a0] != 0 or moved[a1] != 0 or moved[a2] != 0 or moved[b0] != 0 or moved[b1] != 0
                 or moved[b2] != 0):
             return
-    new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, pad, rest, joint_indices, joint_weights, skin_matrices,
+    new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
                      revert, count)
 
 
@@ -1276,7 +1288,6 @@ def listed_new_intersections_kernel(
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
     tol: float,
-    pad: float,
     moved: wp.array(dtype=wp.int32),
     only_moved: int,
     escaped: wp.array(dtype=wp.int32),
@@ -1296,7 +1307,7 @@ def listed_new_intersections_kernel(
     escaped triangles' pairs are :func:`new_intersections_kernel`'s (``only_escaped``)."""
     first, last = contact_range(wp.tid(), chunk, pair_count[0], tri_pairs.shape[0])
     for s in range(first, last):
-        listed_pair(s, tri_pairs, x_old, x, tri_indices, lowers, uppers, tol, pad, moved, only_moved, escaped, rest,
+        listed_pair(s, tri_pairs, x_old, x, tri_indices, lowers, uppers, tol, moved, only_moved, escaped, rest,
                     joint_indices, joint_weights, skin_matrices, revert, count)
 
 

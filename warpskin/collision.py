@@ -245,9 +245,9 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
 #: twice that of each other (at most 0.5: the tree returns the pairs within one radius).
 ESCAPE_REACH = 0.25
 
-#: Contact slots per thread of the contact kernels and of the fail-safe's pass over the pair
-#: list on the CPU, whose threads run one after another (see
-#: :func:`warpskin.kernels.collision.contact_range`); one on a GPU.
+#: Contact slots per thread of the contact kernels, and slots of the pair list or triangles per
+#: thread of the fail-safe's kernels, on the CPU, whose threads run one after another (see
+#: :func:`warpskin.kernels.collision.contact_range`, ``triangle_range``); one on a GPU.
 CPU_CONTACT_CHUNK = 64
 
 
@@ -402,13 +402,14 @@ class SelfCollision:
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
         pad = 1.0e-3 * c.thickness
-        wp.launch(k.fail_safe_bounds_kernel, dim=count, inputs=[x_old, x, tris, carry_offset, pad],
+        tri_threads = -(-count // self.chunk)
+        wp.launch(k.fail_safe_bounds_kernel, dim=tri_threads, inputs=[x_old, x, tris, carry_offset, pad, self.chunk],
                   outputs=[lowers, uppers], device=dev)
         bvh.refit()
         if listed:
-            wp.launch(k.escaped_kernel, dim=count,
+            wp.launch(k.escaped_kernel, dim=tri_threads,
                       inputs=[x, tris, pad, self.lowers, self.uppers, c.radius - self._reach, contacts.pair_count,
-                              contacts.pair_capacity], outputs=[self.escaped], device=dev)
+                              contacts.pair_capacity, self.chunk], outputs=[self.escaped], device=dev)
         if min_move is not None:
             wp.launch(k.moved_farther_kernel, dim=m.vertex_count, inputs=[x_old, x, float(min_move)], outputs=[self.moved],
                       device=dev)
@@ -418,13 +419,13 @@ class SelfCollision:
             only_escaped = int(listed and r == 0)
             if only_escaped:
                 wp.launch(k.listed_new_intersections_kernel, dim=-(-contacts.pair_capacity // self.chunk),
-                          inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4, pad,
+                          inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
                                   self.moved, only_moved, self.escaped, *lbs, self.chunk],
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
-            wp.launch(k.new_intersections_kernel, dim=count,
+            wp.launch(k.new_intersections_kernel, dim=tri_threads,
                       inputs=[bvh.id, x_old, x, tris, pad, 1.0e-4, self.moved, only_moved, self.escaped,
-                              only_escaped, *lbs, self.reverted, r - 1],
+                              only_escaped, *lbs, self.reverted, r - 1, self.chunk],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
                       outputs=[self.revert, self.carried, self.moved, x, self.reverted], device=dev)
