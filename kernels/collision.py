@@ -1216,9 +1216,10 @@ def new_intersections_kernel(
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """``chunk`` triangles per thread (one on a GPU; see :func:`triangle_range`): the pairs with another triangle (no shared vertex) whose box in
-    the tree (over every position the fail-safe can give it) overlaps the box of where this one
-    is now (padded by ``pad``), tested by :func:`new_intersection`, each pair once. With ``only_moved``
+    """``chunk`` triangles per thread (one on a GPU; see :func:`triangle_range`), each: the
+    pairs with another triangle (no shared vertex) whose box in the tree (over every position
+    the fail-safe can give it) overlaps the box of where this one is now (padded by ``pad``),
+    tested by :func:`new_intersection`, each pair once. With ``only_moved``
     (the rounds after the first) only triangles with a vertex the last round ``moved`` look, at
     every other triangle (a pair of two such, from the lower-numbered one): no other pair can
     have changed. With ``only_escaped`` (the first round, where the detection's pair list has
