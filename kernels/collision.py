@@ -558,24 +558,16 @@ def detect_kernel(
 
 @wp.func
 def contact_range(thread: int, chunk: int, count: int, capacity: int):
-    """The contacts ``[first, last)`` one thread of a contact kernel takes: ``chunk`` in a row
-    from ``thread x chunk``, of the ``count`` detected (at most the buffers' ``capacity``).
-    With ``chunk`` 1 (CUDA) a thread per contact slot; on the CPU, where the threads run one
-    after another, a thread per ``chunk`` slots (the same contacts in the same order) saves
-    the per-thread cost of the empty slots, most of the buffer (the arm: 85 point-triangle
-    contacts in 4096 slots, 80 launches a step)."""
+    """The items ``[first, last)`` one thread of a chunked kernel takes: ``chunk`` in a row from
+    ``thread x chunk``, of the ``count`` there are (at most the buffer's ``capacity``; a
+    per-triangle kernel passes the triangle count as both). With ``chunk`` 1 (CUDA) a thread per
+    item; on the CPU, where the threads run one after another, a thread per ``chunk`` items
+    (the same items in the same order) saves the per-thread cost of the empty slots, most of the
+    buffer (the arm: 85 point-triangle contacts in 4096 slots, 80 launches a step), or of the
+    triangles a fail-safe round skips (most of them)."""
     first = thread * chunk
     last = wp.min(wp.min(count, capacity), first + chunk)
     return first, wp.max(first, last)
-
-
-@wp.func
-def triangle_range(thread: int, chunk: int, count: int):
-    """The items ``[first, last)`` of ``count`` one thread of a per-triangle fail-safe kernel
-    takes: ``chunk`` in a row (a thread per item on a GPU, per ``chunk`` on the CPU, where most
-    of a round's threads have nothing to do and their cost is the launch's)."""
-    first = thread * chunk
-    return first, wp.max(first, wp.min(count, first + chunk))
 
 
 # --------------------------------------------------------------------------------------------
@@ -984,8 +976,8 @@ def fail_safe_bounds_kernel(
 ):
     """Boxes of the triangles over every position the fail-safe can give a vertex: the step's,
     the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
-    by ``pad``; one refit serves all rounds. ``chunk`` triangles per thread (:func:`triangle_range`)."""
-    first, last = triangle_range(wp.tid(), chunk, tri_indices.shape[0])
+    by ``pad``; one refit serves all rounds. ``chunk`` triangles per thread (:func:`contact_range`)."""
+    first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
         lo = wp.vec3(1.0e30)
         hi = wp.vec3(-1.0e30)
@@ -1025,10 +1017,10 @@ def escaped_kernel(
     the fail-safe can give a vertex, the step's start included, 605 of the arm's 5832 triangles
     escaped in the pass after the volume loop in its unflexing frames, 28 now.) Where that list
     did not fit (``pair_count`` above ``pair_capacity``), every triangle escapes. ``chunk``
-    triangles per thread (:func:`triangle_range`)."""
+    triangles per thread (:func:`contact_range`)."""
     m = wp.vec3(margin)
     fits = pair_count[0] <= pair_capacity
-    first, last = triangle_range(wp.tid(), chunk, tri_indices.shape[0])
+    first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
         lo, hi = triangle_box(x, tri_indices, t, pad)
         inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
@@ -1216,7 +1208,7 @@ def new_intersections_kernel(
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """``chunk`` triangles per thread (one on a GPU; see :func:`triangle_range`), each: the
+    """``chunk`` triangles per thread (one on a GPU; see :func:`contact_range`), each: the
     pairs with another triangle (no shared vertex) whose box in the tree (over every position
     the fail-safe can give it) overlaps the box of where this one is now (padded by ``pad``),
     tested by :func:`new_intersection`, each pair once. With ``only_moved``
@@ -1231,7 +1223,7 @@ def new_intersections_kernel(
     if after_round >= 0:
         if reverted[after_round] == 0:
             return
-    first, last = triangle_range(wp.tid(), chunk, tri_indices.shape[0])
+    first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
         new_intersections_from(t, bvh, x_old, x, tri_indices, pad, tol, moved, only_moved, escaped, only_escaped, rest,
                                joint_indices, joint_weights, skin_matrices, revert, count)

@@ -247,7 +247,7 @@ ESCAPE_REACH = 0.25
 
 #: Contact slots per thread of the contact kernels, and slots of the pair list or triangles per
 #: thread of the fail-safe's kernels, on the CPU, whose threads run one after another (see
-#: :func:`warpskin.kernels.collision.contact_range`, ``triangle_range``); one on a GPU.
+#: :func:`warpskin.kernels.collision.contact_range`); one on a GPU.
 CPU_CONTACT_CHUNK = 64
 
 
@@ -345,16 +345,16 @@ class SelfCollision:
         for _ in range(self.data.passes):
             self._project_pass(x, inv_mass, contacts)
 
-    def _contact_threads(self, contacts) -> int:
-        """Threads of a contact kernel: one per :attr:`chunk` slots of the buffers."""
-        return -(-contacts.capacity // self.chunk)
+    def _threads(self, items: int) -> int:
+        """Threads of a chunked kernel over ``items`` slots or triangles: one per :attr:`chunk`."""
+        return -(-items // self.chunk)
 
     def _project_pass(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
         dev = self.device
         c = self.data
         m = self.model
         contacts.active.zero_()
-        dim = self._contact_threads(contacts)
+        dim = self._threads(contacts.capacity)
         wp.launch(k.project_point_triangle_kernel, dim=dim,
                   inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
                           c.thickness, self.chunk],
@@ -402,7 +402,7 @@ class SelfCollision:
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
         pad = 1.0e-3 * c.thickness
-        tri_threads = -(-count // self.chunk)
+        tri_threads = self._threads(count)
         wp.launch(k.fail_safe_bounds_kernel, dim=tri_threads, inputs=[x_old, x, tris, carry_offset, pad, self.chunk],
                   outputs=[lowers, uppers], device=dev)
         bvh.refit()
@@ -418,7 +418,7 @@ class SelfCollision:
             only_moved = int(r > 0 or min_move is not None)
             only_escaped = int(listed and r == 0)
             if only_escaped:
-                wp.launch(k.listed_new_intersections_kernel, dim=-(-contacts.pair_capacity // self.chunk),
+                wp.launch(k.listed_new_intersections_kernel, dim=self._threads(contacts.pair_capacity),
                           inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
                                   self.moved, only_moved, self.escaped, *lbs, self.chunk],
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
@@ -444,7 +444,7 @@ class SelfCollision:
         dev = self.device
         c = self.data
         m = self.model
-        wp.launch(k.friction_restitution_kernel, dim=self._contact_threads(contacts),
+        wp.launch(k.friction_restitution_kernel, dim=self._threads(contacts.capacity),
                   inputs=[x, v, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
                           c.friction, c.restitution, self.chunk],
                   outputs=[self.delta, self.delta_count], device=dev)
