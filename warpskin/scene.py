@@ -59,6 +59,7 @@ FILE_RIG_PREROLL = 0.5
 GENERATORS = {
     "arm": "warpskin.scenes.arm:make_arm",
     "popping_arm": "warpskin.scenes.popping_arm:make_popping_arm",
+    "mannequin": "warpskin.scenes.mannequin:make_mannequin",
 }
 
 _SCHEMA: dict[str, set[str]] = {

@@ -123,6 +123,7 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
     t0 = time.perf_counter()
     v, f = _weld(v, f, 1e-6 * h)
     f = _oriented_outward(v, f)
+    v, f = _drop_cavities(v, f)
     v = _taubin(v, f, smooth_iterations)
     from .refine import flip_flat_edges
 
@@ -222,6 +223,29 @@ def _weld(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndar
     remap = np.full(first.shape[0], -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
     return v[first][used], remap[f]
+
+
+def _drop_cavities(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop the connected components that enclose no positive volume once the surface faces
+    outward: the iso-surface of a pocket inside the character (between a fist's fingers and
+    its palm, say) is a cavity, wound inward, which a simulation cage must not hold."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = v.shape[0]
+    rows, cols = np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]])
+    count, label = connected_components(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)), directed=False)
+    if count == 1:
+        return v, f
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    centre = v.mean(axis=0)
+    vol = np.bincount(label[f[:, 0]], weights=np.einsum("ij,ij->i", p0 - centre, np.cross(p1 - centre, p2 - centre)) / 6.0,
+                      minlength=count)
+    keep_tri = vol[label[f[:, 0]]] > 0.0
+    used = np.unique(f[keep_tri])
+    remap = np.full(n, -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    return v[used], remap[f[keep_tri]]
 
 
 def _oriented_outward(v: np.ndarray, f: np.ndarray) -> np.ndarray:

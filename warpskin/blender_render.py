@@ -1,0 +1,163 @@
+"""Blender side of ``warpskin render``: runs inside a Python that has Blender's ``bpy`` module
+(``.venv-bpy``), never imported by warpskin itself.
+
+Usage (what :func:`warpskin.render.render_bake` runs)::
+
+    python blender_render.py JOB.json
+
+``JOB.json``::
+
+    {"bake": "walk.usdc",
+     "views": [{"frame": 12, "out": "walk_12.png", "captions": ["warpskin ...", "LBS ..."],
+                "focus": ["/mannequin/shoe_l"] or null}],
+     "physical": ["/mannequin/body", ...], "lbs": ["/mannequin/lbs", ...],
+     "resolution": [960, 720], "title": "..."}
+
+Every view renders the bake at one frame twice with the same orthographic camera, once with
+the physical meshes and once with their LBS guides, with Blender's Workbench engine (no GPU
+needed), and writes the two side by side into one PNG, each captioned. The camera frames the
+physical meshes (or those named in ``focus``) from the front, a little from the side; the bake
+is imported with its guides (``import_guide=True``), as a reviewer would.
+"""
+
+import json
+import math
+import sys
+
+import bpy
+import numpy as np
+from mathutils import Vector
+
+
+def _objects_by_prim() -> dict:
+    out = {}
+    for obj in bpy.context.scene.objects:
+        if obj.type != "MESH":
+            continue
+        path = None
+        for mod in obj.modifiers:
+            if mod.type == "MESH_SEQUENCE_CACHE":
+                path = mod.object_path
+        out[path or obj.name] = obj
+    return out
+
+
+def _world_points(obj, graph) -> np.ndarray:
+    ev = obj.evaluated_get(graph)
+    mesh = ev.to_mesh()
+    pts = np.empty(len(mesh.vertices) * 3)
+    mesh.vertices.foreach_get("co", pts)
+    ev.to_mesh_clear()
+    pts = pts.reshape(-1, 3)
+    m = np.array(ev.matrix_world)
+    return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def _camera(scene, lo: np.ndarray, hi: np.ndarray, aspect: float, yaw_deg: float = 20.0):
+    cam_data = bpy.data.cameras.new("review")
+    cam_data.type = "ORTHO"
+    cam = bpy.data.objects.new("review", cam_data)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    centre = 0.5 * (lo + hi)
+    size = hi - lo
+    yaw = math.radians(yaw_deg)
+    # look along +y (the character faces -y after the importer's Y-up to Z-up turn), from the side
+    direction = Vector((-math.sin(yaw), math.cos(yaw), 0.0))  # the camera's -z after its rotation
+    distance = 4.0 * float(np.linalg.norm(size)) + 1.0
+    cam.location = Vector(centre.tolist()) - direction * distance
+    cam.rotation_euler = (math.radians(90.0), 0.0, yaw)
+    width = abs(size[0] * math.cos(yaw)) + abs(size[1] * math.sin(yaw))
+    # the orthographic scale spans the larger side of the picture
+    cam_data.ortho_scale = 1.2 * max(width / min(1.0, aspect), size[2] / min(1.0, 1.0 / aspect)) + 1e-6
+    cam_data.clip_end = 2.0 * distance + float(np.linalg.norm(size))
+    return cam
+
+
+def _caption(cam, text: str, aspect: float, row: int = 0):
+    """A text object fixed in the camera's view, along its lower edge."""
+    curve = bpy.data.curves.new(f"caption{row}", "FONT")
+    curve.body = text
+    obj = bpy.data.objects.new(f"caption{row}", curve)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.parent = cam
+    half_w = 0.5 * cam.data.ortho_scale * min(1.0, aspect)
+    half_h = 0.5 * cam.data.ortho_scale * min(1.0, 1.0 / aspect)
+    curve.size = 0.055 * half_w
+    obj.location = (-0.95 * half_w, -half_h + (0.04 + 0.08 * row) * half_w, -1.0)
+    obj.color = (0.05, 0.05, 0.05, 1.0)
+    return obj
+
+
+def main(job_path: str) -> None:
+    job = json.loads(open(job_path).read())
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.wm.usd_import(filepath=job["bake"], import_guide=True)
+    scene = bpy.context.scene
+    w, h = job.get("resolution", [960, 720])
+    aspect = w / h
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x, scene.render.resolution_y = w, h
+    scene.render.resolution_percentage = 100
+    scene.render.film_transparent = False
+    shading = scene.display.shading
+    shading.light = "STUDIO"
+    shading.color_type = "OBJECT"
+    shading.show_cavity = True
+    shading.show_shadows = False
+    scene.world = scene.world or bpy.data.worlds.new("review")
+    scene.world.color = (1.0, 1.0, 1.0)  # the film's background under Workbench
+    scene.view_settings.view_transform = "Standard"
+    objects = _objects_by_prim()
+    physical = [objects[p] for p in job["physical"] if p in objects]
+    lbs = [objects[p] for p in job["lbs"] if p in objects]
+    missing = [p for p in job["physical"] + job["lbs"] if p not in objects]
+    if missing:
+        raise SystemExit(f"render: prims not imported by Blender: {missing[:4]}")
+    for o in physical:
+        o.color = (0.86, 0.66, 0.54, 1.0)
+    for o in lbs:
+        o.color = (0.50, 0.62, 0.86, 1.0)
+    for view in job["views"]:
+        scene.frame_set(int(view["frame"]))
+        graph = bpy.context.evaluated_depsgraph_get()
+        focus = [objects[p] for p in (view.get("focus") or []) if p in objects] or physical
+        pts = np.concatenate([_world_points(o, graph) for o in focus])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        cam = _camera(scene, lo, hi, aspect)
+        panels = []
+        for k, (shown, hidden) in enumerate(((physical, lbs), (lbs, physical))):
+            for o in shown:
+                o.hide_render = False
+            for o in hidden:
+                o.hide_render = True
+            for o in scene.objects:  # everything else (the cage, the inner layers) stays out
+                if o.type == "MESH" and o not in shown:
+                    o.hide_render = True
+            caps = [_caption(cam, line, aspect, row) for row, line in enumerate(reversed(view["captions"][k]))]
+            path = f"{view['out']}.panel{k}.png"
+            scene.render.filepath = path
+            bpy.ops.render.render(write_still=True)
+            for c in caps:
+                bpy.data.objects.remove(c)
+            img = bpy.data.images.load(path)
+            px = np.empty(w * h * 4, dtype=np.float32)
+            img.pixels.foreach_get(px)
+            panels.append(px.reshape(h, w, 4))
+            bpy.data.images.remove(img)
+            import os
+
+            os.remove(path)
+        both = np.concatenate(panels, axis=1)
+        out = bpy.data.images.new("review", width=2 * w, height=h, alpha=False)
+        out.pixels.foreach_set(both.ravel())
+        out.filepath_raw = view["out"]
+        out.file_format = "PNG"
+        out.save()
+        bpy.data.images.remove(out)
+        bpy.data.objects.remove(cam)
+        print(f"wrote {view['out']}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[-1])

@@ -1,0 +1,265 @@
+"""What the user sees: the quality of every written mesh, frame by frame, against the same mesh
+under linear blend skinning.
+
+A bake is judged on the meshes it writes, in the file's own topology, not on the surface the
+solver simulated (a cage, or a refined skin): :class:`WrittenMesh` measures one written mesh
+per frame against its rest shape and its own LBS, and :class:`QualityLog` keeps the series of
+every written mesh of a run, its worst frames and the range checks.
+
+Measures of one frame (``points`` and ``lbs``, both ``[N, 3]`` in the file's vertex order):
+
+* **strain**: the share of the mesh's edges whose length is more than :data:`STRAIN_LIMIT` x
+  their rest length or less than ``1 / STRAIN_LIMIT`` of it (stretched or crumpled), beside the
+  same share under LBS; and the worst ratio ``max(l / l0, l0 / l)``;
+* **flips**: the share of its triangles whose normal turns by more than 90 degrees against the
+  same triangle under LBS (``n . n_lbs < 0``; triangles degenerate at rest or in either pose do
+  not count);
+* **pairs**: intersecting triangle pairs of the mesh (the exact test of
+  :func:`~warpskin.metrics.self_intersections` on the mesh welded by rest position, so that
+  triangles meeting across a UV seam count as neighbours), beside LBS's;
+* **offset**: the largest distance of a vertex from its LBS position [m].
+
+Seam copies (file vertices at one rest position) are one vertex here: edges and pairs are
+counted once on the welded mesh, and messages name the file's vertex numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["STRAIN_LIMIT", "WrittenMesh", "QualityLimits", "QualityLog", "mesh_measures"]
+
+#: An edge is strained when it is longer than this times its rest length, or shorter than its
+#: inverse.
+STRAIN_LIMIT = 1.5
+
+
+def _weld(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)``: the first file vertex of every distinct rest position and the weld
+    class of every file vertex."""
+    _, first, inverse = np.unique(np.asarray(points, dtype=np.float64), axis=0, return_index=True, return_inverse=True)
+    return first, inverse.ravel()
+
+
+@dataclass
+class WrittenMesh:
+    """One mesh as it is written, with what its measures need, computed once at rest.
+
+    Args:
+        name: The mesh's name in the output (its prim).
+        triangles: ``[T, 3]`` into the written points (the file's topology).
+        rest: ``[N, 3]`` rest positions [m] (the stage-space rest pose the bake starts from).
+        file_ids: ``[N]`` the file's own number of every written vertex (for messages;
+            default ``0..N-1``).
+    """
+
+    name: str
+    triangles: np.ndarray
+    rest: np.ndarray
+    file_ids: np.ndarray | None = None
+    edges: np.ndarray = field(init=False)
+    rest_length: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.rest = np.asarray(self.rest, dtype=np.float64)
+        tri = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
+        n = self.rest.shape[0]
+        self.file_ids = np.arange(n) if self.file_ids is None else np.asarray(self.file_ids, dtype=np.int64)
+        first, inverse = _weld(self.rest)
+        self.first, self.weld = first, inverse
+        wt = inverse[tri]
+        keep = (wt[:, 0] != wt[:, 1]) & (wt[:, 1] != wt[:, 2]) & (wt[:, 0] != wt[:, 2])
+        self.triangles = tri
+        self.welded_triangles = wt[keep]
+        self.measured_triangles = np.nonzero(keep)[0]  # file triangles that are triangles once welded
+        e = np.sort(np.concatenate([wt[keep][:, [0, 1]], wt[keep][:, [1, 2]], wt[keep][:, [2, 0]]]), axis=1)
+        e = np.unique(e, axis=0)
+        length = np.linalg.norm(self.rest[first[e[:, 0]]] - self.rest[first[e[:, 1]]], axis=1)
+        ok = length > 1e-9 * max(float(np.ptp(self.rest, axis=0).max()) if n else 0.0, 1e-30)
+        self.edges, self.rest_length = e[ok], length[ok]
+        a, b, c = (self.rest[tri[self.measured_triangles, k]] for k in range(3))
+        area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        scale = float(np.median(area2)) if area2.size else 0.0
+        self._area_floor = 1e-8 * scale
+        self._tri_ok = self.measured_triangles[area2 > self._area_floor]  # not degenerate at rest
+
+    @property
+    def edge_count(self) -> int:
+        return int(self.edges.shape[0])
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self._tri_ok.shape[0])
+
+    def welded(self, points: np.ndarray) -> np.ndarray:
+        """The welded mesh's points (each class's first file vertex)."""
+        return np.asarray(points, dtype=np.float64)[self.first]
+
+    def strain(self, points: np.ndarray) -> np.ndarray:
+        """``[E]`` ``max(l / l0, l0 / l)`` of every welded edge (inf for an edge of length 0)."""
+        w = self.welded(points)
+        length = np.linalg.norm(w[self.edges[:, 0]] - w[self.edges[:, 1]], axis=1)
+        with np.errstate(divide="ignore"):
+            ratio = length / self.rest_length
+            return np.maximum(ratio, 1.0 / ratio)
+
+    def flipped(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+        """Indices of the file triangles whose normal turns by more than 90 degrees against LBS
+        (among those not degenerate at rest nor in either pose)."""
+        t = self.triangles[self._tri_ok]
+
+        def normals(x):
+            x = np.asarray(x, dtype=np.float64)
+            return np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+
+        n, m = normals(points), normals(lbs)
+        la, lb = np.linalg.norm(n, axis=1), np.linalg.norm(m, axis=1)
+        ok = (la > self._area_floor) & (lb > self._area_floor)
+        return self._tri_ok[ok & (np.einsum("ij,ij->i", n, m) < 0.0)]
+
+    def pairs(self, points: np.ndarray) -> int:
+        """Intersecting triangle pairs of the welded mesh (the exact test)."""
+        from .metrics import self_intersections
+
+        return int(len(self_intersections(self.welded(points), self.welded_triangles)))
+
+
+def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True) -> dict:
+    """The measures of one frame of ``mesh`` (see the module docstring) as a dict: ``strained``,
+    ``strained_lbs`` (shares of edges), ``worst_strain`` (ratio) and ``worst_strain_vertex`` (a
+    file vertex of that edge), ``flipped`` (share of triangles) and ``flipped_vertex``,
+    ``pairs``, ``pairs_lbs`` (``None`` without ``pairs``), ``offset`` [m] and ``offset_vertex``."""
+    points = np.asarray(points, dtype=np.float64)
+    lbs = np.asarray(lbs, dtype=np.float64)
+    s, s_lbs = mesh.strain(points), mesh.strain(lbs)
+    e = max(mesh.edge_count, 1)
+    k = int(np.argmax(s)) if s.size else -1
+    flips = mesh.flipped(points, lbs)
+    d = np.linalg.norm(points - lbs, axis=1)
+    j = int(np.argmax(d)) if d.size else -1
+    return {
+        "strained": float((s > STRAIN_LIMIT).sum() / e),
+        "strained_lbs": float((s_lbs > STRAIN_LIMIT).sum() / e),
+        "worst_strain": float(s[k]) if k >= 0 else 1.0,
+        "worst_strain_vertex": int(mesh.file_ids[mesh.first[mesh.edges[k, 0]]]) if k >= 0 else -1,
+        "flipped": float(flips.size / max(mesh.triangle_count, 1)),
+        "flipped_vertex": int(mesh.file_ids[mesh.triangles[flips[0], 0]]) if flips.size else -1,
+        "pairs": mesh.pairs(points) if pairs else None,
+        "pairs_lbs": mesh.pairs(lbs) if pairs else None,
+        "offset": float(d[j]) if j >= 0 else 0.0,
+        "offset_vertex": int(mesh.file_ids[j]) if j >= 0 else -1,
+    }
+
+
+@dataclass
+class QualityLimits:
+    """The plausible range of a written mesh; a frame past it stops the run (exit 3) unless the
+    run allows unstable results.
+
+    Attributes:
+        strained: The share of edges strained past :data:`STRAIN_LIMIT` may exceed LBS's own share
+            by at most this.
+        flipped: At most this share of triangles may flip against LBS.
+        pairs: At most ``pairs_factor x LBS's pairs + pairs x triangles`` intersecting pairs.
+        pairs_factor: See ``pairs``.
+    """
+
+    strained: float = 0.05
+    flipped: float = 0.05
+    pairs: float = 0.005
+    pairs_factor: float = 2.0
+
+    def problem(self, mesh: WrittenMesh, m: dict) -> str | None:
+        """One line naming what is out of range in the measures ``m`` of ``mesh``, or ``None``."""
+        if m["strained"] > m["strained_lbs"] + self.strained:
+            return (f"mesh {mesh.name!r}: {100 * m['strained']:.1f} % of its edges are strained past {STRAIN_LIMIT:g}x of "
+                    f"their rest length (LBS {100 * m['strained_lbs']:.1f} %; the worst {m['worst_strain']:.3g}x at file "
+                    f"vertex {m['worst_strain_vertex']})")
+        if m["flipped"] > self.flipped:
+            return (f"mesh {mesh.name!r}: {100 * m['flipped']:.1f} % of its triangles are flipped against LBS (the first "
+                    f"at file vertex {m['flipped_vertex']})")
+        if m["pairs"] is not None and m["pairs"] > self.pairs_factor * m["pairs_lbs"] + self.pairs * mesh.triangle_count:
+            return (f"mesh {mesh.name!r}: {m['pairs']} intersecting triangle pairs (LBS {m['pairs_lbs']}; at most "
+                    f"{self.pairs_factor:g}x LBS + {100 * self.pairs:g} % of its {mesh.triangle_count} triangles)")
+        return None
+
+
+class QualityLog:
+    """Per-frame measures of every written mesh of a run (:func:`mesh_measures`), their worst
+    frames, and the range check (:class:`QualityLimits`).
+
+    Args:
+        meshes: The written meshes measured (those written with physics).
+        limits: The plausible range, or ``None`` for no check.
+        pairs: Count intersecting pairs (the costliest measure) every frame.
+    """
+
+    KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "offset")
+
+    def __init__(self, meshes: list[WrittenMesh], limits: QualityLimits | None = None, *, pairs: bool = True) -> None:
+        self.meshes = list(meshes)
+        self.limits = limits
+        self.count_pairs = pairs
+        self.series: dict[str, dict[str, list]] = {m.name: {k: [] for k in self.KEYS} for m in self.meshes}
+        self.frames: list[float] = []
+
+    def measure(self, frame, points: dict, lbs: dict) -> str | None:
+        """Measure frame ``frame`` (``points[name]``, ``lbs[name]`` for every mesh); returns the first
+        range problem (``"frame F: mesh ...``) or ``None``. The series are kept either way."""
+        self.frames.append(frame)
+        problem = None
+        for mesh in self.meshes:
+            m = mesh_measures(mesh, points[mesh.name], lbs[mesh.name], pairs=self.count_pairs)
+            for k in self.KEYS:
+                self.series[mesh.name][k].append(m[k])
+            if problem is None and self.limits is not None:
+                p = self.limits.problem(mesh, m)
+                if p is not None:
+                    problem = f"frame {frame:g}: {p}"
+        return problem
+
+    def summary(self) -> dict:
+        """Per mesh: the worst frame's value of every measure (and the frame), and the largest
+        excess over LBS of strained edges and pairs."""
+        out = {}
+        for mesh in self.meshes:
+            s = self.series[mesh.name]
+            if not self.frames:
+                continue
+            row: dict = {"edges": mesh.edge_count, "triangles": mesh.triangle_count}
+            for k in ("strained", "strained_lbs", "worst_strain", "flipped", "offset"):
+                a = np.asarray(s[k], dtype=np.float64)
+                i = int(np.argmax(a))
+                row[f"max_{k}"] = float(a[i])
+                row[f"max_{k}_frame"] = self.frames[i]
+            excess = np.asarray(s["strained"]) - np.asarray(s["strained_lbs"])
+            row["max_strained_excess"] = float(excess.max())
+            if self.count_pairs:
+                p, pl = np.asarray(s["pairs"]), np.asarray(s["pairs_lbs"])
+                row["max_pairs"], row["max_pairs_lbs"] = int(p.max()), int(pl.max())
+                row["max_pairs_excess"] = int((p - pl).max())
+            out[mesh.name] = row
+        return out
+
+    def worst(self) -> dict:
+        """Over every mesh: the worst strained share, flipped share, pairs excess over LBS and
+        offset, each with its mesh and frame (the summary line's figures)."""
+        best: dict = {}
+        for mesh in self.meshes:
+            s = self.series[mesh.name]
+            cand = {
+                "strained_excess": np.asarray(s["strained"]) - np.asarray(s["strained_lbs"]),
+                "flipped": np.asarray(s["flipped"]),
+                "offset": np.asarray(s["offset"]),
+            }
+            if self.count_pairs:
+                cand["pairs_excess"] = np.asarray(s["pairs"]) - np.asarray(s["pairs_lbs"])
+            for k, a in cand.items():
+                if a.size == 0:
+                    continue
+                i = int(np.argmax(a))
+                if k not in best or a[i] > best[k]["value"]:
+                    best[k] = {"value": float(a[i]), "mesh": mesh.name, "frame": self.frames[i]}
+        return best
