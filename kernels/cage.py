@@ -14,20 +14,24 @@ def winding_distance_field_kernel(
     lower: wp.vec3,
     spacing: float,
     max_dist: float,
-    # output
+    # outputs
     field: wp.array3d(dtype=wp.float32),
+    nearest_face: wp.array3d(dtype=wp.int32),
 ):
     """``field[i, j, k]``: distance from grid node ``lower + (i, j, k) spacing`` to the nearest
     surface point, negative where the winding number is above 1/2 (inside); ``max_dist`` where no
-    face is that close (outside, far away)."""
+    face is that close (outside, far away). ``nearest_face``: the face of that point (-1: none)."""
     i, j, k = wp.tid()
     p = lower + wp.vec3(float(i), float(j), float(k)) * spacing
     q = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, 2.0, 0.5)
     value = max_dist
+    face = int(-1)
     if q.result:
         closest = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         value = q.sign * wp.min(wp.length(p - closest), max_dist)
+        face = q.face
     field[i, j, k] = value
+    nearest_face[i, j, k] = face
 
 
 @wp.kernel

@@ -122,6 +122,8 @@ def _shell(center, radii, power: float, res: int, rotation=None) -> tuple[np.nda
     d = p / np.linalg.norm(p, axis=1, keepdims=True)
     r = d / (np.abs(d) ** power).sum(axis=1, keepdims=True) ** (1.0 / power) * np.asarray(radii)
     rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    if np.linalg.det(rot) < 0:  # a mirrored frame: keep the faces wound outward
+        t = t[:, ::-1]
     return np.asarray(center) + r @ rot.T, t
 
 

@@ -7,7 +7,6 @@ as the exact check in reports and tests.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 __all__ = ["triangle_pairs_intersect", "self_intersections", "signed_volume"]
 
@@ -57,24 +56,47 @@ def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.nd
     return hit
 
 
+def _box_pairs(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Pairs ``i < j`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU),
+    sorted."""
+    import warp as wp
+
+    from .kernels import measure as k
+
+    n = lower.shape[0]
+    with wp.ScopedDevice("cpu"):
+        lo = wp.array(lower.astype(np.float32), dtype=wp.vec3)
+        hi = wp.array(upper.astype(np.float32), dtype=wp.vec3)
+        bvh = wp.Bvh(lo, hi)
+        capacity = 16 * n
+        while True:
+            count = wp.zeros(1, dtype=wp.int32)
+            pairs = wp.zeros(capacity, dtype=wp.vec2i)
+            wp.launch(k.box_pairs_kernel, dim=n, inputs=[bvh.id, lo, hi, capacity], outputs=[count, pairs])
+            c = int(count.numpy()[0])
+            if c <= capacity:
+                break
+            capacity = c
+        out = pairs.numpy()[:c].astype(np.int64)
+    return out[np.lexsort((out[:, 1], out[:, 0]))]
+
+
 def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True) -> np.ndarray:
     """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``).
 
-    Candidates come from a k-d tree over triangle centroids (two triangles can only meet when
-    their centroids are closer than the sum of their bounding radii); each candidate gets the
-    exact edge/triangle test. Pairs sharing a vertex are skipped (neighbours touch by design).
+    Candidates are the pairs whose bounding boxes overlap (a BVH over the boxes, widened by
+    1e-6 of the mesh's extent past float32 rounding); each candidate gets the exact float64
+    edge/triangle test. Pairs sharing a vertex are skipped (neighbours touch by design).
     """
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     if t.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    cen = p[t].mean(axis=1)
-    rad = np.linalg.norm(p[t] - cen[:, None, :], axis=2).max(axis=1)
-    pairs = cKDTree(cen).query_pairs(2.0 * rad.max() * (1 + 1e-9), output_type="ndarray")
+    corners = p[t]
+    pad = 1e-6 * (float(np.ptp(p, axis=0).max()) + 1e-30)  # float32 boxes, widened past their rounding
+    pairs = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad)
     if pairs.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    d = np.linalg.norm(cen[pairs[:, 0]] - cen[pairs[:, 1]], axis=1)
-    pairs = pairs[d <= (rad[pairs[:, 0]] + rad[pairs[:, 1]]) * (1 + 1e-9)]
     if exclude_shared:
         a, b = t[pairs[:, 0]], t[pairs[:, 1]]
         shared = (a[:, :, None] == b[:, None, :]).any(axis=(1, 2))

@@ -162,7 +162,8 @@ class QualityLimits:
         strained: The share of edges strained past :data:`STRAIN_LIMIT` may exceed LBS's own share
             by at most this.
         flipped: At most this share of triangles may flip against LBS.
-        pairs: At most ``pairs_factor x LBS's pairs + pairs x triangles`` intersecting pairs.
+        pairs: At most ``pairs_factor x LBS's pairs + max(pairs x triangles, pairs_floor)``
+            intersecting pairs.
         pairs_factor: See ``pairs``.
     """
 
@@ -170,6 +171,7 @@ class QualityLimits:
     flipped: float = 0.05
     pairs: float = 0.005
     pairs_factor: float = 2.0
+    pairs_floor: int = 10
 
     def problem(self, mesh: WrittenMesh, m: dict) -> str | None:
         """One line naming what is out of range in the measures ``m`` of ``mesh``, or ``None``."""
@@ -180,9 +182,11 @@ class QualityLimits:
         if m["flipped"] > self.flipped:
             return (f"mesh {mesh.name!r}: {100 * m['flipped']:.1f} % of its triangles are flipped against LBS (the first "
                     f"at file vertex {m['flipped_vertex']})")
-        if m["pairs"] is not None and m["pairs"] > self.pairs_factor * m["pairs_lbs"] + self.pairs * mesh.triangle_count:
+        allowed = self.pairs_factor * m["pairs_lbs"] + max(self.pairs * mesh.triangle_count, self.pairs_floor)
+        if m["pairs"] is not None and m["pairs"] > allowed:
             return (f"mesh {mesh.name!r}: {m['pairs']} intersecting triangle pairs (LBS {m['pairs_lbs']}; at most "
-                    f"{self.pairs_factor:g}x LBS + {100 * self.pairs:g} % of its {mesh.triangle_count} triangles)")
+                    f"{self.pairs_factor:g}x LBS + {100 * self.pairs:g} % of its {mesh.triangle_count} triangles, "
+                    f"at least {self.pairs_floor})")
         return None
 
 

@@ -520,6 +520,9 @@ class Rig:
     render: Any = None
     #: Meshes parented rigidly to joints, written beside the skin (:class:`Attachment`).
     attachments: list = field(default_factory=list)
+    #: What the vertices are called in messages: ``"file"`` (the file's own numbers, from
+    #: :meth:`file_vertex_ids`) or ``"cage"`` (an automatic or user cage: its own numbers).
+    vertex_kind: str = "file"
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64)

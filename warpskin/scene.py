@@ -74,7 +74,7 @@ _SCHEMA: dict[str, set[str]] = {
     # Algorithm 1 settings
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
                "fast_summation", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
-               "max_volume_error", "max_speed"},
+               "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"},
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
                   "fold_cos", "rebuild_spread", "volume_weight", "fail_safe_rounds"},
@@ -197,7 +197,7 @@ class Scene:
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], int)):
                 raise SceneError(f"{where}: [solver] {key} must be an integer, got {table[key]!r}")
         for key in ("dt", "damping", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
-                    "max_volume_error", "max_speed"):
+                    "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [solver] {key} must be a number, got {table[key]!r}")
         if "fast_summation" in table and not isinstance(table["fast_summation"], bool):

@@ -63,6 +63,13 @@ class SolverParams:
         max_speed: A run stops at the first frame where the skin's motion relative to the
             animation (its velocities minus LBS's, mass-weighted RMS) is faster than this many
             body diagonals per second and still growing: energy the animation did not put in.
+        max_strained: A run stops at the first frame where a written mesh has more of its edges
+            strained past 1.5x of their rest length (or under 1/1.5) than its own LBS by more
+            than this share (:mod:`warpskin.quality`).
+        max_flipped: A run stops at the first frame where more than this share of a written
+            mesh's triangles turn by more than 90 degrees against its LBS.
+        max_capped: A run stops at the first frame where more than this share of the simulated
+            skin is held at the tether's cap (``tether_max``): the cap would hide an explosion.
     """
 
     iterations: int = 20
@@ -79,6 +86,9 @@ class SolverParams:
     max_offset: float = 0.1
     max_volume_error: float = 0.1
     max_speed: float = 2.0
+    max_strained: float = 0.05
+    max_flipped: float = 0.05
+    max_capped: float = 0.1
 
     def check(self, where: str = "solver") -> None:
         def integer(name, lo):
@@ -97,7 +107,8 @@ class SolverParams:
             raise SceneError(f"{where}: damping must be a rate >= 0 [1/s], got {self.damping!r}")
         if not (0.0 <= self.volume_stiffness <= 1.0):
             raise SceneError(f"{where}: volume_stiffness must be in [0, 1], got {self.volume_stiffness!r}")
-        for name in ("tether", "tether_floor", "tether_max", "max_offset", "max_volume_error", "max_speed"):
+        for name in ("tether", "tether_floor", "tether_max", "max_offset", "max_volume_error", "max_speed", "max_strained",
+                     "max_flipped", "max_capped"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
                 raise SceneError(f"{where}: {name} must be a number >= 0, got {value!r}")

@@ -43,6 +43,17 @@ def _file_name(name: str) -> str:
     return out or "texture.png"
 
 
+def _valid_faces(tri: np.ndarray) -> np.ndarray:
+    """``[T]`` bool: triangles with three distinct vertices that no earlier triangle repeats (as
+    a vertex set)."""
+    t = np.asarray(tri, dtype=np.int64)
+    distinct = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
+    _, first = np.unique(np.sort(t, axis=1), axis=0, return_index=True)
+    unique = np.zeros(t.shape[0], dtype=bool)
+    unique[first] = True
+    return distinct & unique
+
+
 def _prim_name(name: str) -> str:
     out = "".join(c if (c.isalnum() or c == "_") else "_" for c in name)
     if not out or out[0].isdigit():
@@ -183,6 +194,8 @@ class UsdSkinWriter:
         if comment:
             st.GetRootLayer().comment = comment
         self._meshes: dict[str, tuple] = {}
+        #: Faces left out per mesh (degenerate or repeated in the source), for the run's notes.
+        self.dropped_faces: dict[str, int] = {}
         self._first: float | None = None
         self._last: float | None = None
         self._closed = False
@@ -241,6 +254,19 @@ class UsdSkinWriter:
         if tri.ndim != 2 or tri.shape[1] != 3 or tri.size == 0:
             raise ExportError(f"mesh {name!r}: triangles must have shape [T, 3], got {tri.shape}")
         vertex_count = int(tri.max()) + 1
+        # faces that repeat a vertex (a file's degenerate triangles) or repeat another face are
+        # not written: DCCs reject them as invalid face data (Blender "corrects" the mesh)
+        keep = _valid_faces(tri)
+        if not keep.all():
+            self.dropped_faces[name] = int((~keep).sum())
+            tri = tri[keep]
+            if uvs is not None:
+                uvs = np.asarray(uvs).reshape(-1, 3, 2)[keep]
+            if materials:
+                new_index = np.cumsum(keep) - 1
+                materials = [(m, new_index[np.asarray(f, dtype=np.int64)[keep[np.asarray(f, dtype=np.int64)]]])
+                             for m, f in materials]
+                materials = [(m, f) for m, f in materials if f.size]
         if rest_points is not None:
             rest = np.asarray(rest_points, dtype=np.float32)
             if rest.shape[0] < vertex_count or rest.ndim != 2 or rest.shape[1] != 3:

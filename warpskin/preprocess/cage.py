@@ -24,7 +24,7 @@ import numpy as np
 
 from ..rig import RigError
 
-__all__ = ["Cage", "build_cage", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
+__all__ = ["Cage", "build_cage", "separable_parts", "character_parts", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
            "transfer_weights", "cage_rig"]
 
 #: Vertices of a default cage (the layered model's cost grows with them; a few thousand
@@ -66,7 +66,8 @@ def default_cage_edge(points: np.ndarray, triangles: np.ndarray, target_vertices
 
 
 def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None = None, offset: float = 0.6,
-               smooth_iterations: int = 12, device=None, max_grid: int = 200) -> Cage:
+               smooth_iterations: int = 12, device=None, max_grid: int = 200,
+               parts: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, separation: float = 2.0) -> Cage:
     """Build the cage of the triangle soup ``points`` ``[N, 3]``, ``triangles`` ``[T, 3]`` (every
     mesh of the character in one place, any topology).
 
@@ -78,6 +79,13 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
         device: Warp device for the field.
         max_grid: Largest number of grid nodes along an axis (a memory bound; a finer request
             is coarsened, and the cage says so in ``edge``).
+        parts: ``(face_part [T], part_start [P, 3], part_end [P, 3])``: the body part of every
+            triangle (its dominant joint) and each part's bone (:func:`character_parts`). Parts
+            whose bones come no closer than ``separation`` grid spacings must not share a cage:
+            outside the character, between two such parts (the two legs, the two shoes, an arm
+            hanging beside the torso), the grid nodes where the nearest part changes are set
+            outside, so the cage keeps a gap there even where the gap between the skins is
+            narrower than the offset (a cage bridging the legs tears when they part).
 
     Raises:
         RigError: no surface, or no closed cage could be extracted (naming why).
@@ -109,9 +117,17 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
         mesh = wp.Mesh(points=wp.array(p.astype(np.float32), dtype=wp.vec3),
                        indices=wp.array(tri.astype(np.int32).ravel(), dtype=wp.int32), support_winding_number=True)
         grid = wp.zeros(tuple(int(c) for c in counts), dtype=wp.float32)
+        faces = wp.zeros(tuple(int(c) for c in counts), dtype=wp.int32)
         far = float(np.linalg.norm(hi - lo + 2 * pad))
         wp.launch(k_cage.winding_distance_field_kernel, dim=grid.shape,
-                  inputs=[mesh.id, wp.vec3(*lower.astype(np.float32)), np.float32(h), np.float32(far)], outputs=[grid])
+                  inputs=[mesh.id, wp.vec3(*lower.astype(np.float32)), np.float32(h), np.float32(far)],
+                  outputs=[grid, faces])
+        if parts is not None:
+            sep = separable_parts(parts[1], parts[2], int(np.max(parts[0])) + 1 if parts[2].size == 0
+                                  else max(int(np.max(parts[0])), int(np.max(parts[2]))) + 1, separation * h)
+            carved = _carve(grid.numpy(), faces.numpy(), (parts[0], sep), offset * h, h)
+            timings["carved_nodes"] = int(carved[1])
+            grid = wp.array(carved[0], dtype=wp.float32)
         upper = lower + (counts - 1) * h
         verts, idx = IsoSurfaceMarchingCubes.extract(grid, float(offset * h), lower=tuple(map(float, lower)),
                                                      upper=tuple(map(float, upper)))
@@ -225,6 +241,46 @@ def _weld(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndar
     return v[first][used], remap[f]
 
 
+def separable_parts(segments: np.ndarray, owner: np.ndarray, part_count: int, distance: float) -> np.ndarray:
+    """``[P, P]`` bool: which body parts may not share a cage, given each part's bones as
+    segments ``segments[s] = (start, end)`` (``[S, 2, 3]``, stage space) owned by part
+    ``owner[s]``: those whose segments come no closer than ``distance`` (a joint's segments
+    run to each of its children, so a parent and its child always may share)."""
+    seg = np.asarray(segments, dtype=np.float64)
+    t = np.linspace(0.0, 1.0, 9)
+    samples = (seg[:, None, 0, :] + t[None, :, None] * (seg[:, 1] - seg[:, 0])[:, None, :]).reshape(-1, 3)
+    who = np.repeat(np.asarray(owner, dtype=np.int64), t.size)
+    d = np.linalg.norm(samples[:, None, :] - samples[None, :, :], axis=2)
+    out = np.full((part_count, part_count), np.inf)
+    np.minimum.at(out, (who[:, None].repeat(who.size, 1), who[None, :].repeat(who.size, 0)), d)
+    return out > distance
+
+
+def _carve(field: np.ndarray, faces: np.ndarray, parts: tuple[np.ndarray, np.ndarray], level: float,
+           h: float) -> tuple[np.ndarray, int]:
+    """Set outside the grid nodes outside the character and within ``1.5 h`` of the cage's
+    level where an axis neighbour's nearest part is separable from the node's (see
+    :func:`build_cage`'s ``parts``). Returns the field and the number of nodes carved."""
+    face_part, separable = parts
+    label = np.where(faces >= 0, np.asarray(face_part)[np.clip(faces, 0, None)], -1)
+    band = (field > 0.0) & (field < level + 1.5 * h)
+    carve = np.zeros(field.shape, dtype=bool)
+    sep = np.asarray(separable, dtype=bool)
+    for axis in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[axis], hi[axis] = slice(None, -1), slice(1, None)
+        la, lb = label[tuple(lo)], label[tuple(hi)]
+        both = band[tuple(lo)] & band[tuple(hi)] & (la >= 0) & (lb >= 0)
+        hit = np.zeros(la.shape, dtype=bool)
+        hit[both] = sep[la[both], lb[both]]
+        carve[tuple(lo)] |= hit
+        carve[tuple(hi)] |= hit
+    out = field.copy()
+    out[carve] = np.maximum(out[carve], level + 0.5 * h)
+    return out, int(carve.sum())
+
+
 def _drop_cavities(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Drop the connected components that enclose no positive volume once the surface faces
     outward: the iso-surface of a pocket inside the character (between a fist's fingers and
@@ -328,6 +384,25 @@ def character_soup(rig) -> CharacterSoup:
     return CharacterSoup(np.concatenate(pts), np.concatenate(tris), np.concatenate(dense), pieces)
 
 
+def character_parts(rig, soup: CharacterSoup) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body parts of :func:`build_cage`'s ``parts``: every soup triangle's dominant joint
+    (of its corners' summed weights), and the joints' bones at rest in stage space as segments
+    ``[S, 2, 3]`` with their joint ``[S]``: from each joint to each of its children (a leaf: a
+    point at the joint)."""
+    from ..rig import Clip
+
+    world = rig.joint_world_transforms(Clip("rest"), 0.0)[:, :3, 3]
+    parents = np.asarray(rig.skeleton.parents)
+    child = np.nonzero(parents >= 0)[0]
+    leaves = np.setdiff1d(np.arange(len(world)), parents[child])
+    segments = np.concatenate([np.stack([world[parents[child]], world[child]], axis=1),
+                               np.stack([world[leaves], world[leaves]], axis=1)])
+    owner = np.concatenate([parents[child], leaves])
+    t = np.asarray(soup.triangles, dtype=np.int64)
+    face_part = np.argmax(soup.dense_weights[t].sum(axis=1), axis=1)
+    return face_part, segments, owner
+
+
 def rigid_pieces(soup: CharacterSoup, rigid_weight: float = 0.999) -> np.ndarray:
     """The pieces of a character that LBS moves rigidly: connected components of its meshes
     (seam copies at one position joined) whose every point has one joint with weight at least
@@ -368,11 +443,15 @@ def rigid_pieces(soup: CharacterSoup, rigid_weight: float = 0.999) -> np.ndarray
 
 
 def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup: CharacterSoup, *, max_distance: float,
-                     device=None, influences: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     device=None, influences: int = 4, smooth_passes: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Skin weights on the cage: each cage vertex takes the barycentric blend of the weights at
     its closest point on the character where that lies within ``max_distance``; the others are
     inpainted (Abdrashitov et al. 2023): the weights that are harmonic over the cage (uniform
-    Laplacian) with the matched ones fixed. Then the largest ``influences`` per vertex,
+    Laplacian) with the matched ones fixed. Then ``smooth_passes`` passes of averaging with the
+    neighbours (half the vertex, half its neighbours' mean): a character of rigid parts (each
+    on one joint with weight 1) would otherwise give its cage LBS weights that jump at every
+    joint, so the cage's own LBS tears there (edges 5x their rest length on RobotExpressive's
+    walk) and its physics fights the tear. Then the largest ``influences`` per vertex,
     normalised. Returns ``(joint_indices [V, K], joint_weights [V, K], matched [V] bool)``."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
@@ -408,6 +487,15 @@ def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup
         luu = lap[u][:, u].tocsc()
         rhs = -(lap[u][:, m] @ dense[m])
         dense[u] = spla.splu(luu).solve(np.asarray(rhs))
+    if smooth_passes > 0:
+        t = np.asarray(cage_triangles, dtype=np.int64)
+        rows = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
+        cols = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
+        a = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+        a.data[:] = 1.0
+        avg = sp.diags(1.0 / np.maximum(np.asarray(a.sum(axis=1)).ravel(), 1.0)) @ a
+        for _ in range(smooth_passes):
+            dense = 0.5 * dense + 0.5 * (avg @ dense)
     return _pick(dense, influences) + (matched,)
 
 
@@ -420,7 +508,7 @@ def _pick(dense: np.ndarray, influences: int) -> tuple[np.ndarray, np.ndarray]:
     return idx.astype(np.int64), w
 
 
-def cage_rig(rig, cage: Cage, *, device=None) -> tuple:
+def cage_rig(rig, cage: Cage, *, device=None, smooth_passes: int = 8) -> tuple:
     """The cage as a rig to simulate, bound at the character's rest pose: the character's
     skeleton and clips, the cage's triangles and rest points (stage space) as its bind pose, so
     its inverse binds are the inverses of the joints' rest world transforms; weights transferred
@@ -430,13 +518,14 @@ def cage_rig(rig, cage: Cage, *, device=None) -> tuple:
     from ..rig import Clip, Rig
 
     soup = character_soup(rig)
-    ji, jw, matched = transfer_weights(cage.vertices, cage.triangles, soup, max_distance=2.0 * cage.edge, device=device)
+    ji, jw, matched = transfer_weights(cage.vertices, cage.triangles, soup, max_distance=2.0 * cage.edge, device=device,
+                                       smooth_passes=smooth_passes)
     rest_world = rig.joint_world_transforms(Clip("rest"), 0.0)
     caged = Rig(
         name=rig.name, vertices=cage.vertices.copy(), triangles=cage.triangles, skeleton=rig.skeleton, joint_indices=ji,
         joint_weights=jw, inverse_bind=np.linalg.inv(rest_world), clips=rig.clips,
         source=f"{rig.source} (its automatic cage)", mesh_name=f"{rig.mesh_name} (cage)", up_axis=rig.up_axis,
-        meters_per_unit=rig.meters_per_unit,
+        meters_per_unit=rig.meters_per_unit, vertex_kind="cage",
     )
     caged.validate(raise_on_error=True)
     return caged, soup, matched

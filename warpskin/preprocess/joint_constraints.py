@@ -23,9 +23,10 @@ class JointParams:
     """Which particles get joint constraints.
 
     Attributes:
-        radius_factor: A particle is constrained to joint ``j`` when its rest distance to the
-            joint centre is below ``radius_factor`` times the joint's radius (the median distance
-            of the skin vertices whose bone foot is at that joint).
+        radius_factor: A particle is constrained to joint ``j`` when its vertex's bone is ``j``
+            or its parent's and its rest distance to the joint centre is below
+            ``radius_factor`` times the joint's radius (the median distance of the skin
+            vertices whose bone foot is at that joint).
         layers: Layers whose particles may be constrained.
         joints: Joint names to constrain; ``None``: every joint between two bones.
     """
@@ -97,9 +98,12 @@ def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None
                 continue
             radius[j] = float(np.quantile(d_skin[near], 0.05))
         r = params.radius_factor * radius[j]
+        # only the tissue on the two bones the joint links: a hand that hangs beside a leg at
+        # rest must not keep the leg's particles away from its wrist
+        own = np.isin(layers.bone, [j, parents[j]])
         for k in layer_ids:
             d = np.linalg.norm(layers.positions[k] - joint_rest[j], axis=1)
-            sel = np.nonzero((d < r) & (d > 1e-9 * max(rig.size(), 1e-12)))[0]
+            sel = np.nonzero((d < r) & (d > 1e-9 * max(rig.size(), 1e-12)) & own)[0]
             parts.append(k * v + sel)
             joints.append(np.full(sel.size, j))
             dists.append(d[sel])

@@ -73,6 +73,10 @@ class Layers:
         depth_scale: Per-vertex factor on the scene's projection parameters, ``[V]`` in (0, 1]
             (1 where the full depth fits).
         depth_notes: What :func:`fit_layer_depths` reduced, where and why (for reports).
+        unresolved: ``[V]`` bool, the vertices where no positive depth fits (the skin there
+            folds over or leaves the body however thin the layers are): they keep the thinnest
+            depth and their folds are tolerated; what is written follows LBS there (physics
+            weight 0, :mod:`warpskin.character`).
     """
 
     positions: np.ndarray
@@ -83,10 +87,13 @@ class Layers:
     bones: Bones
     depth_scale: np.ndarray | None = None
     depth_notes: list[str] = field(default_factory=list)
+    unresolved: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.depth_scale is None:
             self.depth_scale = np.ones(self.positions.shape[1])
+        if self.unresolved is None:
+            self.unresolved = np.zeros(self.positions.shape[1], dtype=bool)
 
     @property
     def vertex_count(self) -> int:
@@ -113,6 +120,7 @@ class Layers:
             bones=self.bones,
             depth_scale=extend_midpoints(self.depth_scale, parents),
             depth_notes=list(self.depth_notes),
+            unresolved=extend_midpoints(self.unresolved.astype(np.float64), parents) > 0,
         )
 
     def flat(self) -> np.ndarray:
@@ -146,17 +154,19 @@ def build_layers(rig: Rig, params: LayerParams | None = None, *, bones: Bones | 
 
 def check_layer_folds(layers: Layers, triangles: np.ndarray, *, where: str = "layers") -> None:
     """Raise a clear error where an inner layer folds over (a triangle whose normal turned
-    against the skin triangle's), which makes the layer self-intersect.
+    against the skin triangle's), which makes the layer self-intersect; triangles at
+    :attr:`Layers.unresolved` vertices are tolerated.
 
     The message names the layer, the triangles and the bones involved, and what to change.
     """
     skin = layers.positions[0]
+    tolerated = layers.unresolved[triangles].any(axis=1)
     n0 = np.cross(skin[triangles[:, 1]] - skin[triangles[:, 0]], skin[triangles[:, 2]] - skin[triangles[:, 0]])
     for k in range(1, 4):
         x = layers.positions[k]
         n = np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
         dot = np.einsum("ij,ij->i", n, n0)
-        flipped = np.nonzero(dot <= 0.0)[0]
+        flipped = np.nonzero((dot <= 0.0) & ~tolerated)[0]
         if flipped.size:
             bones = np.unique(layers.bone[triangles[flipped].ravel()])
             names = [layers.bones.joint_names[b] for b in bones[:6]]
@@ -271,9 +281,10 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         New :class:`Layers` with ``params``, ``positions`` and ``depth_scale`` fitted and
         ``depth_notes`` saying where depth was taken away and why.
 
-    Raises:
-        RigError: no positive depth fits at some vertices (``s`` below ``min_scale``), naming
-            them (the file's vertex numbers) and their bones.
+    Where no positive depth fits (``s`` below ``min_scale``: the skin folds over or leaves
+    the body however thin the layers are) the vertices keep ``min_scale`` and are marked
+    :attr:`Layers.unresolved`, with a note that counts them and names their bones; the run
+    writes LBS there.
     """
     from ..collision import skin_edges
     from ..metrics import self_intersections
@@ -327,15 +338,21 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         hit = np.unique(tris[bad].ravel())
         s[hit] = 0.0
     weak = np.nonzero(s < min_scale)[0]
-    if weak.size:
-        file_ids = rig.file_vertex_ids(weak)
-        names = sorted({layers.bones.joint_names[b] for b in layers.bone[weak]})[:6]
-        raise RigError(
-            f"{where}: no positive layer depth fits at {weak.size} vertices (file vertices "
-            f"{_list(file_ids)}; bones {names}): the skin there folds over or leaves the body however thin "
-            "the layers are; check those vertices' weights and the bones' placement"
-        )
+    unresolved = np.zeros(rig.vertex_count, dtype=bool)
     notes = []
+    if weak.size:
+        unresolved[weak] = True
+        s[weak] = min_scale
+        names = sorted({layers.bones.joint_names[b] for b in layers.bone[weak]})[:6]
+        ids = _list(rig.file_vertex_ids(weak)) if rig.vertex_kind == "file" else _list(weak)
+        notes.append(f"{where}: no positive layer depth fits at {weak.size} vertices ({rig.vertex_kind} vertices {ids}; "
+                     f"bones {names}): the skin there folds over or leaves the body however thin the layers are; "
+                     "they follow LBS")
+        import warnings
+
+        from ..rig import RigWarning
+
+        warnings.warn(notes[-1], RigWarning, stacklevel=2)
     if outward.any():
         bones = np.unique(layers.bone[outward])
         notes.append(f"{where}: {int(outward.sum())} vertices whose bone lies outside the skin go in along their normal "
@@ -361,7 +378,7 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     for k in range(3):
         positions[k + 1] = v + params[:, k, None] * seg
     return Layers(positions=positions, foot=v + seg, bone=layers.bone, bone_t=layers.bone_t, params=params,
-                  bones=layers.bones, depth_scale=s, depth_notes=notes)
+                  bones=layers.bones, depth_scale=s, depth_notes=notes, unresolved=unresolved)
 
 
 def _list(idx, limit: int = 8) -> str:

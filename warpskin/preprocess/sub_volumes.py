@@ -150,7 +150,7 @@ class SubVolumes:
         center_joint: Joint whose skinning matrix moves each center, ``[C]``.
         loops: Per plane, the loop's vertex indices in order (one closed path; a loop that
             touches itself repeats the vertex; several closed paths are concatenated).
-        rest_volume: Signed volume of each sub-volume at rest [m^3], ``[S]``, all positive.
+        rest_volume: Signed volume of each sub-volume at rest [m^3], ``[S]`` (see ``measured``).
         plane_joint: Joint naming each plane, ``[C]``.
         plane_t: Position parameter of each plane (module docstring), ``[C]``.
         plane_normal: Unit plane normal at rest, ``[C, 3]``, pointing away from the root.
@@ -176,6 +176,9 @@ class SubVolumes:
     plane_sides: np.ndarray
     vertex_count: int
     notes: list[str] = field(default_factory=list)
+    #: ``[S]`` bool: the sub-volumes whose relative volume error is meaningful (a rest volume
+    #: above 1e-6 of the total); ``None``: all.
+    measured: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         s = len(self.names)
@@ -683,12 +686,21 @@ def build_subvolumes(rig: Rig, params: SubVolumeParams | None = None, *, bones: 
         notes=notes,
     )
     result.rest_volume = result.volumes(rig.vertices, centers)
-    bad = np.nonzero(result.rest_volume <= 0.0)[0]
+    total = float(np.abs(result.rest_volume).sum())
+    bad = np.nonzero(result.rest_volume <= 1e-6 * total)[0]
     if bad.size:
+        # a sub-volume that encloses (next to) nothing: its constraint still holds its rest value,
+        # but a relative volume error means nothing for it (the checks and reports skip it)
+        import warnings
+
+        from ..rig import RigWarning
+
         s = int(bad[0])
         bounding = [_short(names[planes[k].joint]) for k in range(len(planes)) if s in sides[k]]
-        raise RigError(
-            f"{where}: sub-volume {sub_names[s]!r} is empty (rest volume {result.rest_volume[s]:.3g} m^3 "
-            f"<= 0); it is bounded by the planes of joints {bounding}: move them apart or drop one"
-        )
+        note = (f"{where}: {bad.size} sub-volume(s) enclose almost no volume (e.g. {sub_names[s]!r}, "
+                f"{result.rest_volume[s]:.3g} m^3, bounded by the planes of joints {bounding}); their volume is held "
+                "but not reported")
+        result.notes.append(note)
+        warnings.warn(note, RigWarning, stacklevel=2)
+    result.measured = result.rest_volume > 1e-6 * total
     return result

@@ -50,6 +50,17 @@ class SimulationResult:
     summary: dict = field(default_factory=dict)
 
 
+def _measured(subs) -> np.ndarray:
+    """``[S]`` bool: the sub-volumes whose relative error is checked and reported."""
+    return subs.measured if subs.measured is not None else np.ones(len(subs.rest_volume), dtype=bool)
+
+
+def _vertex(rig, k: int) -> str:
+    """``"file vertex N"`` (the file's number) or ``"cage vertex N"``, for messages."""
+    n = int(rig.file_vertex_ids([k])[0]) if rig.vertex_kind == "file" else int(k)
+    return f"{rig.vertex_kind} vertex {n}"
+
+
 class _Measurements:
     """Per-frame measurements of the physical skin against LBS (host, after the frame)."""
 
@@ -132,7 +143,7 @@ class _Measurements:
         if e["offset"] > p.max_offset * diag:
             k = int(np.argmax(d))
             bone = b.layers.bones.joint_names[b.layers.bone[k]]
-            return (f"frame {f}: the skin left its plausible range: file vertex {int(b.rig.file_vertex_ids([k])[0])} "
+            return (f"frame {f}: the skin left its plausible range: {_vertex(b.rig, k)} "
                     f"(bone {bone!r}) is {e['offset']:.3g} m from LBS, {100 * e['offset'] / diag:.1f} % of the body's "
                     f"{diag:.3g} m diagonal (max_offset {p.max_offset:g})")
         speed, before = e["relative_speed_rms"], e["relative_speed_before"]
@@ -142,7 +153,7 @@ class _Measurements:
             bone = b.layers.bones.joint_names[b.layers.bone[k]]
             return (f"frame {f}: the skin left its plausible range: its motion relative to the animation keeps "
                     f"growing without input (RMS {speed:.3g} m/s, {speed / diag:.2g} body diagonals per second, "
-                    f"max_speed {p.max_speed:g}; fastest near file vertex {int(b.rig.file_vertex_ids([k])[0])}, "
+                    f"max_speed {p.max_speed:g}; fastest near {_vertex(b.rig, k)}, "
                     f"bone {bone!r})")
         v0 = self.m["volume_rest"]
         err, err_lbs = abs(e["volume"] / v0 - 1.0), abs(e["volume_lbs"] / v0 - 1.0)
@@ -153,7 +164,7 @@ class _Measurements:
             rest = b.subvolumes.rest_volume
             err_s = np.abs(e["subvolume"] / rest - 1.0)
             err_s_lbs = np.abs(e["subvolume_lbs"] / rest - 1.0)
-            over = err_s > np.maximum(p.max_volume_error, 2.0 * err_s_lbs)
+            over = (err_s > np.maximum(p.max_volume_error, 2.0 * err_s_lbs)) & _measured(b.subvolumes)
             if over.any():
                 k = int(np.argmax(np.where(over, err_s, -1.0)))
                 return (f"frame {f}: the skin left its plausible range: sub-volume {b.subvolumes.names[k]!r} is off by "
@@ -199,66 +210,47 @@ class _Measurements:
             m["intersecting_pairs_lbs"].append(int(len(self_intersections(lbs, tris))))
 
 
-class _CagedCharacter:
-    """A character simulated through a cage (automatic, or the user's ``cage_file``): the cage
-    rig, and (:meth:`bind`) every render mesh embedded in the cage at rest (stage space)."""
+class _WrittenQuality:
+    """The measures of every mesh written with physics, per frame (:class:`~warpskin.quality.QualityLog`),
+    and the share of the simulated skin held at the tether's cap; either out of its range stops
+    the run (:class:`SimulationError`) unless ``allow_unstable`` (one warning)."""
 
-    def __init__(self, rig, device, cage_file=None) -> None:
-        from ..preprocess.cage import build_cage, cage_from_mesh, cage_rig, character_soup
+    def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper) -> None:
+        from ..quality import QualityLimits, QualityLog, WrittenMesh
 
-        t0 = time.perf_counter()
-        soup = character_soup(rig)
-        if cage_file is not None:  # the user's own
-            from ..io.cage_file import read_cage_mesh
+        self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
+        self.meshes = [WrittenMesh(p.name, p.triangles, p.rest, p.file_ids) for p in character.parts if p.physics]
+        self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
+        self.capped: list[float] = []
+        self.warned = False
+        self.cap = params.tether_max * stepper.model.diagonal if params.tether > 0 else None
+        # the simulated vertices that show in what is written (a thin part written as LBS may
+        # rest at the cap without harm)
+        self.shown = character.sim_vertex_weight(stepper.model.vertex_count) > 0.5
 
-            self.cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=device, soup=soup)
-        else:
-            self.cage = build_cage(soup.points, soup.triangles, device=device)
-        self.rig, self.soup, self.matched = cage_rig(rig, self.cage, device=device)
-        self.source = rig
-        self.device = device
-        self.embedding = None
-        self.build_s = time.perf_counter() - t0
-
-    def bind(self, builder, rigid_pieces: str = "cage") -> None:
-        """Embed every render mesh in the cage's model: the normal at a cage vertex is the
-        direction from its fat-layer particle to it (one launch per frame, no normal pass).
-        The pieces that LBS moves rigidly (:func:`~warpskin.preprocess.cage.rigid_pieces`: eyes,
-        teeth, rigidly parented parts) move as rigid bodies with the cage region they lie in
-        (``rigid_pieces="cage"``) or follow their joints by LBS (``"joint"``)."""
-        from ..embedding import Embedding
-        from ..preprocess.cage import rigid_pieces as find_rigid
-
-        t0 = time.perf_counter()
-        self.rigid = find_rigid(self.soup)
-        self.rigid_mode = rigid_pieces
-        n = len(self.cage.vertices)  # the cage's own vertices come first (a refined cage adds more after)
-        self.embedding = Embedding(self.soup.points, self.cage.vertices, self.cage.triangles,
-                                   inner=builder.layers.positions[1][:n],
-                                   rigid=self.rigid if rigid_pieces == "cage" else None, device=self.device)
-        self.build_s += time.perf_counter() - t0
-
-    @property
-    def rigid_piece_count(self) -> int:
-        return int(self.rigid.max()) + 1 if self.rigid.size else 0
-
-    def attachment_meshes(self) -> list:
-        out = []
-        for a in self.source.attachments:
-            _, start, count = next(p for p in self.soup.pieces if p[0] == a.name)
-            out.append((a.name, a.triangles, self.soup.points[start:start + count], attachment_kwargs(a)))
-        return out
-
-    def render_points(self, cage_points: np.ndarray, fat_points: np.ndarray, lbs) -> dict:
-        """Every render mesh's points on the cage's skin and fat layers (their first ``V`` rows);
-        with rigid pieces following their joints, theirs from ``lbs()`` (the soup's LBS)."""
-        n = self.embedding.cage_vertex_count
-        x = np.concatenate([cage_points[:n], fat_points[:n]]).astype(np.float32)
-        pts = self.embedding.evaluate(x).numpy().astype(np.float64)
-        if self.rigid_mode == "joint" and self.rigid_piece_count:
-            sel = self.rigid >= 0
-            pts[sel] = lbs()[sel]
-        return {name: pts[start:start + count] for name, start, count in self.soup.pieces}
+    def check(self, i: int, written: dict, lbs: dict) -> None:
+        f = self.plan.frames[i]
+        problem = self.log.measure(f, written, lbs)
+        if self.cap is not None:
+            st = self.stepper
+            v = st.model.vertex_count
+            rig = st.rig
+            target = linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, st.frame_poses[i])
+            d = np.linalg.norm(st.positions[:v] - target, axis=1)
+            share = float(np.mean((d >= 0.99 * self.cap) & self.shown))
+            self.capped.append(share)
+            if problem is None and share > self.params.max_capped:
+                problem = (f"frame {f}: {100 * share:.1f} % of the simulated skin (where it shows in the written "
+                           f"meshes) is held at the tether's cap "
+                           f"({self.cap:.3g} m from LBS, tether_max {self.params.tether_max:g}; max_capped "
+                           f"{100 * self.params.max_capped:g} %): an explosion the cap hides")
+        if problem is None:
+            return
+        if not self.allow_unstable:
+            raise SimulationError(f"{problem}; lower dt, raise stiffness or iterations, or pass --allow-unstable")
+        if not self.warned:
+            warnings.warn(problem + "; continuing (--allow-unstable)", RuntimeWarning, stacklevel=2)
+            self.warned = True
 
 
 def simulate(
@@ -335,13 +327,12 @@ def simulate(
     """
     import time
 
-    cage_file = None
-    if rigid_pieces not in ("cage", "joint"):
-        from ..errors import SceneError
+    from ..character import CAGE_MODES, RIGID_MODES, Character
 
+    if rigid_pieces not in RIGID_MODES:
         raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {rigid_pieces!r}")
-    if isinstance(cage, Path) or cage not in ("auto", "always", "none"):
-        from ..errors import SceneError
+    cage_file = None
+    if isinstance(cage, Path) or cage not in CAGE_MODES:
         from ..io.cage_file import CAGE_EXTENSIONS
 
         if not isinstance(cage, (str, Path)) or Path(cage).suffix.lower() not in CAGE_EXTENSIONS:
@@ -357,24 +348,22 @@ def simulate(
     preroll = scene.preroll if preroll is None else float(preroll)
     t_build = time.perf_counter()
     render = rig  # what is written
-    caged = None
-    report = rig.report or rig.validate(raise_on_error=False)
-    closed_skin = report.closed and report.manifold
-    if builder is None and (cage_file is not None or cage == "always" or (cage == "auto" and not closed_skin)):
-        caged = _CagedCharacter(rig, device, cage_file)
-        rig = caged.rig
+    character = Character(rig, cage="none" if builder is not None else (cage_file or cage), rigid_pieces=rigid_pieces,
+                          device=device)
+    caged = character if character.caged else None
+    rig = character.sim_rig
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
     if collision is not None:
         builder.params.collision = collision
     model = builder.finalize(device)
-    if caged is not None:
-        caged.bind(builder, rigid_pieces)
+    character.bind(builder, device=model.device)
     build_s = time.perf_counter() - t_build
     if check_intersections is None:
         check_intersections = report_dir is not None
     stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
                              activation=activation, label="simulate", name=scene.name)
     measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
+    quality = _WrittenQuality(character, plan, params, allow_unstable, stepper)
     sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
     n_out = sim.output_count
     tris = sim.output_triangles
@@ -383,17 +372,17 @@ def simulate(
         meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
         if with_lbs:
             meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
-    else:  # the render meshes, embedded in the simulated cage; the cage as a guide
+    else:  # the render meshes, deformed through the simulated cage; the cage as a guide
         rt = render.output_triangles
         meshes = [("skin", rt, render.vertices[: render.output_count],
                    {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
         if with_lbs:
             meshes.append(("lbs", rt, render.vertices[: render.output_count], {"color": _LBS_COLOR, "purpose": "guide"}))
-        meshes += caged.attachment_meshes()
-        if with_lbs:  # each embedded mesh's own LBS beside it, as for the skin
-            meshes += [(f"{name}_lbs", t, p, {"color": _LBS_COLOR, "purpose": "guide"})
-                       for name, t, p, _ in caged.attachment_meshes()]
-        meshes.append(("cage", sim.output_triangles, caged.cage.vertices,
+        others = [(p.name, p.triangles, p.rest, attachment_kwargs(p.attachment)) for p in character.parts[1:]]
+        meshes += others
+        if with_lbs:  # each mesh's own LBS beside it, as for the skin
+            meshes += [(f"{name}_lbs", t, p, {"color": _LBS_COLOR, "purpose": "guide"}) for name, t, p, _ in others]
+        meshes.append(("cage", sim.output_triangles, caged.cage_surface.vertices,
                        {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
     if with_layers:  # the inner layers as simulated (guides)
         for k in range(1, 4):
@@ -415,30 +404,25 @@ def simulate(
 
         def frame(self, i):
             pts = stepper.frame(i)
-            out = {"skin": pts["skin"][:n_out]}
-            lbs = measures.evaluate(i, pts["skin"])  # stops here if the skin left its range
-            if caged is not None:  # the cage's own vertices come first (a refined cage adds more after)
-                # the render skin's own LBS (its inverse binds, not the cage's, which is bound at rest)
-                lbs = linear_blend_skin(render.vertices[: render.output_count], render.joint_indices[: render.output_count],
-                                        render.joint_weights[: render.output_count],
-                                        render.skinning_matrices(clip, plan.times[i]))
-
-                def soup_lbs(skin_lbs=lbs, t=plan.times[i]):
-                    world = render.joint_world_transforms(clip, t)
-                    return np.concatenate([skin_lbs, *[a.points(world) for a in render.attachments]])
-
-                out = caged.render_points(pts["skin"], pts["layer_fat"], soup_lbs)
+            measures.evaluate(i, pts["skin"])  # stops here if the simulated surface left its range
+            t = plan.times[i]
+            lbs_all = character.lbs(clip, t)
+            written = character.split(character.points(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all))
+            lbs_by = character.split(lbs_all)
+            quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
+            out = dict(written) if caged is not None else {"skin": written["skin"]}
+            lbs = lbs_by["skin"]
+            if caged is not None:
                 out["cage"] = pts["skin"][: sim.output_count]
             deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
-            if caged is not None:
-                render_deviation[:] = np.maximum(render_deviation, deviation)
+            render_deviation[:] = np.maximum(render_deviation, deviation)
             out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
             if with_lbs:
                 out["lbs"] = lbs
-                if caged is not None and render.attachments:
-                    world = render.joint_world_transforms(clip, plan.times[i])
-                    for a in render.attachments:
-                        out[f"{a.name}_lbs"] = a.points(world)
+                if caged is not None:
+                    for name in lbs_by:
+                        if name != "skin":
+                            out[f"{name}_lbs"] = lbs_by[name]
             if with_layers:
                 for k in range(1, 4):
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
@@ -464,12 +448,16 @@ def simulate(
         "topology": topology,
         "file_vertices_written": render.file_vertex_count if topology == "file" else render.output_count,
         "cage": None if caged is None else {
-            "vertices": int(caged.rig.vertex_count), "edge_m": caged.cage.edge, "build_s": caged.build_s,
-            "weights_matched": float(caged.matched.mean()), "embedded_points": int(caged.embedding.count),
+            "vertices": int(caged.sim_rig.vertex_count), "edge_m": caged.cage_surface.edge, "build_s": caged.build_s,
+            "weights_matched": float(caged.matched.mean()), "captured_points": int(caged.point_count),
             "rigid_pieces": caged.rigid_piece_count, "rigid_pieces_follow": rigid_pieces,
-            "meshes": [p[0] for p in caged.soup.pieces],
+            "meshes": [p.name for p in caged.parts],
             "source": str(cage_file) if cage_file is not None else "automatic",
         },
+        "physics_weight": character.weight_summary(),
+        "written": quality.log.summary(),
+        "written_worst": quality.log.worst(),
+        "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
         "refined_vertices_added": model.vertex_count - n_out,
         "frames": len(written),
         "substeps_per_frame": plan.substeps,
@@ -504,8 +492,10 @@ def simulate(
     if subs is not None and metrics["subvolume"]:
         rest = np.array(metrics["subvolume_rest"])
         if len(metrics["subvolume"]) > 1:
-            summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"][1:]) / rest - 1).max())
-            summary["max_subvolume_deviation_lbs"] = float(np.abs(np.array(metrics["subvolume_lbs"][1:]) / rest - 1).max())
+            ok = _measured(subs)
+            summary["max_subvolume_deviation"] = float(np.abs(np.array(metrics["subvolume"][1:])[:, ok] / rest[ok] - 1).max())
+            summary["max_subvolume_deviation_lbs"] = float(
+                np.abs(np.array(metrics["subvolume_lbs"][1:])[:, ok] / rest[ok] - 1).max())
         summary["subvolume_names"] = list(subs.names)
     result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
     if report_dir is not None:
@@ -519,7 +509,8 @@ def simulate(
         plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
                             where=(output.rest, measures.max_deviation if caged is None else render_deviation))
         summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
-        (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics}, indent=1))
+        (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics,
+                                                        "written": quality.log.series}, indent=1))
     if record.failure is not None:
         raise record.failure
     return result

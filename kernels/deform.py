@@ -1,0 +1,132 @@
+"""The written meshes' deformation: every written point is its own linear blend skinning plus
+the physical deformation captured from the simulated surface, blended by its physics weight.
+
+    d_j  = x_j - sum_k w_jk C_{c_jk} [X_j, 1]                   simulated vertex j's displacement
+                                                               from its own LBS (X_j: its rest)
+    p_i' = sum_k v_ik R_{r_ik} [P_i, 1] + phi_i sum_m a_im d_{s_im}
+
+``C`` are the simulated surface's skinning matrices, ``R`` the written meshes' (each mesh its
+own inverse binds, stacked ``mesh x joint``), ``P`` the written points in their bind space,
+``(s_im, a_im)`` the capture (:mod:`warpskin.capture`: a few simulated vertices per written
+point, weights summing to one) and ``phi_i`` in [0, 1] the physics weight. Where the simulation
+is at its LBS (``d = 0``) or ``phi = 0`` the written point is exactly its LBS; a written piece
+whose points share one capture row moves by one translation on top of its LBS.
+
+Influences and captures are flat arrays with a fixed count per point (weight 0 pads), so every
+argument is one-dimensional (Warp's contiguous CPU path). One thread per point, no atomics.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def displacement_kernel(
+    x: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3),
+    influence_count: int,
+    joint_indices: wp.array(dtype=wp.int32),
+    joint_weights: wp.array(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    # output
+    displacement: wp.array(dtype=wp.vec3),
+):
+    """``d_j = x_j - LBS(X_j)`` for every simulated surface vertex ``j`` (its first ``V``
+    particles: the skin layer)."""
+    j = wp.tid()
+    acc = wp.vec3(0.0)
+    p = rest[j]
+    for k in range(influence_count):
+        w = joint_weights[j * influence_count + k]
+        if w != 0.0:
+            acc += w * wp.transform_point(skin_matrices[joint_indices[j * influence_count + k]], p)
+    displacement[j] = x[j] - acc
+
+
+@wp.kernel
+def deform_kernel(
+    bind_points: wp.array(dtype=wp.vec3),
+    influence_count: int,
+    joint_indices: wp.array(dtype=wp.int32),
+    joint_weights: wp.array(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    capture_count: int,
+    capture_indices: wp.array(dtype=wp.int32),
+    capture_weights: wp.array(dtype=wp.float32),
+    physics_weight: wp.array(dtype=wp.float32),
+    displacement: wp.array(dtype=wp.vec3),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """``p_i' = LBS(P_i) + phi_i sum_m a_im d_{s_im}`` (``joint_indices`` already offset into the
+    stacked per-mesh matrices)."""
+    i = wp.tid()
+    p = bind_points[i]
+    acc = wp.vec3(0.0)
+    for k in range(influence_count):
+        w = joint_weights[i * influence_count + k]
+        if w != 0.0:
+            acc += w * wp.transform_point(skin_matrices[joint_indices[i * influence_count + k]], p)
+    phi = physics_weight[i]
+    if phi > 0.0:
+        d = wp.vec3(0.0)
+        for m in range(capture_count):
+            a = capture_weights[i * capture_count + m]
+            if a != 0.0:
+                d += a * displacement[capture_indices[i * capture_count + m]]
+        acc += phi * d
+    out[i] = acc
+
+
+@wp.kernel
+def inward_rays_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    start: float,
+    max_dist: float,
+    tilt: float,
+    # output
+    hits: wp.array(dtype=wp.float32),
+):
+    """Distances along five rays into the surface from every point (the shape diameter there):
+    one along the inward normal, four tilted by ``tilt`` radians about it, each to the first
+    face it leaves through (a back face; front faces of overlapping pieces are passed); each
+    starts ``start`` inside the point (past its own faces) and reports ``max_dist`` where it
+    leaves through nothing (an open piece)."""
+    i = wp.tid()
+    n = normals[i]
+    helper = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(n[0]) > 0.9:
+        helper = wp.vec3(0.0, 1.0, 0.0)
+    u = wp.normalize(wp.cross(n, helper))
+    v = wp.cross(n, u)
+    o = points[i] - start * n
+    c = wp.cos(tilt)
+    s = wp.sin(tilt)
+    for r in range(5):
+        d = -n
+        if r == 1:
+            d = -c * n + s * u
+        elif r == 2:
+            d = -c * n - s * u
+        elif r == 3:
+            d = -c * n + s * v
+        elif r == 4:
+            d = -c * n - s * v
+        d = wp.normalize(d)
+        # the first face the ray leaves through (seen from its back): entering another piece
+        # that overlaps this one (a ball joint inside a tube's end) does not end the part
+        travelled = float(0.0)
+        result = max_dist
+        for _ in range(8):
+            q = wp.mesh_query_ray(mesh, o + travelled * d, d, max_dist - travelled)
+            if not q.result:
+                break
+            travelled += q.t
+            if q.sign < 0.0:
+                result = travelled + start
+                break
+            travelled += start
+        hits[i * 5 + r] = result

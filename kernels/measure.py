@@ -1,0 +1,29 @@
+"""Broad phase of the exact self-intersection count (:func:`warpskin.metrics.self_intersections`):
+the pairs of triangles whose bounding boxes overlap, from a BVH over the boxes. It shares no
+code with the solver's collision detection, so the count stays an independent check."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def box_pairs_kernel(
+    bvh: wp.uint64,
+    lower: wp.array(dtype=wp.vec3),
+    upper: wp.array(dtype=wp.vec3),
+    capacity: int,
+    # outputs
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+):
+    """Every pair ``(i, j)``, ``i < j``, of overlapping boxes, appended to ``pairs`` (its
+    ``count`` may pass ``capacity``: the caller grows the buffer and runs again)."""
+    i = wp.tid()
+    q = wp.bvh_query_aabb(bvh, lower[i], upper[i])
+    j = int(0)
+    while wp.bvh_query_next(q, j):
+        if j > i:
+            slot = wp.atomic_add(count, 0, 1)
+            if slot < capacity:
+                pairs[slot] = wp.vec2i(i, j)

@@ -1,0 +1,369 @@
+"""Capture of the written meshes by the simulated surface, and their physics weights.
+
+Every written point moves as its own LBS plus the physical deformation of the simulated
+surface near it (:mod:`warpskin.kernels.deform`): the displacement of the simulated vertices
+from their own LBS, blended by capture weights that are computed once, at rest, as a production
+point deformer captures a render mesh by a lattice (Houdini's Point Capture and Point Deform;
+Joshi et al. 2007 for harmonic captures in the same spirit). The capture respects the written
+mesh's own connectivity and skinning:
+
+1. **Candidates**: the simulated vertices within ``radius`` cage edges of the point, weighted by
+   a smooth kernel of the distance, ``(1 - (r / R)^2)^3``, times the squared *skinning
+   similarity* of the two (the histogram intersection ``sum_j min(w_pj, w_cj)`` of their LBS
+   weights: a cage vertex driven by other joints, such as the other shoe or the torso under an
+   arm, counts for nothing), times how much they face the same way (the far side of a fist
+   does not capture its front).
+2. **Smoothing within the piece**: the captures of the written points within ``smooth`` cage
+   edges of each other *in the same connected piece of the same mesh* (and skinned alike,
+   facing alike) are averaged with the same kernel, so the carried field is smooth over the
+   written surface and never bleeds between pieces (fingers, the two legs, a glove and its
+   arm).
+3. **Pieces that move as a whole**: a piece smaller than ``small`` cage edges (a knuckle, a
+   button, a toe cap) and a piece LBS moves rigidly (an eye, rigidly parented armour) take one
+   capture row, the mean of their points': they move by one translation on top of their LBS,
+   so they never crumple.
+4. The ``count`` largest weights of each point are kept and renormalised.
+
+The **physics weight** ``phi`` in [0, 1] blends LBS (0) and the physical result (1). It is 0
+where the model cannot resolve the geometry: parts thinner than ``thin`` cage edges (the
+shape diameter along the inward normal: fingers, toes, ears), points no compatible simulated
+vertex captures, and what the caller marks (vertices where no layer depth fits); 1 where the
+part is ``thick`` cage edges or more and the capture is confident (its skinning similarity at
+least ``confidence[1]``); a smooth ramp between, smoothed over the piece like the capture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+__all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "surface_weights", "point_normals", "shape_diameter",
+           "welded_pieces"]
+
+
+@dataclass
+class CaptureParams:
+    """Settings of :func:`capture_points`; lengths in cage edges (the simulated surface's
+    resolution).
+
+    Attributes:
+        radius: Support of a point's raw capture.
+        smooth: Radius of the smoothing within a piece.
+        count: Simulated vertices kept per point.
+        small: A piece whose bounding-box diagonal is under this moves as a whole.
+        thin: Physics weight 0 for parts thinner than this.
+        thick: Physics weight 1 (as far as the thickness goes) for parts at least this thick.
+        confidence: Skinning similarity of the capture below which the physics weight is 0,
+            and from which it is 1.
+    """
+
+    radius: float = 1.6
+    smooth: float = 1.0
+    count: int = 16
+    small: float = 2.0
+    thin: float = 1.5
+    thick: float = 2.5
+    confidence: tuple[float, float] = (0.5, 0.85)
+
+
+@dataclass
+class Capture:
+    """Capture rows of the written points and their physics weights.
+
+    Attributes:
+        indices: ``[N, K]`` simulated vertices of every point (weight 0 pads).
+        weights: ``[N, K]`` their weights, summing to one per row.
+        physics_weight: ``[N]`` in [0, 1].
+        thickness: ``[N]`` shape diameter [m] (inf where a ray found no other side).
+        confidence: ``[N]`` skinning similarity of the capture, in [0, 1].
+        notes: What set weights to 0 or moved pieces as a whole, for the run's summary.
+    """
+
+    indices: np.ndarray
+    weights: np.ndarray
+    physics_weight: np.ndarray
+    thickness: np.ndarray
+    confidence: np.ndarray
+    notes: dict = field(default_factory=dict)
+
+
+def _smoothstep(x, a: float, b: float):
+    u = np.clip((np.asarray(x, dtype=np.float64) - a) / max(b - a, 1e-300), 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+def welded_pieces(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.ndarray):
+    """Weld the points of each mesh by position (seam copies) and label connected pieces.
+
+    Returns ``(first, cls, class_triangles, piece)``: the first point of every class ``[C]``,
+    the class of every point ``[N]``, the triangles over classes (degenerate ones dropped) and
+    the piece of every class ``[C]``."""
+    from scipy.sparse.csgraph import connected_components
+
+    p = np.asarray(points, dtype=np.float64)
+    key = np.concatenate([np.asarray(mesh_of_point, dtype=np.float64)[:, None], p], axis=1)
+    _, first, cls = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    cls = cls.ravel()
+    t = cls[np.asarray(triangles, dtype=np.int64)]
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
+    c = first.size
+    rows, cols = np.concatenate([t[:, 0], t[:, 1], t[:, 2]]), np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
+    _, piece = connected_components(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(c, c)), directed=False)
+    return first, cls, t, piece
+
+
+def point_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[N, 3]`` (zero for a point on no triangle)."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    fn = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    n = np.zeros_like(p)
+    for k in range(3):
+        np.add.at(n, t[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.where(length > 0, n / np.maximum(length, 1e-300), 0.0)
+
+
+def shape_diameter(points: np.ndarray, normals: np.ndarray, mesh_points: np.ndarray, mesh_triangles: np.ndarray, *,
+                   device=None, tilt_degrees: float = 20.0) -> np.ndarray:
+    """The shape diameter at every point [m]: the median length of five rays cast inward
+    (along ``-normals`` and tilted about it) to the far side of ``mesh`` (every mesh of the
+    character, so a shoe's ray stops at the shoe's sole); ``inf`` where most rays meet
+    nothing (an open piece seen from its inside)."""
+    import warp as wp
+
+    from .kernels import deform as k
+
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[0] == 0:
+        return np.zeros(0)
+    mp = np.asarray(mesh_points, dtype=np.float64)
+    diag = float(np.linalg.norm(np.ptp(mp, axis=0)))
+    far = 2.0 * diag + 1.0
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(points=wp.array(mp.astype(np.float32), dtype=wp.vec3),
+                       indices=wp.array(np.asarray(mesh_triangles, dtype=np.int32).ravel(), dtype=wp.int32))
+        hits = wp.zeros(p.shape[0] * 5, dtype=wp.float32)
+        wp.launch(k.inward_rays_kernel, dim=p.shape[0],
+                  inputs=[mesh.id, wp.array(p.astype(np.float32), dtype=wp.vec3),
+                          wp.array(np.asarray(normals, dtype=np.float32), dtype=wp.vec3), float(1e-4 * diag), float(far),
+                          float(np.radians(tilt_degrees))], outputs=[hits])
+        d = hits.numpy().reshape(-1, 5).astype(np.float64)
+    d[d >= 0.999 * far] = np.inf
+    return np.median(d, axis=1)
+
+
+def _similarity(wa: np.ndarray, wb: np.ndarray, rows: np.ndarray, cols: np.ndarray, chunk: int = 200_000) -> np.ndarray:
+    """``sum_j min(wa[rows, j], wb[cols, j])`` per pair, in chunks (dense weights ``[*, J]``)."""
+    out = np.empty(rows.size)
+    for s in range(0, rows.size, chunk):
+        r, c = rows[s:s + chunk], cols[s:s + chunk]
+        out[s:s + chunk] = np.minimum(wa[r], wb[c]).sum(axis=1)
+    return out
+
+
+def _kernel(d: np.ndarray, radius: float) -> np.ndarray:
+    r2 = np.clip((d / radius) ** 2, 0.0, 1.0)
+    return (1.0 - r2) ** 3
+
+
+def _row_normalised(m: sp.csr_matrix) -> sp.csr_matrix:
+    s = np.asarray(m.sum(axis=1)).ravel()
+    return (sp.diags(1.0 / np.where(s > 0, s, 1.0)) @ m).tocsr()
+
+
+def _top_k(m: sp.csr_matrix, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` largest entries of every row as dense ``[R, k]`` (indices, weights), rows
+    renormalised; padding has weight 0 (and the row's first index)."""
+    m = m.tocoo()
+    order = np.lexsort((-m.data, m.row))
+    row, col, val = m.row[order], m.col[order], m.data[order]
+    starts = np.searchsorted(row, np.arange(m.shape[0]))
+    rank = np.arange(row.size) - starts[row]
+    keep = rank < k
+    idx = np.zeros((m.shape[0], k), dtype=np.int64)
+    w = np.zeros((m.shape[0], k))
+    idx[row[keep], rank[keep]] = col[keep]
+    w[row[keep], rank[keep]] = val[keep]
+    first = idx[:, :1]
+    idx = np.where(w > 0, idx, first)
+    s = w.sum(axis=1, keepdims=True)
+    return idx, w / np.where(s > 0, s, 1.0)
+
+
+def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray, sigma: float) -> sp.csr_matrix:
+    """Row-normalised ``[C, C]`` averaging over the points within ``sigma`` of each other in
+    the same piece, weighted by the distance kernel, their skinning similarity squared and how
+    much their normals agree (itself weight 1)."""
+    c = q.shape[0]
+    pairs = cKDTree(q).query_pairs(sigma, output_type="ndarray") if sigma > 0 and c > 1 else np.zeros((0, 2), np.int64)
+    if not pairs.size:
+        return sp.identity(c, format="csr")
+    a, b = pairs[:, 0], pairs[:, 1]
+    same = piece[a] == piece[b]
+    a, b = a[same], b[same]
+    g = (_kernel(np.linalg.norm(q[a] - q[b], axis=1), sigma) * _similarity(wq, wq, a, b) ** 2
+         * _smoothstep(np.einsum("ij,ij->i", nq[a], nq[b]), 0.0, 0.5))
+    keep = g > 0
+    a, b, g = a[keep], b[keep], g[keep]
+    m = sp.csr_matrix((np.concatenate([g, g, np.ones(c)]),
+                       (np.concatenate([a, b, np.arange(c)]), np.concatenate([b, a, np.arange(c)]))), shape=(c, c))
+    return _row_normalised(m)
+
+
+def surface_weights(points: np.ndarray, triangles: np.ndarray, dense_weights: np.ndarray, edge: float, *,
+                    exclude: np.ndarray | None = None, params: CaptureParams | None = None,
+                    device=None) -> tuple[np.ndarray, np.ndarray]:
+    """Physics weights of a skin simulated directly (its written points are its simulated
+    vertices): the thickness ramp of :func:`capture_points` in units of ``edge`` (the skin's
+    mean edge length), 0 at ``exclude``, smoothed within each piece. Returns ``(phi [N],
+    thickness [N])``."""
+    prm = params or CaptureParams()
+    p = np.asarray(points, dtype=np.float64)
+    first, cls, ctri, piece = welded_pieces(p, triangles, np.zeros(p.shape[0], dtype=np.int64))
+    q = p[first]
+    nq = point_normals(q, ctri)
+    thickness = shape_diameter(q, nq, q, ctri, device=device)
+    h = float(edge)
+    phi = _smoothstep(thickness, prm.thin * h, prm.thick * h)
+    ex = np.zeros(first.size, dtype=bool)
+    if exclude is not None:
+        np.logical_or.at(ex, cls, np.asarray(exclude, dtype=bool))
+    phi[ex] = 0.0
+    smooth = _smoothing(q, np.asarray(dense_weights, dtype=np.float64)[first], nq, piece, prm.smooth * h)
+    for _ in range(2):
+        phi = smooth @ phi
+    phi[ex] = 0.0
+    return np.clip(phi[cls], 0.0, 1.0), thickness[cls]
+
+
+def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.ndarray, mesh_of_point: np.ndarray,
+                   cage_vertices: np.ndarray, cage_triangles: np.ndarray, cage_dense_weights: np.ndarray, edge: float, *,
+                   rigid: np.ndarray | None = None, exclude: np.ndarray | None = None,
+                   cage_exclude: np.ndarray | None = None, params: CaptureParams | None = None,
+                   device=None) -> Capture:
+    """Capture the written points by the simulated cage (see the module docstring).
+
+    Args:
+        points: ``[N, 3]`` written points at rest [m] (every written mesh, stage space).
+        triangles: ``[T, 3]`` their triangles (global indices).
+        dense_weights: ``[N, J]`` their LBS weights.
+        mesh_of_point: ``[N]`` which written mesh each point belongs to.
+        cage_vertices: ``[V, 3]`` the simulated surface at rest [m].
+        cage_triangles: ``[F, 3]``, counter-clockwise from outside.
+        cage_dense_weights: ``[V, J]`` its LBS weights.
+        edge: The simulated surface's edge length [m] (the unit of ``params``).
+        rigid: ``[N]`` the rigid piece of each point (-1: none): such a piece moves as a whole.
+        exclude: ``[N]`` bool, points whose physics weight is 0 whatever else holds.
+        cage_exclude: ``[V]`` bool, simulated vertices nothing is captured by (where the
+            model could not resolve the surface: no layer depth fits there).
+        params: :class:`CaptureParams`.
+        device: Warp device for the ray casts.
+    """
+    prm = params or CaptureParams()
+    p = np.asarray(points, dtype=np.float64)
+    n = p.shape[0]
+    cv = np.asarray(cage_vertices, dtype=np.float64)
+    wp_dense = np.asarray(dense_weights, dtype=np.float64)
+    wc_dense = np.asarray(cage_dense_weights, dtype=np.float64)
+    h = float(edge)
+    first, cls, ctri, piece = welded_pieces(p, triangles, mesh_of_point)
+    c = first.size
+    q = p[first]
+    wq = wp_dense[first]
+    nq = point_normals(q, ctri)
+    cage_n = point_normals(cv, cage_triangles)
+    notes: dict = {}
+
+    # 1. raw capture: nearby simulated vertices, skinned alike and facing alike
+    tree = cKDTree(cv)
+    radius = prm.radius * h
+    lists = tree.query_ball_point(q, radius)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=c)
+    none = counts == 0
+    if none.any():  # far from the cage (it should not be): the nearest few
+        _, near = tree.query(q[none], k=min(4, cv.shape[0]))
+        near = np.atleast_2d(near)
+        for i, row in zip(np.nonzero(none)[0], near):
+            lists[i] = list(np.atleast_1d(row))
+        counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=c)
+    rows = np.repeat(np.arange(c), counts)
+    cols = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=int(counts.sum()))
+    dist = np.linalg.norm(q[rows] - cv[cols], axis=1)
+    sim = _similarity(wq, wc_dense, rows, cols)
+    facing = _smoothstep(np.einsum("ij,ij->i", nq[rows], cage_n[cols]), -0.3, 0.3)
+    k_raw = _kernel(dist, max(radius, float(dist.max()) * 1.0001)) * sim ** 2 * facing
+    if cage_exclude is not None:
+        k_raw = np.where(np.asarray(cage_exclude, dtype=bool)[cols], 0.0, k_raw)
+    raw = sp.csr_matrix((k_raw, (rows, cols)), shape=(c, cv.shape[0]))
+    raw.eliminate_zeros()
+    total = np.asarray(raw.sum(axis=1)).ravel()
+    unmatched = total <= 0
+    if unmatched.any():  # nothing compatible: the nearest vertex, with physics weight 0 below
+        _, near = tree.query(q[unmatched], k=1)
+        raw = raw + sp.csr_matrix((np.ones(int(unmatched.sum())), (np.nonzero(unmatched)[0], np.atleast_1d(near))),
+                                  shape=raw.shape)
+    raw = _row_normalised(raw)
+    sim_m = sp.csr_matrix((sim, (rows, cols)), shape=raw.shape)
+    confidence = np.asarray(raw.multiply(sim_m).sum(axis=1)).ravel()
+    confidence[unmatched] = 0.0
+
+    # 2. smoothing within each piece, between points skinned and facing alike
+    smooth = _smoothing(q, wq, nq, piece, prm.smooth * h)
+    cap = _row_normalised(smooth @ raw)
+
+    # physics weight: thick enough, captured confidently, not excluded
+    thickness = shape_diameter(q, nq, q, ctri, device=device)
+    phi = _smoothstep(thickness, prm.thin * h, prm.thick * h) * _smoothstep(confidence, *prm.confidence)
+    phi[unmatched] = 0.0
+    ex = np.zeros(c, dtype=bool)
+    if exclude is not None:
+        np.logical_or.at(ex, cls, np.asarray(exclude, dtype=bool))
+        phi[ex] = 0.0
+    notes["thin_points"] = int((thickness[cls] < prm.thin * h).sum())
+    notes["unmatched_points"] = int(unmatched[cls].sum())
+    notes["excluded_points"] = int(ex[cls].sum())
+    for _ in range(2):
+        phi = smooth @ phi
+    phi[ex | unmatched] = 0.0
+
+    # 3. pieces that move as a whole: small pieces and rigid ones take their mean row and weight
+    group = np.full(c, -1, dtype=np.int64)
+    lo = np.full((piece.max() + 1, 3), np.inf)
+    hi = np.full((piece.max() + 1, 3), -np.inf)
+    np.minimum.at(lo, piece, q)
+    np.maximum.at(hi, piece, q)
+    small = np.linalg.norm(hi - lo, axis=1) < prm.small * h
+    group[small[piece]] = piece[small[piece]]
+    if rigid is not None:
+        r = np.full(c, -1, dtype=np.int64)
+        r[cls] = np.asarray(rigid, dtype=np.int64)
+        sel = r >= 0
+        group[sel] = piece.max() + 1 + r[sel]
+    notes["pieces_as_a_whole"] = int(np.unique(group[group >= 0]).size)
+    if (group >= 0).any():
+        _, g_id = np.unique(group[group >= 0], return_inverse=True)
+        members = np.nonzero(group >= 0)[0]
+        ind = sp.csr_matrix((np.ones(members.size), (g_id.ravel(), members)), shape=(int(g_id.max()) + 1, c))
+        mean_rows = _row_normalised(ind @ cap)
+        mean_phi = (ind @ phi) / np.asarray(ind.sum(axis=1)).ravel()
+        other = sp.diags((group < 0).astype(np.float64)) @ cap
+        assign = sp.csr_matrix((np.ones(members.size), (members, g_id.ravel())), shape=(c, mean_rows.shape[0]))
+        cap = (other + assign @ mean_rows).tocsr()
+        phi = np.where(group >= 0, assign @ mean_phi, phi)
+
+    idx, w = _top_k(cap, prm.count)
+    phi = np.clip(phi, 0.0, 1.0)
+    return Capture(indices=idx[cls], weights=w[cls], physics_weight=phi[cls], thickness=thickness[cls],
+                   confidence=confidence[cls], notes=notes)
+
+
+def identity_capture(count: int, physics_weight: np.ndarray | None = None) -> Capture:
+    """Every written point captured by the simulated vertex of the same index (a skin simulated
+    directly)."""
+    phi = np.ones(count) if physics_weight is None else np.asarray(physics_weight, dtype=np.float64)
+    return Capture(indices=np.arange(count)[:, None], weights=np.ones((count, 1)), physics_weight=phi,
+                   thickness=np.full(count, np.inf), confidence=np.ones(count))
