@@ -91,8 +91,9 @@ def inward_rays_kernel(
     hits: wp.array(dtype=wp.float32),
 ):
     """Distances along five rays into the surface from every point (the shape diameter there):
-    one along the inward normal, four tilted by ``tilt`` radians about it, each to the first
-    face it leaves through (a back face; front faces of overlapping pieces are passed); each
+    one along the inward normal, four tilted by ``tilt`` radians about it, each to where it
+    leaves the solid it starts in (surfaces entered and left on the way, of pieces that overlap
+    this one, are counted through); each
     starts ``start`` inside the point (past its own faces) and reports ``max_dist`` where it
     leaves through nothing (an open piece)."""
     i = wp.tid()
@@ -116,16 +117,22 @@ def inward_rays_kernel(
         elif r == 4:
             d = -c * n - s * v
         d = wp.normalize(d)
-        # the first face the ray leaves through (seen from its back): entering another piece
-        # that overlaps this one (a ball joint inside a tube's end) does not end the part
+        # where the ray leaves the solid it starts in: it counts the surfaces it enters (front
+        # faces) and leaves (back faces), so passing through another piece that overlaps this
+        # one (a ball joint inside a tube's end) does not end the part
         travelled = float(0.0)
         result = max_dist
-        for _ in range(8):
+        depth = int(1)
+        for _ in range(12):
             q = wp.mesh_query_ray(mesh, o + travelled * d, d, max_dist - travelled)
             if not q.result:
                 break
             travelled += q.t
             if q.sign < 0.0:
+                depth -= 1
+            else:
+                depth += 1
+            if depth == 0:
                 result = travelled + start
                 break
             travelled += start

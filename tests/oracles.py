@@ -14,7 +14,8 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["lbs", "rig_lbs", "neighbour_sets", "omega_rings", "omega_ring", "coarse_arm", "COARSE", "winding_numbers"]
+__all__ = ["lbs", "rig_lbs", "neighbour_sets", "omega_rings", "omega_ring", "coarse_arm", "COARSE", "winding_numbers",
+           "triangles_intersect_sat", "intersecting_pairs_brute_force", "strain_and_flips"]
 
 #: Rings and segments of the coarse arm most solver tests use (1200 particles).
 COARSE = {"rings": 30, "segments": 20}
@@ -268,3 +269,79 @@ def closest_on_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.ndar
         vb_, wb_ = v[rows, best], w[rows, best]
         bary[s:s + chunk] = np.stack([1.0 - vb_ - wb_, vb_, wb_], axis=1)
     return out, tri, bary
+
+
+# --------------------------------------------------------------------------------------------
+# Written-mesh measures, written independently of warpskin.metrics and warpskin.quality
+# --------------------------------------------------------------------------------------------
+def triangles_intersect_sat(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether triangles ``a`` and ``b`` (``[3, 3]`` each, float64) intersect, by the separating
+    axis theorem: two convex polygons in 3-D are disjoint iff their projections onto one of
+    the two face normals or one of the nine edge-edge cross products do not overlap. (Generic
+    positions only: touching or coplanar pairs are measure zero in the tests.)"""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    ea = [a[1] - a[0], a[2] - a[1], a[0] - a[2]]
+    eb = [b[1] - b[0], b[2] - b[1], b[0] - b[2]]
+    axes = [np.cross(ea[0], ea[1]), np.cross(eb[0], eb[1])] + [np.cross(u, v) for u in ea for v in eb]
+    for ax in axes:
+        if np.dot(ax, ax) < 1e-30:
+            continue
+        pa, pb = a @ ax, b @ ax
+        if pa.max() < pb.min() or pb.max() < pa.min():
+            return False
+    return True
+
+
+def intersecting_pairs_brute_force(points: np.ndarray, triangles: np.ndarray) -> int:
+    """Intersecting triangle pairs of a mesh that share no vertex, over every pair (boxes
+    first, then :func:`triangles_intersect_sat`)."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    corners = p[t]
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    count = 0
+    for i in range(len(t)):
+        j = np.arange(i + 1, len(t))
+        overlap = np.all((lo[j] <= hi[i]) & (hi[j] >= lo[i]), axis=1)
+        for k in j[overlap]:
+            if set(t[i].tolist()) & set(t[k].tolist()):
+                continue
+            count += triangles_intersect_sat(corners[i], corners[k])
+    return count
+
+
+def strain_and_flips(rest: np.ndarray, points: np.ndarray, lbs: np.ndarray, triangles: np.ndarray,
+                     limit: float = 1.5) -> tuple[float, float, float]:
+    """``(strained share, strained share of LBS, flipped share)`` of a mesh welded by rest
+    position: edges longer than ``limit`` x rest or shorter than rest / ``limit``, and
+    triangles whose normal points against LBS's (plain loops over edges and faces)."""
+    rest = np.asarray(rest, dtype=np.float64)
+    key = {}
+    weld = np.array([key.setdefault(tuple(x), len(key)) for x in rest.tolist()])
+    first = {}
+    for i, w in enumerate(weld.tolist()):
+        first.setdefault(w, i)
+    edges, faces = set(), []
+    for tri in np.asarray(triangles).tolist():
+        w = [int(weld[v]) for v in tri]
+        if len(set(w)) < 3:
+            continue
+        faces.append(tri)
+        for u, v in ((w[0], w[1]), (w[1], w[2]), (w[2], w[0])):
+            edges.add((min(u, v), max(u, v)))
+
+    def share(x):
+        bad = 0
+        for u, v in edges:
+            l0 = np.linalg.norm(rest[first[u]] - rest[first[v]])
+            ln = np.linalg.norm(x[first[u]] - x[first[v]])
+            bad += ln > limit * l0 or ln < l0 / limit
+        return bad / len(edges)
+
+    flips = 0
+    for a, b, c in faces:
+        n = np.cross(points[b] - points[a], points[c] - points[a])
+        m = np.cross(lbs[b] - lbs[a], lbs[c] - lbs[a])
+        flips += float(np.dot(n, m)) < 0.0
+    return share(np.asarray(points, float)), share(np.asarray(lbs, float)), flips / len(faces)

@@ -18,8 +18,9 @@ mesh's own connectivity and skinning:
    facing alike) are averaged with the same kernel, so the carried field is smooth over the
    written surface and never bleeds between pieces (fingers, the two legs, a glove and its
    arm).
-3. **Pieces that move as a whole**: a piece smaller than ``small`` cage edges (a knuckle, a
-   button, a toe cap) and a piece LBS moves rigidly (an eye, rigidly parented armour) take one
+3. **Pieces that move as a whole**: a piece, or an assembly of pieces of one mesh that touch
+   (a fist's knuckles on its palm), smaller than ``small`` cage edges (a button, a toe cap, a
+   fist) and a piece LBS moves rigidly (an eye, rigidly parented armour) take one
    capture row, the mean of their points': they move by one translation on top of their LBS,
    so they never crumple.
 4. The ``count`` largest weights of each point are kept and renormalised.
@@ -40,7 +41,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-__all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "surface_weights", "point_normals", "shape_diameter",
+__all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "point_normals", "shape_diameter",
            "welded_pieces"]
 
 
@@ -53,7 +54,8 @@ class CaptureParams:
         radius: Support of a point's raw capture.
         smooth: Radius of the smoothing within a piece.
         count: Simulated vertices kept per point.
-        small: A piece whose bounding-box diagonal is under this moves as a whole.
+        small: A piece (or an assembly of touching pieces of one mesh) whose bounding-box
+            diagonal is under this moves as a whole.
         thin: Physics weight 0 for parts thinner than this.
         thick: Physics weight 1 (as far as the thickness goes) for parts at least this thick.
         confidence: Skinning similarity of the capture below which the physics weight is 0,
@@ -63,7 +65,7 @@ class CaptureParams:
     radius: float = 1.6
     smooth: float = 1.0
     count: int = 16
-    small: float = 2.0
+    small: float = 8.0
     thin: float = 1.5
     thick: float = 2.5
     confidence: tuple[float, float] = (0.5, 0.85)
@@ -194,6 +196,27 @@ def _top_k(m: sp.csr_matrix, k: int) -> tuple[np.ndarray, np.ndarray]:
     return idx, w / np.where(s > 0, s, 1.0)
 
 
+def _assemblies(q: np.ndarray, piece: np.ndarray, mesh: np.ndarray, gap: float) -> np.ndarray:
+    """``[C]`` the assembly of every point: pieces of the same mesh whose points come within
+    ``gap`` of each other (touching or overlapping parts, such as a fist's knuckles on its
+    palm), joined."""
+    from scipy.sparse.csgraph import connected_components
+
+    count = int(piece.max()) + 1
+    tree = cKDTree(q)
+    pairs = tree.query_pairs(gap, output_type="ndarray")
+    if pairs.size:
+        a, b = piece[pairs[:, 0]], piece[pairs[:, 1]]
+        keep = (a != b) & (mesh[pairs[:, 0]] == mesh[pairs[:, 1]])
+        a, b = a[keep], b[keep]
+    else:
+        a = b = np.zeros(0, dtype=np.int64)
+    link = sp.csr_matrix((np.ones(a.size + count), (np.concatenate([a, np.arange(count)]),
+                                                      np.concatenate([b, np.arange(count)]))), shape=(count, count))
+    _, label = connected_components(link, directed=False)
+    return label[piece]
+
+
 def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray, sigma: float) -> sp.csr_matrix:
     """Row-normalised ``[C, C]`` averaging over the points within ``sigma`` of each other in
     the same piece, weighted by the distance kernel, their skinning similarity squared and how
@@ -212,32 +235,6 @@ def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray,
     m = sp.csr_matrix((np.concatenate([g, g, np.ones(c)]),
                        (np.concatenate([a, b, np.arange(c)]), np.concatenate([b, a, np.arange(c)]))), shape=(c, c))
     return _row_normalised(m)
-
-
-def surface_weights(points: np.ndarray, triangles: np.ndarray, dense_weights: np.ndarray, edge: float, *,
-                    exclude: np.ndarray | None = None, params: CaptureParams | None = None,
-                    device=None) -> tuple[np.ndarray, np.ndarray]:
-    """Physics weights of a skin simulated directly (its written points are its simulated
-    vertices): the thickness ramp of :func:`capture_points` in units of ``edge`` (the skin's
-    mean edge length), 0 at ``exclude``, smoothed within each piece. Returns ``(phi [N],
-    thickness [N])``."""
-    prm = params or CaptureParams()
-    p = np.asarray(points, dtype=np.float64)
-    first, cls, ctri, piece = welded_pieces(p, triangles, np.zeros(p.shape[0], dtype=np.int64))
-    q = p[first]
-    nq = point_normals(q, ctri)
-    thickness = shape_diameter(q, nq, q, ctri, device=device)
-    h = float(edge)
-    phi = _smoothstep(thickness, prm.thin * h, prm.thick * h)
-    ex = np.zeros(first.size, dtype=bool)
-    if exclude is not None:
-        np.logical_or.at(ex, cls, np.asarray(exclude, dtype=bool))
-    phi[ex] = 0.0
-    smooth = _smoothing(q, np.asarray(dense_weights, dtype=np.float64)[first], nq, piece, prm.smooth * h)
-    for _ in range(2):
-        phi = smooth @ phi
-    phi[ex] = 0.0
-    return np.clip(phi[cls], 0.0, 1.0), thickness[cls]
 
 
 def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.ndarray, mesh_of_point: np.ndarray,
@@ -330,19 +327,21 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
         phi = smooth @ phi
     phi[ex | unmatched] = 0.0
 
-    # 3. pieces that move as a whole: small pieces and rigid ones take their mean row and weight
+    # 3. pieces that move as a whole: small assemblies (pieces of one mesh touching each other,
+    # a fist's knuckles on its palm) and rigid pieces take their mean row and weight
     group = np.full(c, -1, dtype=np.int64)
-    lo = np.full((piece.max() + 1, 3), np.inf)
-    hi = np.full((piece.max() + 1, 3), -np.inf)
-    np.minimum.at(lo, piece, q)
-    np.maximum.at(hi, piece, q)
+    assembly = _assemblies(q, piece, mesh_of_point[first], 0.5 * h)
+    lo = np.full((assembly.max() + 1, 3), np.inf)
+    hi = np.full((assembly.max() + 1, 3), -np.inf)
+    np.minimum.at(lo, assembly, q)
+    np.maximum.at(hi, assembly, q)
     small = np.linalg.norm(hi - lo, axis=1) < prm.small * h
-    group[small[piece]] = piece[small[piece]]
+    group[small[assembly]] = assembly[small[assembly]]
     if rigid is not None:
         r = np.full(c, -1, dtype=np.int64)
         r[cls] = np.asarray(rigid, dtype=np.int64)
         sel = r >= 0
-        group[sel] = piece.max() + 1 + r[sel]
+        group[sel] = assembly.max() + 1 + r[sel]
     notes["pieces_as_a_whole"] = int(np.unique(group[group >= 0]).size)
     if (group >= 0).any():
         _, g_id = np.unique(group[group >= 0], return_inverse=True)

@@ -184,16 +184,16 @@ class Character:
                                  self.cage_surface.triangles, cage_dense, self.edge(), rigid=rigid, exclude=exclude,
                                  cage_exclude=unresolved, params=self.capture, device=device or self.device)
         else:
-            from .capture import surface_weights
-
+            # a skin simulated directly is written as simulated (its own collisions keep it
+            # clean), except where no layer depth fits: LBS there
             phi = np.zeros(n)
             skin = self.parts[0]
             c = skin.count
-            unresolved = builder.layers.unresolved[:c] if builder is not None else None  # no layer depth fits
-            phi[:c], thickness = surface_weights(skin.rest, skin.triangles, soup.dense_weights[:c], self.edge(),
-                                                 exclude=unresolved, params=self.capture, device=device or self.device)
+            phi[:c] = 1.0
+            if builder is not None:
+                phi[:c][builder.layers.unresolved[:c]] = 0.0
             cap = identity_capture(n, phi)
-            cap.thickness[:c] = thickness
+
         self.capture_result = cap
         self._deformer = _Deformer(self, cap, device=device or self.device) if self.caged else None
         self.build_s += time.perf_counter() - t0

@@ -176,15 +176,15 @@ class QualityLimits:
     def problem(self, mesh: WrittenMesh, m: dict) -> str | None:
         """One line naming what is out of range in the measures ``m`` of ``mesh``, or ``None``."""
         if m["strained"] > m["strained_lbs"] + self.strained:
-            return (f"mesh {mesh.name!r}: {100 * m['strained']:.1f} % of its edges are strained past {STRAIN_LIMIT:g}x of "
+            return (f"mesh {mesh.name!r} left its plausible range: {100 * m['strained']:.1f} % of its edges are strained past {STRAIN_LIMIT:g}x of "
                     f"their rest length (LBS {100 * m['strained_lbs']:.1f} %; the worst {m['worst_strain']:.3g}x at file "
                     f"vertex {m['worst_strain_vertex']})")
         if m["flipped"] > self.flipped:
-            return (f"mesh {mesh.name!r}: {100 * m['flipped']:.1f} % of its triangles are flipped against LBS (the first "
+            return (f"mesh {mesh.name!r} left its plausible range: {100 * m['flipped']:.1f} % of its triangles are flipped against LBS (the first "
                     f"at file vertex {m['flipped_vertex']})")
         allowed = self.pairs_factor * m["pairs_lbs"] + max(self.pairs * mesh.triangle_count, self.pairs_floor)
         if m["pairs"] is not None and m["pairs"] > allowed:
-            return (f"mesh {mesh.name!r}: {m['pairs']} intersecting triangle pairs (LBS {m['pairs_lbs']}; at most "
+            return (f"mesh {mesh.name!r} left its plausible range: {m['pairs']} intersecting triangle pairs (LBS {m['pairs_lbs']}; at most "
                     f"{self.pairs_factor:g}x LBS + {100 * self.pairs:g} % of its {mesh.triangle_count} triangles, "
                     f"at least {self.pairs_floor})")
         return None
@@ -221,7 +221,7 @@ class QualityLog:
             if problem is None and self.limits is not None:
                 p = self.limits.problem(mesh, m)
                 if p is not None:
-                    problem = f"frame {frame:g}: {p}"
+                    problem = f"frame {frame:g}: the written {p}"
         return problem
 
     def summary(self) -> dict:

@@ -258,24 +258,30 @@ def separable_parts(segments: np.ndarray, owner: np.ndarray, part_count: int, di
 
 def _carve(field: np.ndarray, faces: np.ndarray, parts: tuple[np.ndarray, np.ndarray], level: float,
            h: float) -> tuple[np.ndarray, int]:
-    """Set outside the grid nodes outside the character and within ``1.5 h`` of the cage's
-    level where an axis neighbour's nearest part is separable from the node's (see
-    :func:`build_cage`'s ``parts``). Returns the field and the number of nodes carved."""
+    """Carve a gap between separable parts (see :func:`build_cage`'s ``parts``): for every pair
+    of axis-neighbour grid nodes within ``1.5 h`` of the surface (inside or out) whose nearest
+    parts are separable, set the one nearer to being outside (both, where both are outside
+    the character) above the cage's level. Where the skins' gap is narrower than the grid, the
+    nodes on either side lie inside the two parts, and the gap is cut into the one whose node
+    is shallower. Returns the field and the number of nodes carved."""
     face_part, separable = parts
     label = np.where(faces >= 0, np.asarray(face_part)[np.clip(faces, 0, None)], -1)
-    band = (field > 0.0) & (field < level + 1.5 * h)
+    band = (field > -1.5 * h) & (field < level + 1.5 * h)
     carve = np.zeros(field.shape, dtype=bool)
     sep = np.asarray(separable, dtype=bool)
     for axis in range(3):
         lo = [slice(None)] * 3
         hi = [slice(None)] * 3
         lo[axis], hi[axis] = slice(None, -1), slice(1, None)
-        la, lb = label[tuple(lo)], label[tuple(hi)]
-        both = band[tuple(lo)] & band[tuple(hi)] & (la >= 0) & (lb >= 0)
+        lo, hi = tuple(lo), tuple(hi)
+        la, lb = label[lo], label[hi]
+        both = band[lo] & band[hi] & (la >= 0) & (lb >= 0)
         hit = np.zeros(la.shape, dtype=bool)
         hit[both] = sep[la[both], lb[both]]
-        carve[tuple(lo)] |= hit
-        carve[tuple(hi)] |= hit
+        fa, fb = field[lo], field[hi]
+        outside = (fa > 0) & (fb > 0)
+        carve[lo] |= hit & (outside | (fa >= fb))
+        carve[hi] |= hit & (outside | (fb > fa))
     out = field.copy()
     out[carve] = np.maximum(out[carve], level + 0.5 * h)
     return out, int(carve.sum())

@@ -23,8 +23,8 @@ class JointParams:
     """Which particles get joint constraints.
 
     Attributes:
-        radius_factor: A particle is constrained to joint ``j`` when its vertex's bone is ``j``
-            or its parent's and its rest distance to the joint centre is below
+        radius_factor: A particle is constrained to joint ``j`` when its vertex's bone is at
+            most two steps from ``j`` in the skeleton and its rest distance to the joint centre is below
             ``radius_factor`` times the joint's radius (the median distance of the skin
             vertices whose bone foot is at that joint).
         layers: Layers whose particles may be constrained.
@@ -63,6 +63,25 @@ class JointConstraints:
         return np.einsum("jab,jb->ja", skin_matrices[:, :3, :3], self.joint_rest) + skin_matrices[:, :3, 3]
 
 
+def _within_two_steps(parents: np.ndarray) -> list[np.ndarray]:
+    """For every joint, the joints at most two steps from it in the skeleton (itself, its
+    parent and grandparent, its children and grandchildren, its siblings)."""
+    n = len(parents)
+    adj = [set() for _ in range(n)]
+    for c, p in enumerate(parents):
+        if p >= 0:
+            adj[c].add(int(p))
+            adj[int(p)].add(c)
+    out = []
+    for j in range(n):
+        one = adj[j] | {j}
+        two = set(one)
+        for k in adj[j]:
+            two |= adj[k]
+        out.append(np.array(sorted(two), dtype=np.int64))
+    return out
+
+
 def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None = None) -> JointConstraints:
     """Select the particles near each joint and record their rest distances."""
     params = params or JointParams()
@@ -84,6 +103,7 @@ def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None
     layer_ids = [LAYER_NAMES.index(n) for n in params.layers]
     v = layers.vertex_count
     radius = np.zeros(rig.joint_count)
+    near = _within_two_steps(parents)
     parts, joints, dists = [], [], []
     for j in chosen:  # joints are few
         # skin vertices whose projection foot is at this joint: the start of bone j, or the
@@ -98,9 +118,10 @@ def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None
                 continue
             radius[j] = float(np.quantile(d_skin[near], 0.05))
         r = params.radius_factor * radius[j]
-        # only the tissue on the two bones the joint links: a hand that hangs beside a leg at
-        # rest must not keep the leg's particles away from its wrist
-        own = np.isin(layers.bone, [j, parents[j]])
+        # only the tissue of the bones around the joint (within two steps of it in the
+        # skeleton): a hand that hangs beside a leg at rest must not keep the leg's particles
+        # away from its wrist
+        own = np.isin(layers.bone, near[j])
         for k in layer_ids:
             d = np.linalg.norm(layers.positions[k] - joint_rest[j], axis=1)
             sel = np.nonzero((d < r) & (d > 1e-9 * max(rig.size(), 1e-12)) & own)[0]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SimulationError
+from ..errors import SceneError, SimulationError
 from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..metrics import self_intersections, signed_volume
 from ..model import SkinModelBuilder
@@ -240,8 +240,8 @@ class _WrittenQuality:
             share = float(np.mean((d >= 0.99 * self.cap) & self.shown))
             self.capped.append(share)
             if problem is None and share > self.params.max_capped:
-                problem = (f"frame {f}: {100 * share:.1f} % of the simulated skin (where it shows in the written "
-                           f"meshes) is held at the tether's cap "
+                problem = (f"frame {f}: the skin left its plausible range: {100 * share:.1f} % of the simulated skin "
+                           f"(where it shows in the written meshes) is held at the tether's cap "
                            f"({self.cap:.3g} m from LBS, tether_max {self.params.tether_max:g}; max_capped "
                            f"{100 * self.params.max_capped:g} %): an explosion the cap hides")
         if problem is None:
