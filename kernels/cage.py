@@ -49,3 +49,23 @@ def inside_kernel(
     inside[i] = 0
     if q.result and q.sign < 0.0:
         inside[i] = 1
+
+
+@wp.kernel
+def closest_face_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    # outputs
+    face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+):
+    """The closest cage triangle to each point, with the barycentric weights of its three
+    vertices (Warp's (u, v) are the weights of the first two)."""
+    i = wp.tid()
+    q = wp.mesh_query_point_no_sign(mesh, points[i], max_dist)
+    if q.result:
+        face[i] = q.face
+        bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    else:
+        face[i] = -1

@@ -113,7 +113,8 @@ def run_build_bench(targets: list[str]) -> dict:
 def _cage_build(rig) -> dict:
     """An automatic cage around the rig's meshes (what ``simulate --cage`` builds first): its
     vertices and seconds per stage, with the render points it was built around; the cage's
-    multi-layer model (``model_s``) and the embedding per frame against the render skin's LBS."""
+    capture (``capture_s``) and the written points' deformation per frame against the render
+    skin's LBS kernel."""
     from .preprocess.cage import build_cage, character_soup
 
     soup = character_soup(rig)
@@ -122,38 +123,35 @@ def _cage_build(rig) -> dict:
     cage = build_cage(soup.points, soup.triangles)
     row = {"render_points": int(len(soup.points)), "vertices": int(len(cage.vertices)), "build_s": cage.build_s,
            **{f"{k}_s": v for k, v in cage.timings_s.items()}}
-    # per frame: the render points from the cage (the embedding's launch, the normals from the
-    # cage's fat layer as a simulation binds it), against the LBS kernel of the render skin, both
-    # on the CPU device and on device-resident inputs
-    from .embedding import Embedding
-    from .model import SkinModelBuilder
-    from .preprocess.cage import cage_rig
+    # per frame: the written points through the cage (the displacement and deformation
+    # launches of warpskin.character) against the LBS kernel of the render skin, both on the
+    # CPU device and on device-resident inputs
+    from .character import Character
     from .rig import Clip
     from .skinning import Skinner
 
     dev = wp.get_device("cpu")
     t0 = time.perf_counter()
-    fat = SkinModelBuilder(cage_rig(rig, cage)[0]).build().layers.positions[1][: len(cage.vertices)]
-    row["model_s"] = time.perf_counter() - t0
-    emb = Embedding(soup.points, cage.vertices, cage.triangles, inner=fat, device=dev)
-    x = wp.array(np.concatenate([cage.vertices, fat]).astype(np.float32), dtype=wp.vec3, device=dev)
-    emb.evaluate(x)
+    character = Character(rig, cage="always", device=dev)
+    character.bind(device=dev)
+    row["capture_s"] = time.perf_counter() - t0
+    deformer = character._deformer
+    rest = Clip("rest")
+    rng = np.random.default_rng(0)
+    x_host = character.cage_surface.vertices + rng.normal(scale=1e-3 * character.edge(), size=character.cage_surface.vertices.shape)
+    x = wp.array(x_host.astype(np.float32), dtype=wp.vec3, device=dev)
+    deformer.evaluate(x, rest, 0.0)
     lbs = Skinner(rig, method="lbs", device=str(dev))
-    lbs.skin(rig.skinning_matrices(Clip("rest"), 0.0))
-    # the cage on its own (no layers): its surface normals gathered per frame first
-    alone = Embedding(soup.points, cage.vertices, cage.triangles, device=dev)
-    xs = wp.array(cage.vertices.astype(np.float32), dtype=wp.vec3, device=dev)
-    alone.evaluate(xs)
-    # sub-millisecond launches: the best of many short blocks, the three taken in turn so that a
+    lbs.skin(rig.skinning_matrices(rest, 0.0))
+    # sub-millisecond launches: the best of many short blocks, the two taken in turn so that a
     # busy spell of the machine meets each of them alike
-    timed = {"embedding_ms": lambda f: emb.evaluate(x), "embedding_surface_normals_ms": lambda f: alone.evaluate(xs),
-             "render_lbs_kernel_ms": lambda f: lbs.launch()}
+    timed = {"deformation_ms": lambda f: deformer.launch(x), "render_lbs_kernel_ms": lambda f: lbs.launch()}
     row.update({key: float("inf") for key in timed})
     for _ in range(15):
         for key, fn in timed.items():
             row[key] = min(row[key], _best_ms(fn, 100, 1, dev))
     row["render_lbs_vertices"] = int(rig.vertex_count)
-    row["embedding_over_lbs"] = row["embedding_ms"] / row["render_lbs_kernel_ms"]
+    row["deformation_over_lbs"] = row["deformation_ms"] / row["render_lbs_kernel_ms"]
     return row
 
 

@@ -81,6 +81,8 @@ class Capture:
         physics_weight: ``[N]`` in [0, 1].
         thickness: ``[N]`` shape diameter [m] (inf where a ray found no other side).
         confidence: ``[N]`` skinning similarity of the capture, in [0, 1].
+        group: ``[N]`` the group of points that move as a whole (one capture row, one weight),
+            or -1.
         notes: What set weights to 0 or moved pieces as a whole, for the run's summary.
     """
 
@@ -89,7 +91,23 @@ class Capture:
     physics_weight: np.ndarray
     thickness: np.ndarray
     confidence: np.ndarray
+    group: np.ndarray | None = None
     notes: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.group is None:
+            self.group = np.full(self.indices.shape[0], -1, dtype=np.int64)
+
+    def uniform_in_groups(self, phi: np.ndarray) -> np.ndarray:
+        """``phi`` with every group's points at the group's mean (so the group still moves by
+        one translation)."""
+        phi = np.asarray(phi, dtype=np.float64).copy()
+        sel = self.group >= 0
+        if sel.any():
+            _, g = np.unique(self.group[sel], return_inverse=True)
+            mean = np.bincount(g, weights=phi[sel]) / np.bincount(g)
+            phi[sel] = mean[g]
+        return phi
 
 
 def _smoothstep(x, a: float, b: float):
@@ -357,7 +375,7 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     idx, w = _top_k(cap, prm.count)
     phi = np.clip(phi, 0.0, 1.0)
     return Capture(indices=idx[cls], weights=w[cls], physics_weight=phi[cls], thickness=thickness[cls],
-                   confidence=confidence[cls], notes=notes)
+                   confidence=confidence[cls], group=group[cls], notes=notes)
 
 
 def identity_capture(count: int, physics_weight: np.ndarray | None = None) -> Capture:

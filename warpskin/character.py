@@ -73,6 +73,12 @@ class Character:
             with the cage around them (``"cage"``) or follow their joints exactly
             (``"joint"``).
         capture: :class:`~warpskin.capture.CaptureParams`.
+        weights: Physics-weight overrides by joint-name pattern (shell-style, case-insensitive;
+            the first that matches a joint wins): a point's weight becomes the blend, by its
+            LBS weights, of its joints' values (the automatic weight for joints no pattern
+            names), so the override is as smooth as the skinning. A map painted in the file
+            (glTF attribute ``_PHYSICS_WEIGHT``, USD primvar ``physicsWeight``) replaces the
+            automatic weight where it is given; the patterns apply after it.
         device: Warp device of the cage's construction and the deformation.
     """
 
@@ -80,6 +86,7 @@ class Character:
     cage: str | Path = "auto"
     rigid_pieces: str = "cage"
     capture: CaptureParams | None = None
+    weights: dict | None = None
     device: object = None
     sim_rig: object = field(init=False)
     caged: bool = field(init=False)
@@ -194,10 +201,52 @@ class Character:
                 phi[:c][builder.layers.unresolved[:c]] = 0.0
             cap = identity_capture(n, phi)
 
+        cap.physics_weight = cap.uniform_in_groups(self._overridden(cap.physics_weight))
         self.capture_result = cap
         self._deformer = _Deformer(self, cap, device=device or self.device) if self.caged else None
         self.build_s += time.perf_counter() - t0
         return cap
+
+    def painted(self) -> np.ndarray:
+        """``[N]`` the file's painted physics weight of every written point (NaN: none)."""
+        out = np.full(self.point_count, np.nan)
+        rig = self.rig
+        for p in self.parts:
+            render = rig.render if p.attachment is None else p.attachment.render
+            w = getattr(render, "physics_weight", None) if render is not None else None
+            if w is None:
+                continue
+            w = np.asarray(w, dtype=np.float64)
+            if p.attachment is None:  # per file vertex: onto the welded skin (its first copy's)
+                first = np.full(p.count, np.nan)
+                order = np.arange(len(rig.weld_map))[::-1]
+                first[rig.weld_map[order]] = w[order]
+                w = first
+            out[p.start:p.start + p.count] = w
+        return out
+
+    def _overridden(self, phi: np.ndarray) -> np.ndarray:
+        """The automatic weights ``phi`` with the painted map and the joint patterns applied."""
+        import fnmatch
+
+        phi = np.asarray(phi, dtype=np.float64).copy()
+        painted = self.painted()
+        given = ~np.isnan(painted)
+        phi[given] = painted[given]
+        if self.weights:
+            names = self.rig.skeleton.joint_names
+            value = np.full(len(names), np.nan)
+            for pattern, v in self.weights.items():
+                hit = [j for j, name in enumerate(names)
+                       if np.isnan(value[j]) and fnmatch.fnmatchcase(name.lower(), str(pattern).lower())]
+                value[hit] = float(v)
+            if not (~np.isnan(value)).any():
+                raise SceneError(f"[physics.weights]: no joint matches {sorted(self.weights)} (joints: "
+                                 f"{', '.join(names[:8])}{', ...' if len(names) > 8 else ''})")
+            dense = self.soup.dense_weights
+            set_share = dense[:, ~np.isnan(value)].sum(axis=1)
+            phi = (1.0 - set_share) * phi + dense[:, ~np.isnan(value)] @ value[~np.isnan(value)]
+        return np.clip(phi, 0.0, 1.0)
 
     # ------------------------------------------------------------------ per frame
     def lbs(self, clip, t: float) -> np.ndarray:
@@ -317,6 +366,7 @@ class _Deformer:
             self.displacement = wp.zeros(v, dtype=wp.vec3)
             self.out = wp.zeros(n, dtype=wp.vec3)
         self.sim_vertex_count = v
+        self._cmds: dict = {}
 
     def matrices(self, clip, t: float) -> tuple[np.ndarray, np.ndarray]:
         """The written meshes' stacked skinning matrices ``[M * J, 4, 4]`` and the simulation
@@ -328,17 +378,33 @@ class _Deformer:
         return np.concatenate(stack), c.sim_rig.skinning_matrices(clip, t)
 
     def evaluate(self, x, clip, t: float):
+        """The written points at clip time ``t`` for the simulation's positions ``x`` (device)."""
+        render, sim = self.matrices(clip, t)
+        self.render_mats.assign(render.astype(np.float32))
+        self.sim_mats.assign(sim.astype(np.float32))
+        return self.launch(x)
+
+    def launch(self, x):
+        """The two launches on the matrices last set (recorded once per positions array: a
+        simulation alternates between its two states')."""
         import warp as wp
 
         from .kernels import deform as k
 
-        render, sim = self.matrices(clip, t)
-        self.render_mats.assign(render.astype(np.float32))
-        self.sim_mats.assign(sim.astype(np.float32))
-        wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
-                  inputs=[x, self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
-                  outputs=[self.displacement], device=self.device)
-        wp.launch(k.deform_kernel, dim=self.out.shape[0],
-                  inputs=[self.bind_points, self.influences, self.ji, self.jw, self.render_mats, self.cap_count, self.cap_i,
-                          self.cap_w, self.phi, self.displacement], outputs=[self.out], device=self.device)
+        hit = self._cmds.get(id(x))
+        if hit is None or hit[0] is not x:
+            if len(self._cmds) >= 4:
+                self._cmds.clear()
+            cmds = (
+                wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
+                          inputs=[x, self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
+                          outputs=[self.displacement], device=self.device, record_cmd=True),
+                wp.launch(k.deform_kernel, dim=self.out.shape[0],
+                          inputs=[self.bind_points, self.influences, self.ji, self.jw, self.render_mats, self.cap_count,
+                                  self.cap_i, self.cap_w, self.phi, self.displacement], outputs=[self.out],
+                          device=self.device, record_cmd=True),
+            )
+            hit = self._cmds[id(x)] = (x, cmds)  # holds x, so its id stays its own
+        for cmd in hit[1]:
+            cmd.launch()
         return self.out

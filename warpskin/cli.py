@@ -118,6 +118,18 @@ def _count(flag: str, lowest: int):
     return parse
 
 
+def _weight_arg(text: str) -> tuple[str, float]:
+    """An argparse type: ``PATTERN=W`` with ``W`` in [0, 1]."""
+    pattern, eq, value = text.rpartition("=")
+    try:
+        w = float(value)
+    except ValueError:
+        w = math.nan
+    if not eq or not pattern or not (0.0 <= w <= 1.0):
+        raise argparse.ArgumentTypeError(f"--physics-weight must be PATTERN=W with W in [0, 1], got {text!r}")
+    return pattern, w
+
+
 def _cage_arg(text: str):
     """An argparse type: ``auto``, ``always``, ``none``, or an existing cage mesh file."""
     from .io.cage_file import CAGE_EXTENSIONS
@@ -193,11 +205,11 @@ def cmd_info(args) -> int:
     if out["other_meshes"]:
         print(f"other meshes following the skeleton ({len(out['other_meshes'])}): {', '.join(out['other_meshes'])}")
     how = ("its skin directly (closed, manifold)" if out["simulation"] == "direct"
-           else "an automatic closed cage around it, every mesh embedded (the skin is not one closed manifold)")
+           else "an automatic closed cage around it, every mesh captured by it (the skin is not one closed manifold)")
     print(f"simulate would use: {how}")
     if out["rigid_pieces"]:
         print(f"rigid pieces (meshes or parts that LBS moves rigidly, one joint each): {out['rigid_pieces']}; through a "
-              "cage they move as rigid bodies with their cage region (--rigid-pieces joint: with their joints)")
+              "cage they move by one translation with the cage around them (--rigid-pieces joint: with their joints)")
     print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
@@ -290,6 +302,7 @@ def cmd_simulate(args) -> int:
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
         start_frame=args.start_frame, topology=args.topology, cage=args.cage, rigid_pieces=args.rigid_pieces,
+        physics_weights=dict(args.physics_weight or []),
     )
     s = result.summary
     if args.json:
@@ -301,8 +314,14 @@ def cmd_simulate(args) -> int:
         f"LBS {100 * s['max_volume_deviation_lbs']:.2f} %"
     )
     print(line)
+    # what was written: each mesh's worst frame against its own LBS
+    for name, r in s["written"].items():
+        pairs = f", pairs {r['max_pairs']} (LBS {r['max_pairs_lbs']})" if "max_pairs" in r else ""
+        print(f"  {name}: edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
+              f"flipped {100 * r['max_flipped']:.2f} %{pairs}, offset {r['max_offset']:.3g} m, physics weight "
+              f"{s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}")
     if "max_intersecting_pairs" in s:
-        print(f"intersecting skin triangle pairs (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
+        print(f"intersecting pairs of the simulated surface (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
               f"LBS {s['max_intersecting_pairs_lbs']}")
         if s["intersecting_pairs_first_frame"]:
             hint = "" if s["preroll_steps"] else "; --preroll 0.5 reaches it from the bind pose instead"
@@ -473,14 +492,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
     s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
-                   help="simulate an automatic closed cage and write every mesh embedded in it: where the skin is not "
+                   help="simulate an automatic closed cage and write every mesh as its LBS plus the cage's physical "
+                        "deformation captured near it: where the skin is not "
                         "one closed manifold (auto, the default), always (its other meshes too), or never; or FILE, "
                         "your own closed cage (.obj, .glb, .gltf, .usd, .usda, .usdc, .usdz) around the character's "
                         "rest pose, in the character file's units")
     s.add_argument("--rigid-pieces", choices=["cage", "joint"], default="cage",
                    help="through a cage, the pieces LBS moves rigidly (eyes or teeth skinned to one joint, rigidly "
-                        "parented parts): rigid bodies moving with the cage region they lie in (cage, the default) "
+                        "parented parts): moved by one translation with the cage around them (cage, the default) "
                         "or following their joints exactly (joint)")
+    s.add_argument("--physics-weight", type=_weight_arg, action="append", metavar="PATTERN=W",
+                   help="the physics weight (0: LBS, 1: physical) of the skin the joints matching PATTERN drive, e.g. "
+                        "'*hand*=0' (repeatable; scene: [physics.weights])")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
     s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
     s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")

@@ -78,6 +78,8 @@ _SCHEMA: dict[str, set[str]] = {
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
                   "fold_cos", "rebuild_spread", "volume_weight", "fail_safe_rounds"},
+    # what is written: the physics weight (0 LBS, 1 physical) by joint-name pattern
+    "physics": {"weights"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }
@@ -224,6 +226,20 @@ class Scene:
         params = CollisionParams(**table)
         params.check(where)
         return params
+
+    def physics_weights(self) -> dict[str, float]:
+        """``[physics.weights]``: joint-name patterns (shell-style, case-insensitive: ``"*hand*"``)
+        and the physics weight in [0, 1] of the skin their joints drive
+        (:class:`~warpskin.character.Character`), in the file's order."""
+        table = self.extra.get("physics", {}).get("weights", {})
+        where = _where(self.source)
+        if not isinstance(table, dict):
+            raise SceneError(f"{where}: [physics.weights] must be a table of joint-name patterns and weights")
+        for key, value in table.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0.0 <= value <= 1.0):
+                raise SceneError(f"{where}: [physics.weights] {key!r} must be a weight in [0, 1] (0: LBS, 1: physical), "
+                                 f"got {value!r}")
+        return {str(k): float(v) for k, v in table.items()}
 
     def input_paths(self) -> list[Path]:
         """The files this scene reads: its TOML (or rig) file and the rig file it names."""

@@ -54,12 +54,16 @@ class RenderAttributes:
         materials: The mesh's materials (possibly empty).
         triangle_material: ``[T]`` index into ``materials`` per file triangle (``-1``: none),
             or ``None`` when there is no material.
+        physics_weight: ``[N]`` a painted physics weight per file vertex in [0, 1] (glTF
+            attribute ``_PHYSICS_WEIGHT``, USD primvar ``physicsWeight``; NaN where a part of
+            the mesh has none), or ``None`` (:mod:`warpskin.character`).
     """
 
     uvs: np.ndarray | None = None
     normals: np.ndarray | None = None
     materials: list[Material] = field(default_factory=list)
     triangle_material: np.ndarray | None = None
+    physics_weight: np.ndarray | None = None
 
     def check(self, file_vertex_count: int, triangle_count: int, where: str) -> None:
         from ..rig import RigError
@@ -69,6 +73,15 @@ class RenderAttributes:
                 raise RigError(f"{where}: texture coordinates must be finite, [{triangle_count}, 3, 2]; got {self.uvs.shape}")
         if self.normals is not None and self.normals.shape != (file_vertex_count, 3):
             raise RigError(f"{where}: normals must be [{file_vertex_count}, 3], got {self.normals.shape}")
+        if self.physics_weight is not None:
+            w = np.asarray(self.physics_weight, dtype=np.float64)
+            if w.shape != (file_vertex_count,):
+                raise RigError(f"{where}: the painted physics weight must be one per vertex ({file_vertex_count}), "
+                               f"got {w.shape}")
+            bad = np.nonzero(~np.isnan(w) & ((w < 0.0) | (w > 1.0) | ~np.isfinite(w)))[0]
+            if bad.size:
+                raise RigError(f"{where}: the painted physics weight of vertex {int(bad[0])} is {w[bad[0]]:g}, "
+                               "outside [0, 1]")
         if self.triangle_material is not None:
             tm = self.triangle_material
             if tm.shape != (triangle_count,) or (tm.size and (tm.min() < -1 or tm.max() >= len(self.materials))):
@@ -81,6 +94,7 @@ class RenderAttributes:
             normals=self.normals,
             materials=list(self.materials),
             triangle_material=None if self.triangle_material is None else self.triangle_material[triangles],
+            physics_weight=self.physics_weight,
         )
 
 

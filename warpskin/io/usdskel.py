@@ -470,8 +470,16 @@ def _read_render(pxr: Any, tg: _Target, where: _Where, t0: Any, n: int, tri: np.
         faces = np.asarray(subset.GetIndicesAttr().Get(t0) or [], dtype=np.int64)
         if k >= 0 and faces.size:
             tri_mat[np.isin(face, faces)] = k
+    paint = None
+    ppv = api.GetPrimvar("physicsWeight")
+    if ppv and ppv.HasValue():
+        values = np.asarray(ppv.ComputeFlattened(t0), dtype=np.float64).ravel()
+        if str(ppv.GetInterpolation()) not in ("vertex", "varying") or values.shape[0] != n:
+            raise where.error(f"primvars:physicsWeight must be one float per point (vertex interpolation, {n}), got "
+                              f"{values.shape[0]} values, {ppv.GetInterpolation()}")
+        paint = values
     return RenderAttributes(uvs=uvs, normals=normals, materials=materials,
-                            triangle_material=tri_mat if materials else None)
+                            triangle_material=tri_mat if materials else None, physics_weight=paint)
 
 
 def _usd_material(pxr: Any, material: Any, where: _Where) -> Material:

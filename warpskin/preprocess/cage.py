@@ -74,7 +74,7 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
     Args:
         edge: Grid spacing [m]; default :func:`default_cage_edge`.
         offset: The iso-level, in grid spacings outside the surface (the cage encloses the
-            character by about this much; the embedding carries the rest).
+            character by about this much).
         smooth_iterations: Taubin lambda/mu passes.
         device: Warp device for the field.
         max_grid: Largest number of grid nodes along an axis (a memory bound; a finer request
@@ -463,7 +463,7 @@ def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup
     import scipy.sparse.linalg as spla
     import warp as wp
 
-    from ..kernels import embedding as k_emb
+    from ..kernels import cage as k_cage
 
     cv = np.asarray(cage_vertices, dtype=np.float64)
     n = cv.shape[0]
@@ -472,7 +472,7 @@ def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup
                        indices=wp.array(soup.triangles.astype(np.int32).ravel(), dtype=wp.int32))
         face = wp.zeros(n, dtype=wp.int32)
         bary = wp.zeros(n, dtype=wp.vec3)
-        wp.launch(k_emb.closest_face_kernel, dim=n, inputs=[mesh.id, wp.array(cv.astype(np.float32), dtype=wp.vec3),
+        wp.launch(k_cage.closest_face_kernel, dim=n, inputs=[mesh.id, wp.array(cv.astype(np.float32), dtype=wp.vec3),
                                                             float(max_distance)], outputs=[face, bary])
         face, bary = face.numpy(), bary.numpy().astype(np.float64)
     matched = face >= 0

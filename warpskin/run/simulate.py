@@ -276,6 +276,7 @@ def simulate(
     topology: str = "file",
     cage: str | Path = "auto",
     rigid_pieces: str = "cage",
+    physics_weights: dict[str, float] | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -297,10 +298,15 @@ def simulate(
     A first pose whose LBS skin already passes through itself is then reached by collision
     instead of started from; nothing of the pre-roll is written.
 
-    Every frame is checked against its plausible range before it is written: the skin within
-    ``max_offset`` x the body's diagonal of LBS, the whole and every sub-volume within
-    ``max_volume_error`` of the rest volume (or twice LBS's own error, where LBS is worse).
-    ``allow_unstable`` turns a violation into one warning and goes on.
+    Every frame is checked against its plausible range before it is written: the simulated skin
+    within ``max_offset`` x the body's diagonal of LBS, the whole and every sub-volume within
+    ``max_volume_error`` of the rest volume (or twice LBS's own error, where LBS is worse), at
+    most ``max_capped`` of it held at the tether's cap; and every mesh written with physics
+    (:mod:`warpskin.quality`): at most ``max_strained`` more of its edges strained past 1.5x
+    than its LBS, at most ``max_flipped`` of its triangles flipped against LBS, and not many
+    more intersecting pairs than LBS. ``allow_unstable`` turns a violation into one warning and
+    goes on. The summary's ``written`` holds each written mesh's worst figures, report.json
+    their series.
 
     Frames are the source's time codes (``frame / fps`` seconds, at the clip's own rate unless
     the scene sets ``fps``); ``start_frame`` writes the first frame at that time code instead.
@@ -309,16 +315,20 @@ def simulate(
 
     ``cage``: ``"auto"`` (default) simulates an automatic closed cage around the character
     (:func:`~warpskin.preprocess.cage.build_cage`, weights transferred) where its skin is not
-    one closed manifold, and writes every mesh embedded in it
-    (:class:`~warpskin.embedding.Embedding`) with the cage as a guide; a closed skin is
-    simulated directly, its other meshes (attachments) following their joints by LBS.
+    one closed manifold, and writes every mesh as its own LBS plus the cage's physical
+    deformation captured near it (:class:`~warpskin.character.Character`,
+    :mod:`warpskin.capture`) with the cage as a guide; a closed skin is simulated directly, its
+    other meshes (attachments) following their joints by LBS.
     ``"always"`` cages any character (its attachments too); ``"none"`` never (the skin must
     then be closed). A mesh file (:data:`~warpskin.io.cage_file.CAGE_EXTENSIONS`) is the user's
     own cage, used as the automatic one would be
     (:func:`~warpskin.preprocess.cage.cage_from_mesh`: closed, manifold, around the rest pose,
     in the character file's units). ``rigid_pieces``: through a cage, the pieces that LBS moves
-    rigidly (eyes or teeth skinned to one joint, rigidly parented parts) move as rigid bodies with
-    the cage region they lie in (``"cage"``, default) or follow their joints (``"joint"``).
+    rigidly (eyes or teeth skinned to one joint, rigidly parented parts) move by one translation
+    with the cage around them (``"cage"``, default) or follow their joints (``"joint"``).
+    ``physics_weights``: ``{joint-name pattern: weight}`` overrides of the physics weight (0:
+    LBS, 1: physical), before the scene's ``[physics.weights]``
+    (:class:`~warpskin.character.Character`).
 
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
@@ -348,7 +358,10 @@ def simulate(
     preroll = scene.preroll if preroll is None else float(preroll)
     t_build = time.perf_counter()
     render = rig  # what is written
+    weights = {**(physics_weights or {}), **{k: v for k, v in scene.physics_weights().items()
+                                              if k not in (physics_weights or {})}}
     character = Character(rig, cage="none" if builder is not None else (cage_file or cage), rigid_pieces=rigid_pieces,
+                          weights=weights or None,
                           device=device)
     caged = character if character.caged else None
     rig = character.sim_rig

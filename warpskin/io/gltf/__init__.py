@@ -216,7 +216,8 @@ def _render_attributes(doc: _Document, triangles: np.ndarray, attrs: dict) -> Re
     lookup = np.full(max(used, default=-1) + 2, -1, dtype=np.int64)
     lookup[used] = np.arange(len(used))
     return RenderAttributes(uvs=uvs, normals=attrs["normal"], materials=materials,
-                            triangle_material=lookup[attrs["material"]] if used else None)
+                            triangle_material=lookup[attrs["material"]] if used else None,
+                            physics_weight=attrs.get("physics_weight"))
 
 
 def _material(doc: _Document, index: int) -> Material:

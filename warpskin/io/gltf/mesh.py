@@ -126,14 +126,15 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str, *, skinned: bool = T
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
     """Concatenated points ``[N, 3]``, triangles ``[T, 3]``, joint indices and weights ``[N, K]``,
     and the render attributes: ``{"uv": [N, 2] or None, "normal": [N, 3] or None,
-    "material": [T] glTF material index (-1: none)}``. With ``skinned=False`` (a mesh parented
+    "material": [T] glTF material index (-1: none), "physics_weight": [N] or None}`` (the
+    custom attribute ``_PHYSICS_WEIGHT``, SCALAR float). With ``skinned=False`` (a mesh parented
     rigidly to a joint) the joint arrays are empty ``[N, 0]``."""
     mesh = doc.meshes[mesh_index]
     prims = list(mesh.primitives or [])
     if not prims:
         raise doc.error(f"mesh {label!r} has no primitives")
     pts, tris, jis, jws = [], [], [], []
-    uvs, nrms, mats = [], [], []
+    uvs, nrms, mats, paint = [], [], [], []
     base = 0
     for p, prim in enumerate(prims):
         what = f"mesh {label!r} primitive {p}"
@@ -190,6 +191,7 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str, *, skinned: bool = T
         pts.append(pos)
         uvs.append(_optional(doc, attrs, "TEXCOORD_0", 2, n, what))
         nrms.append(_optional(doc, attrs, "NORMAL", 3, n, what))
+        paint.append(_optional(doc, attrs, "_PHYSICS_WEIGHT", 1, n, what))
         material = prim.material
         mats.append(np.full(tri.shape[0], material if isinstance(material, int) and not isinstance(material, bool)
                             else -1, dtype=np.int64))
@@ -212,6 +214,9 @@ def _read_mesh(doc: _Document, mesh_index: int, label: str, *, skinned: bool = T
         if any(u is not None for u in uvs) else None,
         "normal": np.concatenate(nrms) if all(v is not None for v in nrms) else None,
         "material": np.concatenate(mats),
+        # a painted physics weight (NaN in primitives that have none)
+        "physics_weight": np.concatenate([w.ravel() if w is not None else np.full(q.shape[0], np.nan)
+                                          for w, q in zip(paint, pts)]) if any(w is not None for w in paint) else None,
     }
     return np.concatenate(pts), np.concatenate(tris), np.concatenate(jis), np.concatenate(jws), render
 
