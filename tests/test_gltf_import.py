@@ -6,7 +6,6 @@ Small glTF files are generated in ``tmp_path`` with pygltflib; nothing is writte
 
 from __future__ import annotations
 
-import base64
 import json
 import math
 import warnings
@@ -17,113 +16,22 @@ import numpy as np
 import pytest
 from pygltflib import (
     GLTF2,
-    Accessor,
     AccessorSparseIndices,
     AccessorSparseValues,
-    Animation,
-    AnimationChannel,
-    AnimationChannelTarget,
-    AnimationSampler,
-    Asset,
     Attributes,
-    Buffer,
-    BufferView,
     Mesh,
     Node,
     Primitive,
-    Scene,
     Skin,
     Sparse,
 )
 from scipy.spatial.transform import Rotation, Slerp
 
+from gltf_builder import _NP, FLOAT, UBYTE, UINT, USHORT, GltfBuilder
 from oracles import gltf_reference_points, lbs, rig_lbs
 from warpskin.io.gltf import list_gltf_meshes, load_gltf
 from warpskin.rig import RigError, RigWarning
 
-BYTE, UBYTE, SHORT, USHORT, UINT, FLOAT = 5120, 5121, 5122, 5123, 5125, 5126
-_NP = {BYTE: np.int8, UBYTE: np.uint8, SHORT: np.int16, USHORT: np.uint16, UINT: np.uint32, FLOAT: np.float32}
-_TYPES = {1: "SCALAR", 2: "VEC2", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
-
-
-# --------------------------------------------------------------------------------------------
-# A tiny glTF writer
-# --------------------------------------------------------------------------------------------
-
-
-class GltfBuilder:
-    """Accumulates one binary buffer and the glTF objects that point into it."""
-
-    def __init__(self) -> None:
-        self.blob = bytearray()
-        self.g = GLTF2(
-            asset=Asset(version="2.0"),
-            scene=0,
-            scenes=[Scene(nodes=[])],
-            buffers=[],
-            bufferViews=[],
-            accessors=[],
-            nodes=[],
-            meshes=[],
-            skins=[],
-            animations=[],
-        )
-
-    def view(self, raw: bytes, stride: int | None = None) -> int:
-        self.blob.extend(b"\0" * (-len(self.blob) % 4))
-        self.g.bufferViews.append(
-            BufferView(buffer=0, byteOffset=len(self.blob), byteLength=len(raw), byteStride=stride)
-        )
-        self.blob.extend(raw)
-        return len(self.g.bufferViews) - 1
-
-    def accessor(self, data: Any, ctype: int = FLOAT, normalized: bool = False, atype: str | None = None) -> int:
-        arr = np.asarray(data)
-        arr2 = arr.reshape(arr.shape[0], -1)
-        view = self.view(arr2.astype(_NP[ctype]).tobytes())
-        return self.raw_accessor(view, ctype, arr2.shape[0], atype or _TYPES[arr2.shape[1]], normalized=normalized)
-
-    def raw_accessor(
-        self, view: int | None, ctype: int, count: int, atype: str, offset: int = 0, normalized: bool = False
-    ) -> int:
-        acc = Accessor(bufferView=view, byteOffset=offset, componentType=ctype, count=count, type=atype)
-        acc.normalized = normalized
-        self.g.accessors.append(acc)
-        return len(self.g.accessors) - 1
-
-    def node(self, **kw: Any) -> int:
-        self.g.nodes.append(Node(**kw))
-        return len(self.g.nodes) - 1
-
-    def animation(self, name: str | None, channels: list[tuple[int, str, Any, Any, str]]) -> None:
-        """``channels``: ``(node, path, times, values, interpolation)``."""
-        anim = Animation(name=name, channels=[], samplers=[])
-        for node, path, times, values, interp in channels:
-            t = self.accessor(np.asarray(times, dtype=np.float64).reshape(-1, 1))
-            v = self.accessor(np.asarray(values, dtype=np.float64).reshape(-1, {"rotation": 4}.get(path, 3)))
-            anim.samplers.append(AnimationSampler(input=t, output=v, interpolation=interp))
-            anim.channels.append(
-                AnimationChannel(sampler=len(anim.samplers) - 1, target=AnimationChannelTarget(node=node, path=path))
-            )
-        self.g.animations.append(anim)
-
-    def save(self, path: Path, kind: str = "glb") -> Path:
-        """``kind``: ``"glb"``, ``"embedded"`` (data: URI) or ``"external"`` (``<stem>.bin``)."""
-        data = bytes(self.blob) + b"\0" * (-len(self.blob) % 4)
-        if kind == "glb":
-            self.g.buffers = [Buffer(byteLength=len(data))]
-            self.g.set_binary_blob(data)
-            self.g.save_binary(str(path))
-        elif kind == "embedded":
-            uri = "data:application/octet-stream;base64," + base64.b64encode(data).decode()
-            self.g.buffers = [Buffer(uri=uri, byteLength=len(data))]
-            path.write_text(self.g.to_json())
-        else:
-            bin_path = path.with_suffix(".bin")
-            bin_path.write_bytes(data)
-            self.g.buffers = [Buffer(uri=bin_path.name, byteLength=len(data))]
-            path.write_text(self.g.to_json())
-        return path
 
 
 # box: x, y in [-0.5, 0.5], z in [0, 2]; corner index = 4 * zi + 2 * yi + xi

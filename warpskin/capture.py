@@ -14,10 +14,10 @@ mesh's own connectivity and skinning:
    arm, counts for nothing), times how much they face the same way (the far side of a fist
    does not capture its front).
 2. **Smoothing within the piece**: the captures of the written points within ``smooth`` cage
-   edges of each other *in the same connected piece of the same mesh* (and skinned alike,
-   facing alike) are averaged with the same kernel, so the carried field is smooth over the
-   written surface and never bleeds between pieces (fingers, the two legs, a glove and its
-   arm).
+   edges of each other *in the same piece of the same mesh* (a connected piece, or pieces of
+   one mesh that touch: a segmented limb) that are skinned alike and face alike are averaged
+   with the same kernel, so the carried field is smooth over the written surface and never
+   bleeds between parts (fingers, the two legs, another mesh).
 3. **Pieces that move as a whole**: a piece, or an assembly of pieces of one mesh that touch
    (a fist's knuckles on its palm), smaller than ``small`` cage edges (a button, a toe cap, a
    fist) and a piece LBS moves rigidly (an eye, rigidly parented armour) take one
@@ -326,8 +326,10 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     confidence = np.asarray(raw.multiply(sim_m).sum(axis=1)).ravel()
     confidence[unmatched] = 0.0
 
-    # 2. smoothing within each piece, between points skinned and facing alike
-    smooth = _smoothing(q, wq, nq, piece, prm.smooth * h)
+    # 2. smoothing within each assembly (the pieces of one mesh that touch: a segmented limb),
+    # between points skinned and facing alike (never across to a finger beside it)
+    assembly = _assemblies(q, piece, np.asarray(mesh_of_point)[first], 0.5 * h)
+    smooth = _smoothing(q, wq, nq, assembly, prm.smooth * h)
     cap = _row_normalised(smooth @ raw)
 
     # physics weight: thick enough, captured confidently, not excluded
@@ -348,7 +350,6 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     # 3. pieces that move as a whole: small assemblies (pieces of one mesh touching each other,
     # a fist's knuckles on its palm) and rigid pieces take their mean row and weight
     group = np.full(c, -1, dtype=np.int64)
-    assembly = _assemblies(q, piece, mesh_of_point[first], 0.5 * h)
     lo = np.full((assembly.max() + 1, 3), np.inf)
     hi = np.full((assembly.max() + 1, 3), -np.inf)
     np.minimum.at(lo, assembly, q)

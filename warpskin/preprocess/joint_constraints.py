@@ -103,7 +103,7 @@ def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None
     layer_ids = [LAYER_NAMES.index(n) for n in params.layers]
     v = layers.vertex_count
     radius = np.zeros(rig.joint_count)
-    near = _within_two_steps(parents)
+    around = _within_two_steps(parents)
     parts, joints, dists = [], [], []
     for j in chosen:  # joints are few
         # skin vertices whose projection foot is at this joint: the start of bone j, or the
@@ -121,7 +121,7 @@ def build_joint_constraints(rig: Rig, layers: Layers, params: JointParams | None
         # only the tissue of the bones around the joint (within two steps of it in the
         # skeleton): a hand that hangs beside a leg at rest must not keep the leg's particles
         # away from its wrist
-        own = np.isin(layers.bone, near[j])
+        own = np.isin(layers.bone, around[j])
         for k in layer_ids:
             d = np.linalg.norm(layers.positions[k] - joint_rest[j], axis=1)
             sel = np.nonzero((d < r) & (d > 1e-9 * max(rig.size(), 1e-12)) & own)[0]

@@ -215,14 +215,15 @@ class _WrittenQuality:
     and the share of the simulated skin held at the tether's cap; either out of its range stops
     the run (:class:`SimulationError`) unless ``allow_unstable`` (one warning)."""
 
-    def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper) -> None:
+    def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper,
+                 measures: _Measurements) -> None:
         from ..quality import QualityLimits, QualityLog, WrittenMesh
 
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
         self.meshes = [WrittenMesh(p.name, p.triangles, p.rest, p.file_ids) for p in character.parts if p.physics]
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
         self.capped: list[float] = []
-        self.warned = False
+        self.measures = measures  # one warning per run, shared with the simulated surface's checks
         self.cap = params.tether_max * stepper.model.diagonal if params.tether > 0 else None
         # the simulated vertices that show in what is written (a thin part written as LBS may
         # rest at the cap without harm)
@@ -248,9 +249,9 @@ class _WrittenQuality:
             return
         if not self.allow_unstable:
             raise SimulationError(f"{problem}; lower dt, raise stiffness or iterations, or pass --allow-unstable")
-        if not self.warned:
+        if not self.measures.warned:
             warnings.warn(problem + "; continuing (--allow-unstable)", RuntimeWarning, stacklevel=2)
-            self.warned = True
+            self.measures.warned = True
 
 
 def simulate(
@@ -376,7 +377,7 @@ def simulate(
     stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
                              activation=activation, label="simulate", name=scene.name)
     measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
-    quality = _WrittenQuality(character, plan, params, allow_unstable, stepper)
+    quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures)
     sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
     n_out = sim.output_count
     tris = sim.output_triangles
