@@ -126,9 +126,13 @@ def usd_skinned_world(stage, mesh_path: str, tc: float) -> np.ndarray:
 
 def prim(stage, relative: str):
     """The prim at ``relative`` under a bake's root (its ``defaultPrim``, named after the
-    character)."""
+    character); ``skin`` and ``lbs`` name the character's skin and its LBS guide by their role
+    (the prims carry the file's mesh name, ``warpskin:role`` in their custom data)."""
     root = stage.GetDefaultPrim()
     assert root, "the stage has no defaultPrim"
+    for child in root.GetChildren():
+        if child.GetCustomDataByKey("warpskin:role") == relative:
+            return child
     return stage.GetPrimAtPath(root.GetPath().AppendPath(relative))
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from oracles import prim
 from warpskin.errors import RigError
 from warpskin.io.cage_file import read_cage_mesh
 
@@ -191,7 +192,7 @@ def test_cesium_man_simulates_through_a_cage_file(cesium, tmp_path, device):
     np.testing.assert_array_equal(np.asarray(guide.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3), cage.triangles)
     np.testing.assert_allclose(np.asarray(guide.GetPointsAttr().Get(Usd.TimeCode.Default()), dtype=np.float64),
                                cage.vertices, atol=1e-6 * rig.size())
-    skin = UsdGeom.Mesh(root.GetChild("skin"))
+    skin = UsdGeom.Mesh(prim(stage, "skin"))
     assert np.asarray(skin.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3).tolist() == rig.file_triangles.tolist()
     pts = np.asarray(skin.GetPointsAttr().Get(14))
     assert pts.shape == (rig.file_vertex_count, 3) and np.isfinite(pts).all()

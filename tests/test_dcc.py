@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom, UsdValidation
 
+from oracles import prim
 from warpskin.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,9 +60,9 @@ def test_every_kind_of_output_passes_usd_validation(name, tmp_path, request):
 # --------------------------------------------------------------------------------------------
 BLENDER_SCRIPT = r"""
 import bpy, json, sys
-path, frames = sys.argv[1], [int(f) for f in sys.argv[2].split(",")]
+path, frames, guides = sys.argv[1], [int(f) for f in sys.argv[2].split(",")], sys.argv[3] == "guides"
 bpy.ops.wm.read_factory_settings(use_empty=True)
-bpy.ops.wm.usd_import(filepath=path)
+bpy.ops.wm.usd_import(filepath=path, import_guide=guides)
 scene = bpy.context.scene
 out = {"fps": scene.render.fps / scene.render.fps_base, "frame_start": scene.frame_start,
        "frame_end": scene.frame_end, "objects": {}}
@@ -94,14 +95,16 @@ def _blender_python() -> Path:
     return path
 
 
-def _import_in_blender(tmp_path: Path, usd: Path, frames: list[int]) -> dict:
+def _import_in_blender(tmp_path: Path, usd: Path, frames: list[int], *, guides: bool = False) -> dict:
     script = tmp_path / "import_usd.py"
     script.write_text(BLENDER_SCRIPT)
-    run = subprocess.run([str(_blender_python()), str(script), str(usd), ",".join(map(str, frames))],
-                         capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    run = subprocess.run([str(_blender_python()), str(script), str(usd), ",".join(map(str, frames)),
+                          "guides" if guides else "no-guides"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     line = next(ln for ln in run.stdout.splitlines() if ln.startswith("JSON:"))
-    return json.loads(line[5:])
+    out = json.loads(line[5:])
+    out["log"] = run.stdout + run.stderr
+    return out
 
 
 def _usd_y_up(blender_points) -> np.ndarray:
@@ -131,8 +134,8 @@ def test_blender_imports_a_bake_as_written(kind, tmp_path, request):
     else:
         assert rate == 30.0
     stage = Usd.Stage.Open(str(out))
-    mesh = UsdGeom.Mesh(stage.GetDefaultPrim().GetChild("skin"))
-    obj = got["objects"]["skin"]
+    mesh = UsdGeom.Mesh(prim(stage, "skin"))
+    obj = got["objects"][mesh.GetPrim().GetName()]  # the skin keeps its file's mesh name
     faces = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
     assert obj["loops"] == faces.tolist()
     size = float(np.linalg.norm(np.ptp(np.asarray(mesh.GetPointsAttr().Get(frames[0])), axis=0)))
@@ -145,3 +148,51 @@ def test_blender_imports_a_bake_as_written(kind, tmp_path, request):
         assert obj["materials"] == ["Cesium_Man_effect"]
     else:
         assert not st  # a procedural arm has no UVs
+
+
+def test_a_caged_bake_with_its_guides_imports_into_blender(tmp_path, assets):
+    # RobotExpressive through its cage with every mesh's LBS guide and the cage: Blender imports
+    # it with guides on (a segfault was reported here), reports no invalid face data (the file's
+    # Foot.L and Foot.R hold a triangle that repeats a vertex: not written), and every mesh,
+    # guides included, has the file's points
+    out = tmp_path / "robot.usdc"
+    assert main(["simulate", str(assets / "RobotExpressive" / "RobotExpressive.glb"), "--cage", "always", "--lbs",
+                 "--clip", "Walking", "--frames", "0:2", "-o", str(out), "--quiet"]) == 0
+    got = _import_in_blender(tmp_path, out, [0, 2], guides=True)
+    assert "Invalid face data" not in got["log"]
+    stage = Usd.Stage.Open(str(out))
+    meshes = {p.GetName(): UsdGeom.Mesh(p) for p in stage.GetDefaultPrim().GetChildren() if p.IsA(UsdGeom.Mesh)}
+    assert len(meshes) == 14 + 14 + 1  # the meshes, their LBS guides, the cage
+    assert set(meshes) <= set(got["objects"])
+    for name, mesh in meshes.items():
+        want = np.asarray(mesh.GetPointsAttr().Get(2), dtype=np.float64)
+        size = float(np.linalg.norm(np.ptp(want, axis=0)))
+        assert np.abs(_usd_y_up(got["objects"][name]["points"]["2"]) - want).max() < 1e-5 * size, name
+        faces = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        assert np.all((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])), name
+
+
+def test_the_render_script_draws_physical_beside_lbs(tmp_path):
+    # a short bake of the coarse arm, rendered by warpskin render in Blender: the worst frame
+    # and one more, and a close-up; each picture has two panels of the same size that differ
+    # (the physical skin and LBS) on a white page with something drawn on it
+    from PIL import Image
+
+    from warpskin.render import render_bake
+
+    scene = tmp_path / "arm.toml"
+    scene.write_text("[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n"
+                     "[animation]\nclip = 'flex'\nfps = 30\nframes = [40, 46]\n[solver]\niterations = 8\ntether_max = 0.08\n")
+    bake = tmp_path / "arm.usdc"
+    assert main(["simulate", str(scene), "-o", str(bake), "--lbs", "--quiet"]) == 0
+    paths = render_bake(bake, tmp_path / "pictures", extra=1, resolution=(320, 240), python=str(_blender_python()),
+                        progress=False)
+    assert len(paths) == 3 and all(p.is_file() for p in paths)
+    for p in paths:
+        img = np.asarray(Image.open(p).convert("RGB"), dtype=np.float64) / 255.0
+        assert img.shape == (240, 640, 3)
+        left, right = img[:, :320], img[:, 320:]
+        assert np.median(img) > 0.9  # a white page
+        for panel in (left, right):
+            assert (panel.min(axis=2) < 0.8).mean() > 0.01  # a mesh is drawn
+        assert np.abs(left - right).mean() > 1e-3  # two different colours, two different shapes

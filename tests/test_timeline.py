@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from oracles import usd_skinned_world
+from oracles import usd_skinned_world, prim
 from warpskin.cli import main
 from warpskin.errors import SceneError
 from warpskin.rig import key_rate
@@ -145,7 +145,7 @@ def test_a_simulate_bake_lines_up_with_its_source(assets, tmp_path):
     stage = Usd.Stage.Open(str(out))
     assert stage.GetTimeCodesPerSecond() == 24
     root = stage.GetDefaultPrim()
-    lbs = UsdGeom.Mesh(root.GetChild("lbs"))
+    lbs = UsdGeom.Mesh(prim(stage, "lbs"))
     assert lbs.GetPointsAttr().GetTimeSamples() == [1.0, 2.0, 3.0]
     for tc in (1.0, 2.0, 3.0):
         ref = usd_skinned_world(src, mesh, tc)

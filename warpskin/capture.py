@@ -235,10 +235,14 @@ def _assemblies(q: np.ndarray, piece: np.ndarray, mesh: np.ndarray, gap: float) 
     return label[piece]
 
 
-def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray, sigma: float) -> sp.csr_matrix:
+def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray, sigma: float,
+               part: np.ndarray | None = None) -> sp.csr_matrix:
     """Row-normalised ``[C, C]`` averaging over the points within ``sigma`` of each other in
-    the same piece, weighted by the distance kernel, their skinning similarity squared and how
-    much their normals agree (itself weight 1)."""
+    the same ``piece`` (an assembly), weighted by the distance kernel, their skinning similarity
+    squared and how much their normals agree (itself weight 1). Between different ``part``s of
+    an assembly (a tube's end inside a ball joint, which cross each other at rest) normals up to
+    90 degrees apart count fully, so where the parts overlap they carry one field and keep the
+    crossing they have under LBS."""
     c = q.shape[0]
     pairs = cKDTree(q).query_pairs(sigma, output_type="ndarray") if sigma > 0 and c > 1 else np.zeros((0, 2), np.int64)
     if not pairs.size:
@@ -246,8 +250,11 @@ def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray,
     a, b = pairs[:, 0], pairs[:, 1]
     same = piece[a] == piece[b]
     a, b = a[same], b[same]
-    g = (_kernel(np.linalg.norm(q[a] - q[b], axis=1), sigma) * _similarity(wq, wq, a, b) ** 2
-         * _smoothstep(np.einsum("ij,ij->i", nq[a], nq[b]), 0.0, 0.5))
+    cos = np.einsum("ij,ij->i", nq[a], nq[b])
+    facing = _smoothstep(cos, 0.0, 0.5)
+    if part is not None:
+        facing = np.where(part[a] != part[b], _smoothstep(cos, -0.5, 0.0), facing)
+    g = _kernel(np.linalg.norm(q[a] - q[b], axis=1), sigma) * _similarity(wq, wq, a, b) ** 2 * facing
     keep = g > 0
     a, b, g = a[keep], b[keep], g[keep]
     m = sp.csr_matrix((np.concatenate([g, g, np.ones(c)]),
@@ -329,7 +336,7 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     # 2. smoothing within each assembly (the pieces of one mesh that touch: a segmented limb),
     # between points skinned and facing alike (never across to a finger beside it)
     assembly = _assemblies(q, piece, np.asarray(mesh_of_point)[first], 0.5 * h)
-    smooth = _smoothing(q, wq, nq, assembly, prm.smooth * h)
+    smooth = _smoothing(q, wq, nq, assembly, prm.smooth * h, part=piece)
     cap = _row_normalised(smooth @ raw)
 
     # physics weight: thick enough, captured confidently, not excluded

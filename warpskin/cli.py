@@ -4,6 +4,7 @@
     warpskin info RIG|SCENE                  meshes, joints, clips, closedness, weight problems
     warpskin skin RIG|SCENE -o OUT.usdc      LBS or DQS skinning to time-sampled USD
     warpskin bench [SCENE ...] [--json F]    per-frame timings (LBS, DQS) on a device
+    warpskin render BAKE.usdc -o DIR          Blender pictures: physical beside LBS, worst frame
     warpskin warmup                          compile (and cache) every Warp kernel
 
 Errors print one line and exit with status 2 (bad input) or 1 (anything else); ``--debug``
@@ -404,6 +405,35 @@ def cmd_pop(args) -> int:
     return 0
 
 
+def _frame_list(text: str) -> list[float]:
+    try:
+        out = [float(x) for x in text.split(",")]
+    except ValueError:
+        out = []
+    if not out or not all(math.isfinite(x) for x in out):
+        raise argparse.ArgumentTypeError(f"--frames must be comma-separated time codes, got {text!r}")
+    return out
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    w, _, h = text.lower().partition("x")
+    try:
+        size = (int(w), int(h))
+    except ValueError:
+        size = (0, 0)
+    if min(size) < 16 or max(size) > 8192:
+        raise argparse.ArgumentTypeError(f"--resolution must be WxH in pixels (16..8192), got {text!r}")
+    return size
+
+
+def cmd_render(args) -> int:
+    from .render import render_bake
+
+    render_bake(args.bake, args.output, frames=args.frames, extra=args.extra, close_up=not args.no_close_up,
+                resolution=args.resolution, python=args.python, progress=not args.quiet)
+    return 0
+
+
 def cmd_warmup(args) -> int:
     import importlib
     import pkgutil
@@ -567,6 +597,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", nargs="?", const="-", metavar="FILE",
                    help="print the run's summary as JSON (with --bench: also write the JSON to FILE)")
     s.set_defaults(func=cmd_pop)
+
+    s = sub.add_parser("render", help="pictures of a bake in Blender: the physical result beside LBS, at its worst frame")
+    s.add_argument("bake", metavar="BAKE", help="a USD file written with --lbs")
+    s.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the PNG pictures")
+    s.add_argument("--frames", type=_frame_list, help="comma-separated time codes to render (default: the worst "
+                                                      "frame and --extra others)")
+    s.add_argument("--extra", type=_count("--extra", 0), default=2, help="frames besides the worst one (default 2)")
+    s.add_argument("--no-close-up", action="store_true", help="leave out the close-up of the worst mesh")
+    s.add_argument("--resolution", type=_resolution, default=(800, 900), metavar="WxH",
+                   help="size of each panel in pixels (default 800x900)")
+    s.add_argument("--python", metavar="EXE", help="a Python with Blender's bpy (default: $WARPSKIN_BPY_PYTHON or "
+                                                   ".venv-bpy/bin/python)")
+    s.add_argument("--quiet", action="store_true", help="do not list the pictures written")
+    s.set_defaults(func=cmd_render)
 
     s = sub.add_parser("warmup", help="compile and cache the Warp kernels")
     s.add_argument("--device", help="cpu, cuda or cuda:N")

@@ -97,15 +97,18 @@ def _triangulate(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 def find_blender_python(python: str | None = None) -> str:
-    """The interpreter that has ``bpy``: ``python``, else ``$WARPSKIN_BPY_PYTHON``, else
-    ``.venv-bpy/bin/python`` in the current folder or beside the warpskin checkout.
+    """The interpreter that has ``bpy``: ``python`` (only it, when given), else
+    ``$WARPSKIN_BPY_PYTHON``, else ``.venv-bpy/bin/python`` in the current folder or beside the
+    warpskin checkout.
 
     Raises:
         InputError: none of them imports ``bpy`` (one line naming what was tried).
     """
     tried = []
     here = Path(__file__).resolve().parents[1]
-    for cand in (python, os.environ.get("WARPSKIN_BPY_PYTHON"), ".venv-bpy/bin/python", str(here / ".venv-bpy/bin/python")):
+    given = [python] if python else [os.environ.get("WARPSKIN_BPY_PYTHON"), ".venv-bpy/bin/python",
+                                     str(here / ".venv-bpy/bin/python")]
+    for cand in given:
         if not cand or cand in tried:
             continue
         tried.append(cand)

@@ -194,6 +194,7 @@ class UsdSkinWriter:
         if comment:
             st.GetRootLayer().comment = comment
         self._meshes: dict[str, tuple] = {}
+        self._children: dict[str, str] = {}  # mesh key -> its prim's name under the root
         #: Faces left out per mesh (degenerate or repeated in the source), for the run's notes.
         self.dropped_faces: dict[str, int] = {}
         self._first: float | None = None
@@ -217,6 +218,7 @@ class UsdSkinWriter:
         normal_groups: np.ndarray | None = None,
         materials: list[tuple[str, np.ndarray]] | None = None,
         animated_primvars: tuple[str, ...] = (),
+        prim_name: str | None = None,
     ) -> str:
         """Declare a surface. Its topology is written once.
 
@@ -241,6 +243,9 @@ class UsdSkinWriter:
                 covering every triangle is bound to the mesh, several as face GeomSubsets.
             animated_primvars: Names of per-vertex float primvars time-sampled with the points
                 (``write_frame(..., primvars=...)``), e.g. the distance from LBS.
+            prim_name: The prim's own name when it differs from ``name`` (the character's skin,
+                written under its file's mesh name while callers keep calling it ``skin``); the
+                prim then records ``name`` as its ``warpskin:role`` custom data.
 
         Returns:
             The prim path.
@@ -278,8 +283,14 @@ class UsdSkinWriter:
             remap = np.asarray(remap, dtype=np.int64)
             if remap.ndim != 1 or remap.shape[0] != vertex_count:
                 raise ExportError(f"mesh {name!r}: remap must give one source index per vertex ({vertex_count})")
-        path = self._root.GetPath().AppendPath(key)
+        child = key if prim_name is None else _prim_name(prim_name)
+        if child != key and (child in self._meshes or child in self._children.values()):
+            raise ExportError(f"mesh {name!r}: prim name {child!r} is taken")
+        self._children[key] = child
+        path = self._root.GetPath().AppendPath(child)
         mesh = UsdGeom.Mesh.Define(self._stage, path)
+        if child != key:
+            mesh.GetPrim().SetCustomDataByKey("warpskin:role", key)
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(tri.shape[0], 3, dtype=np.int32)))
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(tri.astype(np.int32).ravel()))
         mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
@@ -417,7 +428,7 @@ class UsdSkinWriter:
         keys = {(child, attr) for prims in variants.values() for child, ops in prims.items() for attr in ops}
         local = {}
         for child, attr in keys:
-            target = root.GetChild(_prim_name(child))
+            target = root.GetChild(self._children.get(_prim_name(child), _prim_name(child)))
             held = target.GetAttribute(attr)
             local[(child, attr)] = held.Get() if held and held.HasAuthoredValue() else None
             if held:
@@ -431,7 +442,7 @@ class UsdSkinWriter:
                     value = prims.get(child, {}).get(attr, local[(child, attr)])
                     if value is None:
                         continue
-                    img = UsdGeom.Imageable(root.GetChild(_prim_name(child)))
+                    img = UsdGeom.Imageable(root.GetChild(self._children.get(_prim_name(child), _prim_name(child))))
                     (img.CreateVisibilityAttr() if attr == "visibility" else img.CreatePurposeAttr()).Set(value)
         vset.SetVariantSelection(default)
 

@@ -73,6 +73,21 @@ class CharacterOutput:
     def root_name(self) -> str:
         return self.rig.name or "character"
 
+    @property
+    def skin_prim(self) -> str:
+        """The prim name of the character's skin: its file's mesh name (``Cesium_Man``,
+        ``Hand_R``), ``skin`` where it has none; its LBS guide is ``<name>_lbs``."""
+        from ..io.usd_export import _prim_name
+
+        name = _prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
+        taken = {_prim_name(a.name) for a in getattr(self.rig, "attachments", []) or []}
+        taken |= {"lbs", "rest", "cage", "Looks", "layer_fat", "layer_muscle", "layer_bone"}
+        return name if name not in taken and f"{name}_lbs" not in taken else f"{name}_skin"
+
+    def prim_of(self, name: str) -> str | None:
+        """The prim name of mesh ``name`` where it is not ``name`` itself (``skin``, ``lbs``)."""
+        return {"skin": self.skin_prim, "lbs": f"{self.skin_prim}_lbs"}.get(name)
+
     def is_character_mesh(self, triangles: np.ndarray) -> bool:
         t = np.asarray(triangles)
         return t.shape == self.welded_triangles.shape and np.array_equal(t, self.welded_triangles)
@@ -89,6 +104,7 @@ class CharacterOutput:
             self._render_kwargs(writer, render, kw)
         if as_is or render is not None or not self.is_character_mesh(triangles):
             return writer.add_mesh(name, triangles, rest_points=rest, **kw)
+        kw["prim_name"] = self.prim_of(name)
         if self.topology == "welded":
             return writer.add_mesh(name, triangles, rest_points=self.rest, **kw)
         rig = self.rig

@@ -216,11 +216,14 @@ class _WrittenQuality:
     the run (:class:`SimulationError`) unless ``allow_unstable`` (one warning)."""
 
     def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper,
-                 measures: _Measurements) -> None:
+                 measures: _Measurements, skin_prim: str = "skin") -> None:
         from ..quality import QualityLimits, QualityLog, WrittenMesh
 
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
-        self.meshes = [WrittenMesh(p.name, p.triangles, p.rest, p.file_ids) for p in character.parts if p.physics]
+        # measured and reported under the names they are written with (the skin: its file's)
+        self.names = {p.name: (skin_prim if p.name == "skin" else p.name) for p in character.parts}
+        self.meshes = [WrittenMesh(self.names[p.name], p.triangles, p.rest, p.file_ids) for p in character.parts
+                       if p.physics]
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
         self.capped: list[float] = []
         self.measures = measures  # one warning per run, shared with the simulated surface's checks
@@ -231,7 +234,8 @@ class _WrittenQuality:
 
     def check(self, i: int, written: dict, lbs: dict) -> None:
         f = self.plan.frames[i]
-        problem = self.log.measure(f, written, lbs)
+        problem = self.log.measure(f, {self.names[k]: v for k, v in written.items()},
+                                   {self.names[k]: v for k, v in lbs.items()})
         if self.cap is not None:
             st = self.stepper
             v = st.model.vertex_count
@@ -377,8 +381,9 @@ def simulate(
     stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
                              activation=activation, label="simulate", name=scene.name)
     measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
-    quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures)
     sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
+    output = CharacterOutput(sim, topology, clip) if caged is None else CharacterOutput(render, topology)
+    quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures, output.skin_prim)
     n_out = sim.output_count
     tris = sim.output_triangles
     # the skin carries its distance from LBS per vertex and frame, for a DCC to colour it by
@@ -442,7 +447,6 @@ def simulate(
                     out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
             return out
 
-    output = CharacterOutput(sim, topology, clip) if caged is None else CharacterOutput(render, topology)
     writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
     record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress,
                          output=output).run(keep_failure=True)
@@ -468,7 +472,7 @@ def simulate(
             "meshes": [p.name for p in caged.parts],
             "source": str(cage_file) if cage_file is not None else "automatic",
         },
-        "physics_weight": character.weight_summary(),
+        "physics_weight": {quality.names.get(k, k): v for k, v in character.weight_summary().items()},
         "written": quality.log.summary(),
         "written_worst": quality.log.worst(),
         "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
