@@ -101,9 +101,11 @@ def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
     report = tmp_path / "report"
     assert main(["simulate", str(scene), "-o", str(out), "--lbs", "--quiet", "--report", str(report)]) == 0
     data = json.loads((report / "report.json").read_text())
-    row = data["summary"]["written"]["skin"]
     stage = Usd.Stage.Open(str(out))
     skin, ref = UsdGeom.Mesh(prim(stage, "skin")), UsdGeom.Mesh(prim(stage, "lbs"))
+    name = skin.GetPrim().GetName()  # the arm's mesh name: what the summary calls it
+    assert name == "arm" and ref.GetPrim().GetName() == "arm_lbs"
+    row = data["summary"]["written"][name]
     tris = np.asarray(skin.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
     rest = np.asarray(skin.GetPointsAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)
     worst = [0.0, 0.0, 0.0]
@@ -121,7 +123,7 @@ def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
     # rounded to float32 in the file, so its count may differ where two triangles graze
     assert row["max_pairs"] == max(p for p, _ in pairs)
     assert abs(row["max_pairs_lbs"] - max(q for _, q in pairs)) <= 1 + 0.01 * row["max_pairs_lbs"]
-    assert len(data["written"]["skin"]["strained"]) == 11
+    assert len(data["written"][name]["strained"]) == 11
     assert len(data["metrics"]["tether_clamped"]) == 11 and "max_capped_share" in data["summary"]
 
 

@@ -244,7 +244,7 @@ def test_assets_simulate_with_defaults_no_worse_than_lbs(tmp_path, assets, devic
     assert (s["refined_vertices_added"] > 0) == coarse and s["file_vertices_written"] == loaded.file_vertex_count
     # the written mesh has the file's own topology (seam-split vertices, its faces and UVs)
     stage = Usd.Stage.Open(str(result.path))
-    meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.GetName() == "skin"]
+    meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.GetCustomDataByKey("warpskin:role") == "skin"]
     assert len(meshes) == 1
     faces = np.asarray(meshes[0].GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
     assert faces.tolist() == loaded.file_triangles.tolist()

@@ -27,7 +27,8 @@ mesh's own connectivity and skinning:
 
 The **physics weight** ``phi`` in [0, 1] blends LBS (0) and the physical result (1). It is 0
 where the model cannot resolve the geometry: parts thinner than ``thin`` cage edges (the
-shape diameter along the inward normal: fingers, toes, ears), points no compatible simulated
+shape diameter along the inward normal: fingers, toes, ears; a sheet, whose inward rays leave
+through nothing, has none), points no compatible simulated
 vertex captures, and what the caller marks (vertices where no layer depth fits); 1 where the
 part is ``thick`` cage edges or more and the capture is confident (its skinning similarity at
 least ``confidence[1]``); a smooth ramp between, smoothed over the piece like the capture.
@@ -341,13 +342,15 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
 
     # physics weight: thick enough, captured confidently, not excluded
     thickness = shape_diameter(q, nq, q, ctri, device=device)
-    phi = _smoothstep(thickness, prm.thin * h, prm.thick * h) * _smoothstep(confidence, *prm.confidence)
+    # a part whose inward rays leave through nothing is a sheet (a flat strip, a cape): no volume
+    phi = (_smoothstep(np.where(np.isfinite(thickness), thickness, 0.0), prm.thin * h, prm.thick * h)
+           * _smoothstep(confidence, *prm.confidence))
     phi[unmatched] = 0.0
     ex = np.zeros(c, dtype=bool)
     if exclude is not None:
         np.logical_or.at(ex, cls, np.asarray(exclude, dtype=bool))
         phi[ex] = 0.0
-    notes["thin_points"] = int((thickness[cls] < prm.thin * h).sum())
+    notes["thin_points"] = int(((thickness[cls] < prm.thin * h) | ~np.isfinite(thickness[cls])).sum())
     notes["unmatched_points"] = int(unmatched[cls].sum())
     notes["excluded_points"] = int(ex[cls].sum())
     for _ in range(2):

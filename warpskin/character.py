@@ -202,6 +202,14 @@ class Character:
             cap = identity_capture(n, phi)
 
         cap.physics_weight = cap.uniform_in_groups(self._overridden(cap.physics_weight))
+        if not np.any(cap.physics_weight > 0):
+            import warnings
+
+            from .errors import RigWarning
+
+            warnings.warn(f"{self.rig.source or self.rig.name}: no written point is resolved by the simulation (a sheet "
+                          "that encloses no volume, or parts thinner than about two cage cells): what is written is "
+                          "its LBS", RigWarning, stacklevel=2)
         self.capture_result = cap
         self._deformer = _Deformer(self, cap, device=device or self.device) if self.caged else None
         self.build_s += time.perf_counter() - t0
