@@ -2,7 +2,9 @@
 the physical deformation captured from the simulated surface, blended by its physics weight.
 
     d_j  = x_j - sum_k w_jk C_{c_jk} [X_j, 1]                   simulated vertex j's displacement
-                                                               from its own LBS (X_j: its rest)
+                                                               from its own LBS (X_j: its rest;
+                                                               the LBS is the solver tether's
+                                                               target, or one launch here)
     p_i' = sum_k v_ik R_{r_ik} [P_i, 1] + phi_i sum_m a_im d_{s_im}
 
 ``C`` are the simulated surface's skinning matrices, ``R`` the written meshes' (each mesh its
@@ -32,8 +34,8 @@ def displacement_kernel(
     # output
     displacement: wp.array(dtype=wp.vec3),
 ):
-    """``d_j = x_j - LBS(X_j)`` for every simulated surface vertex ``j`` (its first ``V``
-    particles: the skin layer)."""
+    """``d_j = x_j - LBS(X_j)`` for every simulated surface vertex ``j`` (its first particles:
+    the skin layer)."""
     j = wp.tid()
     acc = wp.vec3(0.0)
     p = rest[j]
@@ -42,6 +44,19 @@ def displacement_kernel(
         if w != 0.0:
             acc += w * wp.transform_point(skin_matrices[joint_indices[j * influence_count + k]], p)
     displacement[j] = x[j] - acc
+
+
+@wp.kernel
+def displacement_from_targets_kernel(
+    x: wp.array(dtype=wp.vec3),
+    lbs: wp.array(dtype=wp.vec3),
+    # output
+    displacement: wp.array(dtype=wp.vec3),
+):
+    """``d_j = x_j - lbs_j`` where the surface's LBS is at hand (the solver tether's targets of
+    the step)."""
+    j = wp.tid()
+    displacement[j] = x[j] - lbs[j]
 
 
 @wp.kernel

@@ -12,18 +12,29 @@ def box_pairs_kernel(
     bvh: wp.uint64,
     lower: wp.array(dtype=wp.vec3),
     upper: wp.array(dtype=wp.vec3),
+    triangles: wp.array(dtype=wp.vec3i),
+    skip_shared: int,
     capacity: int,
     # outputs
     count: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec2i),
 ):
-    """Every pair ``(i, j)``, ``i < j``, of overlapping boxes, appended to ``pairs`` (its
-    ``count`` may pass ``capacity``: the caller grows the buffer and runs again)."""
+    """Every pair ``(i, j)``, ``i < j``, of overlapping boxes (with ``skip_shared``, not of
+    triangles that share a vertex), appended to ``pairs`` (its ``count`` may pass
+    ``capacity``: the caller grows the buffer and runs again)."""
     i = wp.tid()
+    a = triangles[i]
     q = wp.bvh_query_aabb(bvh, lower[i], upper[i])
     j = int(0)
     while wp.bvh_query_next(q, j):
-        if j > i:
+        shared = False
+        if skip_shared != 0:
+            b = triangles[j]
+            for u in range(3):
+                for v in range(3):
+                    if a[u] == b[v]:
+                        shared = True
+        if j > i and not shared:
             slot = wp.atomic_add(count, 0, 1)
             if slot < capacity:
                 pairs[slot] = wp.vec2i(i, j)

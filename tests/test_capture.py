@@ -5,14 +5,13 @@ keeps apart what is apart (warpskin.preprocess.cage): against closed forms and N
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import scipy.sparse as sp
 import trimesh
 import warp as wp
 from scipy.sparse.csgraph import connected_components
 
 from oracles import lbs
-from warpskin.capture import CaptureParams, capture_points, shape_diameter, point_normals
+from warpskin.capture import CaptureParams, point_normals, shape_diameter
 from warpskin.character import Character
 from warpskin.preprocess.cage import build_cage, character_parts, character_soup
 

@@ -91,7 +91,6 @@ def test_limits_name_the_mesh_and_the_files_vertex():
 def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
     # the coarse arm: the summary's per-mesh figures are the worst over the frames of the
     # written USD, measured there with the plain-loop reference and the brute-force pair count
-    from oracles import coarse_arm  # noqa: F401  (the scene below is the same generator)
     from warpskin.cli import main
 
     scene = tmp_path / "arm.toml"

@@ -9,14 +9,15 @@ Usage (what :func:`warpskin.render.render_bake` runs)::
 
     {"bake": "walk.usdc",
      "views": [{"frame": 12, "out": "walk_12.png", "captions": ["warpskin ...", "LBS ..."],
-                "focus": ["/mannequin/shoe_l"] or null}],
+                "focus": ["/mannequin/shoe_l"] or null, "focus_points": [vertex, ...] or null}],
      "physical": ["/mannequin/body", ...], "lbs": ["/mannequin/lbs", ...],
      "resolution": [960, 720], "title": "..."}
 
 Every view renders the bake at one frame twice with the same orthographic camera, once with
 the physical meshes and once with their LBS guides, with Blender's Workbench engine (no GPU
 needed), and writes the two side by side into one PNG, each captioned. The camera frames the
-physical meshes (or those named in ``focus``) from the front, a little from the side; the bake
+physical meshes (or those named in ``focus``; with ``focus_points``, those vertices of the
+first of them, with a margin) from the front, a little from the side; the bake
 is imported with its guides (``import_guide=True``), as a reviewer would.
 """
 
@@ -123,7 +124,13 @@ def main(job_path: str) -> None:
         graph = bpy.context.evaluated_depsgraph_get()
         focus = [objects[p] for p in (view.get("focus") or []) if p in objects] or physical
         pts = np.concatenate([_world_points(o, graph) for o in focus])
+        if view.get("focus_points"):  # the close-up: around these points of the first focus mesh
+            pts = _world_points(focus[0], graph)[np.asarray(view["focus_points"], dtype=np.int64)]
         lo, hi = pts.min(axis=0), pts.max(axis=0)
+        if view.get("focus_points"):
+            pad = 0.25 * float(np.linalg.norm(hi - lo)) + 1e-3 * float(np.linalg.norm(np.ptp(
+                np.concatenate([_world_points(o, graph) for o in physical]), axis=0)))
+            lo, hi = lo - pad, hi + pad
         cam = _camera(scene, lo, hi, aspect)
         panels = []
         for k, (shown, hidden) in enumerate(((physical, lbs), (lbs, physical))):

@@ -288,7 +288,6 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     """
     prm = params or CaptureParams()
     p = np.asarray(points, dtype=np.float64)
-    n = p.shape[0]
     cv = np.asarray(cage_vertices, dtype=np.float64)
     wp_dense = np.asarray(dense_weights, dtype=np.float64)
     wc_dense = np.asarray(cage_dense_weights, dtype=np.float64)

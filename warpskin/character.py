@@ -272,16 +272,19 @@ class Character:
         rest = [by_name[p.name].points(world) for p in self.parts[1:]]
         return np.concatenate([skin, *rest])
 
-    def points(self, x, sim_skin: np.ndarray, clip, t: float, lbs: np.ndarray | None = None) -> np.ndarray:
+    def points(self, x, sim_skin: np.ndarray, clip, t: float, lbs: np.ndarray | None = None,
+               surface_lbs=None) -> np.ndarray:
         """Every written point at clip time ``t`` [s], ``[N, 3]`` (host): its LBS plus its
         physics weight times the physical deformation (``x``: the simulation's particle
         positions on the device, its first vertices the skin layer; ``sim_skin``: their host
-        copy, for a skin simulated directly; ``lbs``: :meth:`lbs` if the caller has it)."""
+        copy, for a skin simulated directly; ``lbs``: :meth:`lbs` if the caller has it;
+        ``surface_lbs``: the simulated surface's LBS at ``t`` on the device, where the caller has
+        it: the solver's tether targets of the frame's last step)."""
         cap = self.capture_result
         if cap is None:
             raise SceneError("Character.points before bind()")
         if self._deformer is not None:
-            return self._deformer.evaluate(x, clip, t).numpy().astype(np.float64)
+            return self._deformer.evaluate(x, clip, t, surface_lbs).numpy().astype(np.float64)
         lbs = self.lbs(clip, t) if lbs is None else lbs
         n = self.rig.output_count
         out = lbs.copy()
@@ -385,34 +388,42 @@ class _Deformer:
         stack = [rig.skinning_matrices(clip, t)] + [world @ p.attachment.joint_offsets for p in c.parts[1:]]
         return np.concatenate(stack), c.sim_rig.skinning_matrices(clip, t)
 
-    def evaluate(self, x, clip, t: float):
-        """The written points at clip time ``t`` for the simulation's positions ``x`` (device)."""
+    def evaluate(self, x, clip, t: float, surface_lbs=None):
+        """The written points at clip time ``t`` for the simulation's positions ``x`` (device);
+        ``surface_lbs``: the simulated surface's LBS at ``t`` where the caller has it on the
+        device (the solver's tether targets), else computed here."""
         render, sim = self.matrices(clip, t)
         self.render_mats.assign(render.astype(np.float32))
-        self.sim_mats.assign(sim.astype(np.float32))
-        return self.launch(x)
+        if surface_lbs is None:
+            self.sim_mats.assign(sim.astype(np.float32))
+        return self.launch(x, surface_lbs)
 
-    def launch(self, x):
-        """The two launches on the matrices last set (recorded once per positions array: a
-        simulation alternates between its two states')."""
+    def launch(self, x, surface_lbs=None):
+        """The launches on the matrices last set: the surface's displacement from its LBS (given,
+        or computed here) and the written points (recorded once per input arrays: a simulation alternates between its
+        two states')."""
         import warp as wp
 
         from .kernels import deform as k
 
-        hit = self._cmds.get(id(x))
-        if hit is None or hit[0] is not x:
+        key = (id(x), id(surface_lbs))
+        hit = self._cmds.get(key)
+        if hit is None or hit[0] is not x or hit[1] is not surface_lbs:
             if len(self._cmds) >= 4:
                 self._cmds.clear()
-            cmds = (
-                wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
-                          inputs=[x, self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
-                          outputs=[self.displacement], device=self.device, record_cmd=True),
-                wp.launch(k.deform_kernel, dim=self.out.shape[0],
-                          inputs=[self.bind_points, self.influences, self.ji, self.jw, self.render_mats, self.cap_count,
-                                  self.cap_i, self.cap_w, self.phi, self.displacement], outputs=[self.out],
-                          device=self.device, record_cmd=True),
-            )
-            hit = self._cmds[id(x)] = (x, cmds)  # holds x, so its id stays its own
-        for cmd in hit[1]:
+            if surface_lbs is None:
+                first = wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
+                                  inputs=[x, self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
+                                  outputs=[self.displacement], device=self.device, record_cmd=True)
+            else:
+                first = wp.launch(k.displacement_from_targets_kernel, dim=self.sim_vertex_count,
+                                  inputs=[x, surface_lbs], outputs=[self.displacement], device=self.device,
+                                  record_cmd=True)
+            cmds = [first, wp.launch(k.deform_kernel, dim=self.out.shape[0],
+                                     inputs=[self.bind_points, self.influences, self.ji, self.jw, self.render_mats,
+                                             self.cap_count, self.cap_i, self.cap_w, self.phi, self.displacement],
+                                     outputs=[self.out], device=self.device, record_cmd=True)]
+            hit = self._cmds[key] = (x, surface_lbs, tuple(cmds))  # holds the arrays: their ids stay theirs
+        for cmd in hit[2]:
             cmd.launch()
         return self.out

@@ -56,9 +56,9 @@ def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.nd
     return hit
 
 
-def _box_pairs(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Pairs ``i < j`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU),
-    sorted."""
+def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip_shared: bool) -> np.ndarray:
+    """Pairs ``i < j`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU) of
+    ``triangles`` (with ``skip_shared``: not sharing a vertex), in no particular order."""
     import warp as wp
 
     from .kernels import measure as k
@@ -68,24 +68,25 @@ def _box_pairs(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
         lo = wp.array(lower.astype(np.float32), dtype=wp.vec3)
         hi = wp.array(upper.astype(np.float32), dtype=wp.vec3)
         bvh = wp.Bvh(lo, hi)
+        tri = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.vec3i)
         capacity = 16 * n
         while True:
             count = wp.zeros(1, dtype=wp.int32)
             pairs = wp.zeros(capacity, dtype=wp.vec2i)
-            wp.launch(k.box_pairs_kernel, dim=n, inputs=[bvh.id, lo, hi, capacity], outputs=[count, pairs])
+            wp.launch(k.box_pairs_kernel, dim=n, inputs=[bvh.id, lo, hi, tri, int(skip_shared), capacity],
+                      outputs=[count, pairs])
             c = int(count.numpy()[0])
             if c <= capacity:
                 break
             capacity = c
-        out = pairs.numpy()[:c].astype(np.int64)
-    return out[np.lexsort((out[:, 1], out[:, 0]))]
+        return pairs.numpy()[:c].astype(np.int64)
 
 
 def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True) -> np.ndarray:
     """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``).
 
     Candidates are the pairs whose bounding boxes overlap (a BVH over the boxes, widened by
-    1e-6 of the mesh's extent past float32 rounding); each candidate gets the exact float64
+    1e-6 of the mesh's extent and coordinates past float32 rounding); each candidate gets the exact float64
     edge/triangle test. Pairs sharing a vertex are skipped (neighbours touch by design).
     """
     p = np.asarray(points, dtype=np.float64)
@@ -93,14 +94,11 @@ def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_sha
     if t.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
     corners = p[t]
-    pad = 1e-6 * (float(np.ptp(p, axis=0).max()) + 1e-30)  # float32 boxes, widened past their rounding
-    pairs = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad)
+    # float32 boxes, widened past their rounding (relative to the coordinates and to the extent)
+    pad = 1e-6 * (float(np.ptp(p, axis=0).max()) + float(np.abs(p).max()) + 1e-30)
+    pairs = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad, t, exclude_shared)
     if pairs.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    if exclude_shared:
-        a, b = t[pairs[:, 0]], t[pairs[:, 1]]
-        shared = (a[:, :, None] == b[:, None, :]).any(axis=(1, 2))
-        pairs = pairs[~shared]
     hit = triangle_pairs_intersect(p, t[pairs[:, 0]], t[pairs[:, 1]])
     out = np.sort(pairs[hit], axis=1)
     return out[np.lexsort((out[:, 1], out[:, 0]))]

@@ -122,6 +122,30 @@ def find_blender_python(python: str | None = None) -> str:
                      "'python3.11 -m venv .venv-bpy && .venv-bpy/bin/pip install bpy==5.0.1' or pass --python")
 
 
+def _where_worst(stage, pair: BakePair, tc: float) -> list[int]:
+    """The vertices of the physical mesh to frame in a close-up at time code ``tc``: those on
+    edges strained past 1.5x where LBS's are not, else those farthest from LBS (at least half
+    the largest offset)."""
+    from pxr import Usd, UsdGeom
+
+    from .quality import STRAIN_LIMIT, WrittenMesh
+
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(pair.physical))
+    guide = UsdGeom.Mesh(stage.GetPrimAtPath(pair.lbs))
+    attr = mesh.GetPointsAttr()
+    rest = np.asarray(attr.Get(Usd.TimeCode.Default()) or attr.Get(Usd.TimeCode.EarliestTime()), dtype=np.float64)
+    tris = _triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get()), np.asarray(mesh.GetFaceVertexIndicesAttr().Get()))
+    wm = WrittenMesh(pair.name, tris, rest)
+    x = np.asarray(attr.Get(tc), dtype=np.float64)
+    lb = np.asarray(guide.GetPointsAttr().Get(tc), dtype=np.float64)
+    bad = (wm.strain(x) > STRAIN_LIMIT) & (wm.strain(lb) <= STRAIN_LIMIT)
+    if bad.any():
+        welded = np.unique(wm.edges[bad].ravel())
+        return np.nonzero(np.isin(wm.weld, welded))[0].tolist()
+    d = np.linalg.norm(x - lb, axis=1)
+    return np.nonzero(d >= 0.5 * d.max())[0].tolist() if d.max() > 0 else list(range(len(x)))
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.1f} %"
 
@@ -179,7 +203,7 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
         pair = next(p for p in pairs if p.name == name)
         views.append({"frame": times[worst], "out": str(out_dir / f"{stem}_{times[worst]:g}_{name}.png"),
                       "captions": _captions(stem, times[worst], worst, {name: series[name]}, True, close=name),
-                      "focus": [pair.physical, pair.lbs]})
+                      "focus": [pair.physical], "focus_points": _where_worst(stage, pair, times[worst])})
     job = {"bake": str(bake.resolve()), "views": views, "physical": [p.physical for p in pairs],
            "lbs": [p.lbs for p in pairs], "resolution": list(resolution)}
     script = Path(__file__).with_name("blender_render.py")

@@ -86,7 +86,6 @@ class _Measurements:
         self._prev_lbs: np.ndarray | None = None
         self._prev_speed = 0.0
         self._skin_mass = np.asarray(builder.masses[: rig.vertex_count], dtype=np.float64)
-        self.max_deviation = np.zeros(rig.output_count)  # per file vertex, over the frames written
 
     def lbs_points(self, i: int) -> np.ndarray:
         """LBS of every simulated skin vertex (the file's first, then any added by refining)."""
@@ -112,7 +111,6 @@ class _Measurements:
             e["subvolume_lbs"] = subs.volumes(lbs_all, centres)
         d = np.linalg.norm(out - lbs, axis=1)
         e["offset"] = float(d.max())
-        e["deviation"] = d
         # the skin's motion relative to the animation: its velocities minus LBS's over the frame
         e["velocities"] = vel = st.velocities()  # one host copy per frame, for __call__ too
         vs = vel[: b.rig.vertex_count].astype(np.float64)
@@ -175,7 +173,6 @@ class _Measurements:
     def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
         m, b, st = self.m, self.b, self.st
         tris = b.rig.output_triangles
-        self.max_deviation = np.maximum(self.max_deviation, self._pending["deviation"])
         skin = points.get("cage", points["skin"])  # the simulated surface: the file's vertices, or the cage
         e = self._pending
         lbs = e["lbs"]
@@ -221,7 +218,9 @@ class _WrittenQuality:
 
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
         # measured and reported under the names they are written with (the skin: its file's)
-        self.names = {p.name: (skin_prim if p.name == "skin" else p.name) for p in character.parts}
+        from ..io.usd_export import _prim_name
+
+        self.names = {p.name: (skin_prim if p.name == "skin" else _prim_name(p.name)) for p in character.parts}
         self.meshes = [WrittenMesh(self.names[p.name], p.triangles, p.rest, p.file_ids) for p in character.parts
                        if p.physics]
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
@@ -340,8 +339,6 @@ def simulate(
             message names the frame and the particle, vertex (the file's number), bone or
             sub-volume; the USD file keeps the frames before it (valid, closed).
     """
-    import time
-
     from ..character import CAGE_MODES, RIGID_MODES, Character
 
     if rigid_pieces not in RIGID_MODES:
@@ -408,7 +405,7 @@ def simulate(
             meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k],
                            {"purpose": "guide", "as_is": True}))
 
-    render_deviation = np.zeros(render.output_count)  # caged: per render vertex, over the frames
+    render_deviation = np.zeros(render.output_count)  # the written skin's, per vertex, over the frames
 
     class _Writes:
         """What ``simulate`` writes of a physics frame."""
@@ -426,7 +423,10 @@ def simulate(
             measures.evaluate(i, pts["skin"])  # stops here if the simulated surface left its range
             t = plan.times[i]
             lbs_all = character.lbs(clip, t)
-            written = character.split(character.points(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all))
+            # the surface's LBS of the frame: the tether's targets of its last step, where it stepped
+            targets = stepper.solver.tether_targets if (i > 0 and params.tether > 0) else None
+            written = character.split(character.points(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all,
+                                                       surface_lbs=targets))
             lbs_by = character.split(lbs_all)
             quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
             out = dict(written) if caged is not None else {"skin": written["skin"]}
@@ -525,7 +525,7 @@ def simulate(
                  f"at {plan.fps:g} fps, {params.iterations} + {params.volume_iterations} iterations, collisions "
                  f"{'on' if col is not None else 'off'}, {model.device}")
         plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
-                            where=(output.rest, measures.max_deviation if caged is None else render_deviation))
+                            where=(output.rest, render_deviation))
         summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
         (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics,
                                                         "written": quality.log.series}, indent=1))
