@@ -309,16 +309,25 @@ class Character:
         np.maximum.at(out, cap.indices[used], np.broadcast_to(cap.physics_weight[:, None], cap.weights.shape)[used])
         return out
 
+    def display_name(self, name: str) -> str:
+        """The name a written mesh has in the output (the skin: its file's mesh name)."""
+        from .io.usd_export import _prim_name
+
+        if name == "skin":
+            return _prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
+        return _prim_name(name)
+
     def weight_summary(self) -> dict:
-        """Per written mesh: the mean physics weight and the share of points at 0 (LBS) and at
-        1, with the capture's notes."""
+        """Per written mesh (by its :meth:`display_name`): the mean physics weight and the share
+        of points at 0 (LBS) and at 1, with the capture's notes."""
         cap = self.capture_result
         if cap is None:
             return {}
         out = {}
         for p in self.parts:
             phi = cap.physics_weight[p.start:p.start + p.count]
-            out[p.name] = {"mean": float(phi.mean()) if phi.size else 0.0, "lbs_share": float(np.mean(phi <= 0.0)),
+            out[self.display_name(p.name)] = {"mean": float(phi.mean()) if phi.size else 0.0,
+                                              "lbs_share": float(np.mean(phi <= 0.0)),
                            "physical_share": float(np.mean(phi >= 1.0))}
         if cap.notes:
             out["notes"] = dict(cap.notes)

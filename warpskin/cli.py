@@ -183,6 +183,14 @@ def cmd_info(args) -> int:
     out["rigid_pieces"] = int(pieces.max()) + 1 if pieces.size else 0
     out["joint_names"] = rig.skeleton.joint_names
     out["parents"] = rig.skeleton.parents.tolist()
+    # the automatic physics weights of every mesh (through the cage simulate would build)
+    from .character import Character
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        character = Character(rig, weights=scene.physics_weights() or None)
+        character.bind()
+    out["physics_weight"] = character.weight_summary()
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -211,6 +219,7 @@ def cmd_info(args) -> int:
     if out["rigid_pieces"]:
         print(f"rigid pieces (meshes or parts that LBS moves rigidly, one joint each): {out['rigid_pieces']}; through a "
               "cage they move by one translation with the cage around them (--rigid-pieces joint: with their joints)")
+    _print_weights(out["physics_weight"])
     print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
@@ -221,6 +230,15 @@ def cmd_info(args) -> int:
     for w in summary["warnings"]:
         print(f"warning: {w}")
     return 0
+
+
+def _print_weights(weights: dict) -> None:
+    """The physics weight map, a line per written mesh."""
+    for name, w in weights.items():
+        if name == "notes":
+            continue
+        print(f"physics weight of {name}: mean {w['mean']:.2f}, {100 * w['lbs_share']:.0f} % of its points LBS, "
+              f"{100 * w['physical_share']:.0f} % fully physical")
 
 
 def cmd_skin(args) -> int:
@@ -258,11 +276,18 @@ def cmd_layers(args) -> int:
     from .io.usd_export import check_output_path
     from .model import SkinModelBuilder
 
+    from .character import Character
+
     scene = _scene_of(args)
     check_output_path(args.output, inputs=scene.input_paths())  # before any work
-    builder = SkinModelBuilder(scene.rig(), scene.model_params())
-    path = write_model_usd(builder, args.output, comment="warpskin " + " ".join(sys.argv[1:]))
+    # the model that simulate would build: of the skin, or of the automatic cage of an open one
+    character = Character(scene.rig(), weights=scene.physics_weights() or None)
+    builder = SkinModelBuilder(character.sim_rig, scene.model_params())
+    builder.build()
+    character.bind(builder)
+    path = write_model_usd(builder, args.output, comment="warpskin " + " ".join(sys.argv[1:]), character=character)
     summary = builder.summary()
+    summary["physics_weight"] = character.weight_summary()
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
@@ -275,6 +300,7 @@ def cmd_layers(args) -> int:
         )
         for note in summary["depth_notes"]:
             print(note)
+        _print_weights(summary["physics_weight"])
         print("build time: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in summary["timings_s"].items()))
     print(f"wrote {path}")
     return 0

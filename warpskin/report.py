@@ -14,12 +14,16 @@ __all__ = ["write_plots"]
 
 
 def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str], *, title: str = "",
-                where: tuple[np.ndarray, np.ndarray] | None = None) -> list[str]:
+                where: tuple[np.ndarray, np.ndarray] | None = None,
+                weights: tuple[np.ndarray, np.ndarray] | None = None, quality: dict | None = None) -> list[str]:
     """Write volume, sub-volume, energy, residual, offset, intersection, contact and step-time
     plots against the written frames (the bake's time codes), each titled with ``title`` (the
     scene and its parameters); with ``where = (rest points [V, 3], largest distance from LBS
     per vertex [V])``, also a picture of where the skin departs from LBS (front and side views
-    of the rest pose, coloured by that distance). Returns the file names (empty without
+    of the rest pose, coloured by that distance); with ``weights = (rest points [N, 3], physics
+    weight [N])`` of every written mesh, the physics-weight map the same way; with ``quality =
+    {mesh: series}`` (:class:`~warpskin.quality.QualityLog`), each written mesh's strained edges
+    (beside its LBS's) and flipped triangles per frame. Returns the file names (empty without
     matplotlib)."""
     try:
         import matplotlib
@@ -114,6 +118,39 @@ def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str], *, 
         fig.savefig(report_dir / "offset_map.png", dpi=110)
         plt.close(fig)
         written.append("offset_map.png")
+
+    if weights is not None and len(weights[0]):
+        rest, phi = np.asarray(weights[0]), np.asarray(weights[1])
+        fig, axes = plt.subplots(1, 2, figsize=(10, 5.5))
+        for ax, (a, b, label) in zip(axes, [(0, 1, "front (X, Y)"), (2, 1, "side (Z, Y)")]):
+            sc = ax.scatter(rest[:, a], rest[:, b], c=phi, s=4, cmap="viridis", vmin=0.0, vmax=1.0)
+            ax.set(title=label, aspect="equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+        fig.colorbar(sc, ax=axes, label="physics weight (0: LBS, 1: physical)", shrink=0.8)
+        fig.suptitle((title + "\n" if title else "") + "Physics weight of every written point (rest pose)", fontsize=8)
+        fig.savefig(report_dir / "physics_weight_map.png", dpi=110)
+        plt.close(fig)
+        written.append("physics_weight_map.png")
+
+    if quality:
+        tq = t[: min(len(t), min(len(v["strained"]) for v in quality.values()))]
+
+        def strained(ax):
+            for name, v in quality.items():
+                line = ax.plot(tq, 100 * np.asarray(v["strained"][: len(tq)]), label=f"{name}")[0]
+                ax.plot(tq, 100 * np.asarray(v["strained_lbs"][: len(tq)]), "--", color=line.get_color(),
+                        label=f"{name} LBS")
+
+        figure("written_strain.png", "Edges of the written meshes strained past 1.5x (dashed: LBS)", "time [s]",
+               "% of edges", strained, True)
+
+        def flipped(ax):
+            for name, v in quality.items():
+                ax.plot(tq, 100 * np.asarray(v["flipped"][: len(tq)]), label=name)
+
+        figure("written_flips.png", "Triangles of the written meshes flipped against LBS", "time [s]",
+               "% of triangles", flipped, True)
 
     if metrics.get("step_ms"):
         figure("step_time.png", "Time per solver step", "time [s]", "ms per step",

@@ -25,8 +25,11 @@ def _palette(k: int) -> tuple[float, float, float]:
     return colorsys.hsv_to_rgb(h, 0.55, 0.9)
 
 
-def write_model_usd(builder: SkinModelBuilder, path: str | Path, *, comment: str = "") -> Path:
-    """Write layers, sub-volumes, joint-constraint particles and bones to ``path`` (rest pose)."""
+def write_model_usd(builder: SkinModelBuilder, path: str | Path, *, comment: str = "", character=None) -> Path:
+    """Write layers, sub-volumes, joint-constraint particles and bones to ``path`` (rest pose);
+    with a bound ``character`` (:class:`~warpskin.character.Character`), also every mesh it
+    writes, at rest under ``written/``, carrying its ``physicsWeight`` (0 LBS, 1 physical) and
+    ``shapeDiameter`` [m] as primvars for a DCC to colour it by."""
     b = builder.build()
     rig = b.rig
     tris = rig.triangles
@@ -53,4 +56,12 @@ def write_model_usd(builder: SkinModelBuilder, path: str | Path, *, comment: str
         seg = np.linspace(0.0, 1.0, 12)[None, :, None]
         line = bones.start[:, None, :] + seg * (bones.end - bones.start)[:, None, :]
         out.add_points("bones", line.reshape(-1, 3), width=0.004, color=(0.95, 0.95, 0.95))
+        if character is not None and character.capture_result is not None:
+            out.add_group("written")
+            cap = character.capture_result
+            for part in character.parts:
+                s = slice(part.start, part.start + part.count)
+                diameter = np.where(np.isfinite(cap.thickness[s]), cap.thickness[s], -1.0)
+                out.add_mesh(f"written/{character.display_name(part.name)}", part.triangles, rest_points=part.rest, animated=False,
+                             vertex_primvars={"physicsWeight": cap.physics_weight[s], "shapeDiameter": diameter})
     return Path(path)

@@ -472,7 +472,7 @@ def simulate(
             "meshes": [p.name for p in caged.parts],
             "source": str(cage_file) if cage_file is not None else "automatic",
         },
-        "physics_weight": {quality.names.get(k, k): v for k, v in character.weight_summary().items()},
+        "physics_weight": character.weight_summary(),
         "written": quality.log.summary(),
         "written_worst": quality.log.worst(),
         "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
@@ -525,7 +525,9 @@ def simulate(
                  f"at {plan.fps:g} fps, {params.iterations} + {params.volume_iterations} iterations, collisions "
                  f"{'on' if col is not None else 'off'}, {model.device}")
         plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
-                            where=(output.rest, render_deviation))
+                            where=(output.rest, render_deviation),
+                            weights=(character.soup.points, character.capture_result.physics_weight),
+                            quality=quality.log.series)
         summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
         (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics,
                                                         "written": quality.log.series}, indent=1))
