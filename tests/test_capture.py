@@ -5,6 +5,7 @@ keeps apart what is apart (warpskin.preprocess.cage): against closed forms and N
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import trimesh
 import warp as wp
@@ -261,3 +262,41 @@ def test_joint_constraints_hold_only_the_tissue_of_bones_near_the_joint():
     pairs = set(zip(names[jc.joints].tolist(), names[bone].tolist()))
     assert ("hand", "leg") not in pairs and ("leg", "hand") not in pairs
     assert ("hand", "hand") in pairs and ("leg", "leg") in pairs
+
+
+def test_painted_weights_and_joint_patterns_override_the_automatic_map(tmp_path, device):
+    # the mannequin as a file with a painted _PHYSICS_WEIGHT on its left shoe (a ramp along
+    # it): the shoe's weights are the painted ones (one mean where it moves as a whole); then a
+    # joint pattern blends its value in by the skinning: phi' = (1 - s) phi + s v, s the
+    # point's LBS weight on the matched joints
+    from gltf_builder import write_rig_glb
+    from warpskin.io import load_rig
+    from warpskin.scenes.mannequin import make_mannequin
+
+    src = make_mannequin()
+    shoe = next(a for a in src.attachments if a.name == "shoe_l")
+    ramp = np.clip((shoe.vertices[:, 2] - shoe.vertices[:, 2].min()) / np.ptp(shoe.vertices[:, 2]), 0.0, 1.0)
+    rig = load_rig(write_rig_glb(src, tmp_path / "painted.glb", painted={"shoe_l": ramp}))
+    ch = Character(rig, cage="always", device=device)
+    part = next(p for p in ch.parts if p.name == "shoe_l")
+    s = slice(part.start, part.start + part.count)
+    np.testing.assert_allclose(ch.painted()[s], ramp, atol=1e-6)
+    cap = ch.bind(device=device)
+    want = cap.uniform_in_groups(np.where(np.isnan(ch.painted()), cap.physics_weight, ch.painted()))
+    np.testing.assert_allclose(cap.physics_weight[s], want[s], atol=1e-9)
+    assert np.ptp(cap.physics_weight[s]) > 0.5  # the shoe does not move as a whole: the ramp holds
+    # a joint pattern on top: the hands (fists) and feet at 0.25
+    auto = cap.physics_weight.copy()
+    ch2 = Character(rig, cage="always", device=device, weights={"hand_*": 0.25, "foot_?": 0.25})
+    cap2 = ch2.bind(device=device)
+    names = rig.skeleton.joint_names
+    hit = np.array([n.startswith("hand_") or (n.startswith("foot_") and len(n) == 6) for n in names])
+    share = ch2.soup.dense_weights[:, hit].sum(axis=1)
+    want = cap2.uniform_in_groups((1 - share) * auto + 0.25 * share)
+    np.testing.assert_allclose(cap2.physics_weight, want, atol=1e-9)
+    assert share.max() > 0.99 and share.min() == 0.0
+    # a pattern that names no joint is an error, naming the joints there are
+    from warpskin.errors import SceneError
+
+    with pytest.raises(SceneError, match=r"no joint matches \['\*tail\*'\]"):
+        Character(rig, cage="always", device=device, weights={"*tail*": 0.0}).bind(device=device)

@@ -512,3 +512,25 @@ def test_quaternion_slerp_matches_usd_interpolation(tmp_path: Path) -> None:
         ref = np.array(xyzw(attr.Get(tc)[0]))
         assert math.isclose(abs(float(np.dot(got, ref))), 1.0, abs_tol=1e-6)
         np.testing.assert_allclose(got, ref, atol=1e-6)
+
+
+def test_a_painted_physics_weight_primvar_is_read_and_checked(tmp_path: Path) -> None:
+    # primvars:physicsWeight (vertex) lands per file vertex on the rig; a value outside [0, 1]
+    # is refused with the vertex named
+    paint = np.linspace(0.0, 1.0, 12)
+
+    def painted(values):
+        def mutate(stage, binding):
+            pv = UsdGeom.PrimvarsAPI(binding.GetPrim()).CreatePrimvar("physicsWeight", Sdf.ValueTypeNames.FloatArray,
+                                                                      UsdGeom.Tokens.vertex)
+            pv.Set(Vt.FloatArray([float(v) for v in values]))
+        return mutate
+
+    rig = load_usd(build_box(tmp_path / "paint.usda", mutate=painted(paint)))
+    got = rig.render.physics_weight
+    assert got is not None and got.shape == (rig.file_vertex_count,)
+    np.testing.assert_allclose(np.sort(got), np.sort(paint), atol=1e-6)
+    bad = paint.copy()
+    bad[5] = 1.5
+    with pytest.raises(RigError, match=r"painted physics weight of vertex 5 is 1.5, outside \[0, 1\]"):
+        load_usd(build_box(tmp_path / "bad.usda", mutate=painted(bad)))
