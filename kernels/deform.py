@@ -23,6 +23,19 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def lbs_flat(p: wp.vec3, row: int, influence_count: int, joint_indices: wp.array(dtype=wp.int32),
+             joint_weights: wp.array(dtype=wp.float32), skin_matrices: wp.array(dtype=wp.mat44)) -> wp.vec3:
+    """``sum_k w_k M_{j_k} [p, 1]`` over the ``influence_count`` influences of ``row`` (flat
+    arrays, weight 0 pads)."""
+    acc = wp.vec3(0.0)
+    for k in range(influence_count):
+        w = joint_weights[row * influence_count + k]
+        if w != 0.0:
+            acc += w * wp.transform_point(skin_matrices[joint_indices[row * influence_count + k]], p)
+    return acc
+
+
 @wp.kernel
 def displacement_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -37,13 +50,7 @@ def displacement_kernel(
     """``d_j = x_j - LBS(X_j)`` for every simulated surface vertex ``j`` (its first particles:
     the skin layer)."""
     j = wp.tid()
-    acc = wp.vec3(0.0)
-    p = rest[j]
-    for k in range(influence_count):
-        w = joint_weights[j * influence_count + k]
-        if w != 0.0:
-            acc += w * wp.transform_point(skin_matrices[joint_indices[j * influence_count + k]], p)
-    displacement[j] = x[j] - acc
+    displacement[j] = x[j] - lbs_flat(rest[j], j, influence_count, joint_indices, joint_weights, skin_matrices)
 
 
 @wp.kernel
@@ -77,12 +84,7 @@ def deform_kernel(
     """``p_i' = LBS(P_i) + phi_i sum_m a_im d_{s_im}`` (``joint_indices`` already offset into the
     stacked per-mesh matrices)."""
     i = wp.tid()
-    p = bind_points[i]
-    acc = wp.vec3(0.0)
-    for k in range(influence_count):
-        w = joint_weights[i * influence_count + k]
-        if w != 0.0:
-            acc += w * wp.transform_point(skin_matrices[joint_indices[i * influence_count + k]], p)
+    acc = lbs_flat(bind_points[i], i, influence_count, joint_indices, joint_weights, skin_matrices)
     phi = physics_weight[i]
     if phi > 0.0:
         d = wp.vec3(0.0)

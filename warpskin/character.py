@@ -32,10 +32,25 @@ import numpy as np
 from .capture import Capture, CaptureParams, capture_points, identity_capture
 from .errors import SceneError
 
-__all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES"]
+__all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices"]
 
 CAGE_MODES = ("auto", "always", "none")
 RIGID_MODES = ("cage", "joint")
+
+
+def check_choices(cage, rigid_pieces: str) -> Path | None:
+    """Check a run's ``cage`` and ``rigid_pieces`` choices (one line naming the bad one); returns
+    the user's cage file, or ``None`` for an automatic choice."""
+    if rigid_pieces not in RIGID_MODES:
+        raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {rigid_pieces!r}")
+    if isinstance(cage, Path) or cage not in CAGE_MODES:
+        from .io.cage_file import CAGE_EXTENSIONS
+
+        if not isinstance(cage, (str, Path)) or Path(cage).suffix.lower() not in CAGE_EXTENSIONS:
+            raise SceneError(f"cage must be 'auto', 'always', 'none' or a mesh file ({', '.join(CAGE_EXTENSIONS)}), "
+                             f"got {cage!r}")
+        return Path(cage)
+    return None
 
 
 @dataclass
@@ -95,17 +110,7 @@ class Character:
     def __post_init__(self) -> None:
         from .preprocess.cage import character_soup, rigid_pieces
 
-        if self.rigid_pieces not in RIGID_MODES:
-            raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {self.rigid_pieces!r}")
-        cage_file = None
-        if isinstance(self.cage, Path) or self.cage not in CAGE_MODES:
-            from .io.cage_file import CAGE_EXTENSIONS
-
-            if not isinstance(self.cage, (str, Path)) or Path(self.cage).suffix.lower() not in CAGE_EXTENSIONS:
-                raise SceneError(f"cage must be 'auto', 'always', 'none' or a mesh file ({', '.join(CAGE_EXTENSIONS)}), "
-                                 f"got {self.cage!r}")
-            cage_file = Path(self.cage)
-        self.cage_file = cage_file
+        cage_file = self.cage_file = check_choices(self.cage, self.rigid_pieces)
         rig = self.rig
         report = rig.report or rig.validate(raise_on_error=False)
         closed = report.closed and report.manifold

@@ -104,34 +104,30 @@ def write_plots(report_dir: Path, metrics: dict, subvolume_names: list[str], *, 
 
         figure("contacts.png", "Self-collision over the run", "time [s]", "count", contacts, True)
 
-    if where is not None and len(where[0]):
-        rest, dev = np.asarray(where[0]), 1e3 * np.asarray(where[1])
-        order = np.argsort(dev)  # the largest on top
+    def rest_map(name: str, rest: np.ndarray, values: np.ndarray, label: str, what: str, **scatter) -> None:
+        """Front and side views of the rest pose, points coloured by ``values``."""
+        order = np.argsort(values)  # the largest on top
         fig, axes = plt.subplots(1, 2, figsize=(10, 5.5))
-        for ax, (a, b, label) in zip(axes, [(0, 1, "front (X, Y)"), (2, 1, "side (Z, Y)")]):
-            sc = ax.scatter(rest[order, a], rest[order, b], c=dev[order], s=6, cmap="inferno")
-            ax.set(title=label, aspect="equal")
+        for ax, (a, b, view) in zip(axes, [(0, 1, "front (X, Y)"), (2, 1, "side (Z, Y)")]):
+            sc = ax.scatter(rest[order, a], rest[order, b], c=values[order], **scatter)
+            ax.set(title=view, aspect="equal")
             ax.set_xticks([])
             ax.set_yticks([])
-        fig.colorbar(sc, ax=axes, label="largest distance from LBS over the run [mm]", shrink=0.8)
-        fig.suptitle((title + "\n" if title else "") + "Where the physical skin departs from LBS (rest pose)", fontsize=8)
-        fig.savefig(report_dir / "offset_map.png", dpi=110)
+        fig.colorbar(sc, ax=axes, label=label, shrink=0.8)
+        fig.suptitle((title + "\n" if title else "") + what, fontsize=8)
+        fig.savefig(report_dir / name, dpi=110)
         plt.close(fig)
-        written.append("offset_map.png")
+        written.append(name)
+
+    if where is not None and len(where[0]):
+        rest_map("offset_map.png", np.asarray(where[0]), 1e3 * np.asarray(where[1]),
+                 "largest distance from LBS over the run [mm]", "Where the physical skin departs from LBS (rest pose)",
+                 s=6, cmap="inferno")
 
     if weights is not None and len(weights[0]):
-        rest, phi = np.asarray(weights[0]), np.asarray(weights[1])
-        fig, axes = plt.subplots(1, 2, figsize=(10, 5.5))
-        for ax, (a, b, label) in zip(axes, [(0, 1, "front (X, Y)"), (2, 1, "side (Z, Y)")]):
-            sc = ax.scatter(rest[:, a], rest[:, b], c=phi, s=4, cmap="viridis", vmin=0.0, vmax=1.0)
-            ax.set(title=label, aspect="equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
-        fig.colorbar(sc, ax=axes, label="physics weight (0: LBS, 1: physical)", shrink=0.8)
-        fig.suptitle((title + "\n" if title else "") + "Physics weight of every written point (rest pose)", fontsize=8)
-        fig.savefig(report_dir / "physics_weight_map.png", dpi=110)
-        plt.close(fig)
-        written.append("physics_weight_map.png")
+        rest_map("physics_weight_map.png", np.asarray(weights[0]), np.asarray(weights[1], dtype=np.float64),
+                 "physics weight (0: LBS, 1: physical)", "Physics weight of every written point (rest pose)",
+                 s=4, cmap="viridis", vmin=0.0, vmax=1.0)
 
     if quality:
         tq = t[: min(len(t), min(len(v["strained"]) for v in quality.values()))]

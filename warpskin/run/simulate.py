@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SceneError, SimulationError
+from ..errors import SimulationError
 from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..metrics import self_intersections, signed_volume
 from ..model import SkinModelBuilder
@@ -339,18 +339,9 @@ def simulate(
             message names the frame and the particle, vertex (the file's number), bone or
             sub-volume; the USD file keeps the frames before it (valid, closed).
     """
-    from ..character import CAGE_MODES, RIGID_MODES, Character
+    from ..character import Character, check_choices
 
-    if rigid_pieces not in RIGID_MODES:
-        raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {rigid_pieces!r}")
-    cage_file = None
-    if isinstance(cage, Path) or cage not in CAGE_MODES:
-        from ..io.cage_file import CAGE_EXTENSIONS
-
-        if not isinstance(cage, (str, Path)) or Path(cage).suffix.lower() not in CAGE_EXTENSIONS:
-            raise SceneError(f"cage must be 'auto', 'always', 'none' or a mesh file ({', '.join(CAGE_EXTENSIONS)}), "
-                             f"got {cage!r}")
-        cage_file = Path(cage)
+    cage_file = check_choices(cage, rigid_pieces)  # before any work
     check_output_path(out_path, inputs=[*scene.input_paths(), *([cage_file] if cage_file else [])])  # before any work
     params = solver_params or scene.solver_params()
     params.check(str(scene.source or scene.name))
