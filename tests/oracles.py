@@ -319,13 +319,13 @@ def strain_and_flips(rest: np.ndarray, points: np.ndarray, lbs: np.ndarray, tria
                      limit: float = 1.5) -> tuple[float, float, float]:
     """``(strained share, strained share of LBS, flipped share)`` of a mesh welded by rest
     position: edges longer than ``limit`` x rest or shorter than rest / ``limit``, and
-    triangles whose normal points against LBS's (plain loops over edges and faces)."""
+    triangles whose normal points against LBS's (the weld and the edge set by plain Python
+    sets, the lengths and normals by NumPy)."""
     rest = np.asarray(rest, dtype=np.float64)
-    key = {}
+    key: dict = {}
     weld = np.array([key.setdefault(tuple(x), len(key)) for x in rest.tolist()])
-    first = {}
-    for i, w in enumerate(weld.tolist()):
-        first.setdefault(w, i)
+    first = np.zeros(len(key), dtype=np.int64)
+    first[weld[::-1]] = np.arange(len(weld))[::-1]
     edges, faces = set(), []
     for tri in np.asarray(triangles).tolist():
         w = [int(weld[v]) for v in tri]
@@ -334,18 +334,16 @@ def strain_and_flips(rest: np.ndarray, points: np.ndarray, lbs: np.ndarray, tria
         faces.append(tri)
         for u, v in ((w[0], w[1]), (w[1], w[2]), (w[2], w[0])):
             edges.add((min(u, v), max(u, v)))
+    e = first[np.array(sorted(edges), dtype=np.int64)]
+    l0 = np.linalg.norm(rest[e[:, 0]] - rest[e[:, 1]], axis=1)
 
     def share(x):
-        bad = 0
-        for u, v in edges:
-            l0 = np.linalg.norm(rest[first[u]] - rest[first[v]])
-            ln = np.linalg.norm(x[first[u]] - x[first[v]])
-            bad += ln > limit * l0 or ln < l0 / limit
-        return bad / len(edges)
+        x = np.asarray(x, dtype=np.float64)
+        ln = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
+        return float(np.mean((ln > limit * l0) | (ln < l0 / limit)))
 
-    flips = 0
-    for a, b, c in faces:
-        n = np.cross(points[b] - points[a], points[c] - points[a])
-        m = np.cross(lbs[b] - lbs[a], lbs[c] - lbs[a])
-        flips += float(np.dot(n, m)) < 0.0
-    return share(np.asarray(points, float)), share(np.asarray(lbs, float)), flips / len(faces)
+    f = np.array(faces, dtype=np.int64)
+    p, q = np.asarray(points, dtype=np.float64), np.asarray(lbs, dtype=np.float64)
+    n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    m = np.cross(q[f[:, 1]] - q[f[:, 0]], q[f[:, 2]] - q[f[:, 0]])
+    return share(p), share(q), float(np.mean(np.einsum("ij,ij->i", n, m) < 0.0))
