@@ -56,25 +56,47 @@ def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.nd
     return hit
 
 
-def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip_shared: bool) -> np.ndarray:
-    """Pairs ``i < j`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU) of
-    ``triangles`` (with ``skip_shared``: not sharing a vertex), in no particular order."""
+def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip_shared: bool,
+               active: np.ndarray | None = None) -> np.ndarray:
+    """Pairs ``(i, j)`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU) of
+    ``triangles`` (with ``skip_shared``: not sharing a vertex), in no particular order: every
+    pair ``i < j``, or with ``active`` (``[T]`` bool) every pair with an active triangle, once
+    (where few are active, from a tree over their boxes alone)."""
     import warp as wp
 
     from .kernels import measure as k
 
     n = lower.shape[0]
+    act_host = np.ones(n, dtype=np.int32) if active is None else np.asarray(active, dtype=np.int32)
+    subset = np.nonzero(act_host)[0].astype(np.int32)
+    if subset.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    few = active is not None and subset.size < n // 2
+    if few:  # the triangles whose boxes meet the box around the active ones
+        a_lo, a_hi = lower[subset].min(axis=0), upper[subset].max(axis=0)
+        queries = np.nonzero(np.all((upper >= a_lo) & (lower <= a_hi), axis=1))[0].astype(np.int32)
     with wp.ScopedDevice("cpu"):
         lo = wp.array(lower.astype(np.float32), dtype=wp.vec3)
         hi = wp.array(upper.astype(np.float32), dtype=wp.vec3)
-        bvh = wp.Bvh(lo, hi)
+        if few:
+            bvh = wp.Bvh(wp.array(lower[subset].astype(np.float32), dtype=wp.vec3),
+                         wp.array(upper[subset].astype(np.float32), dtype=wp.vec3))
+        else:
+            bvh = wp.Bvh(lo, hi)
         tri = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.vec3i)
-        capacity = 16 * n
+        act = wp.array(act_host, dtype=wp.int32)
+        capacity = 16 * (subset.size if few else n)
         while True:
             count = wp.zeros(1, dtype=wp.int32)
             pairs = wp.zeros(capacity, dtype=wp.vec2i)
-            wp.launch(k.box_pairs_kernel, dim=n, inputs=[bvh.id, lo, hi, tri, int(skip_shared), capacity],
-                      outputs=[count, pairs])
+            if few:
+                wp.launch(k.box_pairs_subset_kernel, dim=len(queries),
+                          inputs=[bvh.id, wp.array(subset, dtype=wp.int32), wp.array(queries, dtype=wp.int32), lo, hi,
+                                  tri, act, int(skip_shared), capacity],
+                          outputs=[count, pairs])
+            else:
+                wp.launch(k.box_pairs_kernel, dim=n, inputs=[bvh.id, lo, hi, tri, act, int(skip_shared), capacity],
+                          outputs=[count, pairs])
             c = int(count.numpy()[0])
             if c <= capacity:
                 break
@@ -82,8 +104,10 @@ def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip
         return pairs.numpy()[:c].astype(np.int64)
 
 
-def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True) -> np.ndarray:
-    """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``).
+def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True,
+                       active: np.ndarray | None = None) -> np.ndarray:
+    """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``); with ``active``
+    (``[T]`` bool) only the pairs that have an active triangle.
 
     Candidates are the pairs whose bounding boxes overlap (a BVH over the boxes, widened by
     1e-6 of the mesh's extent and coordinates past float32 rounding); each candidate gets the exact float64
@@ -93,10 +117,12 @@ def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_sha
     t = np.asarray(triangles, dtype=np.int64)
     if t.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    corners = p[t]
+    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
     # float32 boxes, widened past their rounding (relative to the coordinates and to the extent)
     pad = 1e-6 * (float(np.ptp(p, axis=0).max()) + float(np.abs(p).max()) + 1e-30)
-    pairs = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad, t, exclude_shared)
+    lower = np.minimum(np.minimum(a, b), c) - pad
+    upper = np.maximum(np.maximum(a, b), c) + pad
+    pairs = _box_pairs(lower, upper, t, exclude_shared, active)
     if pairs.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
     hit = triangle_pairs_intersect(p, t[pairs[:, 0]], t[pairs[:, 1]])

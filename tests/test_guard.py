@@ -1,0 +1,270 @@
+"""The surface guard (warpskin.guard): what it writes is never worse than LBS, it leaves a good
+physical result untouched, acts locally and smoothly, recovers over frames, keeps groups rigid.
+Judged by the independent references of oracles.py (plain-loop strain and flips, separating-axis
+pair counts over every pair), on spheres in generic positions (a random rotation and jitter)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from oracles import intersecting_pairs_brute_force, strain_and_flips
+from warpskin.errors import SceneError
+from warpskin.guard import GuardParams, SurfaceGuard
+from warpskin.metrics import self_intersections
+from warpskin.quality import WrittenMesh
+
+
+def _rotation(seed: int) -> np.ndarray:
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _sphere(centre, radius: float, seed: int, subdivisions: int = 3):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    rng = np.random.default_rng(seed)
+    v = s.vertices @ _rotation(seed).T
+    v = v * (1.0 + 0.01 * rng.uniform(-1, 1, size=(len(v), 1)))  # generic: no symmetry, no ties
+    return v + np.asarray(centre, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
+
+
+def _pose(points: np.ndarray, seed: int) -> np.ndarray:
+    """A rigid motion standing in for the frame's LBS."""
+    return points @ _rotation(seed + 100).T + np.array([0.31, -0.17, 0.05])
+
+
+def _dent(rest: np.ndarray, lbs: np.ndarray, centre: np.ndarray, radius: float, depth: float, seed: int = 0) -> np.ndarray:
+    """LBS crumpled within ``radius`` of ``centre`` on the rest shape: every point there thrown
+    by up to ``depth`` in a random direction (strained edges, triangles turned over)."""
+    d = np.linalg.norm(rest - centre, axis=1)
+    w = np.clip(1.0 - d / radius, 0.0, 1.0) ** 0.3
+    return lbs + depth * w[:, None] * np.random.default_rng(seed).normal(size=lbs.shape)
+
+
+def test_a_good_physical_result_is_written_untouched():
+    rest, tris = _sphere((0, 0, 0), 0.1, 1)
+    guard = SurfaceGuard(WrittenMesh("s", tris, rest))
+    lbs = _pose(rest, 1)
+    physical = lbs + 0.002 * np.sin(17.0 * lbs)  # a smooth bulge: nothing strained, flipped or crossing
+    for _ in range(3):
+        out = guard.apply(physical, lbs)
+        assert np.array_equal(out, physical)
+        assert guard.held == 0.0 and guard.guarded == 0.0
+    assert guard.pair_counts == (0, 0)
+
+
+def test_a_crumpled_dent_is_taken_back_locally_and_smoothly():
+    rest, tris = _sphere((0, 0, 0), 1.0, 2, subdivisions=4)  # edges of about 0.095
+    mesh = WrittenMesh("s", tris, rest)
+    guard = SurfaceGuard(mesh)
+    lbs = _pose(rest, 2)
+    centre = rest[17]
+    physical = _dent(rest, lbs, centre, 0.25, 0.05)
+    s, s_lbs, f = strain_and_flips(rest, physical, lbs, tris)
+    assert f > 0.002 and s > s_lbs + 0.002  # the physical result is crumpled there
+    out = guard.apply(physical, lbs)
+    s, s_lbs, f = strain_and_flips(rest, out, lbs, tris)
+    assert f == 0.0
+    assert s <= s_lbs
+    # every point lies between its LBS and its physical result, on the segment
+    moved, taken = np.linalg.norm(physical - lbs, axis=1), out - lbs
+    g = np.einsum("ij,ij->i", taken, physical - lbs) / np.maximum(moved**2, 1e-30)
+    assert np.all((g > -1e-12) & (g < 1 + 1e-12))
+    np.testing.assert_allclose(taken, g[:, None] * (physical - lbs), atol=1e-12)
+    # local: farther than the ramp (spread x the largest displacement) from the dent along the
+    # surface (no nearer than straight), every point is exactly its physical result
+    ramp = guard.params.spread * moved.max() + 2 * guard.edge
+    far = np.linalg.norm(rest - centre, axis=1) > 0.25 + ramp
+    assert far.sum() > 0.2 * len(rest)
+    assert np.array_equal(out[far], physical[far])
+
+
+def test_a_piece_pushed_into_another_is_taken_back_to_no_more_pairs_than_lbs():
+    a, ta = _sphere((0, 0, 0), 0.1, 3, subdivisions=2)
+    b, tb = _sphere((0.215, 0.0, 0.0), 0.1, 4, subdivisions=2)
+    rest = np.concatenate([a, b])
+    tris = np.concatenate([ta, tb + len(a)])
+    lbs = _pose(rest, 3)
+    assert intersecting_pairs_brute_force(lbs, tris) == 0
+    # the second sphere's near side bulges into the first (smoothly: nothing strained or flipped)
+    towards = lbs[: len(a)].mean(axis=0) - lbs[len(a):].mean(axis=0)
+    towards /= np.linalg.norm(towards)
+    near = np.clip((lbs[len(a):] - lbs[len(a):].mean(axis=0)) @ towards / 0.1, 0.0, 1.0) ** 2
+    physical = lbs.copy()
+    physical[len(a):] += 0.04 * near[:, None] * towards
+    assert intersecting_pairs_brute_force(physical, tris) > 10
+    guard = SurfaceGuard(WrittenMesh("two", tris, rest))
+    out = guard.apply(physical, lbs)
+    assert intersecting_pairs_brute_force(out, tris) == 0
+    assert guard.pair_counts == (0, 0)
+    np.testing.assert_array_equal(out[: len(a)], physical[: len(a)])  # the first sphere did not move
+
+
+def test_a_crossing_that_slides_with_fewer_pairs_is_not_taken_back():
+    # two pieces that cross at rest (a ball in a tube's end); the physics draws one out a little:
+    # the crossing slides (pairs come and go near each other), the count falls, nothing is new
+    a, ta = _sphere((0, 0, 0), 0.1, 5)
+    b, tb = _sphere((0.17, 0.013, -0.007), 0.1, 6)
+    rest = np.concatenate([a, b])
+    tris = np.concatenate([ta, tb + len(a)])
+    lbs = _pose(rest, 5)
+    away = lbs[len(a):].mean(axis=0) - lbs[: len(a)].mean(axis=0)
+    physical = lbs.copy()
+    physical[len(a):] += 0.012 * away / np.linalg.norm(away)
+    before, after = intersecting_pairs_brute_force(lbs, tris), intersecting_pairs_brute_force(physical, tris)
+    assert before > 50 and after < before
+    new = {tuple(p) for p in self_intersections(physical, tris).tolist()} - {tuple(p) for p in self_intersections(lbs, tris).tolist()}
+    assert new  # pairs LBS does not have: the crossing slid
+    guard = SurfaceGuard(WrittenMesh("two", tris, rest))
+    out = guard.apply(physical, lbs)
+    assert np.array_equal(out, physical)
+
+
+def test_the_weight_recovers_by_its_rate_where_it_is_safe():
+    rest, tris = _sphere((0, 0, 0), 0.1, 7)
+    guard = SurfaceGuard(WrittenMesh("s", tris, rest), GuardParams(recover=0.1))
+    lbs = _pose(rest, 7)
+    guard.apply(_dent(rest, lbs, rest[5], 0.035, 0.03), lbs)
+    g = guard.g.copy()
+    assert g.min() < 0.5
+    bulge = lbs + 0.002 * np.sin(17.0 * lbs)  # a harmless result: the weight may rise again
+    for _ in range(12):
+        out = guard.apply(bulge, lbs)
+        g = np.minimum(1.0, g + 0.1)
+        np.testing.assert_allclose(guard.g, g, atol=1e-12)
+        np.testing.assert_allclose(out, lbs + guard.g[guard.mesh.weld][:, None] * (bulge - lbs), atol=1e-12)
+    assert guard.held == 0.0 and np.array_equal(out, bulge)
+
+
+def test_a_group_keeps_one_weight_and_stays_rigid():
+    a, ta = _sphere((0, 0, 0), 0.1, 8)
+    b, tb = _sphere((0.5, 0, 0), 0.05, 9, subdivisions=2)
+    rest = np.concatenate([a, b])
+    tris = np.concatenate([ta, tb + len(a)])
+    groups = np.r_[np.full(len(a), -1), np.zeros(len(b), dtype=np.int64)]
+    lbs = _pose(rest, 8)
+    physical = lbs.copy()
+    physical[len(a):] += np.array([0.01, 0.02, -0.01])  # the small piece moves as a whole
+    # ... and one of its points is thrown out: that edge strains, the whole piece is held alike
+    physical[len(a) + 3] += 0.06 * (lbs[len(a) + 3] - lbs[len(a):].mean(axis=0)) / 0.05
+    guard = SurfaceGuard(WrittenMesh("two", tris, rest), groups=groups)
+    out = guard.apply(physical, lbs)
+    g = guard.g[guard.mesh.weld]
+    assert np.ptp(g[len(a):]) == 0.0 and g[len(a)] < 1.0
+    s, s_lbs, f = strain_and_flips(rest, out, lbs, tris)
+    assert s <= s_lbs and f == 0.0
+
+
+def test_the_guard_off_writes_the_physical_result():
+    rest, tris = _sphere((0, 0, 0), 0.1, 10)
+    lbs = _pose(rest, 10)
+    physical = _dent(rest, lbs, rest[3], 0.035, 0.03)
+    guard = SurfaceGuard(WrittenMesh("s", tris, rest), GuardParams(enabled=False))
+    assert np.array_equal(guard.apply(physical, lbs), physical)
+
+
+@pytest.mark.parametrize("share", [0.02, 0.3, 0.9])
+def test_pairs_of_active_triangles_are_those_of_the_whole_count(share):
+    # the active-only query (a tree over the active triangles' boxes, or over all) gives exactly
+    # the pairs of the full count that have an active triangle
+    a, ta = _sphere((0, 0, 0), 0.1, 11)
+    b, tb = _sphere((0.16, 0.02, 0.01), 0.1, 12)
+    p = np.concatenate([a, b])
+    t = np.concatenate([ta, tb + len(a)])
+    full = self_intersections(p, t)
+    assert len(full) > 50
+    active = np.random.default_rng(13).uniform(size=len(t)) < share
+    got = self_intersections(p, t, active=active)
+    want = full[active[full[:, 0]] | active[full[:, 1]]]
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("key, value", [("strain", 1.6), ("flip_degrees", 0), ("rounds", 2.5), ("back_off", 0),
+                                        ("recover", -0.1), ("spread", 0), ("enabled", 1), ("match", -1)])
+def test_guard_settings_out_of_range_fail_with_one_line_naming_the_key(tmp_path, key, value):
+    from warpskin.scene import load_scene
+
+    p = tmp_path / "s.toml"
+    v = str(value).lower() if isinstance(value, bool) else repr(value)
+    p.write_text(f"[rig]\ngenerator = 'arm'\n[guard]\n{key} = {v}\n")
+    with pytest.raises(SceneError) as e:
+        load_scene(p).guard_params()
+    msg = str(e.value)
+    assert "\n" not in msg and f"[guard] {key}" in msg and "s.toml" in msg
+
+
+def test_scene_guard_and_physics_weights_sections_are_read(tmp_path):
+    from warpskin.scene import load_scene
+
+    p = tmp_path / "s.toml"
+    p.write_text("[rig]\ngenerator = 'arm'\n[guard]\nenabled = false\nrecover = 0.25\n"
+                 "[physics.weights]\n\"*hand*\" = 0.0\n\"upper*\" = 0.5\n")
+    scene = load_scene(p)
+    g = scene.guard_params()
+    assert g.enabled is False and g.recover == 0.25
+    assert scene.physics_weights() == {"*hand*": 0.0, "upper*": 0.5}
+
+
+
+def _pushed_out(seed: int, swell: float):
+    """Two spheres apart at rest; under "LBS" the second sinks into the first (a pose-made
+    intersection); the "physics" pushes it back out and swells it (``swell`` x across: edges
+    stretched by up to that, no crossing): taken back towards LBS, it would sink in again."""
+    a, ta = _sphere((0, 0, 0), 1.0, seed, subdivisions=3)
+    b, tb = _sphere((2.05, 0.0, 0.0), 1.0, seed + 1, subdivisions=3)  # about 0.05 apart
+    rest = np.concatenate([a, b])
+    tris = np.concatenate([ta, tb + len(a)])
+    lbs = rest.copy()
+    lbs[len(a):] -= np.array([0.8, 0.0, 0.0])  # sunk into the first by about 0.75
+    physical = rest.copy()  # pushed back out, clear of the first
+    physical[len(a):, 1:] *= swell
+    return rest, tris, lbs, physical
+
+
+def test_a_skin_simulated_directly_is_written_as_simulated_while_its_physics_keeps_the_surface():
+    # swollen by 1.49: past the guard's 1.45, within the measure's 1.5; its contact resolved
+    rest, tris, lbs, physical = _pushed_out(20, 1.49)
+    assert intersecting_pairs_brute_force(lbs, tris) > 20 and intersecting_pairs_brute_force(physical, tris) == 0
+    guard = SurfaceGuard(WrittenMesh("two", tris, rest), direct=True)
+    for _ in range(2):
+        assert np.array_equal(guard.apply(physical, lbs), physical)
+        assert guard.trusted and guard.held == 0.0
+    # a captured mesh with the same result is held to its LBS: taken back towards it, it sinks in
+    plain = SurfaceGuard(WrittenMesh("two", tris, rest)).apply(physical, lbs)
+    assert plain is not physical and intersecting_pairs_brute_force(plain, tris) > 0
+
+
+def test_a_skin_whose_physics_crumples_is_guarded_from_then_on():
+    # swollen by 2.2: its edges strained past 1.5 where LBS's are not, on most of a sphere
+    rest, tris, lbs, physical = _pushed_out(21, 2.2)
+    guard = SurfaceGuard(WrittenMesh("two", tris, rest), direct=True)
+    out = guard.apply(physical, lbs)
+    assert not guard.trusted
+    s, s_lbs, f = strain_and_flips(rest, out, lbs, tris)
+    assert f == 0.0 and s <= s_lbs
+    assert 0 < intersecting_pairs_brute_force(out, tris) <= intersecting_pairs_brute_force(lbs, tris)
+    mild = lbs + 0.3 * (physical - lbs)  # a frame it would pass: still guarded
+    guard.apply(mild, lbs)
+    assert not guard.trusted
+
+
+def test_a_captured_mesh_is_held_to_its_lbs():
+    rest, tris, lbs, physical = _pushed_out(22, 2.2)
+    out = SurfaceGuard(WrittenMesh("two", tris, rest)).apply(physical, lbs)
+    s, s_lbs, f = strain_and_flips(rest, out, lbs, tris)
+    assert f == 0.0 and s <= s_lbs
+    # taken back towards LBS, it sinks in again: no more than LBS's pairs, but some
+    assert 0 < intersecting_pairs_brute_force(out, tris) <= intersecting_pairs_brute_force(lbs, tris)
+
+
+def test_a_direct_skin_is_written_as_its_lbs_where_its_ceiling_is_zero():
+    # vertices where no layer depth fits have physics weight 0: the guard's ceiling
+    rest, tris = _sphere((0, 0, 0), 0.1, 30)
+    lbs = _pose(rest, 30)
+    physical = lbs + 0.002 * np.sin(17.0 * lbs)
+    ceiling = np.ones(len(rest))
+    ceiling[:40] = 0.0
+    out = SurfaceGuard(WrittenMesh("s", tris, rest), ceiling=ceiling, direct=True).apply(physical, lbs)
+    np.testing.assert_array_equal(out[:40], lbs[:40])
+    np.testing.assert_array_equal(out[40:], physical[40:])

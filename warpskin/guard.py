@@ -1,0 +1,419 @@
+"""The surface guard: every written mesh keeps the surface its LBS has.
+
+A mesh written with physics is its LBS plus a physical displacement (``P = L + D``,
+:mod:`warpskin.kernels.deform`). Where that displacement would make the written surface worse
+than its own LBS (an edge stretched or crumpled past :data:`~warpskin.quality.STRAIN_LIMIT`
+where LBS's is not, a triangle turned over against LBS, two triangles passing through each other
+where LBS's do not) the guard takes part of it back there, smoothly over the surface:
+
+    W = L + g * (P - L),      g in [0, 1] per welded point, kept from frame to frame
+
+Every frame, per mesh (on the host, in the mesh's welded topology):
+
+1. ``g`` rises by ``recover`` from the last frame's, up to its ceiling (1, or a directly
+   simulated skin's physics weight): a point the guard held returns to its physical result over
+   ``1 / recover`` frames where that is safe;
+2. ``W`` is checked against ``L``. Flagged are: edges past ``strain`` x their rest length (or
+   under its inverse) and past LBS's strain, where LBS's is within
+   :data:`~warpskin.quality.STRAIN_LIMIT` or ``W``'s is over 1.1 x LBS's; triangles whose normal
+   turns by more than ``flip_degrees`` against LBS; and intersecting triangle pairs (the exact
+   test of :func:`~warpskin.metrics.self_intersections`) that LBS does not have, except, where
+   pieces cross or touch at rest (a ball joint inside a tube's end, a seam), those matched one
+   to one with a nearby pair that LBS has and ``W`` lost (within ``match`` median edges: a
+   crossing that slides trades a pair for its neighbour, and only a net gain is new). After
+   the first round only the pairs of triangles whose points changed are tested again;
+3. the flagged points and a smooth ramp around them, over ``spread`` x the displacement taken
+   back (along the surface), first go back to the last frame's ``g`` (the rise is taken back
+   where it was not safe), then lose ``back_off`` of their ``g`` per round; points that move as
+   a whole (a group: a shoe, a fist) share their smallest ``g``;
+4. after ``rounds`` rounds, up to :attr:`SurfaceGuard.FALLBACK_ROUNDS` more rounds set the
+   points still flagged to ``g = 0`` (exactly their LBS), the ramp around them in proportion.
+
+A skin simulated directly is written as its physics gives it (``W = P``: its own collisions,
+volume constraints and layers act on the surface that is written) while that physics keeps the
+surface: until a frame in which it turns more than ``trust_flipped`` of the triangles over
+against LBS, or strains ``trust_strained`` more of its edges than LBS does. From that frame on
+(a crumpled skin: a low-poly leg folded by its contacts) it is guarded as every captured mesh
+is.
+
+Invariants: with no flag ``W = P`` exactly; ``g = 0`` gives ``W = L`` exactly. A mesh the
+guard converged on has no strained edge or flipped triangle that LBS does not have (within the
+thresholds above, which are tighter than the measures of :mod:`warpskin.quality`), and no more
+intersecting pairs than LBS. The guard changes only what is written, never the simulation.
+
+Limits: it is a per-frame repair, not physics: where it holds a region, that region's
+secondary motion is lost while held, and ``g`` can fall within one frame where the physical
+result turns bad at once (it rises back over frames). How much it held is reported per frame
+(:attr:`SurfaceGuard.guarded`, :attr:`SurfaceGuard.held`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .quality import STRAIN_LIMIT, WrittenMesh
+
+__all__ = ["GuardParams", "SurfaceGuard"]
+
+
+@dataclass
+class GuardParams:
+    """Settings of :class:`SurfaceGuard`.
+
+    Attributes:
+        enabled: Guard the written meshes (off: they are written as the physics gives them).
+        strain: Edge strain (ratio to rest, either way) from which an edge is flagged, below
+            :data:`~warpskin.quality.STRAIN_LIMIT` so the guard acts before the measure counts it.
+        flip_degrees: A triangle is flagged when its normal turns by more than this against LBS.
+        pairs: Flag intersecting triangle pairs that LBS does not have.
+        match: A new intersecting pair within this many median edges of a pair the result lost
+            is a crossing that slid, not a new one (matched one to one).
+        rounds: Back-off rounds per frame before what is still flagged is set to its LBS.
+        back_off: Share of a flagged point's weight taken away per round.
+        recover: Rise of the weight per frame where it is safe.
+        spread: The weight changes over ``spread`` x the displacement it takes back (along the
+            surface, from the flagged points), so that its ramp strains little.
+        trust_flipped: A skin simulated directly is written as simulated until a frame's physical
+            result turns more than this share of its triangles over against LBS (1.5 x the 1 %
+            the quality checks ask: a margin for a crease at the bound, as the shipped arm's at
+            150 degrees); from then on it is guarded.
+        trust_strained: The same for the share of edges strained past
+            :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's (1.5 x 0.5 %).
+    """
+
+    enabled: bool = True
+    strain: float = 1.45
+    flip_degrees: float = 80.0
+    pairs: bool = True
+    match: float = 3.0
+    rounds: int = 12
+    back_off: float = 0.25
+    recover: float = 0.1
+    spread: float = 4.0
+    trust_flipped: float = 0.015
+    trust_strained: float = 0.0075
+
+    def check(self, where: str = "[guard]") -> None:
+        """Raise :class:`~warpskin.errors.SceneError` (one line naming the key) where a setting
+        is out of its range."""
+        from .errors import SceneError
+
+        def bad(key, allowed):
+            return SceneError(f"{where} {key} must be {allowed}, got {getattr(self, key)!r}")
+
+        if not isinstance(self.enabled, bool):
+            raise bad("enabled", "true or false")
+        if not isinstance(self.pairs, bool):
+            raise bad("pairs", "true or false")
+        if not 1.0 < self.strain <= STRAIN_LIMIT:
+            raise bad("strain", f"in (1, {STRAIN_LIMIT:g}]")
+        if not 0.0 < self.flip_degrees <= 90.0:
+            raise bad("flip_degrees", "in (0, 90]")
+        if not 0.0 <= self.match <= 100.0:
+            raise bad("match", "in [0, 100]")
+        if isinstance(self.rounds, bool) or not isinstance(self.rounds, int) or not 0 <= self.rounds <= 64:
+            raise bad("rounds", "an integer in [0, 64]")
+        if not 0.0 < self.back_off <= 1.0:
+            raise bad("back_off", "in (0, 1]")
+        if not 0.0 <= self.recover <= 1.0:
+            raise bad("recover", "in [0, 1]")
+        if not 0.0 < self.spread <= 100.0:
+            raise bad("spread", "in (0, 100]")
+        if not 0.0 <= self.trust_flipped <= 1.0:
+            raise bad("trust_flipped", "in [0, 1]")
+        if not 0.0 <= self.trust_strained <= 1.0:
+            raise bad("trust_strained", "in [0, 1]")
+
+
+def _keys(pairs: np.ndarray, count: int) -> np.ndarray:
+    """Sorted unique int64 keys ``i * count + j`` of pairs ``[P, 2]`` with ``i < j``."""
+    p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    return np.unique(p[:, 0] * count + p[:, 1])
+
+
+class SurfaceGuard:
+    """The guard of one written mesh (see the module docstring), holding its weight between
+    frames.
+
+    Args:
+        mesh: The written mesh (:class:`~warpskin.quality.WrittenMesh`: its welded topology,
+            edges and rest lengths).
+        params: :class:`GuardParams`.
+        groups: ``[N]`` per written point, the group of points that move as a whole (-1: none);
+            a group keeps one weight (its smallest).
+        ceiling: ``[N]`` per written point, the largest weight in [0, 1] it takes (default 1): a
+            skin simulated directly passes its physics weight here (0 where no layer depth fits).
+        direct: The mesh is a skin simulated directly: written as simulated while its physics
+            keeps the surface (see the module docstring).
+    """
+
+    #: Rounds after the back-off that set what is still flagged to its LBS.
+    FALLBACK_ROUNDS = 4
+
+    def __init__(self, mesh: WrittenMesh, params: GuardParams | None = None, groups: np.ndarray | None = None,
+                 ceiling: np.ndarray | None = None, direct: bool = False) -> None:
+        #: Whether the mesh is written as simulated (a skin simulated directly, until a frame's
+        #: physical result crumples past ``trust_flipped`` or ``trust_strained``; then never again).
+        self.trusted = bool(direct)
+        self.mesh = mesh
+        self.params = params or GuardParams()
+        c = mesh.first.size
+        self.count = c
+        e = mesh.edges
+        rows, cols = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
+        self._graph = sp.csr_matrix((np.concatenate([mesh.rest_length, mesh.rest_length]), (rows, cols)), shape=(c, c))
+        #: The median rest edge [m]: the unit of ``match`` and of the smallest ramp.
+        self.edge = float(np.median(mesh.rest_length)) if mesh.rest_length.size else 0.0
+        #: Displacement [m] below which a new pair is taken for a contact LBS has to within
+        #: rounding: 1e-3 of the median rest edge.
+        self.noise = 1e-3 * self.edge
+        t = mesh.welded_triangles
+        rest = mesh.welded(mesh.rest)
+        area2 = np.linalg.norm(np.cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]]), axis=1)
+        self._floor = mesh._area_floor
+        self._tri = t[area2 > self._floor]  # flips are judged on triangles not degenerate at rest
+        self._all_tri = t
+        self._cos = float(np.cos(np.radians(self.params.flip_degrees)))
+        # where pieces cross or touch at rest (a ball joint inside a tube's end, the seam of two
+        # pieces): the triangles within two median edges of a triangle that intersects another
+        # at rest, or whose box comes within 0.1 median edge of a triangle of another piece
+        self._crossing = np.zeros(len(t), dtype=bool)
+        if self.params.pairs and len(t) > 1:
+            from scipy.sparse.csgraph import connected_components, dijkstra
+
+            from .metrics import _box_pairs
+
+            at_rest = self._pairs(rest)
+            src = [t[np.concatenate([at_rest // len(t), at_rest % len(t)])].ravel()]
+            _, piece = connected_components(self._graph, directed=False)
+            corners = rest[t]
+            pad = 0.1 * self.edge
+            touch = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad, t, True)
+            touch = touch[piece[t[touch[:, 0], 0]] != piece[t[touch[:, 1], 0]]]
+            src.append(t[touch.ravel()].ravel())
+            src = np.unique(np.concatenate(src))
+            if src.size:
+                near = np.isfinite(dijkstra(self._graph, directed=False, indices=src, min_only=True, limit=2.0 * self.edge))
+                self._crossing = near[t].all(axis=1)
+        self.group = None
+        if groups is not None:
+            g = np.asarray(groups, dtype=np.int64)[mesh.first]
+            if (g >= 0).any():
+                _, inverse = np.unique(np.where(g >= 0, g, -1 - np.arange(c)), return_inverse=True)
+                self.group = inverse.ravel()
+        self.ceiling = np.ones(c) if ceiling is None else np.clip(np.asarray(ceiling, dtype=np.float64)[mesh.first], 0, 1)
+        #: ``[C]`` the weight of every welded point after the last frame.
+        self.g = self.ceiling.copy()
+        #: What the first round of the last frame flagged: ``edges``, ``flipped``, ``pairs``.
+        self.flags: dict = {}
+        #: Fallback rounds the last frame needed (0: the back-off sufficed).
+        self.fallbacks = 0
+        #: After each :meth:`apply`: the pair counts of the result and of LBS (``None`` where the
+        #: result was not counted exactly: the guard off, or not converged).
+        self.pair_counts: tuple[int, int] | None = None
+
+    # ------------------------------------------------------------------ measures
+    def _strain(self, x: np.ndarray) -> np.ndarray:
+        e = self.mesh.edges
+        length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
+        with np.errstate(divide="ignore"):
+            r = length / self.mesh.rest_length
+            return np.maximum(r, 1.0 / r)
+
+    def _normals(self, x: np.ndarray) -> np.ndarray:
+        t = self._tri
+        return np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+
+    def _pairs(self, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+        from .metrics import self_intersections
+
+        return _keys(self_intersections(x, self._all_tri, active=active), len(self._all_tri))
+
+    def _min_in_groups(self, g: np.ndarray) -> np.ndarray:
+        if self.group is None:
+            return g
+        low = np.full(int(self.group.max()) + 1, np.inf)
+        np.minimum.at(low, self.group, g)
+        return low[self.group]
+
+    def _match(self, new: np.ndarray, lost: np.ndarray, lbs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Match pairs that appeared (keys ``new``) one to one with pairs that went (``lost``)
+        near them: nearest first, by the pairs' centres on ``lbs``, within ``match`` median
+        edges (a crossing that slid trades a pair for its neighbour). Returns the matched masks
+        ``([len(new)], [len(lost)])``."""
+        from scipy.spatial import cKDTree
+
+        matched_new = np.zeros(new.size, dtype=bool)
+        matched_lost = np.zeros(lost.size, dtype=bool)
+        if not (new.size and lost.size and self.params.match > 0):
+            return matched_new, matched_lost
+        tris = self._all_tri
+        tri_count = len(tris)
+
+        def centres(keys):
+            return (lbs[tris[keys // tri_count]].sum(axis=1) + lbs[tris[keys % tri_count]].sum(axis=1)) / 6.0
+
+        k = min(8, lost.size)
+        dist, j = cKDTree(centres(lost)).query(centres(new), k=k, distance_upper_bound=self.params.match * self.edge)
+        dist, j = dist.reshape(new.size, k).ravel(), j.reshape(new.size, k).ravel()
+        i = np.repeat(np.arange(new.size), k)
+        near = np.isfinite(dist)
+        i, j, dist = i[near], j[near], dist[near]
+        order = np.argsort(dist, kind="stable")
+        for a, b in zip(i[order].tolist(), j[order].tolist()):  # greedy, nearest first
+            if not matched_new[a] and not matched_lost[b]:
+                matched_new[a] = matched_lost[b] = True
+        return matched_new, matched_lost
+
+    def _new_pairs(self, pairs_w: np.ndarray, pairs_lbs: np.ndarray, lbs: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """The keys of the pairs of ``pairs_w`` the guard takes back: those LBS does not have,
+        less those where pieces cross or touch at rest that are matched with a pair LBS has and
+        ``pairs_w`` lost (:meth:`_match`: a crossing that slid). While the mesh has no more pairs than LBS, pairs whose points moved by less
+        than :attr:`noise` (``moved`` [m] per point) are left too (a contact LBS has to within
+        rounding)."""
+        new = np.setdiff1d(pairs_w, pairs_lbs, assume_unique=True)
+        if not new.size:
+            return new
+        tri_count = len(self._all_tri)
+        crossing = self._crossing[new // tri_count] & self._crossing[new % tri_count]
+        keep = np.ones(new.size, dtype=bool)
+        if crossing.any():
+            keep[crossing] = ~self._match(new[crossing], np.setdiff1d(pairs_lbs, pairs_w, assume_unique=True), lbs)[0]
+        if pairs_w.size <= pairs_lbs.size:
+            tris, tri_count = self._all_tri, len(self._all_tri)
+            amount = np.maximum(moved[tris[new // tri_count]].max(axis=1), moved[tris[new % tri_count]].max(axis=1))
+            keep &= amount > self.noise
+        return new[keep]
+
+    def _crumpled(self, physical: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray) -> bool:
+        """Whether the physical result turns more than ``trust_flipped`` of the mesh's triangles
+        over against LBS, or strains ``trust_strained`` more of its edges past
+        :data:`~warpskin.quality.STRAIN_LIMIT` than LBS does."""
+        s = self._strain(physical)
+        excess = (np.count_nonzero(s > STRAIN_LIMIT) - np.count_nonzero(s_lbs > STRAIN_LIMIT)) / max(len(s), 1)
+        n = self._normals(physical)
+        ln = np.linalg.norm(n, axis=1)
+        ok = (ln > self._floor) & (len_lbs > self._floor)
+        flipped = np.count_nonzero(ok & (np.einsum("ij,ij->i", n, n_lbs) < 0.0)) / max(len(self._tri), 1)
+        return bool(flipped > self.params.trust_flipped or excess > self.params.trust_strained)
+
+    def _falloff(self, flagged: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """``[C]`` in [0, 1]: 1 on the ``flagged`` points, falling smoothly to 0 at the distance
+        ``R`` along the surface (its rest edges): ``(1 - (r / R)^2)^3``. ``R`` is ``spread`` x
+        the largest displacement ``moved`` [m] of a flagged point (at least two median edges),
+        so that taking back a share of the displacement strains the ramp's edges by about
+        ``1 / spread`` of that share."""
+        from scipy.sparse.csgraph import dijkstra
+
+        src = np.nonzero(flagged)[0]
+        radius = max(self.params.spread * float(moved[src].max()), 2.0 * self.edge)
+        dist = dijkstra(self._graph, directed=False, indices=src, min_only=True, limit=radius)
+        u = np.clip(dist / radius, 0.0, 1.0)
+        return np.where(np.isfinite(dist), (1.0 - u * u) ** 3, 0.0)
+
+    # ------------------------------------------------------------------ per frame
+    def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+        """The guarded points of one frame, ``[N, 3]`` in the mesh's file order (``points``: the
+        physical result, ``lbs``: the mesh's LBS, both ``[N, 3]`` [m]); advances the guard's
+        weight. Returns ``points`` itself where nothing is held."""
+        prm, mesh = self.params, self.mesh
+        p = np.asarray(points, dtype=np.float64)
+        lb = np.asarray(lbs, dtype=np.float64)
+        self.fallbacks = 0
+        self.flags = {"edges": 0, "flipped": 0, "pairs": 0}
+        if not prm.enabled or self.count == 0:
+            self.pair_counts = None
+            if np.all(self.ceiling >= 1.0):
+                return p
+            return self._blend(p, lb, self.ceiling)
+        lw = mesh.welded(lb)
+        d = mesh.welded(p) - lw
+        moving = np.linalg.norm(d, axis=1) > 0.0
+        g_prev = self.g
+        g = np.minimum(self.ceiling, g_prev + prm.recover)
+        s_lbs = self._strain(lw)
+        edge_ok_lbs = s_lbs <= STRAIN_LIMIT
+        n_lbs = self._normals(lw)
+        len_lbs = np.linalg.norm(n_lbs, axis=1)
+        tris, tri_count = self._all_tri, len(self._all_tri)
+        e, t = mesh.edges, self._tri
+        if self.trusted and self._crumpled(lw + d, s_lbs, n_lbs, len_lbs):
+            self.trusted = False  # the physics crumpled: guarded from this frame on
+        if self.trusted:
+            self.g = g
+            self.pair_counts = None
+            if np.all(g >= 1.0):
+                return p
+            return self._blend(p, lb, g)
+        pairs_lbs = self._pairs(lw) if prm.pairs else np.zeros(0, dtype=np.int64)
+        pairs_w, active = None, None
+        converged = False
+        last = prm.rounds + self.FALLBACK_ROUNDS
+        r = 0
+        while r <= last:
+            w = lw + g[:, None] * d
+            flag = np.zeros(self.count, dtype=bool)
+            s = self._strain(w)
+            strained = (s > prm.strain) & (s > s_lbs + 0.01) & (edge_ok_lbs | (s > 1.1 * s_lbs))
+            flag[e[strained].ravel()] = True
+            n = self._normals(w)
+            ln = np.linalg.norm(n, axis=1)
+            ok = (ln > self._floor) & (len_lbs > self._floor)
+            cos = np.einsum("ij,ij->i", n, n_lbs) / np.where(ok, ln * len_lbs, 1.0)
+            flipped = ok & (cos < self._cos)
+            flag[t[flipped].ravel()] = True
+            new = np.zeros(0, dtype=np.int64)
+            if prm.pairs:
+                if pairs_w is None:
+                    pairs_w = self._pairs(w)
+                elif active is not None and active.any():  # only the pairs of moved triangles change
+                    a, b = pairs_w // tri_count, pairs_w % tri_count
+                    pairs_w = np.union1d(pairs_w[~(active[a] | active[b])], self._pairs(w, active))
+                new = self._new_pairs(pairs_w, pairs_lbs, lw, np.linalg.norm(g[:, None] * d, axis=1))
+                flag[tris[np.concatenate([new // tri_count, new % tri_count])].ravel()] = True
+            if r == 0:
+                self.flags = {"edges": int(strained.sum()), "flipped": int(flipped.sum()), "pairs": int(new.size)}
+            flag &= moving  # a point at its LBS can be neither helped nor harmed by its weight
+            if not flag.any():
+                converged = True
+                break
+            if r == last:
+                break  # still flagged: the measures will say so
+            ramp = self._falloff(flag, np.linalg.norm(g[:, None] * d, axis=1))
+            if r >= prm.rounds:  # the back-off did not suffice: what is flagged goes to its LBS
+                g_new = g * (1.0 - ramp)
+                self.fallbacks += 1
+            elif r == 0 and np.any((g > g_prev) & flag):
+                g_new = g - ramp * (g - np.minimum(g, g_prev))  # take back the rise where it was unsafe
+            else:
+                g_new = g * (1.0 - prm.back_off * ramp)
+            g_new = self._min_in_groups(g_new)
+            active = (g_new != g)[tris].any(axis=1)
+            g = g_new
+            r += 1
+        self.g = g
+        self.pair_counts = (int(pairs_w.size), int(pairs_lbs.size)) if prm.pairs and converged else None
+        if np.all(g >= 1.0):
+            return p
+        return self._blend(p, lb, g)
+
+    def _blend(self, p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """``L + g (P - L)`` per file point (``g`` per welded point): exactly ``P`` where ``g`` is
+        1 and exactly ``L`` where it is 0."""
+        gw = g[self.mesh.weld][:, None]
+        return np.where(gw >= 1.0, p, np.where(gw <= 0.0, lb, lb + gw * (p - lb)))
+
+    @property
+    def guarded(self) -> float:
+        """The share of the mesh's welded points the guard holds (``g < 1``) after the last
+        frame."""
+        return float(np.mean(self.g < 1.0)) if self.count else 0.0
+
+    @property
+    def held(self) -> float:
+        """The mean of ``1 - g`` over the mesh's welded points after the last frame (0: nothing
+        held, 1: all written as LBS)."""
+        return float(np.mean(1.0 - self.g)) if self.count else 0.0
