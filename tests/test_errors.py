@@ -119,3 +119,15 @@ def test_every_subpackage_is_installed():
     found = {".".join(p.parent.relative_to(root).parts) for p in (root / "warpskin").rglob("__init__.py")}
     found |= {"warpskin.kernels", "warpskin.scenes"}
     assert found == listed
+
+
+def test_load_scene_refuses_a_rig_file_or_binary_with_one_line(tmp_path):
+    from warpskin.scene import load_scene
+
+    (tmp_path / "fox.glb").write_bytes(b"glTF\x02\x00\x00\x00\xec")
+    with pytest.raises(SceneError, match="a rig file, not a scene"):
+        load_scene(tmp_path / "fox.glb")
+    p = tmp_path / "scene.toml"
+    p.write_bytes(b"\xec\xff\x00 not text")
+    with pytest.raises(SceneError, match="not a TOML scene file"):
+        load_scene(p)

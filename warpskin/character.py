@@ -31,6 +31,8 @@ import numpy as np
 
 from .capture import Capture, CaptureParams, capture_points, identity_capture
 from .errors import SceneError
+from .guard import GuardParams, SurfaceGuard
+from .quality import WrittenMesh
 
 __all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices"]
 
@@ -95,6 +97,8 @@ class Character:
             (glTF attribute ``_PHYSICS_WEIGHT``, USD primvar ``physicsWeight``) replaces the
             automatic weight where it is given; the patterns apply after it.
         device: Warp device of the cage's construction and the deformation.
+        guard: :class:`~warpskin.guard.GuardParams` of the surface guard of every mesh written
+            with physics (default: on).
     """
 
     rig: object
@@ -103,6 +107,7 @@ class Character:
     capture: CaptureParams | None = None
     weights: dict | None = None
     device: object = None
+    guard: GuardParams | None = None
     sim_rig: object = field(init=False)
     caged: bool = field(init=False)
     build_s: float = field(init=False, default=0.0)
@@ -126,6 +131,10 @@ class Character:
         self.build_s = time.perf_counter() - t0
         self.capture_result: Capture | None = None
         self._deformer = None
+        #: After :meth:`bind`: ``{part name: WrittenMesh}`` of the meshes written with physics,
+        #: and their surface guards.
+        self.meshes: dict[str, WrittenMesh] = {}
+        self.guards: dict[str, SurfaceGuard] = {}
 
     # ------------------------------------------------------------------ construction
     def _build_cage(self, cage_file) -> None:
@@ -199,8 +208,7 @@ class Character:
             # a skin simulated directly is written as simulated (its own collisions keep it
             # clean), except where no layer depth fits: LBS there
             phi = np.zeros(n)
-            skin = self.parts[0]
-            c = skin.count
+            c = self.parts[0].count
             phi[:c] = 1.0
             if builder is not None:
                 phi[:c][builder.layers.unresolved[:c]] = 0.0
@@ -217,8 +225,38 @@ class Character:
                           "its LBS", RigWarning, stacklevel=2)
         self.capture_result = cap
         self._deformer = _Deformer(self, cap, device=device or self.device) if self.caged else None
+        self.meshes = {p.name: WrittenMesh(self.display_name(p.name), p.triangles, p.rest, p.file_ids)
+                       for p in self.parts if p.physics}
+        params = self.guard or GuardParams()
+        # a skin simulated directly hands the guard its physical result whole, its physics
+        # weight as the ceiling: it is written as simulated while its physics keeps the surface
+        self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
+                                            ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
+                                            direct=not self.caged)
+                       for p in self.parts if p.physics}
         self.build_s += time.perf_counter() - t0
         return cap
+
+    def written(self, x, sim_skin: np.ndarray, clip, t: float, lbs: np.ndarray | None = None,
+                surface_lbs=None) -> dict[str, np.ndarray]:
+        """What is written at clip time ``t`` [s]: ``{mesh name: [N, 3]}`` (host), every mesh
+        written with physics passed through its surface guard (:mod:`warpskin.guard`) against
+        its own LBS, the others at their LBS. Arguments as :meth:`points`; call once per frame,
+        in frame order (the guard's weight carries over from frame to frame)."""
+        if self.capture_result is None:
+            raise SceneError("Character.written before bind()")
+        lbs = self.lbs(clip, t) if lbs is None else lbs
+        if self._deformer is not None:
+            physical = self.points(x, sim_skin, clip, t, lbs=lbs, surface_lbs=surface_lbs)
+        else:  # the simulated skin whole: its physics weight is the guard's ceiling
+            physical = lbs.copy()
+            n = self.rig.output_count
+            physical[:n] = np.asarray(sim_skin[:n], dtype=np.float64)
+        physical, lbs_by = self.split(physical), self.split(lbs)
+        out = dict(physical)
+        for name, guard in self.guards.items():
+            out[name] = guard.apply(physical[name], lbs_by[name])
+        return out
 
     def painted(self) -> np.ndarray:
         """``[N]`` the file's painted physics weight of every written point (NaN: none)."""

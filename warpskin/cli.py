@@ -324,12 +324,15 @@ def cmd_simulate(args) -> int:
     collision = scene.collision_params()
     if args.no_collisions:
         collision.enabled = False
+    guard = scene.guard_params()
+    if args.no_guard:
+        guard.enabled = False
     result = simulate(
         scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
         with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
         start_frame=args.start_frame, topology=args.topology, cage=args.cage, rigid_pieces=args.rigid_pieces,
-        physics_weights=dict(args.physics_weight or []),
+        physics_weights=dict(args.physics_weight or []), guard=guard,
     )
     s = result.summary
     if args.json:
@@ -344,9 +347,10 @@ def cmd_simulate(args) -> int:
     # what was written: each mesh's worst frame against its own LBS
     for name, r in s["written"].items():
         pairs = f", pairs {r['max_pairs']} (LBS {r['max_pairs_lbs']})" if "max_pairs" in r else ""
+        held = f", held by the guard {100 * r['max_held']:.1f} %" if r.get("max_held") else ""
         print(f"  {name}: edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
               f"flipped {100 * r['max_flipped']:.2f} %{pairs}, offset {r['max_offset']:.3g} m, physics weight "
-              f"{s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}")
+              f"{s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}{held}")
     if "max_intersecting_pairs" in s:
         print(f"intersecting pairs of the simulated surface (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
               f"LBS {s['max_intersecting_pairs_lbs']}")
@@ -568,6 +572,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
     s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
     s.add_argument("--no-collisions", action="store_true", help="switch skin self-collision off")
+    s.add_argument("--no-guard", action="store_true",
+                   help="write the meshes as the physics gives them, without the surface guard that takes back, "
+                        "smoothly, what would leave a mesh worse than its LBS (strained edges, flipped triangles, "
+                        "intersecting pairs) (scene: [guard] enabled)")
     s.add_argument("--allow-unstable", action="store_true",
                    help="go on (with one warning) when the skin leaves its plausible range instead of stopping "
                         "with exit 3 ([solver] max_offset, max_volume_error)")

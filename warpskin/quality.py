@@ -126,11 +126,14 @@ class WrittenMesh:
         return int(len(self_intersections(self.welded(points), self.welded_triangles)))
 
 
-def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True) -> dict:
+def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True,
+                  pair_counts: tuple[int, int] | None = None) -> dict:
     """The measures of one frame of ``mesh`` (see the module docstring) as a dict: ``strained``,
     ``strained_lbs`` (shares of edges), ``worst_strain`` (ratio) and ``worst_strain_vertex`` (a
     file vertex of that edge), ``flipped`` (share of triangles) and ``flipped_vertex``,
-    ``pairs``, ``pairs_lbs`` (``None`` without ``pairs``), ``offset`` [m] and ``offset_vertex``."""
+    ``pairs``, ``pairs_lbs`` (``None`` without ``pairs``; ``pair_counts`` where the caller
+    counted them with the same exact test on the same welded mesh, as the surface guard does),
+    ``offset`` [m] and ``offset_vertex``."""
     points = np.asarray(points, dtype=np.float64)
     lbs = np.asarray(lbs, dtype=np.float64)
     s, s_lbs = mesh.strain(points), mesh.strain(lbs)
@@ -146,8 +149,8 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
         "worst_strain_vertex": int(mesh.file_ids[mesh.first[mesh.edges[k, 0]]]) if k >= 0 else -1,
         "flipped": float(flips.size / max(mesh.triangle_count, 1)),
         "flipped_vertex": int(mesh.file_ids[mesh.triangles[flips[0], 0]]) if flips.size else -1,
-        "pairs": mesh.pairs(points) if pairs else None,
-        "pairs_lbs": mesh.pairs(lbs) if pairs else None,
+        "pairs": (pair_counts[0] if pair_counts is not None else mesh.pairs(points)) if pairs else None,
+        "pairs_lbs": (pair_counts[1] if pair_counts is not None else mesh.pairs(lbs)) if pairs else None,
         "offset": float(d[j]) if j >= 0 else 0.0,
         "offset_vertex": int(mesh.file_ids[j]) if j >= 0 else -1,
     }
@@ -209,15 +212,21 @@ class QualityLog:
         self.series: dict[str, dict[str, list]] = {m.name: {k: [] for k in self.KEYS} for m in self.meshes}
         self.frames: list[float] = []
 
-    def measure(self, frame, points: dict, lbs: dict) -> str | None:
+    def measure(self, frame, points: dict, lbs: dict, *, pairs: dict | None = None,
+                extra: dict | None = None) -> str | None:
         """Measure frame ``frame`` (``points[name]``, ``lbs[name]`` for every mesh); returns the first
-        range problem (``"frame F: mesh ...``) or ``None``. The series are kept either way."""
+        range problem (``"frame F: mesh ...``) or ``None``. The series are kept either way.
+        ``pairs``: ``{name: (pairs, pairs_lbs)}`` counted already (see :func:`mesh_measures`);
+        ``extra``: ``{name: {key: value}}`` further per-frame series to keep (the guard's)."""
         self.frames.append(frame)
         problem = None
         for mesh in self.meshes:
-            m = mesh_measures(mesh, points[mesh.name], lbs[mesh.name], pairs=self.count_pairs)
+            m = mesh_measures(mesh, points[mesh.name], lbs[mesh.name], pairs=self.count_pairs,
+                              pair_counts=(pairs or {}).get(mesh.name))
             for k in self.KEYS:
                 self.series[mesh.name][k].append(m[k])
+            for k, v in (extra or {}).get(mesh.name, {}).items():
+                self.series[mesh.name].setdefault(k, []).append(v)
             if problem is None and self.limits is not None:
                 p = self.limits.problem(mesh, m)
                 if p is not None:
@@ -244,6 +253,11 @@ class QualityLog:
                 p, pl = np.asarray(s["pairs"]), np.asarray(s["pairs_lbs"])
                 row["max_pairs"], row["max_pairs_lbs"] = int(p.max()), int(pl.max())
                 row["max_pairs_excess"] = int((p - pl).max())
+            for k in ("guarded", "held"):
+                if s.get(k):
+                    row[f"max_{k}"] = float(np.max(s[k]))
+            if s.get("guard_fallbacks"):
+                row["guard_fallback_frames"] = int(np.count_nonzero(s["guard_fallbacks"]))
             out[mesh.name] = row
         return out
 

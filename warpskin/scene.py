@@ -80,6 +80,9 @@ _SCHEMA: dict[str, set[str]] = {
                   "fold_cos", "rebuild_spread", "volume_weight", "fail_safe_rounds"},
     # what is written: the physics weight (0 LBS, 1 physical) by joint-name pattern
     "physics": {"weights"},
+    # what is written: the surface guard (warpskin.guard)
+    "guard": {"enabled", "strain", "flip_degrees", "pairs", "match", "rounds", "back_off", "recover", "spread",
+              "trust_flipped", "trust_strained"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
 }
@@ -225,6 +228,21 @@ class Scene:
                 raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
         params = CollisionParams(**table)
         params.check(where)
+        return params
+
+    def guard_params(self):
+        """The :class:`~warpskin.guard.GuardParams` of the ``[guard]`` section (the surface guard
+        of the written meshes; on by default)."""
+        from .guard import GuardParams
+
+        table = dict(self.extra.get("guard", {}))
+        where = _where(self.source)
+        for key in ("strain", "flip_degrees", "match", "back_off", "recover", "spread", "trust_flipped",
+                    "trust_strained"):
+            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
+                raise SceneError(f"{where}: [guard] {key} must be a number, got {table[key]!r}")
+        params = GuardParams(**table)
+        params.check(f"{where}: [guard]")
         return params
 
     def physics_weights(self) -> dict[str, float]:
@@ -381,11 +399,16 @@ def load_scene(name_or_path: str | Path) -> Scene:
     """
     text_path: Path | None = None
     candidate = Path(name_or_path)
+    if is_rig_file(candidate):
+        raise SceneError(f"{candidate}: a rig file, not a scene: use resolve_scene() or Scene.from_rig_file() for it")
     if candidate.suffix.lower() == ".toml" or candidate.exists():
         if not candidate.is_file():
             raise SceneError(f"{candidate}: no such scene file")
         text_path = candidate.resolve()
-        text = candidate.read_text()
+        try:
+            text = candidate.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise SceneError(f"{candidate}: not a TOML scene file (not UTF-8 text)") from None
         name = candidate.stem
     else:
         name = str(name_or_path)
@@ -401,7 +424,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{where}: not valid TOML: {exc}") from None
 
-    extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver", "collision", "popping") if k in data}
+    extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver", "collision", "physics", "guard", "popping")
+             if k in data}
     for section, table in data.items():
         if section not in _SCHEMA:
             raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")

@@ -104,7 +104,8 @@ class _Measurements:
         n, tris = b.rig.output_count, b.rig.output_triangles
         lbs_all = self.lbs_points(i)
         lbs, out = lbs_all[:n], skin[:n]
-        e = {"lbs": lbs, "volume": signed_volume(out, tris), "volume_lbs": signed_volume(lbs, tris)}
+        e = {"lbs": lbs, "lbs_all": lbs_all, "skin": out, "volume": signed_volume(out, tris),
+             "volume_lbs": signed_volume(lbs, tris)}
         if subs is not None:
             centres = subs.center_positions(st.frame_poses[i])
             e["subvolume"] = subs.volumes(skin.astype(np.float64), centres)
@@ -173,8 +174,10 @@ class _Measurements:
     def __call__(self, i: int, f: int, points: dict, step_ms: float) -> None:
         m, b, st = self.m, self.b, self.st
         tris = b.rig.output_triangles
-        skin = points.get("cage", points["skin"])  # the simulated surface: the file's vertices, or the cage
         e = self._pending
+        # the simulated surface (the file's vertices as simulated, or the cage), not what is
+        # written (which the surface guard may have taken back towards LBS)
+        skin = points.get("cage", e["skin"])
         lbs = e["lbs"]
         vel = e["velocities"]
         m["time"].append(self.plan.times[i])
@@ -214,15 +217,15 @@ class _WrittenQuality:
 
     def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper,
                  measures: _Measurements, skin_prim: str = "skin") -> None:
-        from ..quality import QualityLimits, QualityLog, WrittenMesh
+        from ..quality import QualityLimits, QualityLog
 
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
         # measured and reported under the names they are written with (the skin: its file's)
         from ..io.usd_export import _prim_name
 
         self.names = {p.name: (skin_prim if p.name == "skin" else _prim_name(p.name)) for p in character.parts}
-        self.meshes = [WrittenMesh(self.names[p.name], p.triangles, p.rest, p.file_ids) for p in character.parts
-                       if p.physics]
+        self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
+        self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
         self.capped: list[float] = []
         self.measures = measures  # one warning per run, shared with the simulated surface's checks
@@ -233,13 +236,16 @@ class _WrittenQuality:
 
     def check(self, i: int, written: dict, lbs: dict) -> None:
         f = self.plan.frames[i]
+        guards = self.guards
         problem = self.log.measure(f, {self.names[k]: v for k, v in written.items()},
-                                   {self.names[k]: v for k, v in lbs.items()})
+                                   {self.names[k]: v for k, v in lbs.items()},
+                                   pairs={k: g.pair_counts for k, g in guards.items() if g.pair_counts is not None},
+                                   extra={k: {"guarded": g.guarded, "held": g.held, "guard_fallbacks": g.fallbacks}
+                                          for k, g in guards.items()})
         if self.cap is not None:
             st = self.stepper
             v = st.model.vertex_count
-            rig = st.rig
-            target = linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, st.frame_poses[i])
+            target = self.measures._pending["lbs_all"]  # the simulated skin's LBS of this frame
             d = np.linalg.norm(st.positions[:v] - target, axis=1)
             share = float(np.mean((d >= 0.99 * self.cap) & self.shown))
             self.capped.append(share)
@@ -281,6 +287,7 @@ def simulate(
     cage: str | Path = "auto",
     rigid_pieces: str = "cage",
     physics_weights: dict[str, float] | None = None,
+    guard=None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -332,7 +339,12 @@ def simulate(
     with the cage around them (``"cage"``, default) or follow their joints (``"joint"``).
     ``physics_weights``: ``{joint-name pattern: weight}`` overrides of the physics weight (0:
     LBS, 1: physical), before the scene's ``[physics.weights]``
-    (:class:`~warpskin.character.Character`).
+    (:class:`~warpskin.character.Character`). ``guard``
+    (:class:`~warpskin.guard.GuardParams`, default: the scene's ``[guard]``, on) takes back,
+    frame by frame and smoothly, the part of the physical displacement that would leave a mesh
+    written with physics worse than its own LBS (strained edges, flipped triangles, intersecting
+    pairs); how much it held is in the summary's ``written`` (``max_held``, ``max_guarded``) and
+    report.json.
 
     Raises:
         SimulationError: a particle became NaN, or the skin left its plausible range; the
@@ -353,9 +365,10 @@ def simulate(
     render = rig  # what is written
     weights = {**(physics_weights or {}), **{k: v for k, v in scene.physics_weights().items()
                                               if k not in (physics_weights or {})}}
+    guard = scene.guard_params() if guard is None else guard
+    guard.check()
     character = Character(rig, cage="none" if builder is not None else (cage_file or cage), rigid_pieces=rigid_pieces,
-                          weights=weights or None,
-                          device=device)
+                          weights=weights or None, device=device, guard=guard)
     caged = character if character.caged else None
     rig = character.sim_rig
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
@@ -416,8 +429,7 @@ def simulate(
             lbs_all = character.lbs(clip, t)
             # the surface's LBS of the frame: the tether's targets of its last step, where it stepped
             targets = stepper.solver.tether_targets if (i > 0 and params.tether > 0) else None
-            written = character.split(character.points(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all,
-                                                       surface_lbs=targets))
+            written = character.written(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all, surface_lbs=targets)
             lbs_by = character.split(lbs_all)
             quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
             out = dict(written) if caged is not None else {"skin": written["skin"]}
