@@ -223,6 +223,7 @@ def test_bench_build_reports_the_cage():
     assert cage["build_s"] >= cage["field_and_extraction_s"] > 0
     assert cage["deformation_ms"] > 0 and cage["render_lbs_kernel_ms"] > 0 and cage["render_lbs_vertices"] == 2918
     assert cage["deformation_over_lbs"] == pytest.approx(cage["deformation_ms"] / cage["render_lbs_kernel_ms"])
+    assert cage["guard_ms"] > 0 and cage["guard_acting_ms"] > 0
 
 
 def test_robot_expressive_walks_through_its_cage(assets, tmp_path):

@@ -65,7 +65,7 @@ class CaptureParams:
 
     radius: float = 1.6
     smooth: float = 1.0
-    count: int = 16
+    count: int = 8
     small: float = 8.0
     thin: float = 1.5
     thick: float = 2.5
