@@ -24,3 +24,18 @@ def test_readme_snippet_runs(index, tmp_path, monkeypatch, request):
         assets = request.getfixturevalue("assets")  # skips with the reason where the folder is absent
         (tmp_path / "CesiumMan.glb").symlink_to(assets / "CesiumMan" / "CesiumMan.glb")
     exec(compile(code, f"README.md python block {index + 1}", "exec"), {"__name__": "__readme__"})
+
+
+def test_the_readme_scene_file_is_a_valid_scene(tmp_path):
+    # the TOML example of "Scenes" parses, and every section it shows is read with its values
+    from warpskin.scene import load_scene
+
+    text = re.findall(r"```toml\n(.*?)```", README.read_text(), flags=re.S)[0]
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    scene = load_scene(p)
+    assert scene.physics_weights() == {"*hand*": 0.0}
+    guard = scene.guard_params()
+    assert (guard.enabled, guard.strain, guard.flip_degrees, guard.recover) == (True, 1.45, 80.0, 0.1)
+    assert scene.solver_params().iterations == 20
+    assert scene.collision_params().fail_safe_rounds == 4
