@@ -61,7 +61,7 @@ def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip
     """Pairs ``(i, j)`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU) of
     ``triangles`` (with ``skip_shared``: not sharing a vertex), in no particular order: every
     pair ``i < j``, or with ``active`` (``[T]`` bool) every pair with an active triangle, once
-    (where few are active, from a tree over their boxes alone)."""
+    (a tree over the active triangles' boxes, queried by the triangles whose boxes meet theirs)."""
     import warp as wp
 
     from .kernels import measure as k
@@ -71,32 +71,24 @@ def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip
     subset = np.nonzero(act_host)[0].astype(np.int32)
     if subset.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    few = active is not None and subset.size < n // 2
-    if few:  # the triangles whose boxes meet the box around the active ones
+    if subset.size == n:
+        queries = subset
+    else:  # the triangles whose boxes meet the box around the active ones
         a_lo, a_hi = lower[subset].min(axis=0), upper[subset].max(axis=0)
         queries = np.nonzero(np.all((upper >= a_lo) & (lower <= a_hi), axis=1))[0].astype(np.int32)
     with wp.ScopedDevice("cpu"):
         lo = wp.array(lower.astype(np.float32), dtype=wp.vec3)
         hi = wp.array(upper.astype(np.float32), dtype=wp.vec3)
-        if few:
-            bvh = wp.Bvh(wp.array(lower[subset].astype(np.float32), dtype=wp.vec3),
-                         wp.array(upper[subset].astype(np.float32), dtype=wp.vec3))
-        else:
-            bvh = wp.Bvh(lo, hi)
+        bvh = wp.Bvh(lo, hi) if subset.size == n else wp.Bvh(wp.array(lower[subset].astype(np.float32), dtype=wp.vec3),
+                                                            wp.array(upper[subset].astype(np.float32), dtype=wp.vec3))
         tri = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.vec3i)
-        act = wp.array(act_host, dtype=wp.int32)
-        capacity = 16 * (subset.size if few else n)
+        inputs = [bvh.id, wp.array(subset, dtype=wp.int32), wp.array(queries, dtype=wp.int32), lo, hi, tri,
+                  wp.array(act_host, dtype=wp.int32), int(skip_shared)]
+        capacity = 16 * subset.size
         while True:
             count = wp.zeros(1, dtype=wp.int32)
             pairs = wp.zeros(capacity, dtype=wp.vec2i)
-            if few:
-                wp.launch(k.box_pairs_subset_kernel, dim=len(queries),
-                          inputs=[bvh.id, wp.array(subset, dtype=wp.int32), wp.array(queries, dtype=wp.int32), lo, hi,
-                                  tri, act, int(skip_shared), capacity],
-                          outputs=[count, pairs])
-            else:
-                wp.launch(k.box_pairs_kernel, dim=n, inputs=[bvh.id, lo, hi, tri, act, int(skip_shared), capacity],
-                          outputs=[count, pairs])
+            wp.launch(k.box_pairs_kernel, dim=len(queries), inputs=[*inputs, capacity], outputs=[count, pairs])
             c = int(count.numpy()[0])
             if c <= capacity:
                 break
