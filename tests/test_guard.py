@@ -16,6 +16,11 @@ from warpskin.metrics import self_intersections
 from warpskin.quality import WrittenMesh
 
 
+def _f32(x: np.ndarray) -> np.ndarray:
+    """``x`` as USD stores points: rounded to float32."""
+    return np.asarray(x, dtype=np.float32).astype(np.float64)
+
+
 def _rotation(seed: int) -> np.ndarray:
     q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
     return q * np.sign(np.linalg.det(q))
@@ -68,16 +73,18 @@ def test_a_crumpled_dent_is_taken_back_locally_and_smoothly():
     assert f == 0.0
     assert s <= s_lbs
     # every point lies between its LBS and its physical result, on the segment
+    # (to within the float32 rounding the points are written with: 6e-8 at 1 m)
     moved, taken = np.linalg.norm(physical - lbs, axis=1), out - lbs
     g = np.einsum("ij,ij->i", taken, physical - lbs) / np.maximum(moved**2, 1e-30)
-    assert np.all((g > -1e-12) & (g < 1 + 1e-12))
-    np.testing.assert_allclose(taken, g[:, None] * (physical - lbs), atol=1e-12)
+    sure = moved > 1e-3
+    assert np.all((g[sure] > -1e-4) & (g[sure] < 1 + 1e-4))
+    np.testing.assert_allclose(taken[sure], g[sure, None] * (physical - lbs)[sure], rtol=0, atol=2e-7)
     # local: farther than the ramp (spread x the largest displacement) from the dent along the
     # surface (no nearer than straight), every point is exactly its physical result
     ramp = guard.params.spread * moved.max() + 2 * guard.edge
     far = np.linalg.norm(rest - centre, axis=1) > 0.25 + ramp
     assert far.sum() > 0.2 * len(rest)
-    assert np.array_equal(out[far], physical[far])
+    assert np.array_equal(out[far], _f32(physical[far]))
 
 
 def test_a_piece_pushed_into_another_is_taken_back_to_no_more_pairs_than_lbs():
@@ -98,7 +105,7 @@ def test_a_piece_pushed_into_another_is_taken_back_to_no_more_pairs_than_lbs():
     out = guard.apply(physical, lbs)
     assert intersecting_pairs_brute_force(out, tris) == 0
     assert guard.pair_counts == (0, 0)
-    np.testing.assert_array_equal(out[: len(a)], physical[: len(a)])  # the first sphere did not move
+    np.testing.assert_array_equal(out[: len(a)], _f32(physical[: len(a)]))  # the first sphere did not move
 
 
 def test_a_crossing_that_slides_with_fewer_pairs_is_not_taken_back():
@@ -133,7 +140,11 @@ def test_the_weight_recovers_by_its_rate_where_it_is_safe():
         out = guard.apply(bulge, lbs)
         g = np.minimum(1.0, g + 0.1)
         np.testing.assert_allclose(guard.g, g, atol=1e-12)
-        np.testing.assert_allclose(out, lbs + guard.g[guard.mesh.weld][:, None] * (bulge - lbs), atol=1e-12)
+        # the blend of the float32 points as they are written, itself written as float32
+        gw = guard.g[guard.mesh.weld][:, None]
+        lw, bw = _f32(lbs), _f32(bulge)
+        expected = bulge if np.all(gw >= 1.0) else _f32(np.where(gw >= 1.0, bw, lw + gw * (bw - lw)))
+        np.testing.assert_allclose(out, expected, rtol=0, atol=1e-8)
     assert guard.held == 0.0 and np.array_equal(out, bulge)
 
 
@@ -266,5 +277,5 @@ def test_a_direct_skin_is_written_as_its_lbs_where_its_ceiling_is_zero():
     ceiling = np.ones(len(rest))
     ceiling[:40] = 0.0
     out = SurfaceGuard(WrittenMesh("s", tris, rest), ceiling=ceiling, direct=True).apply(physical, lbs)
-    np.testing.assert_array_equal(out[:40], lbs[:40])
-    np.testing.assert_array_equal(out[40:], physical[40:])
+    np.testing.assert_array_equal(out[:40], _f32(lbs[:40]))
+    np.testing.assert_array_equal(out[40:], _f32(physical[40:]))

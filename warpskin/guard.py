@@ -128,6 +128,18 @@ class GuardParams:
             raise bad("trust_strained", "in [0, 1]")
 
 
+def _as_written(x: np.ndarray) -> np.ndarray:
+    """``x`` rounded to float32 (as USD stores points), in float64."""
+    return np.asarray(x, dtype=np.float32).astype(np.float64)
+
+
+def _blend(p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``L + g (P - L)`` per row (``g`` per row): exactly ``P`` where ``g`` is 1, exactly ``L``
+    where it is 0."""
+    gw = np.asarray(g, dtype=np.float64)[:, None]
+    return np.where(gw >= 1.0, p, np.where(gw <= 0.0, lb, lb + gw * (p - lb)))
+
+
 def _keys(pairs: np.ndarray, count: int) -> np.ndarray:
     """Sorted unique int64 keys ``i * count + j`` of pairs ``[P, 2]`` with ``i < j``."""
     p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -318,7 +330,8 @@ class SurfaceGuard:
     def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
         """The guarded points of one frame, ``[N, 3]`` in the mesh's file order (``points``: the
         physical result, ``lbs``: the mesh's LBS, both ``[N, 3]`` [m]); advances the guard's
-        weight. Returns ``points`` itself where nothing is held."""
+        weight. Returns ``points`` itself where nothing is held, else the blend rounded to
+        float32 as USD stores it (the checks are made on those values)."""
         prm, mesh = self.params, self.mesh
         p = np.asarray(points, dtype=np.float64)
         lb = np.asarray(lbs, dtype=np.float64)
@@ -329,8 +342,13 @@ class SurfaceGuard:
             if np.all(self.ceiling >= 1.0):
                 return p
             return self._blend(p, lb, self.ceiling)
+        # judged as it is written: USD points are float32, and a pair that touches to within
+        # their rounding comes or goes with it
+        given = p
+        lb, p = _as_written(lb), _as_written(p)
         lw = mesh.welded(lb)
-        d = mesh.welded(p) - lw
+        pw = mesh.welded(p)
+        d = pw - lw
         moving = np.linalg.norm(d, axis=1) > 0.0
         g_prev = self.g
         g = np.minimum(self.ceiling, g_prev + prm.recover)
@@ -346,7 +364,7 @@ class SurfaceGuard:
             self.g = g
             self.pair_counts = None
             if np.all(g >= 1.0):
-                return p
+                return given
             return self._blend(p, lb, g)
         pairs_lbs = self._pairs(lw) if prm.pairs else np.zeros(0, dtype=np.int64)
         pairs_w, active = None, None
@@ -354,7 +372,7 @@ class SurfaceGuard:
         last = prm.rounds + self.FALLBACK_ROUNDS
         r = 0
         while r <= last:
-            w = lw + g[:, None] * d
+            w = _as_written(_blend(pw, lw, g))
             flag = np.zeros(self.count, dtype=bool)
             s = self._strain(w)
             strained = (s > prm.strain) & (s > s_lbs + 0.01) & (edge_ok_lbs | (s > 1.1 * s_lbs))
@@ -397,14 +415,12 @@ class SurfaceGuard:
         self.g = g
         self.pair_counts = (int(pairs_w.size), int(pairs_lbs.size)) if prm.pairs and converged else None
         if np.all(g >= 1.0):
-            return p
+            return given
         return self._blend(p, lb, g)
 
     def _blend(self, p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """``L + g (P - L)`` per file point (``g`` per welded point): exactly ``P`` where ``g`` is
-        1 and exactly ``L`` where it is 0."""
-        gw = g[self.mesh.weld][:, None]
-        return np.where(gw >= 1.0, p, np.where(gw <= 0.0, lb, lb + gw * (p - lb)))
+        """:func:`_blend` per file point (``g`` per welded point), rounded as it is written."""
+        return _as_written(_blend(p, lb, g[self.mesh.weld]))
 
     @property
     def guarded(self) -> float:
