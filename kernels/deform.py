@@ -54,19 +54,6 @@ def displacement_kernel(
 
 
 @wp.kernel
-def displacement_from_targets_kernel(
-    x: wp.array(dtype=wp.vec3),
-    lbs: wp.array(dtype=wp.vec3),
-    # output
-    displacement: wp.array(dtype=wp.vec3),
-):
-    """``d_j = x_j - lbs_j`` where the surface's LBS is at hand (the solver tether's targets of
-    the step)."""
-    j = wp.tid()
-    displacement[j] = x[j] - lbs[j]
-
-
-@wp.kernel
 def deform_kernel(
     bind_points: wp.array(dtype=wp.vec3),
     influence_count: int,
@@ -92,6 +79,38 @@ def deform_kernel(
             a = capture_weights[i * capture_count + m]
             if a != 0.0:
                 d += a * displacement[capture_indices[i * capture_count + m]]
+        acc += phi * d
+    out[i] = acc
+
+
+@wp.kernel
+def deform_from_targets_kernel(
+    bind_points: wp.array(dtype=wp.vec3),
+    influence_count: int,
+    joint_indices: wp.array(dtype=wp.int32),
+    joint_weights: wp.array(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    capture_count: int,
+    capture_indices: wp.array(dtype=wp.int32),
+    capture_weights: wp.array(dtype=wp.float32),
+    physics_weight: wp.array(dtype=wp.float32),
+    x: wp.array(dtype=wp.vec3),
+    surface_lbs: wp.array(dtype=wp.vec3),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """:func:`deform_kernel` with the displacement gathered as ``d_j = x_j - surface_lbs_j``
+    where the surface's LBS is at hand (the solver tether's targets of the step): one launch."""
+    i = wp.tid()
+    acc = lbs_flat(bind_points[i], i, influence_count, joint_indices, joint_weights, skin_matrices)
+    phi = physics_weight[i]
+    if phi > 0.0:
+        d = wp.vec3(0.0)
+        for m in range(capture_count):
+            a = capture_weights[i * capture_count + m]
+            if a != 0.0:
+                j = capture_indices[i * capture_count + m]
+                d += a * (x[j] - surface_lbs[j])
         acc += phi * d
     out[i] = acc
 

@@ -297,22 +297,29 @@ def triangles_intersect_sat(a: np.ndarray, b: np.ndarray) -> bool:
     return True
 
 
-def intersecting_pairs_brute_force(points: np.ndarray, triangles: np.ndarray) -> int:
-    """Intersecting triangle pairs of a mesh that share no vertex, over every pair (boxes
-    first, then :func:`triangles_intersect_sat`)."""
+def intersecting_pair_list_brute_force(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The intersecting triangle pairs ``(i, j)``, ``i < j``, of a mesh that share no vertex,
+    ``[P, 2]`` in lexicographic order, over every pair (boxes first, then
+    :func:`triangles_intersect_sat`)."""
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     corners = p[t]
     lo, hi = corners.min(axis=1), corners.max(axis=1)
-    count = 0
+    out = []
     for i in range(len(t)):
         j = np.arange(i + 1, len(t))
         overlap = np.all((lo[j] <= hi[i]) & (hi[j] >= lo[i]), axis=1)
         for k in j[overlap]:
             if set(t[i].tolist()) & set(t[k].tolist()):
                 continue
-            count += triangles_intersect_sat(corners[i], corners[k])
-    return count
+            if triangles_intersect_sat(corners[i], corners[k]):
+                out.append((i, int(k)))
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def intersecting_pairs_brute_force(points: np.ndarray, triangles: np.ndarray) -> int:
+    """The number of :func:`intersecting_pair_list_brute_force`."""
+    return int(len(intersecting_pair_list_brute_force(points, triangles)))
 
 
 def strain_and_flips(rest: np.ndarray, points: np.ndarray, lbs: np.ndarray, triangles: np.ndarray,

@@ -8,11 +8,12 @@ import pytest
 import trimesh
 from pxr import Usd, UsdGeom
 
-from oracles import rig_lbs, prim
+from oracles import intersecting_pair_list_brute_force, prim, rig_lbs
 from warpskin.errors import InputError, SceneError
 from warpskin.preprocess.layers import LayerParams, build_layers, check_layer_folds, fit_layer_depths
 from warpskin.cli import main
-from warpskin.metrics import self_intersections, signed_volume, triangle_pairs_intersect
+from warpskin.metrics import (PairQuery, self_intersections, self_intersections_of_two, signed_volume,
+                              triangle_pairs_intersect)
 from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.rig import RigError
 from warpskin.scenes.arm import make_arm
@@ -24,27 +25,57 @@ def arm_builder(arm):
 
 
 # ---------------------------------------------------------------- the exact check itself
-def _brute_force_intersections(p, tris):
-    out = []
-    for i in range(len(tris)):
-        for j in range(i + 1, len(tris)):
-            if set(tris[i]) & set(tris[j]):
-                continue
-            if triangle_pairs_intersect(p, tris[i][None], tris[j][None])[0]:
-                out.append((i, j))
-    return np.array(out, dtype=np.int64).reshape(-1, 2)
-
-
 @pytest.mark.parametrize("seed", range(3))
 def test_self_intersections_match_all_pairs(seed):
+    # against every pair by the separating axis theorem (tests/oracles.py, not warpskin's test)
     rng = np.random.default_rng(seed)
     m = trimesh.creation.icosphere(subdivisions=1)
     p = np.asarray(m.vertices) + rng.normal(scale=0.35, size=m.vertices.shape)  # crumpled: many crossings
     f = np.asarray(m.faces)
     got = self_intersections(p, f)
-    ref = _brute_force_intersections(p, f)
+    ref = intersecting_pair_list_brute_force(p, f)
     assert len(ref) > 3
     assert np.array_equal(got, ref)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_self_intersections_of_two_poses_in_one_pass(seed):
+    # the guard's and the quality log's frame count: a mesh and its LBS in one traversal, each
+    # exactly what it is alone (and what every pair by the separating axis theorem says)
+    rng = np.random.default_rng(10 + seed)
+    m = trimesh.creation.icosphere(subdivisions=2)
+    f = np.asarray(m.faces)
+    a = np.asarray(m.vertices) + rng.normal(scale=0.2, size=m.vertices.shape)
+    b = np.asarray(m.vertices) * 1.3 + rng.normal(scale=0.2, size=m.vertices.shape) + 0.05
+    got_a, got_b = self_intersections_of_two(a, b, f)
+    ref_a, ref_b = intersecting_pair_list_brute_force(a, f), intersecting_pair_list_brute_force(b, f)
+    assert len(ref_a) > 3 and len(ref_b) > 3 and not np.array_equal(ref_a, ref_b)
+    assert np.array_equal(got_a, ref_a) and np.array_equal(got_b, ref_b)
+    assert np.array_equal(got_a, self_intersections(a, f)) and np.array_equal(got_b, self_intersections(b, f))
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_pair_query_rounds_match_all_pairs(seed):
+    # the guard's rounds: a frame's two counts, then a few triangles moved and only the pairs
+    # with a moved triangle asked for, on the refitted tree: each what every pair says
+    rng = np.random.default_rng(20 + seed)
+    m = trimesh.creation.icosphere(subdivisions=2)
+    f = np.asarray(m.faces)
+    a = np.asarray(m.vertices) + rng.normal(scale=0.15, size=m.vertices.shape)
+    lbs = np.asarray(m.vertices) + rng.normal(scale=0.1, size=m.vertices.shape)
+    query = PairQuery(f)
+    got_a, got_lbs = query.of_two(a, lbs)
+    assert np.array_equal(got_a, intersecting_pair_list_brute_force(a, f))
+    assert np.array_equal(got_lbs, intersecting_pair_list_brute_force(lbs, f))
+    for _ in range(3):
+        moved = rng.random(len(a)) < 0.2
+        a = a.copy()
+        a[moved] += rng.normal(scale=0.3, size=(int(moved.sum()), 3))  # far: the boxes grow past the tree's
+        active = moved[f].any(axis=1)
+        ref = intersecting_pair_list_brute_force(a, f)
+        ref = ref[active[ref[:, 0]] | active[ref[:, 1]]]
+        assert len(ref) > 3
+        assert np.array_equal(query.active(a, active), ref)
 
 
 def test_triangle_pair_test_known_cases():

@@ -451,9 +451,10 @@ class _Deformer:
         return self.launch(x, surface_lbs)
 
     def launch(self, x, surface_lbs=None):
-        """The launches on the matrices last set: the surface's displacement from its LBS (given,
-        or computed here) and the written points (recorded once per input arrays: a simulation alternates between its
-        two states')."""
+        """The launches on the matrices last set: the written points, with the surface's
+        displacement from its LBS gathered from ``surface_lbs`` (one launch) or computed here
+        first (two). Recorded once per input arrays (a simulation alternates between its two
+        states')."""
         import warp as wp
 
         from .kernels import deform as k
@@ -463,18 +464,18 @@ class _Deformer:
         if hit is None or hit[0] is not x or hit[1] is not surface_lbs:
             if len(self._cmds) >= 4:
                 self._cmds.clear()
+            common = [self.bind_points, self.influences, self.ji, self.jw, self.render_mats, self.cap_count,
+                      self.cap_i, self.cap_w, self.phi]
             if surface_lbs is None:
-                first = wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
+                cmds = [wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
                                   inputs=[x, self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
-                                  outputs=[self.displacement], device=self.device, record_cmd=True)
-            else:
-                first = wp.launch(k.displacement_from_targets_kernel, dim=self.sim_vertex_count,
-                                  inputs=[x, surface_lbs], outputs=[self.displacement], device=self.device,
-                                  record_cmd=True)
-            cmds = [first, wp.launch(k.deform_kernel, dim=self.out.shape[0],
-                                     inputs=[self.bind_points, self.influences, self.ji, self.jw, self.render_mats,
-                                             self.cap_count, self.cap_i, self.cap_w, self.phi, self.displacement],
-                                     outputs=[self.out], device=self.device, record_cmd=True)]
+                                  outputs=[self.displacement], device=self.device, record_cmd=True),
+                        wp.launch(k.deform_kernel, dim=self.out.shape[0], inputs=[*common, self.displacement],
+                                  outputs=[self.out], device=self.device, record_cmd=True)]
+            else:  # one launch: the displacement gathered where it is used
+                cmds = [wp.launch(k.deform_from_targets_kernel, dim=self.out.shape[0],
+                                  inputs=[*common, x, surface_lbs], outputs=[self.out], device=self.device,
+                                  record_cmd=True)]
             hit = self._cmds[key] = (x, surface_lbs, tuple(cmds))  # holds the arrays: their ids stay theirs
         for cmd in hit[2]:
             cmd.launch()

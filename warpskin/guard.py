@@ -188,6 +188,7 @@ class SurfaceGuard:
         self._floor = mesh._area_floor
         self._tri = t[area2 > self._floor]  # flips are judged on triangles not degenerate at rest
         self._all_tri = t
+        self._query = None  # the pair queries' tree and buffers, made on the first frame
         self._cos = float(np.cos(np.radians(self.params.flip_degrees)))
         # where pieces cross or touch at rest (a ball joint inside a tube's end, the seam of two
         # pieces): the triangles within two median edges of a triangle that intersects another
@@ -203,7 +204,7 @@ class SurfaceGuard:
             _, piece = connected_components(self._graph, directed=False)
             corners = rest[t]
             pad = 0.1 * self.edge
-            touch = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad, t, True)
+            touch = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad, t, True)[0]
             touch = touch[piece[t[touch[:, 0], 0]] != piece[t[touch[:, 1], 0]]]
             src.append(t[touch.ravel()].ravel())
             src = np.unique(np.concatenate(src))
@@ -228,21 +229,51 @@ class SurfaceGuard:
         self.pair_counts: tuple[int, int] | None = None
 
     # ------------------------------------------------------------------ measures
-    def _strain(self, x: np.ndarray) -> np.ndarray:
-        e = self.mesh.edges
+    def _strain(self, x: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        """``max(l / l0, l0 / l)`` of every welded edge (or of the edges ``which`` selects)."""
+        e, rest = self.mesh.edges, self.mesh.rest_length
+        if which is not None:
+            e, rest = e[which], rest[which]
         length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
         with np.errstate(divide="ignore"):
-            r = length / self.mesh.rest_length
+            r = length / rest
             return np.maximum(r, 1.0 / r)
 
-    def _normals(self, x: np.ndarray) -> np.ndarray:
-        t = self._tri
+    def _normals(self, x: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        """Area-weighted normals of the triangles judged for flips (or of those ``which``
+        selects)."""
+        t = self._tri if which is None else self._tri[which]
         return np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
 
-    def _pairs(self, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
-        from .metrics import self_intersections
+    def _cosines(self, x: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray,
+                 which: np.ndarray | None = None) -> np.ndarray:
+        """The cosine of every judged triangle's normal in ``x`` against its LBS normal (or of
+        those ``which`` selects); 1 where either is degenerate (never a flip)."""
+        if which is not None:
+            n_lbs, len_lbs = n_lbs[which], len_lbs[which]
+        n = self._normals(x, which)
+        ln = np.linalg.norm(n, axis=1)
+        ok = (ln > self._floor) & (len_lbs > self._floor)
+        return np.where(ok, np.einsum("ij,ij->i", n, n_lbs) / np.where(ok, ln * len_lbs, 1.0), 1.0)
 
-        return _keys(self_intersections(x, self._all_tri, active=active), len(self._all_tri))
+    def _pairs(self, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+        """Keys of the intersecting pairs of ``x`` (with ``active``: those with an active
+        triangle, on the tree of the frame's :meth:`_pairs_of_two`, refitted)."""
+        if active is None:
+            from .metrics import self_intersections
+
+            return _keys(self_intersections(x, self._all_tri), len(self._all_tri))
+        return _keys(self._query.active(x, active), len(self._all_tri))
+
+    def _pairs_of_two(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keys of the intersecting pairs of ``x`` and of ``y``, in one pass."""
+        if self._query is None:
+            from .metrics import PairQuery
+
+            self._query = PairQuery(self._all_tri)
+        n = len(self._all_tri)
+        a, b = self._query.of_two(x, y)
+        return _keys(a, n), _keys(b, n)
 
     def _min_in_groups(self, g: np.ndarray) -> np.ndarray:
         if self.group is None:
@@ -366,27 +397,28 @@ class SurfaceGuard:
             if np.all(g >= 1.0):
                 return given
             return self._blend(p, lb, g)
-        pairs_lbs = self._pairs(lw) if prm.pairs else np.zeros(0, dtype=np.int64)
-        pairs_w, active = None, None
+        pairs_lbs, pairs_w, active = np.zeros(0, dtype=np.int64), None, None
         converged = False
         last = prm.rounds + self.FALLBACK_ROUNDS
         r = 0
+        changed = None  # the points whose weight the last round changed (None: every point)
         while r <= last:
             w = _as_written(_blend(pw, lw, g))
             flag = np.zeros(self.count, dtype=bool)
-            s = self._strain(w)
+            if changed is None:
+                s, cos = self._strain(w), self._cosines(w, n_lbs, len_lbs)
+            else:  # only the edges and triangles of the points that moved
+                ce, ct = changed[e].any(axis=1), changed[t].any(axis=1)
+                s[ce] = self._strain(w, ce)
+                cos[ct] = self._cosines(w, n_lbs, len_lbs, ct)
             strained = (s > prm.strain) & (s > s_lbs + 0.01) & (edge_ok_lbs | (s > 1.1 * s_lbs))
             flag[e[strained].ravel()] = True
-            n = self._normals(w)
-            ln = np.linalg.norm(n, axis=1)
-            ok = (ln > self._floor) & (len_lbs > self._floor)
-            cos = np.einsum("ij,ij->i", n, n_lbs) / np.where(ok, ln * len_lbs, 1.0)
-            flipped = ok & (cos < self._cos)
+            flipped = cos < self._cos
             flag[t[flipped].ravel()] = True
             new = np.zeros(0, dtype=np.int64)
             if prm.pairs:
-                if pairs_w is None:
-                    pairs_w = self._pairs(w)
+                if pairs_w is None:  # both counts of the frame in one pass
+                    pairs_w, pairs_lbs = self._pairs_of_two(w, lw)
                 elif active is not None and active.any():  # only the pairs of moved triangles change
                     a, b = pairs_w // tri_count, pairs_w % tri_count
                     pairs_w = np.union1d(pairs_w[~(active[a] | active[b])], self._pairs(w, active))
@@ -409,7 +441,8 @@ class SurfaceGuard:
             else:
                 g_new = g * (1.0 - prm.back_off * ramp)
             g_new = self._min_in_groups(g_new)
-            active = (g_new != g)[tris].any(axis=1)
+            changed = g_new != g
+            active = changed[tris].any(axis=1)
             g = g_new
             r += 1
         self.g = g

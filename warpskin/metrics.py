@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangle_pairs_intersect", "self_intersections", "signed_volume"]
+__all__ = ["triangle_pairs_intersect", "self_intersections", "self_intersections_of_two", "PairQuery", "signed_volume"]
 
 
 def signed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
@@ -36,6 +36,12 @@ def _segments_hit_triangles(s0, s1, a, b, c, eps):
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
+def _parallel_eps(p: np.ndarray) -> float:
+    """The determinant below which a segment counts as parallel to a triangle: 1e-14 of the
+    coordinates' scale squared."""
+    return 1e-14 * (float(np.abs(p).max()) + 1e-30) ** 2
+
+
 def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.ndarray) -> np.ndarray:
     """Whether triangle ``tri_a[k]`` and ``tri_b[k]`` (vertex index triples) intersect, ``[K]``.
 
@@ -47,8 +53,7 @@ def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.nd
     hit = np.zeros(ta.shape[0], dtype=bool)
     if ta.shape[0] == 0:
         return hit
-    scale = np.abs(p).max() + 1e-30
-    eps = 1e-14 * scale**2
+    eps = _parallel_eps(p)
     for x, y in ((ta, tb), (tb, ta)):
         a, b, c = p[y[:, 0]], p[y[:, 1]], p[y[:, 2]]
         for i, j in ((0, 1), (1, 2), (2, 0)):
@@ -57,11 +62,15 @@ def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.nd
 
 
 def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip_shared: bool,
-               active: np.ndarray | None = None) -> np.ndarray:
+               active: np.ndarray | None = None, points: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
     """Pairs ``(i, j)`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU) of
     ``triangles`` (with ``skip_shared``: not sharing a vertex), in no particular order: every
     pair ``i < j``, or with ``active`` (``[T]`` bool) every pair with an active triangle, once
-    (a tree over the active triangles' boxes, queried by the triangles whose boxes meet theirs)."""
+    (a tree over the active triangles' boxes, queried by the triangles whose boxes meet theirs).
+    With ``points`` (one or two ``[N, 3]`` float64 arrays the boxes bound) only the pairs whose
+    triangles intersect in one of them (the exact test of :func:`triangle_pairs_intersect`, in
+    the kernel). Returns ``(pairs [P, 2] int64, where [P] int32)``: bit 1 of ``where`` set where
+    the pair intersects in ``points[0]``, bit 2 in ``points[1]`` (3 without ``points``)."""
     import warp as wp
 
     from .kernels import measure as k
@@ -70,7 +79,7 @@ def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip
     act_host = np.ones(n, dtype=np.int32) if active is None else np.asarray(active, dtype=np.int32)
     subset = np.nonzero(act_host)[0].astype(np.int32)
     if subset.size == 0:
-        return np.zeros((0, 2), dtype=np.int64)
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int32)
     if subset.size == n:
         queries = subset
     else:  # the triangles whose boxes meet the box around the active ones
@@ -82,41 +91,166 @@ def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip
         bvh = wp.Bvh(lo, hi) if subset.size == n else wp.Bvh(wp.array(lower[subset].astype(np.float32), dtype=wp.vec3),
                                                             wp.array(upper[subset].astype(np.float32), dtype=wp.vec3))
         tri = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.vec3i)
+        sets = [np.asarray(p, dtype=np.float64) for p in points]
+        exact = len(sets)
+        if exact > 2:
+            raise ValueError("_box_pairs: at most two point sets")
+        arrays = [wp.array(p, dtype=wp.vec3d) for p in sets] + [wp.zeros(0, dtype=wp.vec3d)] * (2 - exact)
+        eps = [_parallel_eps(p) for p in sets] + [0.0] * (2 - exact)
         inputs = [bvh.id, wp.array(subset, dtype=wp.int32), wp.array(queries, dtype=wp.int32), lo, hi, tri,
-                  wp.array(act_host, dtype=wp.int32), int(skip_shared)]
+                  wp.array(act_host, dtype=wp.int32), int(skip_shared), *arrays, exact, wp.float64(eps[0]),
+                  wp.float64(eps[1])]
         capacity = 16 * subset.size
         while True:
             count = wp.zeros(1, dtype=wp.int32)
-            pairs = wp.zeros(capacity, dtype=wp.vec2i)
-            wp.launch(k.box_pairs_kernel, dim=len(queries), inputs=[*inputs, capacity], outputs=[count, pairs])
+            pairs = wp.empty(capacity, dtype=wp.vec2i)
+            hits = wp.empty(capacity, dtype=wp.int32)
+            wp.launch(k.box_pairs_kernel, dim=len(queries), inputs=[*inputs, capacity], outputs=[count, pairs, hits])
             c = int(count.numpy()[0])
             if c <= capacity:
                 break
             capacity = c
-        return pairs.numpy()[:c].astype(np.int64)
+        return pairs.numpy()[:c].astype(np.int64), hits.numpy()[:c]
+
+
+def _sorted_pairs(pairs: np.ndarray) -> np.ndarray:
+    """``pairs`` ``[P, 2]`` as ``(min, max)`` rows in lexicographic order."""
+    if pairs.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    out = np.sort(pairs, axis=1)
+    return out[np.lexsort((out[:, 1], out[:, 0]))]
+
+
+def _boxes(sets: list[np.ndarray], t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The boxes ``(lower, upper)`` ``[T, 3]`` around every triangle in every point set, widened
+    past float32 rounding: 1e-6 of the sets' extent plus their largest coordinate."""
+    lower = upper = None
+    extent = coordinate = 0.0
+    for p in sets:
+        a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
+        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+        lower = lo if lower is None else np.minimum(lower, lo)
+        upper = hi if upper is None else np.maximum(upper, hi)
+        extent, coordinate = max(extent, float(np.ptp(p, axis=0).max())), max(coordinate, float(np.abs(p).max()))
+    pad = 1e-6 * (extent + coordinate + 1e-30)
+    return lower - pad, upper + pad
 
 
 def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True,
                        active: np.ndarray | None = None) -> np.ndarray:
-    """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``); with ``active``
-    (``[T]`` bool) only the pairs that have an active triangle.
+    """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``, sorted); with
+    ``active`` (``[T]`` bool) only the pairs that have an active triangle.
 
     Candidates are the pairs whose bounding boxes overlap (a BVH over the boxes, widened by
-    1e-6 of the mesh's extent and coordinates past float32 rounding); each candidate gets the exact float64
-    edge/triangle test. Pairs sharing a vertex are skipped (neighbours touch by design).
+    1e-6 of the mesh's extent and coordinates past float32 rounding); each candidate gets the
+    exact float64 edge/triangle test of :func:`triangle_pairs_intersect` (in the kernel). Pairs
+    sharing a vertex are skipped (neighbours touch by design).
     """
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     if t.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
-    # float32 boxes, widened past their rounding (relative to the coordinates and to the extent)
-    pad = 1e-6 * (float(np.ptp(p, axis=0).max()) + float(np.abs(p).max()) + 1e-30)
-    lower = np.minimum(np.minimum(a, b), c) - pad
-    upper = np.maximum(np.maximum(a, b), c) + pad
-    pairs = _box_pairs(lower, upper, t, exclude_shared, active)
-    if pairs.size == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    hit = triangle_pairs_intersect(p, t[pairs[:, 0]], t[pairs[:, 1]])
-    out = np.sort(pairs[hit], axis=1)
-    return out[np.lexsort((out[:, 1], out[:, 0]))]
+    lower, upper = _boxes([p], t)
+    return _sorted_pairs(_box_pairs(lower, upper, t, exclude_shared, active, points=(p,))[0])
+
+
+def self_intersections_of_two(points: np.ndarray, other: np.ndarray, triangles: np.ndarray, *,
+                              exclude_shared: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`self_intersections` of one mesh in two poses (``points``, ``other``: ``[N, 3]``),
+    found in one pass (boxes around each triangle in both): ``(pairs in points, pairs in
+    other)``."""
+    p, q = np.asarray(points, dtype=np.float64), np.asarray(other, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    if t.shape[0] < 2:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
+    lower, upper = _boxes([p, q], t)
+    pairs, where = _box_pairs(lower, upper, t, exclude_shared, points=(p, q))
+    return _sorted_pairs(pairs[(where & 1) != 0]), _sorted_pairs(pairs[(where & 2) != 0])
+
+
+class PairQuery:
+    """Repeated exact self-intersection queries on one mesh (fixed ``triangles`` ``[T, 3]``)
+    in changing poses, as the surface guard makes them: a frame's count in two poses at once
+    (:meth:`of_two`: the tree built over the boxes around each triangle in both), then rounds
+    that move a few triangles (:meth:`active`: the tree refitted to the new boxes, queried by
+    the moved triangles only). The results are those of :func:`self_intersections` and
+    :func:`self_intersections_of_two` (pairs ``i < j``, sorted; pairs sharing a vertex
+    skipped); the device arrays are allocated once per mesh (on the CPU)."""
+
+    def __init__(self, triangles: np.ndarray, *, exclude_shared: bool = True) -> None:
+        import warp as wp
+
+        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        self.skip_shared = int(bool(exclude_shared))
+        n = len(self.triangles)
+        with wp.ScopedDevice("cpu"):
+            self._tri = wp.array(self.triangles.astype(np.int32), dtype=wp.vec3i)
+            self._lo = wp.empty(n, dtype=wp.vec3)
+            self._hi = wp.empty(n, dtype=wp.vec3)
+            self._all = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32)
+            self._ones = wp.array(np.ones(n, dtype=np.int32), dtype=wp.int32)
+            self._count = wp.zeros(1, dtype=wp.int32)
+            self._capacity = max(16 * n, 16)
+            self._pairs = wp.empty(self._capacity, dtype=wp.vec2i)
+            self._hits = wp.empty(self._capacity, dtype=wp.int32)
+        self._bvh = None
+
+    def _boxes(self, p, q) -> None:
+        import warp as wp
+
+        from .kernels import measure as k
+
+        sets = [p] if q is None else [p, q]
+        extent = max(float(np.ptp(x, axis=0).max()) for x in sets)
+        coordinate = max(float(np.abs(x).max()) for x in sets)
+        pad = 1e-6 * (extent + coordinate + 1e-30)
+        self._p = wp.array(p, dtype=wp.vec3d, device="cpu")
+        self._q = wp.array(q, dtype=wp.vec3d, device="cpu") if q is not None else wp.zeros(0, dtype=wp.vec3d, device="cpu")
+        self._eps = (_parallel_eps(p), _parallel_eps(q) if q is not None else 0.0)
+        wp.launch(k.triangle_boxes_kernel, dim=len(self.triangles), inputs=[self._p, self._q, int(q is not None), self._tri, pad],
+                  outputs=[self._lo, self._hi], device="cpu")
+
+    def _run(self, queries, active, exact: int) -> tuple[np.ndarray, np.ndarray]:
+        import warp as wp
+
+        from .kernels import measure as k
+
+        while True:
+            self._count.zero_()
+            wp.launch(k.box_pairs_kernel, dim=queries.shape[0],
+                      inputs=[self._bvh.id, self._all, queries, self._lo, self._hi, self._tri, active, self.skip_shared,
+                              self._p, self._q, exact, wp.float64(self._eps[0]), wp.float64(self._eps[1]), self._capacity],
+                      outputs=[self._count, self._pairs, self._hits], device="cpu")
+            c = int(self._count.numpy()[0])
+            if c <= self._capacity:
+                return self._pairs.numpy()[:c].astype(np.int64), self._hits.numpy()[:c]
+            self._capacity = c
+            self._pairs = wp.empty(c, dtype=wp.vec2i, device="cpu")
+            self._hits = wp.empty(c, dtype=wp.int32, device="cpu")
+
+    def of_two(self, points: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pairs in points, pairs in other)`` (``[N, 3]`` each), in one pass."""
+        import warp as wp
+
+        if len(self.triangles) < 2:
+            return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
+        self._boxes(np.asarray(points, dtype=np.float64), np.asarray(other, dtype=np.float64))
+        self._bvh = wp.Bvh(self._lo, self._hi)
+        pairs, where = self._run(self._all, self._ones, 2)
+        return _sorted_pairs(pairs[(where & 1) != 0]), _sorted_pairs(pairs[(where & 2) != 0])
+
+    def active(self, points: np.ndarray, active: np.ndarray) -> np.ndarray:
+        """The pairs in ``points`` with a triangle of ``active`` (``[T]`` bool), after
+        :meth:`of_two` (whose tree is refitted here)."""
+        import warp as wp
+
+        if self._bvh is None:
+            raise RuntimeError("PairQuery.active before PairQuery.of_two")
+        act = np.asarray(active, dtype=bool)
+        if not act.any() or len(self.triangles) < 2:
+            return np.zeros((0, 2), dtype=np.int64)
+        self._boxes(np.asarray(points, dtype=np.float64), None)
+        self._bvh.refit()
+        queries = wp.array(np.nonzero(act)[0].astype(np.int32), dtype=wp.int32, device="cpu")
+        mask = wp.array(act.astype(np.int32), dtype=wp.int32, device="cpu")
+        return _sorted_pairs(self._run(queries, mask, 1)[0])

@@ -125,6 +125,13 @@ class WrittenMesh:
 
         return int(len(self_intersections(self.welded(points), self.welded_triangles)))
 
+    def pairs_of_two(self, points: np.ndarray, lbs: np.ndarray) -> tuple[int, int]:
+        """:meth:`pairs` of ``points`` and of ``lbs``, found in one pass."""
+        from .metrics import self_intersections_of_two
+
+        a, b = self_intersections_of_two(self.welded(points), self.welded(lbs), self.welded_triangles)
+        return int(len(a)), int(len(b))
+
 
 def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True,
                   pair_counts: tuple[int, int] | None = None) -> dict:
@@ -142,6 +149,8 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
     flips = mesh.flipped(points, lbs)
     d = np.linalg.norm(points - lbs, axis=1)
     j = int(np.argmax(d)) if d.size else -1
+    if pairs and pair_counts is None:
+        pair_counts = mesh.pairs_of_two(points, lbs)
     return {
         "strained": float((s > STRAIN_LIMIT).sum() / e),
         "strained_lbs": float((s_lbs > STRAIN_LIMIT).sum() / e),
@@ -149,8 +158,8 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
         "worst_strain_vertex": int(mesh.file_ids[mesh.first[mesh.edges[k, 0]]]) if k >= 0 else -1,
         "flipped": float(flips.size / max(mesh.triangle_count, 1)),
         "flipped_vertex": int(mesh.file_ids[mesh.triangles[flips[0], 0]]) if flips.size else -1,
-        "pairs": (pair_counts[0] if pair_counts is not None else mesh.pairs(points)) if pairs else None,
-        "pairs_lbs": (pair_counts[1] if pair_counts is not None else mesh.pairs(lbs)) if pairs else None,
+        "pairs": pair_counts[0] if pairs else None,
+        "pairs_lbs": pair_counts[1] if pairs else None,
         "offset": float(d[j]) if j >= 0 else 0.0,
         "offset_vertex": int(mesh.file_ids[j]) if j >= 0 else -1,
     }
