@@ -263,6 +263,38 @@ class _WrittenQuality:
             self.measures.warned = True
 
 
+def _meshes_to_write(character, builder, render, with_lbs: bool, with_layers: bool) -> list:
+    """``[(name, triangles, rest points, writer kwargs)]`` of a simulation's output: the skin
+    (carrying its distance from LBS per vertex and frame, for a DCC to colour it by) and, with
+    ``with_lbs``, its LBS as a guide; through a cage the render meshes deformed through it,
+    each with its LBS guide, and the cage as a guide; with ``with_layers`` the inner layers as
+    simulated (guides)."""
+    sim = builder.rig
+    tris = sim.output_triangles
+    n_out = sim.output_count
+    if not character.caged:
+        meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
+        if with_lbs:
+            meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
+    else:
+        rt = render.output_triangles
+        meshes = [("skin", rt, render.vertices[: render.output_count],
+                   {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
+        if with_lbs:
+            meshes.append(("lbs", rt, render.vertices[: render.output_count], {"color": _LBS_COLOR, "purpose": "guide"}))
+        others = [(p.name, p.triangles, p.rest, attachment_kwargs(p.attachment)) for p in character.parts[1:]]
+        meshes += others
+        if with_lbs:  # each mesh's own LBS beside it, as for the skin
+            meshes += [(f"{name}_lbs", t, p, {"color": _LBS_COLOR, "purpose": "guide"}) for name, t, p, _ in others]
+        meshes.append(("cage", sim.output_triangles, character.cage_surface.vertices,
+                       {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
+    if with_layers:
+        for k in range(1, 4):
+            meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k],
+                           {"purpose": "guide", "as_is": True}))
+    return meshes
+
+
 def simulate(
     scene: Scene,
     out_path,
@@ -385,30 +417,7 @@ def simulate(
     sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
     output = CharacterOutput(sim, topology, clip) if caged is None else CharacterOutput(render, topology)
     quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures, output.skin_prim)
-    n_out = sim.output_count
-    tris = sim.output_triangles
-    # the skin carries its distance from LBS per vertex and frame, for a DCC to colour it by
-    if caged is None:
-        meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
-        if with_lbs:
-            meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
-    else:  # the render meshes, deformed through the simulated cage; the cage as a guide
-        rt = render.output_triangles
-        meshes = [("skin", rt, render.vertices[: render.output_count],
-                   {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
-        if with_lbs:
-            meshes.append(("lbs", rt, render.vertices[: render.output_count], {"color": _LBS_COLOR, "purpose": "guide"}))
-        others = [(p.name, p.triangles, p.rest, attachment_kwargs(p.attachment)) for p in character.parts[1:]]
-        meshes += others
-        if with_lbs:  # each mesh's own LBS beside it, as for the skin
-            meshes += [(f"{name}_lbs", t, p, {"color": _LBS_COLOR, "purpose": "guide"}) for name, t, p, _ in others]
-        meshes.append(("cage", sim.output_triangles, caged.cage_surface.vertices,
-                       {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
-    if with_layers:  # the inner layers as simulated (guides)
-        for k in range(1, 4):
-            meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k],
-                           {"purpose": "guide", "as_is": True}))
-
+    meshes = _meshes_to_write(character, builder, render, with_lbs, with_layers)
     render_deviation = np.zeros(render.output_count)  # the written skin's, per vertex, over the frames
 
     class _Writes:
@@ -479,7 +488,7 @@ def simulate(
         "written": quality.log.summary(),
         "written_worst": quality.log.worst(),
         "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
-        "refined_vertices_added": model.vertex_count - n_out,
+        "refined_vertices_added": model.vertex_count - sim.output_count,
         "frames": len(written),
         "substeps_per_frame": plan.substeps,
         "dt_s": plan.dt,
