@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
+from warpskin.popping import BeatSpec
 from warpskin.run import run_popping
 from warpskin.rig import RigError
 from warpskin.scene import load_scene
@@ -59,6 +60,32 @@ def test_layered_mode_pops_the_skin_and_keeps_the_volume(tmp_path, device):
     print(f"biceps skin radius: relaxed {1e3 * relaxed:.2f} mm, clenched {1e3 * clenched:.2f} mm, after {1e3 * after:.2f} mm")
     assert clenched - relaxed > 2e-3  # the activation changes the skin: a bulge of millimetres
     assert abs(after - relaxed) < 0.5 * (clenched - relaxed)  # and it goes back
+
+
+def test_layered_mode_pops_on_the_beat(tmp_path, device):
+    # the scene's keys replaced by a tempo: one pop at 0.31 s held 0.6 s (30 bpm, the next beat
+    # past the frames), the skin over the biceps out while clenched and not before
+    path = tmp_path / "pop.toml"
+    path.write_text(SCENE)
+    run = run_popping(load_scene(path), tmp_path / "beat.usdc", device=device, progress=False, frames=(0, 26),
+                      beats=BeatSpec(bpm=30.0, offset=0.31, hold=0.6, groups=["biceps"]))
+    assert run.summary["mode"] == "layered" and run.frames == 27
+    scene = load_scene(path)
+    rig = scene.rig()
+    stage = Usd.Stage.Open(str(run.path))
+    skin = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr()
+    g = rig.joint_world_transforms("pop", scene.frame_time(5))
+    a0, a1 = g[0, :3, 3], g[1, :3, 3]
+    u = (a1 - a0) / np.linalg.norm(a1 - a0)
+    biceps = (rig.vertices[:, 0] > 0.1) & (rig.vertices[:, 0] < 0.24) & (rig.vertices[:, 1] > 0.02)
+
+    def radius(frame):  # the biceps skin's mean distance from the upper arm's axis [m]
+        d = np.asarray(skin.Get(frame), dtype=np.float64) - a0
+        return np.linalg.norm(d - np.outer(d @ u, u), axis=1)[biceps].mean()
+
+    bulge = radius(26) - radius(8)
+    assert bulge > 2e-3  # clenched since 0.31 s (frame 9.3): millimetres out
+    assert abs(radius(8) - radius(5)) < 0.2 * bulge  # before the beat only the physics settling
 
 
 def test_layered_mode_rejects_unknown_layers(tmp_path):

@@ -96,6 +96,21 @@ def _number(flag: str, *, positive: bool):
     return parse
 
 
+def _finite(flag: str):
+    """An argparse type: any finite number, or one line naming ``flag``."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{flag} must be a number, got {text!r}")
+        return value
+
+    return parse
+
+
 def _positive(flag: str):
     return _number(flag, positive=True)
 
@@ -415,7 +430,7 @@ def cmd_pop(args) -> int:
     result = run_popping(
         scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
-        comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode,
+        comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode, beats=_beat_spec(args),
     )
     s = result.summary
     if args.json:
@@ -433,6 +448,31 @@ def cmd_pop(args) -> int:
         f"peak overshoot {s['peak_overshoot_m'] * 1e3:.2f} mm (alpha_min {s['alpha_min']:g})"
     )
     return 0
+
+
+def _beat_spec(args):
+    """The pops on the beat the ``pop`` command's flags ask for (``None``: the scene's own
+    activation)."""
+    from .errors import SceneError
+    from .popping.activation import BeatSpec, read_beats
+
+    groups = [g.strip() for g in args.groups.split(",")] if args.groups else None
+    if groups is not None and (not all(groups) or len(set(groups)) != len(groups)):
+        raise SceneError(f"--groups must name distinct muscle groups separated by commas, got {args.groups!r}")
+    tempo_only = [flag for flag, given in (("--offset", args.offset != 0.0), ("--every", args.every != 1)) if given]
+    if args.bpm is None and args.beats is None:
+        extra = [flag for flag, given in (("--hold", args.hold is not None), ("--groups", groups is not None),
+                                          ("--in-turn", args.in_turn)) if given] + tempo_only
+        if extra:
+            raise SceneError(f"{', '.join(extra)} need --bpm or --beats")
+        return None
+    if args.bpm is not None and args.beats is not None:
+        raise SceneError("give one of --bpm or --beats, not both")
+    if args.beats is not None and tempo_only:
+        raise SceneError(f"{', '.join(tempo_only)} apply to --bpm, not to --beats")
+    return BeatSpec(bpm=args.bpm, offset=args.offset, every=args.every,
+                    beats=read_beats(args.beats) if args.beats is not None else None, hold=args.hold, groups=groups,
+                    in_turn=args.in_turn)
 
 
 def _frame_list(text: str) -> list[float]:
@@ -624,6 +664,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
     s.add_argument("--mode", choices=["goal", "layered"],
                    help="goal: the paper's goal-driven skin; layered: the activation drives the multi-layer model's muscle layer")
+    beat = s.add_argument_group("pops on the beat (in place of the scene's [popping.activation])")
+    beat.add_argument("--bpm", type=_positive("--bpm"), help="pop on every beat at this tempo [beats per minute]")
+    beat.add_argument("--offset", type=_finite("--offset"), default=0.0,
+                      metavar="SECONDS", help="with --bpm: clip time of the first beat (default 0)")
+    beat.add_argument("--every", type=_count("--every", 1), default=1, metavar="K",
+                      help="with --bpm: pop on every K-th beat (default 1)")
+    beat.add_argument("--beats", metavar="FILE",
+                      help="pop at the times in FILE: one time in seconds a line, or time,group[,activation] (CSV)")
+    beat.add_argument("--hold", type=_positive("--hold"), metavar="SECONDS",
+                      help="how long each pop stays clenched (default: half the time to the group's next pop, at most 0.25 s)")
+    beat.add_argument("--groups", metavar="A,B,...",
+                      help="the muscle groups that pop, in this order (default: every group)")
+    beat.add_argument("--in-turn", action="store_true",
+                      help="give each beat to the next group in --groups order instead of popping them together")
     s.add_argument("--bench", action="store_true",
                    help="instead: time example-based skinning and the popping step per frame at 4322 vertices vs LBS (JSON)")
     s.add_argument("--steps", type=int, default=200, help="with --bench: frames per measurement")

@@ -60,7 +60,7 @@ Example:
 from __future__ import annotations
 
 
-from .activation import ActivationTimeline, PoppingSettings, popping_settings
+from .activation import ActivationTimeline, Beat, BeatSpec, PoppingSettings, beat_times, popping_settings, read_beats
 from .dynamics import PoppingDynamics
 from .examples import EXAMPLE_GENERATORS, MAX_GROUPS, Activation, PoppingExamples, examples_for_scene, examples_from_meshes, examples_from_morph_targets
 from .layered import muscle_rest_offset_deltas
@@ -74,6 +74,10 @@ __all__ = [
     "PoseSpaceDeformer",
     "PoppingDynamics",
     "ActivationTimeline",
+    "Beat",
+    "BeatSpec",
+    "beat_times",
+    "read_beats",
     "PoppingSettings",
     "popping_settings",
     "examples_for_scene",

@@ -58,16 +58,24 @@ class ActivationTimeline:
 
     @staticmethod
     def beats(beats: Sequence[float], *, hold: float, attack: float = 0.0, release: float = 0.0,
-              where: str = "activation") -> list[tuple[float, float]]:
-        """Keys of one pop per beat: rise 0 -> 1 over ``attack`` [s] from the beat, stay
-        clenched until ``hold`` [s] after it, fall to 0 over ``release`` [s].
+              where: str = "activation", levels: Sequence[float] | None = None) -> list[tuple[float, float]]:
+        """Keys of one pop per beat: rise 0 -> 1 (or the beat's ``levels`` entry, in [0, 1]) over
+        ``attack`` [s] from the beat, stay clenched until ``hold`` [s] after it, fall to 0 over
+        ``release`` [s].
 
         Raises:
-            RigError: negative durations, ``attack > hold``, or pops that overlap the next beat.
+            SceneError: negative durations, ``attack > hold``, levels outside [0, 1], or pops
+                that overlap the next beat.
         """
-        b = np.sort(np.asarray(beats, dtype=np.float64).ravel())
+        raw = np.asarray(beats, dtype=np.float64).ravel()
+        order = np.argsort(raw, kind="stable")
+        b = raw[order]
         if b.size == 0 or not np.all(np.isfinite(b)):
             raise SceneError(f"{where}: beats must be a non-empty list of times [s]")
+        lv = np.ones(b.size) if levels is None else np.asarray(levels, dtype=np.float64).ravel()
+        if lv.shape != raw.shape or not np.all((lv >= 0.0) & (lv <= 1.0)):
+            raise SceneError(f"{where}: one activation in [0, 1] per beat, got {np.asarray(levels).tolist()[:6]}")
+        lv = lv[order]
         for label, value in (("hold", hold), ("attack", attack), ("release", release)):
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0.0):
                 raise SceneError(f"{where}: {label} must be a duration >= 0 [s], got {value!r}")
@@ -81,8 +89,8 @@ class ActivationTimeline:
             raise SceneError(f"{where}: the pop on the beat at {b[k]} s (hold {hold} s + release {release} s) overlaps "
                            f"the beat at {b[k + 1]} s")
         keys = []
-        for t in b:
-            keys += [(t, 0.0), (t + attack, 1.0), (t + hold, 1.0), (t + hold + release, 0.0)]
+        for t, a in zip(b.tolist(), lv.tolist()):
+            keys += [(t, 0.0), (t + attack, a), (t + hold, a), (t + hold + release, 0.0)]
         return keys
 
     @classmethod
@@ -144,6 +152,146 @@ class ActivationTimeline:
     def sample(self, t: float, groups: Sequence[str]) -> np.ndarray:
         """Activations of ``groups`` at time ``t`` [s], ``[G]``."""
         return np.array([self.value(g, t) for g in groups])
+
+
+# --------------------------------------------------------------------------------------------
+# Beats: a tempo or a file of times
+# --------------------------------------------------------------------------------------------
+def beat_times(bpm: float, *, start: float, end: float, offset: float = 0.0, every: int = 1) -> np.ndarray:
+    """The times [s] of every ``every``-th beat at ``bpm`` beats per minute, the first at
+    ``offset`` [s] (clip time), that fall in ``[start, end]``: ``offset + k * every * 60 / bpm``
+    for ``k = 0, 1, ...``."""
+    if isinstance(bpm, bool) or not isinstance(bpm, (int, float)) or not (math.isfinite(bpm) and 0.0 < bpm <= 2000.0):
+        raise SceneError(f"--bpm must be a tempo in (0, 2000] beats per minute, got {bpm!r}")
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise SceneError(f"--every must be a whole number of beats >= 1, got {every!r}")
+    if not (isinstance(offset, (int, float)) and math.isfinite(offset)):
+        raise SceneError(f"--offset must be a time [s], got {offset!r}")
+    period = every * 60.0 / bpm
+    k0 = max(0, math.ceil((start - offset) / period - 1e-9))
+    k1 = math.floor((end - offset) / period + 1e-9)
+    return offset + period * np.arange(k0, max(k0, k1 + 1), dtype=np.float64)
+
+
+@dataclass
+class Beat:
+    """One pop: at ``time`` [s] (clip time), of ``group`` (``None``: the groups that pop on
+    every beat, together or in turn), clenched to ``activation`` in [0, 1]."""
+
+    time: float
+    group: str | None = None
+    activation: float = 1.0
+
+
+def read_beats(path) -> list[Beat]:
+    """Beats from a text file: one per line, ``time`` (seconds) or ``time,group[,activation]``
+    (CSV); blank lines and ``#`` comments are skipped, and so is a first line of column names
+    (``time,group,activation``).
+
+    Raises:
+        SceneError: an unreadable file or a bad line, naming the file and the line number.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{p}: cannot read the beats: {exc}") from None
+    out: list[Beat] = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        body = line.split("#", 1)[0].strip()
+        if not body:
+            continue
+        cells = [c.strip() for c in body.split(",")]
+        if n == 1 and cells[0].lower() in ("time", "t", "seconds", "time_s"):
+            continue  # a header
+        try:
+            t = float(cells[0])
+        except ValueError:
+            t = float("nan")
+        if not math.isfinite(t):
+            raise SceneError(f"{p}: line {n}: the first column must be a time in seconds, got {cells[0]!r}")
+        if len(cells) > 3:
+            raise SceneError(f"{p}: line {n}: expected time[,group[,activation]], got {len(cells)} columns")
+        group = cells[1] if len(cells) > 1 and cells[1] else None
+        a = 1.0
+        if len(cells) > 2:
+            try:
+                a = float(cells[2])
+            except ValueError:
+                a = float("nan")
+            if not 0.0 <= a <= 1.0:
+                raise SceneError(f"{p}: line {n}: the activation must be in [0, 1], got {cells[2]!r}")
+        out.append(Beat(t, group, a))
+    if not out:
+        raise SceneError(f"{p}: no beats (one time in seconds a line, or time,group[,activation])")
+    return out
+
+
+@dataclass
+class BeatSpec:
+    """Pops on a beat, from the command line (``warpskin pop --bpm/--beats``): a tempo
+    (``bpm``, ``offset`` [s], ``every``) or a list of :class:`Beat`, and how each pop is shaped
+    (``hold``, ``attack``, ``release`` [s]; ``hold`` ``None``: half the shortest time between
+    two pops of one group, at most 0.25 s). ``groups`` picks the groups that pop and their
+    order (``None``: every group); ``in_turn`` gives each beat without a group to the next
+    group in that order instead of to all of them."""
+
+    bpm: float | None = None
+    offset: float = 0.0
+    every: int = 1
+    beats: list[Beat] | None = None
+    hold: float | None = None
+    attack: float = 0.0
+    release: float = 0.0
+    groups: list[str] | None = None
+    in_turn: bool = False
+
+    def __post_init__(self) -> None:
+        if (self.bpm is None) == (self.beats is None):
+            raise SceneError("give exactly one of --bpm or --beats")
+
+    def timeline(self, names: Sequence[str], start: float, end: float, where: str = "beats") -> ActivationTimeline:
+        """The activation over clip time ``[start, end]`` [s] of the groups ``names`` (those the
+        examples or the rig define).
+
+        Raises:
+            SceneError: a group that does not exist, no beat in the range, overlapping pops.
+        """
+        names = list(names)
+        order = list(names) if self.groups is None else list(self.groups)
+        unknown = [g for g in order if g not in names]
+        if unknown:
+            raise SceneError(f"{where}: unknown muscle group(s) {unknown}; groups are {names}")
+        if not order:
+            raise SceneError(f"{where}: no muscle group to pop")
+        if self.bpm is not None:
+            beats = [Beat(float(t)) for t in beat_times(self.bpm, start=start, end=end, offset=self.offset,
+                                                        every=self.every)]
+        else:
+            beats = sorted(self.beats, key=lambda b: b.time)
+            unknown = sorted({b.group for b in beats if b.group is not None and b.group not in names})
+            if unknown:
+                raise SceneError(f"{where}: unknown muscle group(s) {unknown}; groups are {names}")
+        if not beats:
+            raise SceneError(f"{where}: no beat between {start:g} s and {end:g} s (clip time)")
+        per: dict[str, list[Beat]] = {g: [] for g in order}
+        turn = 0
+        for b in beats:
+            if b.group is not None:
+                per.setdefault(b.group, []).append(b)
+            elif self.in_turn:
+                per[order[turn % len(order)]].append(b)
+                turn += 1
+            else:
+                for g in order:
+                    per[g].append(b)
+        gaps = [np.diff([b.time for b in bs]) for bs in per.values() if len(bs) > 1]
+        shortest = min((float(g.min()) for g in gaps), default=float("inf"))
+        hold = self.hold if self.hold is not None else min(0.25, 0.5 * shortest)
+        keys = {g: ActivationTimeline.beats([b.time for b in bs], hold=hold, attack=self.attack, release=self.release,
+                                            levels=[b.activation for b in bs], where=f"{where}: group {g!r}")
+                for g, bs in per.items() if bs}
+        return ActivationTimeline(keys, where=where)
 
 
 # --------------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import SceneError
 from ..io.usd_export import UsdSkinWriter, check_output_path
-from ..popping.activation import PoppingSettings, popping_settings
+from ..popping.activation import BeatSpec, PoppingSettings, popping_settings
 from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene
 from ..popping.layered import muscle_rest_offset_deltas
@@ -118,6 +118,7 @@ def run_popping(
     progress: bool = True,
     comment: str = "",
     mode: str | None = None,
+    beats: BeatSpec | None = None,
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -139,6 +140,8 @@ def run_popping(
         topology: ``"file"`` (the file's own vertices, faces, UVs; default) or ``"welded"``.
         alpha_min, beta, dt: Overrides of the scene's ``[popping]`` values.
         mode: ``"goal"`` or ``"layered"``; default the scene's ``[popping] mode``.
+        beats: Pops on a tempo or a list of beats (:class:`~warpskin.popping.BeatSpec`) over
+            the frames written, in place of the scene's ``[popping.activation]``.
         progress: Progress bar on stderr.
         comment: Stage comment.
 
@@ -161,13 +164,16 @@ def run_popping(
     settings.check(f"{where}: [popping]")
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
-                            progress=progress, comment=comment, start_frame=start_frame, topology=topology)
+                            progress=progress, comment=comment, start_frame=start_frame, topology=topology,
+                            beats=beats)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt, start_frame=start_frame)
     if examples is None:
         examples = examples_for_scene(scene)
     deformer = PoseSpaceDeformer(rig, examples, device=device, joints=settings.joints, rbf_width=settings.rbf_width)
+    if beats is not None:
+        settings.activation = beats.timeline(deformer.group_names, float(plan.times[0]), float(plan.times[-1]))
     settings.activation.check_groups(deformer.group_names, f"{where}: [popping.activation]")
     dynamics = PoppingDynamics(deformer, alpha_min=settings.alpha_min, beta=settings.beta, threshold=settings.threshold)
     h = plan.dt
@@ -199,7 +205,7 @@ def run_popping(
 
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
-                 start_frame=None, topology="file") -> PoppingRun:
+                 start_frame=None, topology="file", beats: BeatSpec | None = None) -> PoppingRun:
     from ..model import SkinModelBuilder
     from .simulate import simulate
 
@@ -210,6 +216,9 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     builder = SkinModelBuilder(rig, scene.model_params())
     deltas = muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, scene.frame_time(first)))
     groups = list(examples.group_names)
+    if beats is not None:
+        last = (frames or scene.frame_range())[1]
+        settings.activation = beats.timeline(groups, scene.frame_time(first), scene.frame_time(last))
     settings.activation.check_groups(groups, "[popping.activation]")
     builder.set_rest_drive(deltas)
     result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress, comment=comment,
