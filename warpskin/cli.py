@@ -431,6 +431,7 @@ def cmd_pop(args) -> int:
         scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode, beats=_beat_spec(args),
+        muscles=_group_entries(args), swell=args.swell,
     )
     s = result.summary
     if args.json:
@@ -441,6 +442,9 @@ def cmd_pop(args) -> int:
             f"by groups {', '.join(s['groups'])}, {s['mean_step_ms']:.1f} ms per step on {s['device']}); largest volume "
             f"deviation after the first frame {100 * s['max_volume_deviation']:.2f} %"
         )
+        for m in s.get("muscles", []):
+            print(f"  {m['name']}: bones {', '.join(m['joints'])}, {m['vertices']} skin vertices, tissue "
+                  f"{m['depth_mm']:.0f} mm deep, swelling up to {m['peak_swell_mm']:.1f} mm")
         return 0
     print(
         f"wrote {result.path} ({result.frames} frames, {s['substeps']} steps of {s['dt_s'] * 1e3:.2f} ms per frame, "
@@ -450,13 +454,19 @@ def cmd_pop(args) -> int:
     return 0
 
 
+def _group_entries(args) -> list[str] | None:
+    """``--groups`` split at its commas (``NAME`` or ``NAME=JOINT_PATTERN`` each)."""
+    return [g.strip() for g in args.groups.split(",")] if args.groups else None
+
+
 def _beat_spec(args):
     """The pops on the beat the ``pop`` command's flags ask for (``None``: the scene's own
     activation)."""
     from .errors import SceneError
     from .popping.activation import BeatSpec, read_beats
 
-    groups = [g.strip() for g in args.groups.split(",")] if args.groups else None
+    entries = _group_entries(args)
+    groups = [e.partition("=")[0].strip() for e in entries] if entries is not None else None
     if groups is not None and (not all(groups) or len(set(groups)) != len(groups)):
         raise SceneError(f"--groups must name distinct muscle groups separated by commas, got {args.groups!r}")
     tempo_only = [flag for flag, given in (("--offset", args.offset != 0.0), ("--every", args.every != 1)) if given]
@@ -649,7 +659,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("pop", help="popping dance (Son & Han 2007): example-based skinning plus skin vibration to USD")
-    s.add_argument("target", metavar="SCENE", nargs="?", help="a scene with popping examples (popping_arm) or its .toml file")
+    s.add_argument("target", metavar="SCENE", nargs="?",
+                   help="a closed rig file (.glb, .gltf, .usd*: muscles found from its skeleton, layered mode), a "
+                        "scene with popping examples (popping_arm) or a .toml scene")
+    s.add_argument("--clip", help="the rig file's animation to play underneath (default: its first)")
+    s.add_argument("--swell", type=_positive("--swell"),
+                   help="muscles found from the skeleton: peak swelling as a share of the fat-plus-muscle depth "
+                        "(default 0.6)")
     s.add_argument("-o", "--output", help="output .usdc (default format), .usda or .usd")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
     s.add_argument("--fps", type=_positive("--fps"), help="output frame rate (default: the scene's)")
@@ -675,7 +691,8 @@ def build_parser() -> argparse.ArgumentParser:
     beat.add_argument("--hold", type=_positive("--hold"), metavar="SECONDS",
                       help="how long each pop stays clenched (default: half the time to the group's next pop, at most 0.25 s)")
     beat.add_argument("--groups", metavar="A,B,...",
-                      help="the muscle groups that pop, in this order (default: every group)")
+                      help="the muscle groups that pop, in this order (default: every group); on a rig file also "
+                           "NAME=JOINT_PATTERN (glob) to make one, e.g. biceps_l=*arm*L*")
     beat.add_argument("--in-turn", action="store_true",
                       help="give each beat to the next group in --groups order instead of popping them together")
     s.add_argument("--bench", action="store_true",

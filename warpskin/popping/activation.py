@@ -303,8 +303,10 @@ class PoppingSettings:
 
     Attributes:
         mode: ``"goal"``: the paper's goal-seeking skin; ``"layered"``: the activation moves the
-            muscle layer's rest shape of the multi-layer model toward the clenched example and
-            the physical skin (shape matching, volume, collisions) makes the pop.
+            muscle layer's rest shape of the multi-layer model toward the clenched example (or
+            the swelling of a muscle found from the skeleton) and the physical skin (shape
+            matching, volume, collisions) makes the pop; ``None``: goal where the scene has
+            examples, else layered.
         alpha_min: Stiffness at the largest disparity, in (0, 1] (eq. 3).
         beta: Relaxation rate [1/s] (eq. 4).
         threshold: Snap distance of relaxing vertices [m].
@@ -314,7 +316,7 @@ class PoppingSettings:
         activation: Activation per muscle group over clip time.
     """
 
-    mode: str = "goal"
+    mode: str | None = None
     alpha_min: float = 0.1
     beta: float = 30.0
     threshold: float = 1e-4
@@ -324,7 +326,7 @@ class PoppingSettings:
     activation: ActivationTimeline = field(default_factory=ActivationTimeline)
 
     def check(self, where: str = "[popping]") -> None:
-        if self.mode not in ("goal", "layered"):
+        if self.mode not in (None, "goal", "layered"):
             raise SceneError(f"{where}: mode must be 'goal' (the paper's goal-driven skin) or 'layered' (the activation "
                            f"drives the muscle layer of the multi-layer model), got {self.mode!r}")
         _check_dynamics(self.alpha_min, self.beta, self.threshold, where)
@@ -366,7 +368,7 @@ def popping_settings(scene) -> PoppingSettings:
     if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
         raise SceneError(f"{where}: [popping] joints must be a list of joint names")
     settings = PoppingSettings(
-        mode=table.get("mode", "goal"),
+        mode=table.get("mode"),
         alpha_min=table.get("alpha_min", PoppingSettings.alpha_min),
         beta=table.get("beta", PoppingSettings.beta),
         threshold=table.get("threshold", PoppingSettings.threshold),

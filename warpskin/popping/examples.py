@@ -207,6 +207,11 @@ def examples_from_meshes(
     )
 
 
+def has_examples(scene) -> bool:
+    """Whether the scene's rig generator also makes popping examples (:data:`EXAMPLE_GENERATORS`)."""
+    return scene.rig_spec.get("generator") in EXAMPLE_GENERATORS
+
+
 def examples_for_scene(scene) -> PoppingExamples:
     """The popping examples of a scene whose rig generator makes them (:data:`EXAMPLE_GENERATORS`).
 

@@ -52,21 +52,40 @@ def muscle_rest_offset_deltas(builder, examples: PoppingExamples, skin_matrices:
     if examples.vertex_count != loaded.vertex_count:
         raise RigError(f"layered popping: the examples have {examples.vertex_count} vertices, the rig "
                        f"{loaded.vertex_count}")
-    v = rig.vertex_count
     deformer = PoseSpaceDeformer(loaded, examples, device="cpu")
     _, group_w = deformer.weights(skin_matrices)
+    disp = []
+    for g in range(examples.group_count):
+        d = np.einsum("e,evc->vc", group_w[g], examples.clenched_disparities[g])  # [V, 3]
+        disp.append(extend_midpoints(d, rig.vertex_parents) if rig.vertex_parents is not None else d)
+    return rest_offset_deltas(builder, np.stack(disp), layers=layers)
+
+
+def rest_offset_deltas(builder, displacements: np.ndarray, *, layers: Sequence[str] = ("skin", "fat", "muscle")) -> np.ndarray:
+    """How every region rest offset of the multi-layer model changes when group ``g`` moves the
+    rest positions of the particles of ``layers`` by ``displacements[g]`` (``[G, V, 3]`` [m], V
+    the model's skin vertices, refined ones included): each region's rest centre follows (mass
+    weighted), so entry e (member j of region r) changes by ``dx0_j - dc0_r``. Returns
+    ``[G, M, 3]`` [m] for :meth:`~warpskin.model.SkinModelBuilder.set_rest_drive`."""
+    from ..preprocess.layers import LAYER_NAMES
+
+    builder.build()
+    bad = [n for n in layers if n not in LAYER_NAMES[:3]]
+    if bad:
+        raise RigError(f"layered popping: layers {bad} cannot be moved by the muscles; choose from {list(LAYER_NAMES[:3])}")
+    v = builder.rig.vertex_count
+    disp = np.asarray(displacements, dtype=np.float64)
+    if disp.ndim != 3 or disp.shape[1:] != (v, 3):
+        raise RigError(f"layered popping: displacements must be [G, {v}, 3], got {disp.shape}")
     reg = builder.regions
     region_of = reg.region_of_entry()
     m = builder.masses[reg.region_members]
-    out = np.zeros((examples.group_count, reg.region_members.size, 3))
-    for g in range(examples.group_count):
-        disp = np.einsum("e,evc->vc", group_w[g], examples.clenched_disparities[g])  # [V, 3]
-        if rig.vertex_parents is not None:
-            disp = extend_midpoints(disp, rig.vertex_parents)
+    out = np.zeros((disp.shape[0], reg.region_members.size, 3))
+    for g in range(disp.shape[0]):
         dx0 = np.zeros((4 * v, 3))
         for name in layers:
             k = LAYER_NAMES.index(name)
-            dx0[k * v:(k + 1) * v] = disp
+            dx0[k * v:(k + 1) * v] = disp[g]
         dmember = dx0[reg.region_members]
         dcom = np.stack([np.bincount(region_of, m * dmember[:, c], minlength=reg.region_count) for c in range(3)], axis=1)
         dcom /= reg.region_mass[:, None]

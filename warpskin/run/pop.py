@@ -15,7 +15,7 @@ from ..errors import SceneError
 from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..popping.activation import BeatSpec, PoppingSettings, popping_settings
 from ..popping.dynamics import PoppingDynamics
-from ..popping.examples import PoppingExamples, examples_for_scene
+from ..popping.examples import PoppingExamples, examples_for_scene, has_examples
 from ..popping.layered import muscle_rest_offset_deltas
 from ..popping.pose_space import PoseSpaceDeformer
 from ..scene import resolve_scene
@@ -119,6 +119,8 @@ def run_popping(
     comment: str = "",
     mode: str | None = None,
     beats: BeatSpec | None = None,
+    muscles: list[str] | None = None,
+    swell: float | None = None,
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -142,6 +144,14 @@ def run_popping(
         mode: ``"goal"`` or ``"layered"``; default the scene's ``[popping] mode``.
         beats: Pops on a tempo or a list of beats (:class:`~warpskin.popping.BeatSpec`) over
             the frames written, in place of the scene's ``[popping.activation]``.
+        muscles: Layered mode without examples (any closed rig): the muscle groups, as
+            :func:`~warpskin.popping.muscles_from_skeleton` takes them (``name=pattern`` or a
+            found group's name); default every group found from the skeleton.
+        swell: Their peak swelling as a share of the fat-plus-muscle depth (default
+            :data:`~warpskin.popping.muscles.DEFAULT_SWELL`).
+
+    Without examples (a rig file, or a scene whose rig makes none) the mode is layered, with
+    muscle groups found from the skeleton.
         progress: Progress bar on stderr.
         comment: Stage comment.
 
@@ -162,10 +172,15 @@ def run_popping(
     if mode is not None:
         settings.mode = mode
     settings.check(f"{where}: [popping]")
+    if settings.mode is None:
+        settings.mode = "goal" if examples is not None or has_examples(scene) else "layered"
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
                             progress=progress, comment=comment, start_frame=start_frame, topology=topology,
-                            beats=beats)
+                            beats=beats, muscles=muscles, swell=swell)
+    if muscles is not None and any("=" in str(m) for m in muscles):
+        raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
+                         "NAME=JOINT_PATTERN groups need --mode layered")
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt, start_frame=start_frame)
@@ -205,17 +220,33 @@ def run_popping(
 
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
-                 start_frame=None, topology="file", beats: BeatSpec | None = None) -> PoppingRun:
+                 start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
+                 swell=None) -> PoppingRun:
     from ..model import SkinModelBuilder
+    from ..popping.layered import rest_offset_deltas
+    from ..popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
     from .simulate import simulate
 
-    examples = examples if examples is not None else examples_for_scene(scene)
+    if examples is None and has_examples(scene):
+        examples = examples_for_scene(scene)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     first = (frames or scene.frame_range())[0]
     builder = SkinModelBuilder(rig, scene.model_params())
-    deltas = muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, scene.frame_time(first)))
-    groups = list(examples.group_names)
+    found = None
+    if examples is not None:
+        if muscles is not None and any("=" in str(m) for m in muscles):
+            raise SceneError("this scene's examples name its muscle groups: --groups takes their names "
+                             f"({', '.join(examples.group_names)})")
+        deltas = muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, scene.frame_time(first)))
+        groups = list(examples.group_names)
+    else:  # any closed rig: muscles from its skeleton
+        found, swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
+        deltas = rest_offset_deltas(builder, swelling)
+        groups = [m.name for m in found]
+        if beats is None and not settings.activation.groups:
+            raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats FILE "
+                             f"(muscle groups found: {', '.join(groups)})")
     if beats is not None:
         last = (frames or scene.frame_range())[1]
         settings.activation = beats.timeline(groups, scene.frame_time(first), scene.frame_time(last))
@@ -227,4 +258,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     summary = dict(result.summary)
     summary["mode"] = "layered"
     summary["groups"] = groups
+    if found is not None:
+        summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
+                               "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)

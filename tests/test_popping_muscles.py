@@ -1,0 +1,144 @@
+"""Layered popping on any closed rig: muscle groups found from the skeleton, their fusiform
+swelling, and ``warpskin pop RIG --bpm`` popping them on the beat in the written USD."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from pxr import Usd, UsdGeom
+
+from oracles import prim
+from warpskin.cli import main
+from warpskin.errors import SceneError
+from warpskin.model import SkinModelBuilder
+from warpskin.popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
+from warpskin.scene import Scene, load_scene
+
+
+@pytest.fixture(scope="module")
+def arm_builder():
+    scene = load_scene("arm")
+    return SkinModelBuilder(scene.rig(), scene.model_params()).build()
+
+
+def test_the_arm_has_an_upper_arm_and_a_forearm_muscle(arm_builder):
+    muscles, fields = muscles_from_skeleton(arm_builder)
+    layers = arm_builder.layers
+    names = layers.bones.joint_names
+    assert [m.name for m in muscles] == ["shoulder", "elbow"]  # the two long bones; not the hand's end
+    assert fields.shape == (2, arm_builder.rig.vertex_count, 3)
+    skin, foot = layers.positions[0], layers.foot
+    depth = np.linalg.norm(skin - layers.positions[3], axis=1)
+    for m, f in zip(muscles, fields):
+        j = names.index(m.joints[0])
+        mine = (layers.bone == j) & ~layers.unresolved
+        moved = np.linalg.norm(f, axis=1)
+        assert np.all(moved[~mine] == 0.0)  # only the skin its bone carries
+        # the closed form: min(swell h, 0.15 length) (-sin^2(pi t) cos(2 pi t)) along the bone's
+        # radial direction (outward at the belly, a shallow dip towards the tendons)
+        t = layers.bone_t[mine]
+        want = (np.minimum(DEFAULT_SWELL * depth[mine], 0.15 * layers.bones.length[j])
+                * -np.sin(np.pi * t) ** 2 * np.cos(2 * np.pi * t))
+        radial = skin[mine] - foot[mine]
+        along = np.einsum("ij,ij->i", f[mine], radial / np.linalg.norm(radial, axis=1)[:, None])
+        np.testing.assert_allclose(along, want, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(moved[mine], np.abs(want), rtol=1e-12, atol=1e-15)  # nothing but radial
+        # the dip lies between the joints and the quarter points only (a band around them)
+        assert np.any(want < 0) and np.all((t[want < 0] < 0.26) | (t[want < 0] > 0.74))
+        # fusiform: nothing near the joints (a band, not the exact ends), most at mid-bone
+        assert np.all(moved[mine][(t < 0.05) | (t > 0.95)] < 0.03 * moved.max())
+        assert np.median(moved[mine][(t > 0.4) & (t < 0.6)]) > 0.5 * moved.max()
+        assert m.vertices == int(np.count_nonzero(moved > 0)) and m.peak_m == pytest.approx(moved.max())
+
+
+def test_named_groups_and_their_errors(arm_builder):
+    muscles, fields = muscles_from_skeleton(arm_builder, ["forearm=ELB*", "shoulder"], swell=0.3)
+    assert [(m.name, m.joints) for m in muscles] == [("forearm", ["elbow"]), ("shoulder", ["shoulder"])]
+    auto = muscles_from_skeleton(arm_builder)[1]
+    np.testing.assert_allclose(fields[0], np.where(np.linalg.norm(auto[1], axis=1)[:, None] > 0, fields[0], 0.0))
+    assert np.linalg.norm(fields[0], axis=1).max() < np.linalg.norm(auto[1], axis=1).max()  # a smaller swell
+    for groups, message in [
+        (["quads=*thigh*"], r"'quads=\*thigh\*': no bone that carries skin matches '\*thigh\*' \(bones: "),
+        (["biceps"], r"no muscle group 'biceps'; found: shoulder, elbow"),
+        (["a=", "b"], r"'a=': give NAME or NAME=JOINT_PATTERN"),
+        (["shoulder", "shoulder"], r"each name once"),
+    ]:
+        with pytest.raises(SceneError, match=message):
+            muscles_from_skeleton(arm_builder, groups)
+    with pytest.raises(SceneError, match="swell must be in"):
+        muscles_from_skeleton(arm_builder, swell=5.0)
+
+
+def _outward(path, rig, field: np.ndarray) -> np.ndarray:
+    """Per frame, how far the written skin lies outside its LBS [m] along LBS's vertex normals,
+    on average over the vertices a muscle's swelling moves most (over half its peak)."""
+    stage = Usd.Stage.Open(str(path))
+    root = stage.GetDefaultPrim()
+    meshes = {p.GetName(): UsdGeom.Mesh(p) for p in root.GetChildren() if p.IsA(UsdGeom.Mesh)}
+    skin = next(m for n, m in meshes.items() if n != "lbs" and not n.endswith("_lbs"))
+    lbs = meshes["lbs"] if "lbs" in meshes else meshes[skin.GetPrim().GetName() + "_lbs"]
+    faces = np.asarray(skin.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    moved = np.linalg.norm(field, axis=1)[: rig.vertex_count]
+    welded = np.nonzero(moved > 0.5 * moved.max())[0]
+    first = np.zeros(rig.vertex_count, dtype=np.int64)
+    first[rig.weld_map[::-1]] = np.arange(rig.weld_map.size)[::-1]  # a file vertex of each welded one
+    sel = first[welded]
+    out = []
+    for tc in skin.GetPointsAttr().GetTimeSamples():
+        s = np.asarray(skin.GetPointsAttr().Get(tc), dtype=np.float64)
+        b = np.asarray(lbs.GetPointsAttr().Get(tc), dtype=np.float64)
+        n = trimesh.Trimesh(b, faces, process=False).vertex_normals
+        out.append(float(np.einsum("ij,ij->i", (s - b)[sel], n[sel]).mean()))
+    return np.array(out)
+
+
+def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder):
+    # the shipped arm has no popping examples: layered mode, its two muscles found, popping at
+    # 0.2 s (frame 6 at 30 fps) for 0.25 s (to frame 13.5)
+    out = tmp_path / "arm_pop.usdc"
+    assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
+                 "--device", device]) == 0
+    text = capsys.readouterr().out
+    assert "driven by groups shoulder, elbow" in text and "shoulder: bones shoulder" in text
+    muscles, fields = muscles_from_skeleton(arm_builder)
+    depth = np.linalg.norm(arm_builder.layers.positions[0] - arm_builder.layers.positions[3], axis=1)
+    for m, f in zip(muscles, fields):
+        o = _outward(out, arm_builder.rig, f)
+        moved = np.linalg.norm(f, axis=1)
+        h = depth[moved > 0.5 * moved.max()].mean()
+        assert np.abs(o[:6]).max() < 0.02 * h, m.name  # nothing before the beat
+        assert o[7:9].mean() > 0.1 * h, m.name  # out by a tenth of the tissue depth and more, clenched
+        assert np.abs(o[15:]).max() < 0.5 * o[7:9].mean(), m.name  # and back after the release
+
+
+def test_a_rig_without_a_timeline_is_told_what_to_pass(tmp_path, capsys):
+    out = tmp_path / "x.usdc"
+    assert main(["pop", "arm", "-o", str(out), "--frames", "0:3", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "popping without a timeline: pass --bpm N or --beats FILE (muscle groups found: shoulder, elbow)" in err
+    assert not out.exists()
+    assert main(["pop", "arm", "-o", str(out), "--frames", "0:3", "--quiet", "--bpm", "60",
+                 "--groups", "x=*nothing*"]) == 2
+    assert "no bone that carries skin matches '*nothing*'" in capsys.readouterr().err
+    assert main(["pop", "popping_arm", "-o", str(out), "--frames", "0:3", "--quiet", "--bpm", "60",
+                 "--groups", "x=*elbow*"]) == 2
+    assert "NAME=JOINT_PATTERN groups need --mode layered" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_cesium_man_pops_on_the_beat(tmp_path, capsys, assets):
+    # a real closed rig, no scene: its long bones found (arms, legs, chest), popping at 0.2 s
+    # (frame 4.8 at 24 fps) over its walk
+    path = assets / "CesiumMan" / "CesiumMan.glb"
+    out = tmp_path / "cesium_pop.usdc"
+    assert main(["pop", str(path), "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "1:12",
+                 "--quiet"]) == 0
+    text = capsys.readouterr().out
+    scene = Scene.from_rig_file(path)
+    builder = SkinModelBuilder(scene.rig(), scene.model_params()).build()
+    muscles, fields = muscles_from_skeleton(builder)
+    assert len(muscles) >= 8 and all(f"{m.name}: bones" in text for m in muscles)  # arms, forearms, thighs, calves
+    for m, f in zip(muscles, fields):
+        o = _outward(out, builder.rig, f)  # frames 1..12: the beat falls between the 4th and 5th
+        assert o[4:9].mean() - o[:4].mean() > 2e-3, m.name  # millimetres out while clenched
