@@ -93,12 +93,14 @@ def _outward(path, rig, field: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder):
-    # the shipped arm has no popping examples: layered mode, its two muscles found, popping at
-    # 0.2 s (frame 6 at 30 fps) for 0.25 s (to frame 13.5)
+@pytest.mark.parametrize("cage", ["auto", "always"])
+def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder, cage):
+    # the shipped arm has no popping examples: layered mode, its two muscles found (on its own
+    # skin, or on its cage whose pop the written skin takes on), popping at 0.2 s (frame 6 at
+    # 30 fps) for 0.25 s (to frame 13.5)
     out = tmp_path / "arm_pop.usdc"
     assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
-                 "--device", device]) == 0
+                 "--device", device, "--cage", cage]) == 0
     text = capsys.readouterr().out
     assert "driven by groups shoulder, elbow" in text and "shoulder: bones shoulder" in text
     muscles, fields = muscles_from_skeleton(arm_builder)

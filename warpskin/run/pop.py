@@ -121,6 +121,7 @@ def run_popping(
     beats: BeatSpec | None = None,
     muscles: list[str] | None = None,
     swell: float | None = None,
+    cage: str = "auto",
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -149,6 +150,9 @@ def run_popping(
             found group's name); default every group found from the skeleton.
         swell: Their peak swelling as a share of the fat-plus-muscle depth (default
             :data:`~warpskin.popping.muscles.DEFAULT_SWELL`).
+        cage: Layered mode without examples: ``"auto"`` (an open character simulates through
+            an automatic cage, whose muscles pop and carry the written meshes), ``"always"``,
+            ``"none"`` or a cage mesh file, as :func:`~warpskin.run.simulate` takes it.
 
     Without examples (a rig file, or a scene whose rig makes none) the mode is layered, with
     muscle groups found from the skeleton.
@@ -177,7 +181,7 @@ def run_popping(
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
                             progress=progress, comment=comment, start_frame=start_frame, topology=topology,
-                            beats=beats, muscles=muscles, swell=swell)
+                            beats=beats, muscles=muscles, swell=swell, cage=cage)
     if muscles is not None and any("=" in str(m) for m in muscles):
         raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
                          "NAME=JOINT_PATTERN groups need --mode layered")
@@ -221,7 +225,7 @@ def run_popping(
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
-                 swell=None) -> PoppingRun:
+                 swell=None, cage="auto") -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
     from ..popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
@@ -232,33 +236,44 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     rig = scene.rig()
     clip = rig.clip(scene.clip)
     first = (frames or scene.frame_range())[0]
-    builder = SkinModelBuilder(rig, scene.model_params())
-    found = None
+    last = (frames or scene.frame_range())[1]
+    found: list = []
+    groups: list[str] = []
+
+    def timeline(names: list[str]) -> None:
+        groups[:] = names
+        if beats is not None:
+            settings.activation = beats.timeline(names, scene.frame_time(first), scene.frame_time(last))
+        settings.activation.check_groups(names, "[popping.activation]")
+
     if examples is not None:
         if muscles is not None and any("=" in str(m) for m in muscles):
             raise SceneError("this scene's examples name its muscle groups: --groups takes their names "
                              f"({', '.join(examples.group_names)})")
-        deltas = muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, scene.frame_time(first)))
-        groups = list(examples.group_names)
-    else:  # any closed rig: muscles from its skeleton
-        found, swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
-        deltas = rest_offset_deltas(builder, swelling)
-        groups = [m.name for m in found]
-        if beats is None and not settings.activation.groups:
-            raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats FILE "
-                             f"(muscle groups found: {', '.join(groups)})")
-    if beats is not None:
-        last = (frames or scene.frame_range())[1]
-        settings.activation = beats.timeline(groups, scene.frame_time(first), scene.frame_time(last))
-    settings.activation.check_groups(groups, "[popping.activation]")
-    builder.set_rest_drive(deltas)
-    result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress, comment=comment,
-                      start_frame=start_frame, topology=topology,
-                      builder=builder, activation=lambda t: settings.activation.sample(t, groups))
+        builder = SkinModelBuilder(rig, scene.model_params())
+        builder.set_rest_drive(muscle_rest_offset_deltas(builder, examples,
+                                                         rig.skinning_matrices(clip, scene.frame_time(first))))
+        timeline(list(examples.group_names))
+        result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
+                          comment=comment, start_frame=start_frame, topology=topology, builder=builder,
+                          activation=lambda t: settings.activation.sample(t, groups))
+    else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
+        def prepare(builder) -> None:
+            found[:], swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
+            names = [m.name for m in found]
+            if beats is None and not settings.activation.groups:
+                raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats "
+                                 f"FILE (muscle groups found: {', '.join(names)})")
+            timeline(names)
+            builder.set_rest_drive(rest_offset_deltas(builder, swelling))
+
+        result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
+                          comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
+                          activation=lambda t: settings.activation.sample(t, groups))
     summary = dict(result.summary)
     summary["mode"] = "layered"
     summary["groups"] = groups
-    if found is not None:
+    if found:
         summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
                                "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)

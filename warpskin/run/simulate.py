@@ -320,6 +320,7 @@ def simulate(
     rigid_pieces: str = "cage",
     physics_weights: dict[str, float] | None = None,
     guard=None,
+    prepare: Callable | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -328,7 +329,10 @@ def simulate(
     ``builder`` is a model builder to use instead of the scene's (for example one with a
     rest-shape drive, :meth:`~warpskin.model.SkinModelBuilder.set_rest_drive`); then
     ``activation(t) -> [G]`` gives the muscle activation at clip time ``t`` (every substep's is
-    precomputed and uploaded once, like the poses). ``collision``
+    precomputed and uploaded once, like the poses). ``prepare(builder)``, where given, is called
+    on the model builder of the simulated surface (the skin, or the character's cage) before
+    the model is finalised, for example to set the rest-shape drive that ``activation`` drives
+    (layered popping on any character). ``collision``
     (:class:`~warpskin.collision.CollisionParams`) defaults to the scene's ``[collision]``
     section (on unless disabled). If a frame finds more contact candidates than the buffers
     hold, the frame is run again with larger buffers. ``check_intersections`` counts
@@ -404,6 +408,8 @@ def simulate(
     caged = character if character.caged else None
     rig = character.sim_rig
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
+    if prepare is not None:
+        prepare(builder)
     if collision is not None:
         builder.params.collision = collision
     model = builder.finalize(device)
