@@ -3,6 +3,8 @@ swelling, and ``warpskin pop RIG --bpm`` popping them on the beat in the written
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
@@ -144,3 +146,14 @@ def test_cesium_man_pops_on_the_beat(tmp_path, capsys, assets):
     for m, f in zip(muscles, fields):
         o = _outward(out, builder.rig, f)  # frames 1..12: the beat falls between the 4th and 5th
         assert o[4:9].mean() - o[:4].mean() > 2e-3, m.name  # millimetres out while clenched
+
+
+def test_info_lists_the_muscles_pop_would_use(capsys):
+    assert main(["info", "arm", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [m["name"] for m in out["muscles"]] == ["shoulder", "elbow"]
+    assert all(m["vertices"] > 12 and m["peak_swell_mm"] > 0 for m in out["muscles"])
+    assert main(["info", "popping_arm", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["muscles"] == "the scene's popping examples"
+    assert main(["info", "arm"]) == 0
+    assert "pop would use (2 muscle groups from the skeleton" in capsys.readouterr().out

@@ -170,6 +170,26 @@ def cmd_scenes(args) -> int:
     return 0
 
 
+def _muscle_summary(scene, character):
+    """The muscle groups ``pop`` finds from the skeleton of what is simulated (the skin, or the
+    cage), as the pop summary lists them; or the one line why none are found."""
+    from .errors import InputError
+    from .model import SkinModelBuilder
+    from .popping.examples import has_examples
+    from .popping.muscles import muscles_from_skeleton
+
+    if has_examples(scene):
+        return "the scene's popping examples"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            found, _ = muscles_from_skeleton(SkinModelBuilder(character.sim_rig, scene.model_params()))
+    except InputError as exc:
+        return f"no muscle groups ({exc})"
+    return [{"name": m.name, "joints": m.joints, "vertices": m.vertices, "depth_mm": 1e3 * m.depth_m,
+             "peak_swell_mm": 1e3 * m.peak_m} for m in found]
+
+
 def cmd_info(args) -> int:
     from .errors import InputError
     from .scene import is_rig_file
@@ -206,6 +226,7 @@ def cmd_info(args) -> int:
         character = Character(rig, weights=scene.physics_weights() or None)
         character.bind()
     out["physics_weight"] = character.weight_summary()
+    out["muscles"] = _muscle_summary(scene, character)
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -235,6 +256,14 @@ def cmd_info(args) -> int:
         print(f"rigid pieces (meshes or parts that LBS moves rigidly, one joint each): {out['rigid_pieces']}; through a "
               "cage they move by one translation with the cage around them (--rigid-pieces joint: with their joints)")
     _print_weights(out["physics_weight"])
+    muscles = out["muscles"]
+    if isinstance(muscles, list):
+        print(f"pop would use ({len(muscles)} muscle groups from the skeleton; --groups NAME=JOINT_PATTERN names others):")
+        for m in muscles:
+            print(f"  {m['name']}: {m['vertices']} {'cage ' if out['simulation'] == 'cage' else ''}vertices, tissue "
+                  f"{m['depth_mm']:.0f} mm deep, swelling up to {m['peak_swell_mm']:.1f} mm")
+    else:
+        print(f"pop would use: {muscles}")
     print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
