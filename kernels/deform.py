@@ -37,50 +37,19 @@ def lbs_flat(p: wp.vec3, row: int, influence_count: int, joint_indices: wp.array
 
 
 @wp.kernel
-def displacement_kernel(
-    x: wp.array(dtype=wp.vec3),
+def surface_lbs_kernel(
     rest: wp.array(dtype=wp.vec3),
     influence_count: int,
     joint_indices: wp.array(dtype=wp.int32),
     joint_weights: wp.array(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
     # output
-    displacement: wp.array(dtype=wp.vec3),
+    lbs: wp.array(dtype=wp.vec3),
 ):
-    """``d_j = x_j - LBS(X_j)`` for every simulated surface vertex ``j`` (its first particles:
-    the skin layer)."""
+    """``LBS(X_j)`` of every simulated surface vertex ``j`` (where the solver's tether targets
+    are not at hand)."""
     j = wp.tid()
-    displacement[j] = x[j] - lbs_flat(rest[j], j, influence_count, joint_indices, joint_weights, skin_matrices)
-
-
-@wp.kernel
-def deform_kernel(
-    bind_points: wp.array(dtype=wp.vec3),
-    influence_count: int,
-    joint_indices: wp.array(dtype=wp.int32),
-    joint_weights: wp.array(dtype=wp.float32),
-    skin_matrices: wp.array(dtype=wp.mat44),
-    capture_count: int,
-    capture_indices: wp.array(dtype=wp.int32),
-    capture_weights: wp.array(dtype=wp.float32),
-    physics_weight: wp.array(dtype=wp.float32),
-    displacement: wp.array(dtype=wp.vec3),
-    # output
-    out: wp.array(dtype=wp.vec3),
-):
-    """``p_i' = LBS(P_i) + phi_i sum_m a_im d_{s_im}`` (``joint_indices`` already offset into the
-    stacked per-mesh matrices)."""
-    i = wp.tid()
-    acc = lbs_flat(bind_points[i], i, influence_count, joint_indices, joint_weights, skin_matrices)
-    phi = physics_weight[i]
-    if phi > 0.0:
-        d = wp.vec3(0.0)
-        for m in range(capture_count):
-            a = capture_weights[i * capture_count + m]
-            if a != 0.0:
-                d += a * displacement[capture_indices[i * capture_count + m]]
-        acc += phi * d
-    out[i] = acc
+    lbs[j] = lbs_flat(rest[j], j, influence_count, joint_indices, joint_weights, skin_matrices)
 
 
 @wp.kernel
@@ -99,8 +68,9 @@ def deform_from_targets_kernel(
     # output
     out: wp.array(dtype=wp.vec3),
 ):
-    """:func:`deform_kernel` with the displacement gathered as ``d_j = x_j - surface_lbs_j``
-    where the surface's LBS is at hand (the solver tether's targets of the step): one launch."""
+    """``p_i' = LBS(P_i) + phi_i sum_m a_im (x_{s_im} - surface_lbs_{s_im})`` (``joint_indices``
+    already offset into the stacked per-mesh matrices; ``surface_lbs``: the simulated surface's
+    LBS, the solver tether's targets of the step or :func:`surface_lbs_kernel`'s)."""
     i = wp.tid()
     acc = lbs_flat(bind_points[i], i, influence_count, joint_indices, joint_weights, skin_matrices)
     phi = physics_weight[i]

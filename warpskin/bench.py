@@ -142,7 +142,7 @@ def _cage_build(rig) -> dict:
     x_host = character.cage_surface.vertices + rng.normal(scale=1e-3 * character.edge(), size=character.cage_surface.vertices.shape)
     x = wp.array(x_host.astype(np.float32), dtype=wp.vec3, device=dev)
     deformer.evaluate(x, rest, 0.0)
-    targets = wp.array((x_host - deformer.displacement.numpy()).astype(np.float32), dtype=wp.vec3,
+    targets = wp.array(deformer.sim_lbs.numpy(), dtype=wp.vec3,
                        device=dev)  # the surface's LBS: what a simulation's tether writes every step
     deformer.launch(x, targets)
     lbs = Skinner(rig, method="lbs", device=str(dev))

@@ -11,7 +11,8 @@ One place decides and holds, for a run:
   **capture** of every written point by the simulation surface (:mod:`warpskin.capture`);
 * every frame, the written points: each mesh's own LBS plus the physical deformation carried
   from the simulation surface, blended by the physics weight (:mod:`warpskin.kernels.deform`,
-  one launch for the simulation surface's displacement and one for every written point).
+  one launch for every written point, after one for the simulation surface's LBS where the
+  solver's tether targets are not at hand).
 
 Example:
     >>> character = Character(rig, cage="auto")
@@ -426,7 +427,7 @@ class _Deformer:
             self.sim_jw = wp.array(sim.joint_weights.astype(np.float32).ravel(), dtype=wp.float32)
             self.render_mats = wp.zeros(self.mesh_count * j, dtype=wp.mat44)
             self.sim_mats = wp.zeros(j, dtype=wp.mat44)
-            self.displacement = wp.zeros(v, dtype=wp.vec3)
+            self.sim_lbs = wp.zeros(v, dtype=wp.vec3)  # the surface's LBS where the caller has none
             self.out = wp.zeros(n, dtype=wp.vec3)
         self.sim_vertex_count = v
         self._cmds: dict = {}
@@ -466,16 +467,14 @@ class _Deformer:
                 self._cmds.clear()
             common = [self.bind_points, self.influences, self.ji, self.jw, self.render_mats, self.cap_count,
                       self.cap_i, self.cap_w, self.phi]
-            if surface_lbs is None:
-                cmds = [wp.launch(k.displacement_kernel, dim=self.sim_vertex_count,
-                                  inputs=[x, self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
-                                  outputs=[self.displacement], device=self.device, record_cmd=True),
-                        wp.launch(k.deform_kernel, dim=self.out.shape[0], inputs=[*common, self.displacement],
-                                  outputs=[self.out], device=self.device, record_cmd=True)]
-            else:  # one launch: the displacement gathered where it is used
-                cmds = [wp.launch(k.deform_from_targets_kernel, dim=self.out.shape[0],
-                                  inputs=[*common, x, surface_lbs], outputs=[self.out], device=self.device,
-                                  record_cmd=True)]
+            cmds = []
+            if surface_lbs is None:  # the surface's LBS first
+                cmds.append(wp.launch(k.surface_lbs_kernel, dim=self.sim_vertex_count,
+                                      inputs=[self.sim_rest, self.sim_count, self.sim_ji, self.sim_jw, self.sim_mats],
+                                      outputs=[self.sim_lbs], device=self.device, record_cmd=True))
+            cmds.append(wp.launch(k.deform_from_targets_kernel, dim=self.out.shape[0],
+                                  inputs=[*common, x, self.sim_lbs if surface_lbs is None else surface_lbs],
+                                  outputs=[self.out], device=self.device, record_cmd=True))
             hit = self._cmds[key] = (x, surface_lbs, tuple(cmds))  # holds the arrays: their ids stay theirs
         for cmd in hit[2]:
             cmd.launch()
