@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 from pygltflib import Attributes
 
+from oracles import prim
+from pxr import Usd, UsdGeom
 from test_gltf_import import FLOAT, make_box  # the glTF test builder (tests/ is on sys.path)
+from warpskin.cli import main
 from warpskin.io import load_rig
 from warpskin.io.gltf import read_gltf_morph_targets
 from warpskin.popping import PoseSpaceDeformer, examples_from_morph_targets
@@ -59,3 +62,73 @@ def test_unknown_target_is_named(tmp_path):
     with pytest.raises(RigError, match=r"no morph target 'clench'; targets: \['flex'\]"):
         examples_from_morph_targets(rig, read_gltf_morph_targets(path), normal=[(None, 0.0)],
                                     clenched={"biceps": [("clench", 0.0)]})
+
+
+def _box_with_named_target(tmp_path, name: str):
+    def add_target(b):
+        prim = b.g.meshes[0].primitives[0]
+        acc = b.g.accessors[prim.attributes.POSITION]
+        pos = np.frombuffer(bytes(b.blob[b.g.bufferViews[acc.bufferView].byteOffset:][: acc.count * 12]),
+                            dtype=np.float32).reshape(-1, 3).astype(np.float64)
+        prim.targets = [Attributes(POSITION=b.accessor(_bulge(pos), FLOAT))]
+        b.g.meshes[0].extras = {"targetNames": [name]}
+
+    return make_box(tmp_path, mutate=add_target)
+
+
+def test_a_rig_files_clenched_target_pops_by_the_papers_rules(tmp_path, capsys):
+    # `warpskin pop box.glb --bpm`: the file's "biceps_clenched" morph target is the biceps'
+    # clenched example (goal mode, no scene); the written skin's offset from the normal mesh
+    # follows eqs. 1-4 step by step, here in NumPy: rising activation -> clench
+    #   u <- (1 - alpha) u + alpha (o* - o) / h,  o <- o + h u
+    # falling -> relax: o <- o + beta h (o* - o), u <- 0, snapping to o* within the threshold
+    path = _box_with_named_target(tmp_path, "biceps_clenched")
+    out = tmp_path / "pop.usdc"
+    h = 1.0 / 120.0
+    assert main(["pop", str(path), "-o", str(out), "--bpm", "120", "--offset", "0.1037", "--hold", "0.2513",
+                 "--frames", "0:30", "--dt", str(h), "--quiet"]) == 0
+    assert "groups biceps" in capsys.readouterr().out
+    rig = load_rig(path)
+    stage = Usd.Stage.Open(str(out))
+    popping, normal = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("popping", "normal"))
+    file_pos = rig.vertices[rig.weld_map]
+    d = _bulge(file_pos).astype(np.float32).astype(np.float64)  # the clenched offsets (bind pose: no skinning)
+    moved = np.linalg.norm(d, axis=1) > 0
+    alpha = np.where(moved, 0.1, 1.0)[:, None]  # eq. 3: every moved vertex at the largest disparity
+    beta, threshold = 30.0, 1e-4
+
+    def activation(t):
+        return 1.0 if any(b <= t < b + 0.2513 for b in (0.1037, 0.6037)) else 0.0
+
+    o, u, prev, clench = np.zeros_like(d), np.zeros_like(d), 0.0, False
+    fps = 30.0
+    for frame in range(31):
+        for s in range(4):  # the frame's steps end at its time
+            t = frame / fps - 1.0 / fps + (s + 1) * h
+            a = activation(t)
+            clench = True if a > prev else (False if a < prev else clench)
+            prev = a
+            goal = a * d
+            if clench:
+                u = (1 - alpha) * u + alpha * (goal - o) / h
+                o = o + h * u
+            else:
+                o = o + beta * h * (goal - o)
+                u[:] = 0.0
+                snap = np.linalg.norm(goal - o, axis=1) < threshold
+                o[snap] = goal[snap]
+        got = np.asarray(popping.Get(frame), dtype=np.float64) - np.asarray(normal.Get(frame), dtype=np.float64)
+        assert np.abs(got - o).max() < 2e-5 * np.abs(d).max(), frame  # float32 kernel and file
+        if frame == 17:  # 0.567 s: relaxed from the first pop and snapped, before the second beat
+            assert np.abs(o).max() == 0.0 and np.abs(got).max() == 0.0
+    # it vibrated: past the clenched goal during the first pop
+    peak = max(float(np.max((np.asarray(popping.Get(f)) - np.asarray(normal.Get(f)))[moved, 0]
+                            * np.sign(d[moved, 0]))) for f in range(4, 11))
+    assert peak > 0.1 * 1.05
+
+
+def test_clenched_target_names_make_the_groups(tmp_path):
+    from warpskin.popping.examples import _group_of
+
+    assert [_group_of(n) for n in ("biceps_clenched", "Flex", "quad-pump", "calf.FLEXED", "pumped")] == \
+        ["biceps", "Flex", "quad", "calf", "pumped"]

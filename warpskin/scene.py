@@ -176,10 +176,13 @@ class Scene:
         return self.frames if self.frames is not None else self.clip_frames()
 
     def check_frames(self, first: int, last: int) -> None:
-        """Raise :class:`SceneError` unless ``first:last`` lies inside the clip."""
+        """Raise :class:`SceneError` unless ``first:last`` lies inside the clip; a clip of one
+        pose (a rig without animation: its rest pose) holds it over any frames from 0."""
         lo, hi = self.clip_frames()
+        clip = self.rig().clip(self.clip)
+        if clip.end <= clip.start and first >= 0:
+            return
         if first < lo or last > hi:
-            clip = self.rig().clip(self.clip)
             raise SceneError(
                 f"frames {first}:{last} are outside clip {clip.name!r}, which spans frames {lo}:{hi} at "
                 f"{self.frame_rate:g} fps ({clip.start:.4g}-{clip.end:.4g} s)"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -205,6 +206,51 @@ def examples_from_meshes(
         clenched_matrices=c_mats,
         clenched_disparities=c_disp,
     )
+
+
+CLENCH_PATTERNS = ("*clench*", "*flex*", "*pump*")
+"""Names of a rig file's blend shapes (glTF morph targets) taken for clenched examples."""
+
+
+def _group_of(target: str) -> str:
+    """The muscle group a clenched target stands for: its name without the clench word
+    (``biceps_clenched`` -> ``biceps``), or the name itself where nothing else is left."""
+    import re
+
+    left = re.sub(r"(clench(ed)?|flex(ed)?|pump(ed)?)", "", target, flags=re.IGNORECASE).strip(" _-.:")
+    return left or target
+
+
+def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
+    """Clenched examples from a rig file's own blend shapes: every glTF morph target whose name
+    matches :data:`CLENCH_PATTERNS` (case-insensitive) is one muscle group's clenched shape
+    (named by :func:`_group_of`), sculpted at the bind pose; the normal example is the rest
+    mesh. ``None`` where the scene's rig is not a glTF file or has no such target.
+
+    Raises:
+        RigError: an unreadable target (as :func:`~warpskin.io.gltf.read_gltf_morph_targets`).
+    """
+    import fnmatch
+
+    path = scene.rig_spec.get("file")
+    if not path or Path(path).suffix.lower() not in (".glb", ".gltf"):
+        return None
+    from ..io.gltf import read_gltf_morph_targets
+
+    targets = read_gltf_morph_targets(path, mesh=scene.rig_spec.get("mesh"))
+    chosen = [n for n in targets if any(fnmatch.fnmatchcase(n.lower(), p) for p in CLENCH_PATTERNS)]
+    if not chosen:
+        return None
+    rig = rig if rig is not None else scene.rig()
+    pose = rig.skinning_matrices(None, 0.0)
+    groups: dict[str, list] = {}
+    for name in chosen:
+        g = _group_of(name)
+        while g in groups:  # two targets for one group: each its own group
+            g += "_2"
+        groups[g] = [(name, pose)]
+    scaled = {n: np.asarray(targets[n], dtype=np.float64) * rig.meters_per_unit for n in chosen}
+    return examples_from_morph_targets(rig, scaled, normal=[(None, pose)], clenched=groups)
 
 
 def has_examples(scene) -> bool:

@@ -15,7 +15,7 @@ from ..errors import SceneError
 from ..io.usd_export import UsdSkinWriter, check_output_path
 from ..popping.activation import BeatSpec, PoppingSettings, popping_settings
 from ..popping.dynamics import PoppingDynamics
-from ..popping.examples import PoppingExamples, examples_for_scene, has_examples
+from ..popping.examples import PoppingExamples, examples_for_scene, examples_from_file, has_examples
 from ..popping.layered import muscle_rest_offset_deltas
 from ..popping.pose_space import PoseSpaceDeformer
 from ..scene import resolve_scene
@@ -176,6 +176,8 @@ def run_popping(
     if mode is not None:
         settings.mode = mode
     settings.check(f"{where}: [popping]")
+    if examples is None and not has_examples(scene):
+        examples = examples_from_file(scene)  # the file's own clenched blend shapes, if any
     if settings.mode is None:
         settings.mode = "goal" if examples is not None or has_examples(scene) else "layered"
     if settings.mode == "layered":
