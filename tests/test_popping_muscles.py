@@ -157,3 +157,12 @@ def test_info_lists_the_muscles_pop_would_use(capsys):
     assert json.loads(capsys.readouterr().out)["muscles"] == "the scene's popping examples"
     assert main(["info", "arm"]) == 0
     assert "pop would use (2 muscle groups from the skeleton" in capsys.readouterr().out
+
+
+def test_python_pop_takes_a_rig_or_a_scene(tmp_path, device):
+    from warpskin.popping import BeatSpec
+    from warpskin.run import pop
+
+    run = pop("arm", tmp_path / "p.usdc", beats=BeatSpec(bpm=120.0, offset=0.2, groups=["elbow"]), frames=(0, 8),
+              device=device, progress=False)
+    assert run.summary["mode"] == "layered" and run.summary["groups"] == ["shoulder", "elbow"] and run.frames == 9

@@ -7,13 +7,13 @@
 * Steppers: :class:`PhysicsStepper` (``physics``: the multi-layer solver with graph capture,
   overflow retries, NaN checks and the pre-roll), :class:`PoppingStepper` (``pop``: the goal
   mode of the popping dance), :class:`SkinningStepper` (``skin``: LBS and DQS).
-* Drivers: :func:`simulate` (``warpskin simulate``), :func:`run_popping` (``warpskin pop``, both
-  modes), :func:`skin_to_usd` (``warpskin skin``); ``warpskin bench`` times the same steppers.
+* Drivers: :func:`simulate` (``warpskin simulate``), :func:`run_popping` and :func:`pop`
+  (``warpskin pop``, both modes), :func:`skin_to_usd` (``warpskin skin``); ``warpskin bench`` times the same steppers.
 """
 
 from .physics import PhysicsStepper, initial_state
 from .plan import FramePlan
-from .pop import PoppingRun, PoppingStepper, run_popping
+from .pop import PoppingRun, PoppingStepper, pop, run_popping
 from .runner import FrameRunner, RunRecord
 from .simulate import SimulationResult, simulate
 from .skin import SkinningStepper, skin_to_usd
@@ -29,6 +29,7 @@ __all__ = [
     "simulate",
     "SimulationResult",
     "run_popping",
+    "pop",
     "PoppingRun",
     "skin_to_usd",
 ]

@@ -23,7 +23,7 @@ from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["PoppingRun", "PoppingStepper", "run_popping"]
+__all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping"]
 
 
 @dataclass
@@ -279,3 +279,14 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
                                "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
+
+
+def pop(rig_or_scene, out_path, *, clip: str | None = None, **options) -> PoppingRun:
+    """``warpskin pop`` in Python: a rig file (``.glb``, ``.gltf``, ``.usd*``), a shipped scene
+    name, a TOML scene path or a :class:`~warpskin.scene.Scene`, played to ``out_path``;
+    ``clip`` picks the rig file's animation; every other option as :func:`run_popping` takes
+    it (``beats=BeatSpec(bpm=120)``, ``muscles=["biceps_l=*upperarm*l*"]``, ``cage``, ...)."""
+    scene = resolve_scene(rig_or_scene)
+    if clip is not None:
+        scene.clip = clip
+    return run_popping(scene, out_path, **options)
