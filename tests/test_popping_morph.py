@@ -132,3 +132,35 @@ def test_clenched_target_names_make_the_groups(tmp_path):
 
     assert [_group_of(n) for n in ("biceps_clenched", "Flex", "quad-pump", "calf.FLEXED", "pumped")] == \
         ["biceps", "Flex", "quad", "calf", "pumped"]
+
+
+def test_usd_blend_shapes_are_clenched_examples(tmp_path, capsys):
+    # a UsdSkel box whose "biceps_clenched" BlendShape (sparse: the top ring) pushes 0.1 along x
+    from pxr import Gf, UsdSkel, Vt
+    from test_usdskel_import import build_box
+    from warpskin.io.usdskel import read_usd_blend_shapes
+
+    top = [8, 9, 10, 11]
+
+    def add_shape(stage, binding):
+        shape = UsdSkel.BlendShape.Define(stage, "/World/Char/Box/biceps_clenched")
+        shape.CreateOffsetsAttr(Vt.Vec3fArray([Gf.Vec3f(0.1, 0.0, 0.0)] * len(top)))
+        shape.CreatePointIndicesAttr(Vt.IntArray(top))
+        binding.CreateBlendShapesAttr(Vt.TokenArray(["biceps_clenched"]))
+        binding.CreateBlendShapeTargetsRel().SetTargets([shape.GetPath()])
+
+    path = build_box(tmp_path / "box.usda", with_anim=False, mutate=add_shape)
+    shapes = read_usd_blend_shapes(path)
+    want = np.zeros((12, 3))
+    want[top, 0] = 0.1
+    assert list(shapes) == ["biceps_clenched"] and np.abs(shapes["biceps_clenched"] - want).max() < 1e-7
+    out = tmp_path / "pop.usdc"
+    assert main(["pop", str(path), "-o", str(out), "--bpm", "60", "--offset", "0.0513", "--frames", "0:12",
+                 "--quiet"]) == 0
+    assert "groups biceps" in capsys.readouterr().out
+    stage = Usd.Stage.Open(str(out))
+    goal, normal = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("goal", "normal"))
+    d = np.linalg.norm(np.asarray(goal.Get(6)) - np.asarray(normal.Get(6)), axis=1)  # 0.2 s: clenched
+    rig = load_rig(path)
+    moved = np.isin(np.arange(rig.file_vertex_count), top)  # the USD's own point numbers
+    assert np.allclose(d[moved], 0.1, atol=1e-6) and np.all(d[~moved] < 1e-6)

@@ -760,6 +760,60 @@ def _read_animation(
 # --------------------------------------------------------------------------------------------
 
 
+def read_usd_blend_shapes(path: str | Path, *, mesh: str | None = None) -> dict[str, np.ndarray]:
+    """The UsdSkel blend shapes bound to one skinned mesh, as offsets per file point.
+
+    Args:
+        path: A ``.usd``/``.usda``/``.usdc``/``.usdz`` file.
+        mesh: The skinned mesh, as for :func:`load_usd` (default: the one with the most points).
+
+    Returns:
+        ``{name: offsets [N, 3]}`` in the order of the mesh's ``skel:blendShapes``, per file point
+        (0 where a sparse shape's ``pointIndices`` leave a point out), in skeleton space
+        (``geomBindTransform``'s linear part applied) and in the stage's units (multiply by the
+        rig's ``meters_per_unit``). Inbetween shapes are not returned.
+
+    Raises:
+        RigError: names and targets that do not pair up, a target that is not a BlendShape,
+            offsets that do not match the points or their indices; naming the file and prim.
+    """
+    pxr, stage, p = _open_stage(path)
+    _, targets, others = _scan(pxr, stage)
+    tg = _select(targets, others, mesh, p, pxr)
+    where = _Where(p, str(tg.prim.GetPath()))
+    t0 = pxr.Usd.TimeCode.EarliestTime()
+    n = _point_count(pxr, tg.prim, t0)
+    binding = pxr.UsdSkel.BindingAPI(tg.prim)
+    names = list(binding.GetBlendShapesAttr().Get() or [])
+    paths = list(binding.GetBlendShapeTargetsRel().GetForwardedTargets()) if binding.GetBlendShapeTargetsRel() else []
+    if len(names) != len(paths):
+        raise where.error(f"skel:blendShapes names {len(names)} shapes but skel:blendShapeTargets has {len(paths)}")
+    geom_bind = np.array(tg.skinning.GetGeomBindTransform(t0), dtype=np.float64).T
+    out: dict[str, np.ndarray] = {}
+    for name, target in zip(names, paths):
+        shape = pxr.UsdSkel.BlendShape(stage.GetPrimAtPath(target))
+        if not shape:
+            raise where.error(f"blend shape {name!r}: {target} is not a BlendShape prim")
+        offsets = np.asarray(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
+        indices = shape.GetPointIndicesAttr().Get()
+        full = np.zeros((n, 3))
+        if indices is None or len(indices) == 0:
+            if offsets.shape[0] != n:
+                raise where.error(f"blend shape {name!r} ({target}) has {offsets.shape[0]} offsets for {n} points "
+                                  "and no pointIndices")
+            full[:] = offsets
+        else:
+            idx = np.asarray(indices, dtype=np.int64)
+            if idx.shape[0] != offsets.shape[0] or idx.min() < 0 or idx.max() >= n:
+                raise where.error(f"blend shape {name!r} ({target}): {offsets.shape[0]} offsets for {idx.shape[0]} "
+                                  f"pointIndices, which must lie in [0, {n - 1}]")
+            full[idx] = offsets
+        if not np.all(np.isfinite(full)):
+            raise where.error(f"blend shape {name!r} ({target}) holds NaN or inf offsets")
+        out[str(name)] = full @ geom_bind[:3, :3].T
+    return out
+
+
 def load_usd(path: str | Path, *, mesh: str | None = None, weld: bool = True) -> Rig:
     """Load a UsdSkel-skinned mesh with its skeleton and animation.
 
@@ -800,7 +854,8 @@ def load_usd(path: str | Path, *, mesh: str | None = None, weld: bool = True) ->
     if method not in ("", "classicLinear"):
         where.warn(f"skel:skinningMethod is {method!r}; the rig is skinned with linear blend skinning")
     if sq.HasBlendShapes():
-        where.warn("blend shapes are ignored")
+        where.warn("blend shapes are not applied to the skin (warpskin pop reads those named *clench*, *flex* or "
+                   "*pump* as clenched examples)")
     geom_bind = np.array(sq.GetGeomBindTransform(t0), dtype=np.float64).T
     if not np.all(np.isfinite(geom_bind)) or abs(np.linalg.det(geom_bind[:3, :3])) < 1e-30:
         raise where.error("primvars:skel:geomBindTransform is singular or holds NaN/inf")

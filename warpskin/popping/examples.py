@@ -222,10 +222,11 @@ def _group_of(target: str) -> str:
 
 
 def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
-    """Clenched examples from a rig file's own blend shapes: every glTF morph target whose name
-    matches :data:`CLENCH_PATTERNS` (case-insensitive) is one muscle group's clenched shape
+    """Clenched examples from a rig file's own blend shapes: every glTF morph target or UsdSkel
+    blend shape whose name matches :data:`CLENCH_PATTERNS` (case-insensitive) is one muscle
+    group's clenched shape
     (named by :func:`_group_of`), sculpted at the bind pose; the normal example is the rest
-    mesh. ``None`` where the scene's rig is not a glTF file or has no such target.
+    mesh. ``None`` where the scene's rig is not a glTF or USD file or has no such shape.
 
     Raises:
         RigError: an unreadable target (as :func:`~warpskin.io.gltf.read_gltf_morph_targets`).
@@ -233,11 +234,14 @@ def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
     import fnmatch
 
     path = scene.rig_spec.get("file")
-    if not path or Path(path).suffix.lower() not in (".glb", ".gltf"):
+    suffix = Path(path).suffix.lower() if path else ""
+    if suffix in (".glb", ".gltf"):
+        from ..io.gltf import read_gltf_morph_targets as read
+    elif suffix in (".usd", ".usda", ".usdc", ".usdz"):
+        from ..io.usdskel import read_usd_blend_shapes as read
+    else:
         return None
-    from ..io.gltf import read_gltf_morph_targets
-
-    targets = read_gltf_morph_targets(path, mesh=scene.rig_spec.get("mesh"))
+    targets = read(path, mesh=scene.rig_spec.get("mesh"))
     chosen = [n for n in targets if any(fnmatch.fnmatchcase(n.lower(), p) for p in CLENCH_PATTERNS)]
     if not chosen:
         return None
