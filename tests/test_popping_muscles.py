@@ -166,3 +166,32 @@ def test_python_pop_takes_a_rig_or_a_scene(tmp_path, device):
     run = pop("arm", tmp_path / "p.usdc", beats=BeatSpec(bpm=120.0, offset=0.2, groups=["elbow"]), frames=(0, 8),
               device=device, progress=False)
     assert run.summary["mode"] == "layered" and run.summary["groups"] == ["shoulder", "elbow"] and run.frames == 9
+
+
+def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, capsys):
+    from warpskin.popping.report import belly_of_bones
+
+    out, report = tmp_path / "arm.usdc", tmp_path / "report"
+    assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
+                 "--report", str(report)]) == 0
+    capsys.readouterr()
+    data = json.loads((report / "popping.json").read_text())
+    assert (report / "report.json").exists()  # the simulation's own report beside it
+    pytest.importorskip("matplotlib")
+    assert (report / "popping.png").stat().st_size > 10_000
+    rig = load_scene("arm").rig()
+    stage = Usd.Stage.Open(str(out))
+    skin, lbs = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("skin", "lbs"))
+    faces = np.asarray(UsdGeom.Mesh(prim(stage, "skin")).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    for group, series in data["groups"].items():
+        # the activation: a pop from 0.2 s (frame 6 at 30 fps) held 0.25 s (to frame 13.5)
+        assert series["activation"] == [1.0 if 6 <= f <= 13 else 0.0 for f in range(17)], group
+        # the bulge: the skin outside LBS along LBS's normals (trimesh's), over the group's belly
+        belly = belly_of_bones(rig, [group])[rig.weld_map]
+        assert series["belly_vertices"] == int(belly.sum()) > 20
+        for f in (3, 9, 15):
+            s, b = np.asarray(skin.Get(f), dtype=np.float64), np.asarray(lbs.Get(f), dtype=np.float64)
+            n = trimesh.Trimesh(b, faces, process=False).vertex_normals
+            want = 1e3 * np.einsum("ij,ij->i", (s - b)[belly], n[belly]).mean()
+            assert series["bulge_mm"][f] == pytest.approx(want, rel=0.03, abs=0.05), (group, f)
+        assert series["bulge_mm"][9] > 2.0 and abs(series["bulge_mm"][3]) < 0.3

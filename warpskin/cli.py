@@ -460,7 +460,7 @@ def cmd_pop(args) -> int:
         scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode, beats=_beat_spec(args),
-        muscles=_group_entries(args), swell=args.swell, cage=args.cage,
+        muscles=_group_entries(args), swell=args.swell, cage=args.cage, report_dir=args.report,
     )
     s = result.summary
     if args.json:
@@ -692,6 +692,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a closed rig file (.glb, .gltf, .usd*: muscles found from its skeleton, layered mode), a "
                         "scene with popping examples (popping_arm) or a .toml scene")
     s.add_argument("--clip", help="the rig file's animation to play underneath (default: its first)")
+    s.add_argument("--report", metavar="DIR",
+                   help="write each muscle group's bulge against its activation over time (popping.json, popping.png; "
+                        "in layered mode beside the simulation's report)")
     s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
                    help="muscles found from the skeleton: simulate (and pop) an automatic closed cage where the skin "
                         "is not one closed manifold (auto), always, never, or your own cage FILE, as simulate does")

@@ -122,6 +122,7 @@ def run_popping(
     muscles: list[str] | None = None,
     swell: float | None = None,
     cage: str = "auto",
+    report_dir=None,
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -153,6 +154,9 @@ def run_popping(
         cage: Layered mode without examples: ``"auto"`` (an open character simulates through
             an automatic cage, whose muscles pop and carry the written meshes), ``"always"``,
             ``"none"`` or a cage mesh file, as :func:`~warpskin.run.simulate` takes it.
+        report_dir: Also write the report there: each muscle group's bulge against its
+            activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
+            in layered mode beside the simulation's own report.
 
     Without examples (a rig file, or a scene whose rig makes none) the mode is layered, with
     muscle groups found from the skeleton.
@@ -183,7 +187,7 @@ def run_popping(
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
                             progress=progress, comment=comment, start_frame=start_frame, topology=topology,
-                            beats=beats, muscles=muscles, swell=swell, cage=cage)
+                            beats=beats, muscles=muscles, swell=swell, cage=cage, report_dir=report_dir)
     if muscles is not None and any("=" in str(m) for m in muscles):
         raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
                          "NAME=JOINT_PATTERN groups need --mode layered")
@@ -207,27 +211,39 @@ def run_popping(
     record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=progress,
                          steps_in_first_frame=True, output=output).run()
     count = len(record.frames)
-    return PoppingRun(
-        path=Path(writer.path),
-        frames=count,
-        summary={
-            "device": str(deformer.device),
-            "vertices": rig.vertex_count,
-            "groups": deformer.group_names,
-            "substeps": plan.substeps,
-            "dt_s": h,
-            "alpha_min": settings.alpha_min,
-            "beta": settings.beta,
-            "peak_overshoot_m": over.peak_over,
-            "max_goal_distance_m": over.max_goal,
-            "ms_per_frame": float(np.sum(record.step_ms)) * plan.substeps / count,
-        },
-    )
+    summary = {
+        "device": str(deformer.device),
+        "vertices": rig.vertex_count,
+        "groups": deformer.group_names,
+        "substeps": plan.substeps,
+        "dt_s": h,
+        "alpha_min": settings.alpha_min,
+        "beta": settings.beta,
+        "peak_overshoot_m": over.peak_over,
+        "max_goal_distance_m": over.max_goal,
+        "ms_per_frame": float(np.sum(record.step_ms)) * plan.substeps / count,
+    }
+    if report_dir is not None:
+        from ..popping.report import belly_of_examples
+
+        summary["popping_report"] = _report(report_dir, writer.path, belly_of_examples(rig, examples), rig, topology,
+                                    plan.fps, settings)
+    return PoppingRun(path=Path(writer.path), frames=count, summary=summary)
+
+
+def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, settings) -> str:
+    """The popping report (:func:`~warpskin.popping.report.write_popping_report`) of a bake whose
+    skin is ``rig``'s (``bellies`` per welded vertex); returns its folder."""
+    from ..popping.report import write_popping_report
+
+    masks = {g: (m[rig.weld_map] if topology == "file" else m) for g, m in bellies.items()}
+    write_popping_report(report_dir, path, masks, fps, lambda t, names: settings.activation.sample(t, names))
+    return str(report_dir)
 
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
-                 swell=None, cage="auto") -> PoppingRun:
+                 swell=None, cage="auto", report_dir=None) -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
     from ..popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
@@ -258,7 +274,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         timeline(list(examples.group_names))
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           comment=comment, start_frame=start_frame, topology=topology, builder=builder,
-                          activation=lambda t: settings.activation.sample(t, groups))
+                          activation=lambda t: settings.activation.sample(t, groups), report_dir=report_dir)
     else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
         def prepare(builder) -> None:
             found[:], swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
@@ -271,13 +287,21 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
 
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
-                          activation=lambda t: settings.activation.sample(t, groups))
+                          activation=lambda t: settings.activation.sample(t, groups), report_dir=report_dir)
     summary = dict(result.summary)
     summary["mode"] = "layered"
     summary["groups"] = groups
     if found:
         summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
                                "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
+    if report_dir is not None:
+        from ..popping.report import belly_of_bones, belly_of_examples
+
+        render = scene.rig()
+        bellies = (belly_of_examples(render, examples) if examples is not None
+                   else {m.name: belly_of_bones(render, m.joints) for m in found})
+        summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate,
+                                            settings)
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
 
 
