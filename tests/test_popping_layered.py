@@ -68,6 +68,7 @@ def test_layered_mode_pops_on_the_beat(tmp_path, device):
     path = tmp_path / "pop.toml"
     path.write_text(SCENE)
     run = run_popping(load_scene(path), tmp_path / "beat.usdc", device=device, progress=False, frames=(0, 26),
+                      normal_guide=False,
                       beats=BeatSpec(bpm=30.0, offset=0.31, hold=0.6, groups=["biceps"]))
     assert run.summary["mode"] == "layered" and run.frames == 27
     scene = load_scene(path)

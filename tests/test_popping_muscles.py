@@ -102,7 +102,7 @@ def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, a
     # 30 fps) for 0.25 s (to frame 13.5)
     out = tmp_path / "arm_pop.usdc"
     assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
-                 "--device", device, "--cage", cage]) == 0
+                 "--device", device, "--cage", cage, "--no-normal-guide"]) == 0
     text = capsys.readouterr().out
     assert "driven by groups shoulder, elbow" in text and "shoulder: bones shoulder" in text
     muscles, fields = muscles_from_skeleton(arm_builder)
@@ -137,7 +137,7 @@ def test_cesium_man_pops_on_the_beat(tmp_path, capsys, assets):
     path = assets / "CesiumMan" / "CesiumMan.glb"
     out = tmp_path / "cesium_pop.usdc"
     assert main(["pop", str(path), "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "1:12",
-                 "--quiet"]) == 0
+                 "--quiet", "--no-normal-guide"]) == 0
     text = capsys.readouterr().out
     scene = Scene.from_rig_file(path)
     builder = SkinModelBuilder(scene.rig(), scene.model_params()).build()
@@ -164,7 +164,7 @@ def test_python_pop_takes_a_rig_or_a_scene(tmp_path, device):
     from warpskin.run import pop
 
     run = pop("arm", tmp_path / "p.usdc", beats=BeatSpec(bpm=120.0, offset=0.2, groups=["elbow"]), frames=(0, 8),
-              device=device, progress=False)
+              device=device, progress=False, normal_guide=False)
     assert run.summary["mode"] == "layered" and run.summary["groups"] == ["shoulder", "elbow"] and run.frames == 9
 
 
@@ -174,19 +174,29 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
     out, report = tmp_path / "arm.usdc", tmp_path / "report"
     assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
                  "--report", str(report)]) == 0
+    # the normal-only guide is the same simulation without the pop: what simulate writes, exactly
+    plain = tmp_path / "plain.usdc"
+    assert main(["simulate", "arm", "-o", str(plain), "--frames", "0:16", "--quiet"]) == 0
     capsys.readouterr()
+    stages = [Usd.Stage.Open(str(out)), Usd.Stage.Open(str(plain))]  # held while their prims are read
+    guide = UsdGeom.Mesh(prim(stages[0], "normal")).GetPointsAttr()
+    alone = UsdGeom.Mesh(prim(stages[1], "skin")).GetPointsAttr()
+    assert guide.GetTimeSamples() == alone.GetTimeSamples() == [float(f) for f in range(17)]
+    for f in (0, 9, 16):
+        assert np.array_equal(np.asarray(guide.Get(f)), np.asarray(alone.Get(f)))
     data = json.loads((report / "popping.json").read_text())
     assert (report / "report.json").exists()  # the simulation's own report beside it
     pytest.importorskip("matplotlib")
     assert (report / "popping.png").stat().st_size > 10_000
     rig = load_scene("arm").rig()
     stage = Usd.Stage.Open(str(out))
-    skin, lbs = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("skin", "lbs"))
+    skin, lbs = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("skin", "normal"))  # against the guide
     faces = np.asarray(UsdGeom.Mesh(prim(stage, "skin")).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
     for group, series in data["groups"].items():
         # the activation: a pop from 0.2 s (frame 6 at 30 fps) held 0.25 s (to frame 13.5)
         assert series["activation"] == [1.0 if 6 <= f <= 13 else 0.0 for f in range(17)], group
-        # the bulge: the skin outside LBS along LBS's normals (trimesh's), over the group's belly
+        # the bulge: the skin outside the normal-only guide along its normals (trimesh's), over
+        # the group's belly
         belly = belly_of_bones(rig, [group])[rig.weld_map]
         assert series["belly_vertices"] == int(belly.sum()) > 20
         for f in (3, 9, 15):
@@ -194,4 +204,4 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
             n = trimesh.Trimesh(b, faces, process=False).vertex_normals
             want = 1e3 * np.einsum("ij,ij->i", (s - b)[belly], n[belly]).mean()
             assert series["bulge_mm"][f] == pytest.approx(want, rel=0.03, abs=0.05), (group, f)
-        assert series["bulge_mm"][9] > 2.0 and abs(series["bulge_mm"][3]) < 0.3
+        assert series["bulge_mm"][9] > 2.0 and series["bulge_mm"][3] == 0.0  # before the beat: the same run

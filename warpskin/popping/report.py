@@ -3,7 +3,8 @@ its activation (``warpskin pop --report``).
 
 A group's **bulge** at a frame is the mean, over the written skin's vertices on its belly, of how
 far the skin lies outside its reference along the reference's vertex normals [m]: the
-normal-only skin in goal mode (the paper's "normal" prim), LBS in layered mode. The belly of a
+normal-only skin (goal mode: the paper's "normal" prim; layered mode: the same simulation
+without the pop, its ``<skin>_normal`` guide), else LBS. The belly of a
 muscle found from the skeleton is the skin on the middle of its bones (:func:`belly_of_bones`:
 dominant joint in the group, foot on the bone's centre line between 30 % and 70 % of its
 length); of an example group, where its clenched disparity is over half its largest
@@ -62,8 +63,8 @@ def bulge_series(path, bellies: dict[str, np.ndarray]) -> tuple[np.ndarray, dict
     by_name = {c.GetName(): UsdGeom.Mesh(c) for c in root.GetChildren() if c.IsA(UsdGeom.Mesh)}
     if "popping" in by_name and "normal" in by_name:  # goal mode
         skin, ref = by_name["popping"], by_name["normal"]
-    else:
-        skin, ref = by_role.get("skin"), by_role.get("lbs")
+    else:  # layered: against the normal-only guide where the bake has it, else LBS
+        skin, ref = by_role.get("skin"), by_role.get("normal", by_role.get("lbs"))
     if skin is None or ref is None:
         raise ValueError(f"{path}: no skin beside a normal or LBS guide to measure the pop against")
     faces = np.asarray(skin.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)

@@ -123,6 +123,7 @@ def run_popping(
     swell: float | None = None,
     cage: str = "auto",
     report_dir=None,
+    normal_guide: bool = True,
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -154,6 +155,9 @@ def run_popping(
         cage: Layered mode without examples: ``"auto"`` (an open character simulates through
             an automatic cage, whose muscles pop and carry the written meshes), ``"always"``,
             ``"none"`` or a cage mesh file, as :func:`~warpskin.run.simulate` takes it.
+        normal_guide: Layered mode: also simulate the same frames without the pop and write
+            that skin beside the result as the guide ``<skin>_normal`` (the paper's normal-only
+            skin; the pop's bulge is measured against it). Doubles the cost.
         report_dir: Also write the report there: each muscle group's bulge against its
             activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
             in layered mode beside the simulation's own report.
@@ -187,7 +191,8 @@ def run_popping(
     if settings.mode == "layered":
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
                             progress=progress, comment=comment, start_frame=start_frame, topology=topology,
-                            beats=beats, muscles=muscles, swell=swell, cage=cage, report_dir=report_dir)
+                            beats=beats, muscles=muscles, swell=swell, cage=cage, report_dir=report_dir,
+                            normal_guide=normal_guide)
     if muscles is not None and any("=" in str(m) for m in muscles):
         raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
                          "NAME=JOINT_PATTERN groups need --mode layered")
@@ -243,7 +248,7 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
-                 swell=None, cage="auto", report_dir=None) -> PoppingRun:
+                 swell=None, cage="auto", report_dir=None, normal_guide=True) -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
     from ..popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
@@ -288,9 +293,13 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
                           activation=lambda t: settings.activation.sample(t, groups), report_dir=report_dir)
+    if normal_guide:  # the same run without the pop, beside it (twice the cost)
+        _add_normal_guide(scene, result.path, device=device, frames=frames, start_frame=start_frame,
+                          topology=topology, cage=cage, progress=progress)
     summary = dict(result.summary)
     summary["mode"] = "layered"
     summary["groups"] = groups
+    summary["normal_guide"] = bool(normal_guide)
     if found:
         summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
                                "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
@@ -303,6 +312,47 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate,
                                             settings)
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
+
+
+def _add_normal_guide(scene, path, *, device, frames, start_frame, topology, cage, progress) -> None:
+    """Simulate ``scene`` without the pop (the same frames, cage and topology) and add its skin to
+    the bake at ``path`` as the guide ``<skin>_normal`` (``warpskin:role`` ``normal``); the file
+    is replaced atomically."""
+    import os
+    import tempfile
+
+    from pxr import Usd, UsdGeom, Vt
+
+    from .simulate import simulate
+
+    out = Path(path)
+    with tempfile.TemporaryDirectory(prefix="warpskin-normal-") as tmp:
+        normal = Path(tmp) / "normal.usdc"
+        simulate(scene, normal, device=device, frames=frames, start_frame=start_frame, topology=topology, cage=cage,
+                 progress=progress, comment="normal-only guide")
+        src, dst = Usd.Stage.Open(str(normal)), Usd.Stage.Open(str(out))
+
+        def skin(stage):
+            return next(UsdGeom.Mesh(c) for c in stage.GetDefaultPrim().GetChildren()
+                        if c.GetCustomDataByKey("warpskin:role") == "skin")
+
+        a, b = skin(src), skin(dst)
+        guide = UsdGeom.Mesh.Define(dst, b.GetPath().GetParentPath().AppendChild(b.GetPrim().GetName() + "_normal"))
+        for name in ("faceVertexCounts", "faceVertexIndices", "orientation", "subdivisionScheme"):
+            value = b.GetPrim().GetAttribute(name).Get()
+            if value is not None:
+                guide.GetPrim().GetAttribute(name).Set(value)
+        for tc in a.GetPointsAttr().GetTimeSamples():
+            guide.GetPointsAttr().Set(a.GetPointsAttr().Get(tc), tc)
+        guide.CreatePurposeAttr(UsdGeom.Tokens.guide)
+        guide.CreateDisplayColorAttr(Vt.Vec3fArray([(0.55, 0.75, 0.55)]))
+        guide.GetPrim().SetCustomDataByKey("warpskin:role", "normal")
+        staged = out.with_name(f".{out.stem}.normal{out.suffix}")
+        try:
+            dst.GetRootLayer().Export(str(staged))
+            os.replace(staged, out)
+        finally:
+            staged.unlink(missing_ok=True)
 
 
 def pop(rig_or_scene, out_path, *, clip: str | None = None, **options) -> PoppingRun:
