@@ -23,14 +23,14 @@ def _bulge(pos: np.ndarray) -> np.ndarray:
     return d
 
 
-def _box_with_target(tmp_path):
+def _box_with_target(tmp_path, name: str = "flex"):
     def add_target(b):
         prim = b.g.meshes[0].primitives[0]
         acc = b.g.accessors[prim.attributes.POSITION]
         pos = np.frombuffer(bytes(b.blob[b.g.bufferViews[acc.bufferView].byteOffset:][: acc.count * 12]),
                             dtype=np.float32).reshape(-1, 3).astype(np.float64)
         prim.targets = [Attributes(POSITION=b.accessor(_bulge(pos), FLOAT))]
-        b.g.meshes[0].extras = {"targetNames": ["flex"]}
+        b.g.meshes[0].extras = {"targetNames": [name]}
 
     return make_box(tmp_path, mutate=add_target)
 
@@ -64,25 +64,13 @@ def test_unknown_target_is_named(tmp_path):
                                     clenched={"biceps": [("clench", 0.0)]})
 
 
-def _box_with_named_target(tmp_path, name: str):
-    def add_target(b):
-        prim = b.g.meshes[0].primitives[0]
-        acc = b.g.accessors[prim.attributes.POSITION]
-        pos = np.frombuffer(bytes(b.blob[b.g.bufferViews[acc.bufferView].byteOffset:][: acc.count * 12]),
-                            dtype=np.float32).reshape(-1, 3).astype(np.float64)
-        prim.targets = [Attributes(POSITION=b.accessor(_bulge(pos), FLOAT))]
-        b.g.meshes[0].extras = {"targetNames": [name]}
-
-    return make_box(tmp_path, mutate=add_target)
-
-
 def test_a_rig_files_clenched_target_pops_by_the_papers_rules(tmp_path, capsys):
     # `warpskin pop box.glb --bpm`: the file's "biceps_clenched" morph target is the biceps'
     # clenched example (goal mode, no scene); the written skin's offset from the normal mesh
     # follows eqs. 1-4 step by step, here in NumPy: rising activation -> clench
     #   u <- (1 - alpha) u + alpha (o* - o) / h,  o <- o + h u
     # falling -> relax: o <- o + beta h (o* - o), u <- 0, snapping to o* within the threshold
-    path = _box_with_named_target(tmp_path, "biceps_clenched")
+    path = _box_with_target(tmp_path, "biceps_clenched")
     out = tmp_path / "pop.usdc"
     h = 1.0 / 120.0
     assert main(["pop", str(path), "-o", str(out), "--bpm", "120", "--offset", "0.1037", "--hold", "0.2513",
