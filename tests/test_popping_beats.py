@@ -138,3 +138,39 @@ def test_cli_beat_flags_are_checked(tmp_path, capsys):
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, (argv, err)
         assert not out.exists()
+
+
+@pytest.mark.parametrize("alpha", [0.1, 0.4, 1.0])
+def test_the_layered_drive_rings_while_clenched_and_relaxes_monotonely(alpha):
+    # warpskin.popping.activation.vibrating: from rest a step to 1 at t = 0.0123 s, released at
+    # 0.3123 s; the response's error e = a - 1 while clenched follows the paper's linear map
+    # [e, h u]' = [[1-a, 1-a], [-a, 1-a]] [e, h u] (eqs. 1-2), then falls by (1 - beta h) a step
+    from warpskin.popping.activation import vibrating
+
+    h, beta = 0.005, 30.0
+    on, off = 0.0123, 0.3123
+
+    def goal(t):
+        return np.array([1.0 if on <= t < off else 0.0])
+
+    f = vibrating(goal, 0.0, 0.6, h=h, alpha=alpha, beta=beta)
+    times = h * np.arange(121)
+    got = np.array([f(t)[0] for t in times])
+    first = int(np.ceil(on / h))  # the first step that sees the clench (on is off the grid)
+    assert np.all(got[:first] == 0.0)
+    mat = np.array([[1 - alpha, 1 - alpha], [-alpha, 1 - alpha]])
+    z = np.array([-1.0, 0.0])  # e = a - 1 from rest, h u = 0
+    last = int(np.floor(off / h))
+    for k in range(first, last + 1):
+        z = mat @ z
+        assert got[k] - 1.0 == pytest.approx(z[0], abs=1e-12), k
+    if alpha < 1.0:
+        assert got[first:last + 1].max() > 1.0 + 0.1 * (1 - alpha)  # overshoot: it rings
+    relax = got[last + 1:]
+    assert np.all(np.diff(relax) <= 0.0) and np.all(relax >= 0.0)  # monotone, never below the goal
+    a = got[last]
+    for k, value in enumerate(relax[:20], start=1):
+        a = a + beta * h * (0.0 - a)
+        assert value == pytest.approx(a, abs=1e-12) or value == 0.0
+    with pytest.raises(SceneError, match="beta"):
+        vibrating(goal, 0.0, 1.0, h=0.1, alpha=0.1, beta=30.0)

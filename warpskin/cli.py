@@ -461,7 +461,7 @@ def cmd_pop(args) -> int:
         topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode, beats=_beat_spec(args),
         muscles=_group_entries(args), swell=args.swell, cage=args.cage, report_dir=args.report,
-        normal_guide=not args.no_normal_guide,
+        normal_guide=not args.no_normal_guide, vibrate=not args.no_vibrate,
     )
     s = result.summary
     if args.json:
@@ -644,6 +644,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--physics-weight", type=_weight_arg, action="append", metavar="PATTERN=W",
                    help="the physics weight (0: LBS, 1: physical) of the skin the joints matching PATTERN drive, e.g. "
                         "'*hand*=0' (repeatable; scene: [physics.weights])")
+    s.add_argument("--no-vibrate", action="store_true",
+                   help="layered mode: the muscles follow the activation as it is, without the paper's ringing "
+                        "while clenched")
     s.add_argument("--no-normal-guide", action="store_true",
                    help="layered mode: do not also simulate the frames without the pop for the <skin>_normal guide "
                         "(half the cost)")
@@ -696,6 +699,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a closed rig file (.glb, .gltf, .usd*: muscles found from its skeleton, layered mode), a "
                         "scene with popping examples (popping_arm) or a .toml scene")
     s.add_argument("--clip", help="the rig file's animation to play underneath (default: its first)")
+    s.add_argument("--no-vibrate", action="store_true",
+                   help="layered mode: the muscles follow the activation as it is, without the paper's ringing "
+                        "while clenched")
     s.add_argument("--no-normal-guide", action="store_true",
                    help="layered mode: do not also simulate the frames without the pop for the <skin>_normal guide "
                         "(half the cost)")

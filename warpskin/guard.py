@@ -81,7 +81,9 @@ class GuardParams:
             the quality checks ask: a margin for a crease at the bound, as the shipped arm's at
             150 degrees); from then on it is guarded.
         trust_strained: The same for the share of edges strained past
-            :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's (1.5 x 0.5 %).
+            :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's (just under the 0.5 % the
+            quality checks ask, so that a written skin stays within it: a pop's swelling
+            strains edges on purpose).
     """
 
     enabled: bool = True
@@ -94,7 +96,7 @@ class GuardParams:
     recover: float = 0.1
     spread: float = 4.0
     trust_flipped: float = 0.015
-    trust_strained: float = 0.0075
+    trust_strained: float = 0.0045
 
     def check(self, where: str = "[guard]") -> None:
         """Raise :class:`~warpskin.errors.SceneError` (one line naming the key) where a setting

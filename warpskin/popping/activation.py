@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -292,6 +292,42 @@ class BeatSpec:
                                             levels=[b.activation for b in bs], where=f"{where}: group {g!r}")
                 for g, bs in per.items() if bs}
         return ActivationTimeline(keys, where=where)
+
+
+def vibrating(sample: Callable[[float], np.ndarray], start: float, end: float, *, h: float, alpha: float,
+              beta: float, threshold: float = 1e-6) -> Callable[[float], np.ndarray]:
+    """The paper's skin response (Son & Han, eqs. 1, 2 and 4) applied to each group's activation,
+    for the layered mode's rest-shape drive: ``sample(t) -> [G]`` the activations in [0, 1];
+    returns ``f(t) -> [G]``, the responding activation at clip time ``t`` in ``[start, end]``
+    [s] (linear between steps of ``h`` [s] from ``start``).
+
+    Per group, with ``a*`` the activation and ``a`` the response: while clenching (``a*`` rose
+    last) ``u <- (1 - alpha) u + alpha (a* - a) / h, a <- a + h u`` (it overshoots and rings
+    about ``a*``, its amplitude shrinking by ``sqrt(1 - alpha)`` a step); while relaxing (``a*``
+    fell last) ``a <- a + beta h (a* - a), u <- 0``, monotone, snapping to ``a*`` within
+    ``threshold``. ``alpha`` 1: ``a = a*`` (no vibration)."""
+    if not (0.0 < alpha <= 1.0 and h > 0.0 and 0.0 < beta * h <= 1.0 + 1e-12):
+        raise SceneError(f"vibration: need 0 < alpha <= 1 and 0 < beta * h <= 1, got alpha {alpha}, beta {beta}, h {h}")
+    count = max(2, int(math.ceil((end - start) / h - 1e-9)) + 1)
+    times = start + h * np.arange(count)
+    goal = np.array([np.asarray(sample(float(t)), dtype=np.float64).ravel() for t in times])  # [n, G]
+    a = np.zeros(goal.shape[1])
+    u, prev = np.zeros_like(a), np.zeros_like(a)
+    clench = np.zeros(a.shape, dtype=bool)
+    out = np.empty_like(goal)
+    for k in range(count):
+        g = goal[k]
+        clench = np.where(g > prev, True, np.where(g < prev, False, clench))
+        prev = g
+        c, r = clench, ~clench
+        u[c] = (1.0 - alpha) * u[c] + alpha * (g[c] - a[c]) / h
+        a[c] += h * u[c]
+        a[r] += beta * h * (g[r] - a[r])
+        u[r] = 0.0
+        snap = r & (np.abs(g - a) < threshold)
+        a[snap] = g[snap]
+        out[k] = a
+    return lambda t: np.array([np.interp(t, times, out[:, j]) for j in range(out.shape[1])])
 
 
 # --------------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import SceneError
 from ..io.usd_export import UsdSkinWriter, check_output_path
-from ..popping.activation import BeatSpec, PoppingSettings, popping_settings
+from ..popping.activation import BeatSpec, PoppingSettings, popping_settings, vibrating
 from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene, examples_from_file, has_examples
 from ..popping.layered import muscle_rest_offset_deltas
@@ -124,6 +124,7 @@ def run_popping(
     cage: str = "auto",
     report_dir=None,
     normal_guide: bool = True,
+    vibrate: bool = True,
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -158,6 +159,10 @@ def run_popping(
         normal_guide: Layered mode: also simulate the same frames without the pop and write
             that skin beside the result as the guide ``<skin>_normal`` (the paper's normal-only
             skin; the pop's bulge is measured against it). Doubles the cost.
+        vibrate: Layered mode: the rest-shape drive follows each group's activation as the
+            paper's skin follows its goal (:func:`~warpskin.popping.activation.vibrating`: ringing
+            about it while clenched, with ``alpha_min`` per solver step, relaxing monotonely
+            with ``beta``); ``False``: it follows the activation as it is.
         report_dir: Also write the report there: each muscle group's bulge against its
             activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
             in layered mode beside the simulation's own report.
@@ -192,7 +197,7 @@ def run_popping(
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
                             progress=progress, comment=comment, start_frame=start_frame, topology=topology,
                             beats=beats, muscles=muscles, swell=swell, cage=cage, report_dir=report_dir,
-                            normal_guide=normal_guide)
+                            normal_guide=normal_guide, vibrate=vibrate)
     if muscles is not None and any("=" in str(m) for m in muscles):
         raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
                          "NAME=JOINT_PATTERN groups need --mode layered")
@@ -248,7 +253,7 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
-                 swell=None, cage="auto", report_dir=None, normal_guide=True) -> PoppingRun:
+                 swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True) -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
     from ..popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
@@ -269,6 +274,21 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
             settings.activation = beats.timeline(names, scene.frame_time(first), scene.frame_time(last))
         settings.activation.check_groups(names, "[popping.activation]")
 
+    # the rest drive follows each group's activation as the paper's skin follows its goal: ringing
+    # about it while clenched (alpha_min per solver step), relaxing monotonely (beta)
+    plan = FramePlan.for_scene(scene, frames, max_dt=scene.solver_params().dt, start_frame=start_frame)
+    response: dict = {}
+
+    def activation(t: float) -> np.ndarray:
+        if "f" not in response:
+            def raw(x: float) -> np.ndarray:
+                return settings.activation.sample(x, groups)
+
+            response["f"] = (vibrating(raw, float(plan.times[0]) - 1.0 / plan.fps, float(plan.times[-1]) + plan.dt,
+                                       h=plan.dt, alpha=settings.alpha_min, beta=settings.beta)
+                             if vibrate else raw)
+        return response["f"](t)
+
     if examples is not None:
         if muscles is not None and any("=" in str(m) for m in muscles):
             raise SceneError("this scene's examples name its muscle groups: --groups takes their names "
@@ -279,7 +299,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         timeline(list(examples.group_names))
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           comment=comment, start_frame=start_frame, topology=topology, builder=builder,
-                          activation=lambda t: settings.activation.sample(t, groups), report_dir=report_dir)
+                          activation=activation, report_dir=report_dir)
     else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
         def prepare(builder) -> None:
             found[:], swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
@@ -292,7 +312,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
 
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
-                          activation=lambda t: settings.activation.sample(t, groups), report_dir=report_dir)
+                          activation=activation, report_dir=report_dir)
     if normal_guide:  # the same run without the pop, beside it (twice the cost)
         _add_normal_guide(scene, result.path, device=device, frames=frames, start_frame=start_frame,
                           topology=topology, cage=cage, progress=progress)
