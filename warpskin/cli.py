@@ -644,12 +644,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--physics-weight", type=_weight_arg, action="append", metavar="PATTERN=W",
                    help="the physics weight (0: LBS, 1: physical) of the skin the joints matching PATTERN drive, e.g. "
                         "'*hand*=0' (repeatable; scene: [physics.weights])")
-    s.add_argument("--no-vibrate", action="store_true",
-                   help="layered mode: the muscles follow the activation as it is, without the paper's ringing "
-                        "while clenched")
-    s.add_argument("--no-normal-guide", action="store_true",
-                   help="layered mode: do not also simulate the frames without the pop for the <skin>_normal guide "
-                        "(half the cost)")
     s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
     s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
     s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")
