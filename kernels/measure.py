@@ -52,7 +52,6 @@ def triangles_intersect(points: wp.array(dtype=wp.vec3d), a: wp.vec3i, b: wp.vec
 @wp.kernel
 def box_pairs_kernel(
     bvh: wp.uint64,
-    subset: wp.array(dtype=wp.int32),
     queries: wp.array(dtype=wp.int32),
     lower: wp.array(dtype=wp.vec3),
     upper: wp.array(dtype=wp.vec3),
@@ -70,22 +69,21 @@ def box_pairs_kernel(
     pairs: wp.array(dtype=wp.vec2i),
     hits: wp.array(dtype=wp.int32),
 ):
-    """Every pair of overlapping boxes with an active triangle, once, from a BVH over the active
-    triangles' boxes (``subset``: the triangle of each of its leaves; all of them for a whole
-    count; or a tree over every triangle queried by the active ones): the thread of triangle
-    ``i = queries[tid]`` appends ``(i, j)`` for each ``j`` in the tree whose box overlaps its own,
-    where one of the two is inactive or ``i < j`` (all active: every pair ``i < j``), with ``skip_shared`` not where
-    the two share a vertex. With ``exact`` 1 only where the two triangles intersect
-    (:func:`triangles_intersect`) on ``points``, with ``exact`` 2 where they intersect on
-    ``points`` or on ``points_b`` (the boxes then bound the triangle in both), ``hits`` saying
-    where (bit 1: ``points``, bit 2: ``points_b``; 3 without ``exact``). Its ``count`` may pass
-    ``capacity``: the caller grows the buffer and runs again."""
+    """Every pair of overlapping boxes with an active triangle, once, from a BVH over every
+    triangle's box: the thread of triangle ``i = queries[tid]`` (an active one) appends
+    ``(i, j)`` for each ``j`` whose box overlaps its own, where ``j`` is inactive or ``i < j``
+    (all active: every pair ``i < j``), with ``skip_shared`` not where the two share a vertex.
+    With ``exact`` 1 only where the two triangles intersect (:func:`triangles_intersect`) on
+    ``points``, with ``exact`` 2 where they intersect on ``points`` or on ``points_b`` (the
+    boxes then bound the triangle in both), ``hits`` saying where (bit 1: ``points``, bit 2:
+    ``points_b``; 3 without ``exact``). Its ``count`` may pass ``capacity``: the caller grows
+    the buffer and runs again."""
     i = queries[wp.tid()]
     a = triangles[i]
     q = wp.bvh_query_aabb(bvh, lower[i], upper[i])
     k = int(0)
     while wp.bvh_query_next(q, k):
-        j = subset[k]
+        j = k
         if j == i or (active[i] != 0 and active[j] != 0 and j < i):
             continue
         b = triangles[j]

@@ -12,7 +12,7 @@ import trimesh
 from oracles import intersecting_pairs_brute_force, strain_and_flips
 from warpskin.errors import SceneError
 from warpskin.guard import GuardParams, SurfaceGuard
-from warpskin.metrics import self_intersections
+from warpskin.metrics import PairQuery, self_intersections
 from warpskin.quality import WrittenMesh
 
 
@@ -177,8 +177,8 @@ def test_the_guard_off_writes_the_physical_result():
 
 @pytest.mark.parametrize("share", [0.02, 0.3, 0.9])
 def test_pairs_of_active_triangles_are_those_of_the_whole_count(share):
-    # the active-only query (a tree over the active triangles' boxes, or over all) gives exactly
-    # the pairs of the full count that have an active triangle
+    # the guard's active-only query (the whole count's tree, refitted, asked by the active
+    # triangles) gives exactly the pairs of the full count that have an active triangle
     a, ta = _sphere((0, 0, 0), 0.1, 11)
     b, tb = _sphere((0.16, 0.02, 0.01), 0.1, 12)
     p = np.concatenate([a, b])
@@ -186,7 +186,9 @@ def test_pairs_of_active_triangles_are_those_of_the_whole_count(share):
     full = self_intersections(p, t)
     assert len(full) > 50
     active = np.random.default_rng(13).uniform(size=len(t)) < share
-    got = self_intersections(p, t, active=active)
+    query = PairQuery(t)
+    np.testing.assert_array_equal(query.pairs(p), full)
+    got = query.active(p, active)
     want = full[active[full[:, 0]] | active[full[:, 1]]]
     np.testing.assert_array_equal(got, want)
 

@@ -98,10 +98,10 @@ def _outward(path, rig, field: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("cage", ["auto", "always"])
 def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder, cage):
     # the shipped arm has no popping examples: layered mode, its two muscles found (on its own
-    # skin, or on its cage whose pop the written skin takes on), popping at 0.2 s (frame 6 at
-    # 30 fps) for 0.25 s (to frame 13.5)
+    # skin, or on its cage whose pop the written skin takes on), popping at 0.2037 s (between
+    # frames 6 and 7 at 30 fps, off every step) for 0.25 s (to frame 13.6)
     out = tmp_path / "arm_pop.usdc"
-    assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
+    assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2037", "--frames", "0:16", "--quiet",
                  "--device", device, "--cage", cage, "--no-normal-guide"]) == 0
     text = capsys.readouterr().out
     assert "driven by groups shoulder, elbow" in text and "shoulder: bones shoulder" in text
@@ -111,9 +111,9 @@ def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, a
         o = _outward(out, arm_builder.rig, f)
         moved = np.linalg.norm(f, axis=1)
         h = depth[moved > 0.5 * moved.max()].mean()
-        assert np.abs(o[:6]).max() < 0.02 * h, m.name  # nothing before the beat
-        assert o[7:9].mean() > 0.1 * h, m.name  # out by a tenth of the tissue depth and more, clenched
-        assert np.abs(o[15:]).max() < 0.5 * o[7:9].mean(), m.name  # and back after the release
+        assert np.abs(o[:7]).max() < 0.02 * h, m.name  # nothing before the beat
+        assert o[8:10].mean() > 0.1 * h, m.name  # out by a tenth of the tissue depth and more, clenched
+        assert np.abs(o[15:]).max() < 0.5 * o[8:10].mean(), m.name  # and back after the release
 
 
 def test_a_rig_without_a_timeline_is_told_what_to_pass(tmp_path, capsys):
@@ -163,7 +163,7 @@ def test_python_pop_takes_a_rig_or_a_scene(tmp_path, device):
     from warpskin.popping import BeatSpec
     from warpskin.run import pop
 
-    run = pop("arm", tmp_path / "p.usdc", beats=BeatSpec(bpm=120.0, offset=0.2, groups=["elbow"]), frames=(0, 8),
+    run = pop("arm", tmp_path / "p.usdc", beats=BeatSpec(bpm=120.0, offset=0.2037, groups=["elbow"]), frames=(0, 8),
               device=device, progress=False, normal_guide=False)
     assert run.summary["mode"] == "layered" and run.summary["groups"] == ["shoulder", "elbow"] and run.frames == 9
 
@@ -172,7 +172,7 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
     from warpskin.popping.report import belly_of_bones
 
     out, report = tmp_path / "arm.usdc", tmp_path / "report"
-    assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2", "--frames", "0:16", "--quiet",
+    assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2037", "--frames", "0:16", "--quiet",
                  "--report", str(report)]) == 0
     # the normal-only guide is the same simulation without the pop: what simulate writes, exactly
     plain = tmp_path / "plain.usdc"
@@ -193,8 +193,8 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
     skin, lbs = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("skin", "normal"))  # against the guide
     faces = np.asarray(UsdGeom.Mesh(prim(stage, "skin")).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
     for group, series in data["groups"].items():
-        # the activation: a pop from 0.2 s (frame 6 at 30 fps) held 0.25 s (to frame 13.5)
-        assert series["activation"] == [1.0 if 6 <= f <= 13 else 0.0 for f in range(17)], group
+        # the activation: a pop from 0.2037 s (after frame 6 at 30 fps) held 0.25 s (to frame 13.6)
+        assert series["activation"] == [1.0 if 7 <= f <= 13 else 0.0 for f in range(17)], group
         # the bulge: the skin outside the normal-only guide along its normals (trimesh's), over
         # the group's belly
         belly = belly_of_bones(rig, [group])[rig.weld_map]

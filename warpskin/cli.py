@@ -80,35 +80,26 @@ def _parse_frames(text: str | None) -> tuple[int, int] | None:
     return first, last
 
 
-def _number(flag: str, *, positive: bool):
-    """An argparse type: a finite number > 0 (``positive``) or >= 0, or one line naming ``flag``."""
+def _number(flag: str, *, positive: bool | None):
+    """An argparse type: a finite number > 0 (``positive``), >= 0 (``False``) or any
+    (``None``), or one line naming ``flag``."""
+    test, what = {True: (lambda v: v > 0, "a positive number"), False: (lambda v: v >= 0, "a number >= 0"),
+                  None: (lambda v: True, "a number")}[positive]
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
-            raise argparse.ArgumentTypeError(f"{flag} must be a {'positive number' if positive else 'number >= 0'}, "
-                                             f"got {text!r}")
+        if not (math.isfinite(value) and test(value)):
+            raise argparse.ArgumentTypeError(f"{flag} must be {what}, got {text!r}")
         return value
 
     return parse
 
 
 def _finite(flag: str):
-    """An argparse type: any finite number, or one line naming ``flag``."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"{flag} must be a number, got {text!r}")
-        return value
-
-    return parse
+    return _number(flag, positive=None)
 
 
 def _positive(flag: str):

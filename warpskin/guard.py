@@ -54,6 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from .metrics import PairQuery
 from .quality import STRAIN_LIMIT, WrittenMesh
 
 __all__ = ["GuardParams", "SurfaceGuard"]
@@ -190,7 +191,7 @@ class SurfaceGuard:
         self._floor = mesh._area_floor
         self._tri = t[area2 > self._floor]  # flips are judged on triangles not degenerate at rest
         self._all_tri = t
-        self._query = None  # the pair queries' tree and buffers, made on the first frame
+        self._query = PairQuery(t)  # the pair counts' tree and buffers, kept from frame to frame
         self._cos = float(np.cos(np.radians(self.params.flip_degrees)))
         # where pieces cross or touch at rest (a ball joint inside a tube's end, the seam of two
         # pieces): the triangles within two median edges of a triangle that intersects another
@@ -199,14 +200,12 @@ class SurfaceGuard:
         if self.params.pairs and len(t) > 1:
             from scipy.sparse.csgraph import connected_components, dijkstra
 
-            from .metrics import _box_pairs
-
             at_rest = self._pairs(rest)
             src = [t[np.concatenate([at_rest // len(t), at_rest % len(t)])].ravel()]
             _, piece = connected_components(self._graph, directed=False)
             corners = rest[t]
             pad = 0.1 * self.edge
-            touch = _box_pairs(corners.min(axis=1) - pad, corners.max(axis=1) + pad, t, True)[0]
+            touch = self._query.overlapping(corners.min(axis=1) - pad, corners.max(axis=1) + pad)
             touch = touch[piece[t[touch[:, 0], 0]] != piece[t[touch[:, 1], 0]]]
             src.append(t[touch.ravel()].ravel())
             src = np.unique(np.concatenate(src))
@@ -261,18 +260,11 @@ class SurfaceGuard:
     def _pairs(self, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
         """Keys of the intersecting pairs of ``x`` (with ``active``: those with an active
         triangle, on the tree of the frame's :meth:`_pairs_of_two`, refitted)."""
-        if active is None:
-            from .metrics import self_intersections
-
-            return _keys(self_intersections(x, self._all_tri), len(self._all_tri))
-        return _keys(self._query.active(x, active), len(self._all_tri))
+        found = self._query.pairs(x) if active is None else self._query.active(x, active)
+        return _keys(found, len(self._all_tri))
 
     def _pairs_of_two(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keys of the intersecting pairs of ``x`` and of ``y``, in one pass."""
-        if self._query is None:
-            from .metrics import PairQuery
-
-            self._query = PairQuery(self._all_tri)
         n = len(self._all_tri)
         a, b = self._query.of_two(x, y)
         return _keys(a, n), _keys(b, n)

@@ -61,58 +61,6 @@ def triangle_pairs_intersect(points: np.ndarray, tri_a: np.ndarray, tri_b: np.nd
     return hit
 
 
-def _box_pairs(lower: np.ndarray, upper: np.ndarray, triangles: np.ndarray, skip_shared: bool,
-               active: np.ndarray | None = None, points: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs ``(i, j)`` of overlapping axis-aligned boxes ``[T, 3]`` (a Warp BVH on the CPU) of
-    ``triangles`` (with ``skip_shared``: not sharing a vertex), in no particular order: every
-    pair ``i < j``, or with ``active`` (``[T]`` bool) every pair with an active triangle, once
-    (a tree over the active triangles' boxes, queried by the triangles whose boxes meet theirs).
-    With ``points`` (one or two ``[N, 3]`` float64 arrays the boxes bound) only the pairs whose
-    triangles intersect in one of them (the exact test of :func:`triangle_pairs_intersect`, in
-    the kernel). Returns ``(pairs [P, 2] int64, where [P] int32)``: bit 1 of ``where`` set where
-    the pair intersects in ``points[0]``, bit 2 in ``points[1]`` (3 without ``points``)."""
-    import warp as wp
-
-    from .kernels import measure as k
-
-    n = lower.shape[0]
-    act_host = np.ones(n, dtype=np.int32) if active is None else np.asarray(active, dtype=np.int32)
-    subset = np.nonzero(act_host)[0].astype(np.int32)
-    if subset.size == 0:
-        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int32)
-    if subset.size == n:
-        queries = subset
-    else:  # the triangles whose boxes meet the box around the active ones
-        a_lo, a_hi = lower[subset].min(axis=0), upper[subset].max(axis=0)
-        queries = np.nonzero(np.all((upper >= a_lo) & (lower <= a_hi), axis=1))[0].astype(np.int32)
-    with wp.ScopedDevice("cpu"):
-        lo = wp.array(lower.astype(np.float32), dtype=wp.vec3)
-        hi = wp.array(upper.astype(np.float32), dtype=wp.vec3)
-        bvh = wp.Bvh(lo, hi) if subset.size == n else wp.Bvh(wp.array(lower[subset].astype(np.float32), dtype=wp.vec3),
-                                                            wp.array(upper[subset].astype(np.float32), dtype=wp.vec3))
-        tri = wp.array(np.asarray(triangles, dtype=np.int32), dtype=wp.vec3i)
-        sets = [np.asarray(p, dtype=np.float64) for p in points]
-        exact = len(sets)
-        if exact > 2:
-            raise ValueError("_box_pairs: at most two point sets")
-        arrays = [wp.array(p, dtype=wp.vec3d) for p in sets] + [wp.zeros(0, dtype=wp.vec3d)] * (2 - exact)
-        eps = [_parallel_eps(p) for p in sets] + [0.0] * (2 - exact)
-        inputs = [bvh.id, wp.array(subset, dtype=wp.int32), wp.array(queries, dtype=wp.int32), lo, hi, tri,
-                  wp.array(act_host, dtype=wp.int32), int(skip_shared), *arrays, exact, wp.float64(eps[0]),
-                  wp.float64(eps[1])]
-        capacity = 16 * subset.size
-        while True:
-            count = wp.zeros(1, dtype=wp.int32)
-            pairs = wp.empty(capacity, dtype=wp.vec2i)
-            hits = wp.empty(capacity, dtype=wp.int32)
-            wp.launch(k.box_pairs_kernel, dim=len(queries), inputs=[*inputs, capacity], outputs=[count, pairs, hits])
-            c = int(count.numpy()[0])
-            if c <= capacity:
-                break
-            capacity = c
-        return pairs.numpy()[:c].astype(np.int64), hits.numpy()[:c]
-
-
 def _sorted_pairs(pairs: np.ndarray) -> np.ndarray:
     """``pairs`` ``[P, 2]`` as ``(min, max)`` rows in lexicographic order."""
     if pairs.size == 0:
@@ -121,37 +69,15 @@ def _sorted_pairs(pairs: np.ndarray) -> np.ndarray:
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
 
-def _boxes(sets: list[np.ndarray], t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The boxes ``(lower, upper)`` ``[T, 3]`` around every triangle in every point set, widened
-    past float32 rounding: 1e-6 of the sets' extent plus their largest coordinate."""
-    lower = upper = None
-    extent = coordinate = 0.0
-    for p in sets:
-        a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
-        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
-        lower = lo if lower is None else np.minimum(lower, lo)
-        upper = hi if upper is None else np.maximum(upper, hi)
-        extent, coordinate = max(extent, float(np.ptp(p, axis=0).max())), max(coordinate, float(np.abs(p).max()))
-    pad = 1e-6 * (extent + coordinate + 1e-30)
-    return lower - pad, upper + pad
-
-
-def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True,
-                       active: np.ndarray | None = None) -> np.ndarray:
-    """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``, sorted); with
-    ``active`` (``[T]`` bool) only the pairs that have an active triangle.
+def self_intersections(points: np.ndarray, triangles: np.ndarray, *, exclude_shared: bool = True) -> np.ndarray:
+    """Pairs of triangles of one mesh that intersect, ``[P, 2]`` (``i < j``, sorted).
 
     Candidates are the pairs whose bounding boxes overlap (a BVH over the boxes, widened by
     1e-6 of the mesh's extent and coordinates past float32 rounding); each candidate gets the
     exact float64 edge/triangle test of :func:`triangle_pairs_intersect` (in the kernel). Pairs
     sharing a vertex are skipped (neighbours touch by design).
     """
-    p = np.asarray(points, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    if t.shape[0] < 2:
-        return np.zeros((0, 2), dtype=np.int64)
-    lower, upper = _boxes([p], t)
-    return _sorted_pairs(_box_pairs(lower, upper, t, exclude_shared, active, points=(p,))[0])
+    return PairQuery(triangles, exclude_shared=exclude_shared).pairs(points)
 
 
 def self_intersections_of_two(points: np.ndarray, other: np.ndarray, triangles: np.ndarray, *,
@@ -159,23 +85,17 @@ def self_intersections_of_two(points: np.ndarray, other: np.ndarray, triangles: 
     """:func:`self_intersections` of one mesh in two poses (``points``, ``other``: ``[N, 3]``),
     found in one pass (boxes around each triangle in both): ``(pairs in points, pairs in
     other)``."""
-    p, q = np.asarray(points, dtype=np.float64), np.asarray(other, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    if t.shape[0] < 2:
-        return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
-    lower, upper = _boxes([p, q], t)
-    pairs, where = _box_pairs(lower, upper, t, exclude_shared, points=(p, q))
-    return _sorted_pairs(pairs[(where & 1) != 0]), _sorted_pairs(pairs[(where & 2) != 0])
+    return PairQuery(triangles, exclude_shared=exclude_shared).of_two(points, other)
 
 
 class PairQuery:
-    """Repeated exact self-intersection queries on one mesh (fixed ``triangles`` ``[T, 3]``)
-    in changing poses, as the surface guard makes them: a frame's count in two poses at once
-    (:meth:`of_two`: the tree built over the boxes around each triangle in both), then rounds
-    that move a few triangles (:meth:`active`: the tree refitted to the new boxes, queried by
-    the moved triangles only). The results are those of :func:`self_intersections` and
-    :func:`self_intersections_of_two` (pairs ``i < j``, sorted; pairs sharing a vertex
-    skipped); the device arrays are allocated once per mesh (on the CPU)."""
+    """Exact self-intersection queries on one mesh (fixed ``triangles`` ``[T, 3]``) in changing
+    poses, on a Warp BVH on the CPU: a whole count (:meth:`pairs`), a frame's count in two poses
+    at once (:meth:`of_two`: the tree built over the boxes around each triangle in both), then
+    rounds that move a few triangles (:meth:`active`: the tree refitted to the new boxes, queried
+    by the moved triangles only), or the pairs of given boxes that overlap (:meth:`overlapping`).
+    Pairs are ``i < j``, sorted; pairs sharing a vertex are skipped with ``exclude_shared``.
+    The device arrays are allocated once per mesh (and per point count)."""
 
     def __init__(self, triangles: np.ndarray, *, exclude_shared: bool = True) -> None:
         import warp as wp
@@ -189,25 +109,44 @@ class PairQuery:
             self._hi = wp.empty(n, dtype=wp.vec3)
             self._all = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32)
             self._ones = wp.array(np.ones(n, dtype=np.int32), dtype=wp.int32)
+            self._mask = wp.empty(n, dtype=wp.int32)
             self._count = wp.zeros(1, dtype=wp.int32)
             self._capacity = max(16 * n, 16)
             self._pairs = wp.empty(self._capacity, dtype=wp.vec2i)
             self._hits = wp.empty(self._capacity, dtype=wp.int32)
+            self._p = self._q = wp.zeros(0, dtype=wp.vec3d)
+        self._eps = (0.0, 0.0)
         self._bvh = None
 
-    def _boxes(self, p, q) -> None:
+    @staticmethod
+    def _none() -> np.ndarray:
+        return np.zeros((0, 2), dtype=np.int64)
+
+    def _upload(self, current, x: np.ndarray):
+        """``x`` ``[N, 3]`` float64 into ``current`` (reused where the point count is the same)."""
+        import warp as wp
+
+        if current.shape[0] != x.shape[0]:
+            return wp.array(x, dtype=wp.vec3d, device="cpu")
+        current.assign(x)
+        return current
+
+    def _boxes(self, p: np.ndarray, q: np.ndarray | None) -> None:
+        """Every triangle's box in ``p`` (and ``q``), widened past the rounding to float32: by
+        1e-6 of the points' extent plus their largest coordinate."""
         import warp as wp
 
         from .kernels import measure as k
 
         sets = [p] if q is None else [p, q]
-        extent = max(float(np.ptp(x, axis=0).max()) for x in sets)
-        coordinate = max(float(np.abs(x).max()) for x in sets)
-        pad = 1e-6 * (extent + coordinate + 1e-30)
-        self._p = wp.array(p, dtype=wp.vec3d, device="cpu")
-        self._q = wp.array(q, dtype=wp.vec3d, device="cpu") if q is not None else wp.zeros(0, dtype=wp.vec3d, device="cpu")
+        pad = 1e-6 * (max(float(np.ptp(x, axis=0).max()) for x in sets) + max(float(np.abs(x).max()) for x in sets)
+                      + 1e-30)
+        self._p = self._upload(self._p, p)
+        if q is not None:
+            self._q = self._upload(self._q, q)
         self._eps = (_parallel_eps(p), _parallel_eps(q) if q is not None else 0.0)
-        wp.launch(k.triangle_boxes_kernel, dim=len(self.triangles), inputs=[self._p, self._q, int(q is not None), self._tri, pad],
+        wp.launch(k.triangle_boxes_kernel, dim=len(self.triangles), inputs=[self._p, self._q, int(q is not None),
+                                                                         self._tri, pad],
                   outputs=[self._lo, self._hi], device="cpu")
 
     def _run(self, queries, active, exact: int) -> tuple[np.ndarray, np.ndarray]:
@@ -218,7 +157,7 @@ class PairQuery:
         while True:
             self._count.zero_()
             wp.launch(k.box_pairs_kernel, dim=queries.shape[0],
-                      inputs=[self._bvh.id, self._all, queries, self._lo, self._hi, self._tri, active, self.skip_shared,
+                      inputs=[self._bvh.id, queries, self._lo, self._hi, self._tri, active, self.skip_shared,
                               self._p, self._q, exact, wp.float64(self._eps[0]), wp.float64(self._eps[1]), self._capacity],
                       outputs=[self._count, self._pairs, self._hits], device="cpu")
             c = int(self._count.numpy()[0])
@@ -228,29 +167,47 @@ class PairQuery:
             self._pairs = wp.empty(c, dtype=wp.vec2i, device="cpu")
             self._hits = wp.empty(c, dtype=wp.int32, device="cpu")
 
-    def of_two(self, points: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(pairs in points, pairs in other)`` (``[N, 3]`` each), in one pass."""
+    def _whole(self, exact: int) -> tuple[np.ndarray, np.ndarray]:
         import warp as wp
 
-        if len(self.triangles) < 2:
-            return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
-        self._boxes(np.asarray(points, dtype=np.float64), np.asarray(other, dtype=np.float64))
         self._bvh = wp.Bvh(self._lo, self._hi)
-        pairs, where = self._run(self._all, self._ones, 2)
+        return self._run(self._all, self._ones, exact)
+
+    def pairs(self, points: np.ndarray) -> np.ndarray:
+        """The intersecting pairs of ``points`` ``[N, 3]``."""
+        if len(self.triangles) < 2:
+            return self._none()
+        self._boxes(np.asarray(points, dtype=np.float64), None)
+        return _sorted_pairs(self._whole(1)[0])
+
+    def of_two(self, points: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pairs in points, pairs in other)`` (``[N, 3]`` each), in one pass."""
+        if len(self.triangles) < 2:
+            return self._none(), self._none()
+        self._boxes(np.asarray(points, dtype=np.float64), np.asarray(other, dtype=np.float64))
+        pairs, where = self._whole(2)
         return _sorted_pairs(pairs[(where & 1) != 0]), _sorted_pairs(pairs[(where & 2) != 0])
 
     def active(self, points: np.ndarray, active: np.ndarray) -> np.ndarray:
         """The pairs in ``points`` with a triangle of ``active`` (``[T]`` bool), after
-        :meth:`of_two` (whose tree is refitted here)."""
+        :meth:`of_two` or :meth:`pairs` (whose tree is refitted here)."""
         import warp as wp
 
         if self._bvh is None:
-            raise RuntimeError("PairQuery.active before PairQuery.of_two")
+            raise RuntimeError("PairQuery.active before a whole count")
         act = np.asarray(active, dtype=bool)
         if not act.any() or len(self.triangles) < 2:
-            return np.zeros((0, 2), dtype=np.int64)
+            return self._none()
         self._boxes(np.asarray(points, dtype=np.float64), None)
         self._bvh.refit()
+        self._mask.assign(act.astype(np.int32))
         queries = wp.array(np.nonzero(act)[0].astype(np.int32), dtype=wp.int32, device="cpu")
-        mask = wp.array(act.astype(np.int32), dtype=wp.int32, device="cpu")
-        return _sorted_pairs(self._run(queries, mask, 1)[0])
+        return _sorted_pairs(self._run(queries, self._mask, 1)[0])
+
+    def overlapping(self, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+        """The pairs whose boxes ``lower``, ``upper`` (``[T, 3]``, given) overlap."""
+        if len(self.triangles) < 2:
+            return self._none()
+        self._lo.assign(np.asarray(lower, dtype=np.float32))
+        self._hi.assign(np.asarray(upper, dtype=np.float32))
+        return _sorted_pairs(self._whole(0)[0])

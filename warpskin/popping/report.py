@@ -44,18 +44,12 @@ def belly_of_examples(rig, examples) -> dict[str, np.ndarray]:
     return out
 
 
-def _vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    n = np.zeros_like(points)
-    face = np.cross(points[triangles[:, 1]] - points[triangles[:, 0]], points[triangles[:, 2]] - points[triangles[:, 0]])
-    for k in range(3):
-        np.add.at(n, triangles[:, k], face)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-
-
 def bulge_series(path, bellies: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, list[float]]]:
     """``(time codes [F], {group: bulge per frame [m]})`` of the bake at ``path`` (a
     ``warpskin pop`` output) for the groups' ``bellies`` (bool per written skin vertex)."""
     from pxr import Usd, UsdGeom
+
+    from ..preprocess.layers import _vertex_normals  # area-weighted unit normals
 
     stage = Usd.Stage.Open(str(path))
     root = stage.GetDefaultPrim()

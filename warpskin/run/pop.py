@@ -263,39 +263,35 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         examples = examples_for_scene(scene)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    first = (frames or scene.frame_range())[0]
-    last = (frames or scene.frame_range())[1]
+    plan = FramePlan.for_scene(scene, frames, max_dt=scene.solver_params().dt, start_frame=start_frame)
+    start, end = float(plan.times[0]), float(plan.times[-1])
     found: list = []
     groups: list[str] = []
+    drive: list = []  # the rest drive's activation over clip time, once the groups are known
 
     def timeline(names: list[str]) -> None:
         groups[:] = names
         if beats is not None:
-            settings.activation = beats.timeline(names, scene.frame_time(first), scene.frame_time(last))
+            settings.activation = beats.timeline(names, start, end)
         settings.activation.check_groups(names, "[popping.activation]")
 
-    # the rest drive follows each group's activation as the paper's skin follows its goal: ringing
-    # about it while clenched (alpha_min per solver step), relaxing monotonely (beta)
-    plan = FramePlan.for_scene(scene, frames, max_dt=scene.solver_params().dt, start_frame=start_frame)
-    response: dict = {}
+        def raw(t: float) -> np.ndarray:
+            return settings.activation.sample(t, names)
+
+        # the drive follows each group's activation as the paper's skin follows its goal: ringing
+        # about it while clenched (alpha_min per solver step), relaxing monotonely (beta)
+        drive[:] = [vibrating(raw, start - 1.0 / plan.fps, end + plan.dt, h=plan.dt, alpha=settings.alpha_min,
+                              beta=settings.beta) if vibrate else raw]
 
     def activation(t: float) -> np.ndarray:
-        if "f" not in response:
-            def raw(x: float) -> np.ndarray:
-                return settings.activation.sample(x, groups)
-
-            response["f"] = (vibrating(raw, float(plan.times[0]) - 1.0 / plan.fps, float(plan.times[-1]) + plan.dt,
-                                       h=plan.dt, alpha=settings.alpha_min, beta=settings.beta)
-                             if vibrate else raw)
-        return response["f"](t)
+        return drive[0](t)
 
     if examples is not None:
         if muscles is not None and any("=" in str(m) for m in muscles):
             raise SceneError("this scene's examples name its muscle groups: --groups takes their names "
                              f"({', '.join(examples.group_names)})")
         builder = SkinModelBuilder(rig, scene.model_params())
-        builder.set_rest_drive(muscle_rest_offset_deltas(builder, examples,
-                                                         rig.skinning_matrices(clip, scene.frame_time(first))))
+        builder.set_rest_drive(muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, start)))
         timeline(list(examples.group_names))
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           comment=comment, start_frame=start_frame, topology=topology, builder=builder,

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import SimulationError
 from ..io.usd_export import UsdSkinWriter, check_output_path
-from ..metrics import self_intersections, signed_volume
+from ..metrics import self_intersections_of_two, signed_volume
 from ..model import SkinModelBuilder
 from ..preprocess.layers import LAYER_NAMES
 from ..scene import Scene
@@ -206,8 +206,9 @@ class _Measurements:
             m["contacts_edge_edge"].append(int(counts[1]) if i > 0 else 0)
             m["constraints_active"].append(int(c.active.numpy()[0]) if i > 0 else 0)
         if self.check_intersections:
-            m["intersecting_pairs"].append(int(len(self_intersections(skin, tris))))
-            m["intersecting_pairs_lbs"].append(int(len(self_intersections(lbs, tris))))
+            pairs, pairs_lbs = self_intersections_of_two(skin, lbs, tris)
+            m["intersecting_pairs"].append(int(len(pairs)))
+            m["intersecting_pairs_lbs"].append(int(len(pairs_lbs)))
 
 
 class _WrittenQuality:
