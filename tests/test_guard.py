@@ -262,6 +262,29 @@ def test_a_skin_whose_physics_crumples_is_guarded_from_then_on():
     assert not guard.trusted
 
 
+def test_a_stretch_made_on_purpose_is_written_and_a_squeeze_there_is_not():
+    # the second sphere swollen by 2.2 (its edges stretched past 1.5) where the physics stretches
+    # the skin on purpose (a muscle's belly): still trusted, and not flagged once guarded either
+    rest, tris, lbs, physical = _pushed_out(22, 2.2)
+    intended = np.zeros(len(rest), dtype=bool)
+    intended[len(rest) // 2:] = True
+    for direct in (True, False):
+        guard = SurfaceGuard(WrittenMesh("two", tris, rest), direct=direct, intended=intended)
+        assert np.array_equal(guard.apply(physical, lbs), physical)
+        assert guard.held == 0.0 and guard.trusted == direct
+    # the same stretch outside the intended points crumples the trust (as above)
+    elsewhere = SurfaceGuard(WrittenMesh("two", tris, rest), direct=True, intended=~intended)
+    elsewhere.apply(physical, lbs)
+    assert not elsewhere.trusted
+    # squeezed there instead (edges shortened past 1 / 1.5): not on purpose, guarded
+    squeezed = rest.copy()
+    squeezed[len(rest) // 2:, 1:] *= 0.45
+    guard = SurfaceGuard(WrittenMesh("two", tris, rest), direct=True, intended=intended)
+    out = guard.apply(squeezed, lbs)
+    assert not guard.trusted and guard.held > 0.0
+    assert strain_and_flips(rest, out, lbs, tris)[0] < strain_and_flips(rest, squeezed, lbs, tris)[0]
+
+
 def test_a_captured_mesh_is_held_to_its_lbs():
     rest, tris, lbs, physical = _pushed_out(22, 2.2)
     out = SurfaceGuard(WrittenMesh("two", tris, rest)).apply(physical, lbs)

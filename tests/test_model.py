@@ -303,6 +303,31 @@ def test_rest_drive_moves_the_solvers_rest_offsets_not_the_models(arm_builder):
         SkinModelBuilder(arm_builder.rig).set_rest_drive(np.zeros((2, 5, 3)))
 
 
+def test_rest_drive_support_is_every_column_of_a_changed_region(arm_builder):
+    # brute force: a vertex can move when any particle of its column is a member of a region
+    # with a changed rest offset
+    b = SkinModelBuilder(arm_builder.rig, arm_builder.params).build()
+    v, reg = b.rig.vertex_count, b.regions
+    assert not b.rest_drive_support().any()
+    deltas = np.zeros((1, reg.region_members.shape[0], 3), dtype=np.float32)
+    rng = np.random.default_rng(9)
+    changed = rng.choice(reg.region_count, size=5, replace=False)
+    for r in changed:
+        deltas[0, reg.region_offsets[r]] = 1e-3  # the first entry of each of 5 regions
+    b.set_rest_drive(deltas)
+    want = np.zeros(v, dtype=bool)
+    for r in changed:
+        for p in reg.region_members[reg.region_offsets[r]:reg.region_offsets[r + 1]]:
+            want[p % v] = True
+    np.testing.assert_array_equal(b.rest_drive_support(), want)
+    # the belly, where given, is the support instead
+    belly = np.zeros(v, dtype=bool)
+    belly[:7] = True
+    np.testing.assert_array_equal(b.set_rest_drive(deltas, swelling=belly).rest_drive_support(), belly)
+    with pytest.raises(InputError, match=rf"swelling must have shape \[{v}\]"):
+        b.set_rest_drive(deltas, swelling=np.ones(3, dtype=bool))
+
+
 def test_layers_command_writes_inspectable_usd(tmp_path, capsys):
     out = tmp_path / "layers.usda"
     assert main(["layers", "arm", "-o", str(out)]) == 0

@@ -229,11 +229,21 @@ class Character:
         self.meshes = {p.name: WrittenMesh(self.display_name(p.name), p.triangles, p.rest, p.file_ids)
                        for p in self.parts if p.physics}
         params = self.guard or GuardParams()
+        intended = None  # a popped character: where its muscles stretch the written skin on purpose
+        if builder is not None and builder.rest_drive is not None:
+            belly = builder.rest_drive_support()
+            if self.caged:  # the points that the cage's bellies carry (most of their capture)
+                intended = (cap.weights * belly[cap.indices]).sum(axis=1) > 0.5
+            else:
+                intended = np.zeros(n, dtype=bool)
+                c = self.parts[0].count
+                intended[:c] = belly[:c]
         # a skin simulated directly hands the guard its physical result whole, its physics
         # weight as the ceiling: it is written as simulated while its physics keeps the surface
         self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
                                             ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
-                                            direct=not self.caged)
+                                            direct=not self.caged,
+                                            intended=None if intended is None else intended[p.start:p.start + p.count])
                        for p in self.parts if p.physics}
         self.build_s += time.perf_counter() - t0
         return cap

@@ -163,13 +163,19 @@ class SurfaceGuard:
             skin simulated directly passes its physics weight here (0 where no layer depth fits).
         direct: The mesh is a skin simulated directly: written as simulated while its physics
             keeps the surface (see the module docstring).
+        intended: ``[N]`` per written point, where the physics stretches the surface on
+            purpose (a muscle's belly, :meth:`~warpskin.model.SkinModelBuilder.rest_drive_support`):
+            an edge wholly inside it that is longer than at rest is neither flagged nor counted
+            against the trust (a pop stretches the skin over its belly by design); shortened
+            edges and turned triangles there are, as everywhere.
     """
 
     #: Rounds after the back-off that set what is still flagged to its LBS.
     FALLBACK_ROUNDS = 4
 
     def __init__(self, mesh: WrittenMesh, params: GuardParams | None = None, groups: np.ndarray | None = None,
-                 ceiling: np.ndarray | None = None, direct: bool = False) -> None:
+                 ceiling: np.ndarray | None = None, direct: bool = False,
+                 intended: np.ndarray | None = None) -> None:
         #: Whether the mesh is written as simulated (a skin simulated directly, until a frame's
         #: physical result crumples past ``trust_flipped`` or ``trust_strained``; then never again).
         self.trusted = bool(direct)
@@ -218,6 +224,11 @@ class SurfaceGuard:
             if (g >= 0).any():
                 _, inverse = np.unique(np.where(g >= 0, g, -1 - np.arange(c)), return_inverse=True)
                 self.group = inverse.ravel()
+        # the edges wholly inside the intended stretch: their stretching is neither flagged nor
+        # counted against the trust
+        self._intended = np.zeros(len(e), dtype=bool)
+        if intended is not None:
+            self._intended = np.asarray(intended, dtype=bool)[mesh.first][e].all(axis=1)
         self.ceiling = np.ones(c) if ceiling is None else np.clip(np.asarray(ceiling, dtype=np.float64)[mesh.first], 0, 1)
         #: ``[C]`` the weight of every welded point after the last frame.
         self.g = self.ceiling.copy()
@@ -239,6 +250,15 @@ class SurfaceGuard:
         with np.errstate(divide="ignore"):
             r = length / rest
             return np.maximum(r, 1.0 / r)
+
+    def _stretched(self, x: np.ndarray, among: np.ndarray) -> np.ndarray:
+        """``[E]``: the edges of ``among`` (a mask) wholly inside the intended stretch that are
+        longer in ``x`` than at rest."""
+        out = among & self._intended
+        if out.any():
+            e, rest = self.mesh.edges[out], self.mesh.rest_length[out]
+            out[out] = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1) > rest
+        return out
 
     def _normals(self, x: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
         """Area-weighted normals of the triangles judged for flips (or of those ``which``
@@ -328,9 +348,12 @@ class SurfaceGuard:
     def _crumpled(self, physical: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray) -> bool:
         """Whether the physical result turns more than ``trust_flipped`` of the mesh's triangles
         over against LBS, or strains ``trust_strained`` more of its edges past
-        :data:`~warpskin.quality.STRAIN_LIMIT` than LBS does."""
+        :data:`~warpskin.quality.STRAIN_LIMIT` than LBS does (shares of all of them; the edges
+        wholly inside the intended stretch are counted only where they are shortened)."""
         s = self._strain(physical)
-        excess = (np.count_nonzero(s > STRAIN_LIMIT) - np.count_nonzero(s_lbs > STRAIN_LIMIT)) / max(len(s), 1)
+        judged = ~self._stretched(physical, s > STRAIN_LIMIT)
+        excess = (np.count_nonzero((s > STRAIN_LIMIT) & judged)
+                  - np.count_nonzero((s_lbs > STRAIN_LIMIT) & judged)) / max(len(s), 1)
         n = self._normals(physical)
         ln = np.linalg.norm(n, axis=1)
         ok = (ln > self._floor) & (len_lbs > self._floor)
@@ -406,6 +429,7 @@ class SurfaceGuard:
                 s[ce] = self._strain(w, ce)
                 cos[ct] = self._cosines(w, n_lbs, len_lbs, ct)
             strained = (s > prm.strain) & (s > s_lbs + 0.01) & (edge_ok_lbs | (s > 1.1 * s_lbs))
+            strained &= ~self._stretched(w, strained)
             flag[e[strained].ravel()] = True
             flipped = cos < self._cos
             flag[t[flipped].ravel()] = True

@@ -158,6 +158,7 @@ class SkinModelBuilder:
         self.where = rig.source or rig.name
         self.timings: dict[str, float] = {}
         self.rest_drive: np.ndarray | None = None
+        self.rest_drive_swelling: np.ndarray | None = None
         self._built = False
 
     def _stage(self, name: str, fn):
@@ -255,7 +256,7 @@ class SkinModelBuilder:
         out["region_rest_com"] = mx0 / msum[:, None]
         return out
 
-    def set_rest_drive(self, delta_offsets: np.ndarray) -> SkinModelBuilder:
+    def set_rest_drive(self, delta_offsets: np.ndarray, swelling: np.ndarray | None = None) -> SkinModelBuilder:
         """Let activations move the rest shape (muscle activation in the layered model).
 
         Args:
@@ -263,6 +264,8 @@ class SkinModelBuilder:
                 ``[G, M, 3]`` [m] (M = region entries; see
                 :func:`warpskin.popping.muscle_rest_offset_deltas`). ``Control.muscle_activation``
                 ``[G]`` then drives it every step; the model's rest offsets stay as built.
+            swelling: ``[V]`` per skin vertex, where the drive stretches the skin on purpose (a
+                muscle's belly; :meth:`rest_drive_support`); default every vertex it can move.
 
         Returns:
             The builder (call before :meth:`finalize`).
@@ -275,7 +278,30 @@ class SkinModelBuilder:
         if not np.isfinite(d).all():
             raise InputError("rest-shape deltas hold NaN or inf")
         self.rest_drive = d
+        if swelling is not None:
+            sw = np.asarray(swelling, dtype=bool)
+            if sw.shape != (self.rig.vertex_count,):
+                raise InputError(f"swelling must have shape [{self.rig.vertex_count}], got {sw.shape}")
+        self.rest_drive_swelling = None if swelling is None else sw
         return self
+
+    def rest_drive_support(self) -> np.ndarray:
+        """``[V]`` per skin vertex: where the rest-shape drive (:meth:`set_rest_drive`) stretches
+        the skin on purpose: its ``swelling`` where given, else whether it can move the vertex at
+        all (a particle of its column, any layer, belongs to a region whose rest offsets some
+        group changes). All ``False`` without a drive."""
+        self.build()
+        v = self.rig.vertex_count
+        if self.rest_drive is None:
+            return np.zeros(v, dtype=bool)
+        if self.rest_drive_swelling is not None:
+            return self.rest_drive_swelling.copy()
+        reg = self.regions
+        changed = np.zeros(reg.region_count, dtype=bool)
+        changed[reg.region_of_entry()[np.any(self.rest_drive != 0.0, axis=(0, 2))]] = True
+        moved = np.zeros(4 * v, dtype=bool)
+        moved[reg.region_members[changed[reg.region_of_entry()]]] = True
+        return moved.reshape(4, v).any(axis=0)
 
     def _particle_stiffness(self) -> np.ndarray:
         per_joint = np.tile(np.asarray(self.params.stiffness, dtype=np.float64), (self.rig.joint_count, 1))
@@ -345,6 +371,11 @@ class SkinModel:
             self.particle_q0 = v3(b.layers.flat())
             self.particle_mass = f32(b.masses)
             self.particle_inv_mass = f32(1.0 / b.masses)
+            # the volume constraints' weights along the normals (SolverParams.volume_along_normals):
+            # a skin particle lighter than the median (thin tissue, near its bone) takes no larger
+            # share of a sub-volume's correction
+            skin_mass = b.masses[: rig.vertex_count]
+            self.volume_inv_mass = f32(1.0 / np.maximum(b.masses, np.median(skin_mass)))
             self.particle_stiffness = f32(b.stiffness)
             self.particle_moment = f32(lay["particle_moment"])
             self.region_offsets = i32(reg.region_offsets)
