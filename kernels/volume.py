@@ -10,13 +10,13 @@ skin vertex ``k`` (particle ``k`` of the layer-major particle array), ``k >= V``
 
 One projection iteration is three launches, all atomic-free and deterministic:
 
-1. :func:`volume_gradient_kernel`, one thread per (vertex, sub-volume) pair: ``grad_i V_s``
-   and ``w_i |grad_i V_s|^2``;
+1. :func:`volume_gradient_kernel`, one thread per (vertex, sub-volume) pair: ``grad_i V_s``,
+   its surface part ``d_i`` (the correction's direction) and ``w_i grad_i V_s . d_i``;
 2. :func:`volume_lambda_kernel`, one thread block per sub-volume: ``V_s`` (a block reduction
    over its closed triangles), the denominator (a block reduction over its pairs) and the
    Lagrange multiplier ``lambda_s``;
 3. :func:`volume_correction_kernel`, one thread per skin vertex: ``dp_i = w_i sum_s lambda_s
-   grad_i V_s`` over the sub-volumes of the vertex (Jacobi across sub-volumes).
+   d_i`` over the sub-volumes of the vertex (Jacobi across sub-volumes).
 
 Sums run in float64, with points taken relative to a per-sub-volume origin (a point of that
 sub-volume), so float32 positions far from the world origin keep the volume: a triple product
@@ -123,7 +123,16 @@ def subvolume_volume_kernel(
 #
 #   w_i = inv_mass_i * weight_scale_i   (weight_scale 0 pins a colliding particle)
 #
-# and the pair's share of the denominator w_i |grad_i V_s|^2.
+# With along_normals (else d_i = grad_i V_s, the paper's projection), the correction moves
+# the vertex along the surface part of the gradient, d_i (the entries
+# whose two other points are skin vertices): the skin inflates or deflates along its normals.
+# The fans are a construction that closes the sub-volume at a plane through the bone; along
+# their part of the gradient a vertex of the cut loop would slide along the bone, and most
+# there: the fan's whole area is shared by the loop's few vertices. d_i is taken about p_i,
+# 1/6 sum (p_b - p_i) x (p_c - p_i) over the surface entries (a third of the area-weighted
+# normals of its surface triangles: independent of the origin, which the open ring of a loop
+# vertex would not be otherwise), so d_i = grad_i V_s off the loops. The pair's share of the denominator is w_i grad_i V_s . d_i, so that to first order
+# one projection changes V_s by exactly -k (V_s - V_s^rest).
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def volume_gradient_kernel(
@@ -137,28 +146,40 @@ def volume_gradient_kernel(
     pair_entry_offsets: wp.array(dtype=wp.int32),
     entry_points: wp.array2d(dtype=wp.int32),
     subvolume_origin: wp.array(dtype=wp.int32),
+    along_normals: int,
     # outputs
     pair_gradient: wp.array(dtype=wp.vec3d),
+    pair_direction: wp.array(dtype=wp.vec3d),
     pair_weighted_norm: wp.array(dtype=wp.float64),
 ):
     p = wp.tid()
     i = pair_vertex[p]
     origin = closed_point(x, centers, vertex_count, subvolume_origin[pair_subvolume[p]])
+    pi = closed_point(x, centers, vertex_count, i) - origin
     g = wp.vec3d()
+    d = wp.vec3d()
     for e in range(pair_entry_offsets[p], pair_entry_offsets[p + 1]):
-        pb = closed_point(x, centers, vertex_count, entry_points[e, 0]) - origin
-        pc = closed_point(x, centers, vertex_count, entry_points[e, 1]) - origin
+        b = entry_points[e, 0]
+        c = entry_points[e, 1]
+        pb = closed_point(x, centers, vertex_count, b) - origin
+        pc = closed_point(x, centers, vertex_count, c) - origin
         g += wp.cross(pb, pc)
+        if along_normals != 0 and b < vertex_count and c < vertex_count:
+            d += wp.cross(pb - pi, pc - pi)
     g = g / wp.float64(6.0)
+    d = d / wp.float64(6.0)
+    if along_normals == 0:
+        d = g
     w = wp.float64(inv_mass[i] * weight_scale[i])
     pair_gradient[p] = g
-    pair_weighted_norm[p] = w * wp.dot(g, g)
+    pair_direction[p] = d
+    pair_weighted_norm[p] = w * wp.dot(g, d)
 
 
 # --------------------------------------------------------------------------------------------
 # PBD multiplier of the volume constraint C_s(x) = V_s(x) - V_s^rest (section 4.2.2):
 #
-#   lambda_s = -k (V_s - V_s^rest) / sum_{i in s} w_i |grad_i V_s|^2
+#   lambda_s = -k (V_s - V_s^rest) / sum_{i in s} w_i grad_i V_s . d_i
 #
 # with stiffness k in [0, 1]. A sub-volume whose weights are all 0 (every particle pinned)
 # has a zero denominator: lambda_s = 0, it is skipped. One thread block per sub-volume; the
@@ -203,7 +224,7 @@ def volume_lambda_kernel(
 # Position correction of skin vertex i, summed over the sub-volumes it belongs to (a vertex on
 # a cut loop belongs to two); every sub-volume uses this iteration's lambda (Jacobi):
 #
-#   dp_i = w_i sum_{s containing i} lambda_s grad_i V_s
+#   dp_i = w_i sum_{s containing i} lambda_s d_i
 #
 # A pinned vertex (w_i = 0) is not written at all, so it stays bit-identical.
 # --------------------------------------------------------------------------------------------
@@ -214,7 +235,7 @@ def volume_correction_kernel(
     vertex_pair_offsets: wp.array(dtype=wp.int32),
     vertex_pairs: wp.array(dtype=wp.int32),
     pair_subvolume: wp.array(dtype=wp.int32),
-    pair_gradient: wp.array(dtype=wp.vec3d),
+    pair_direction: wp.array(dtype=wp.vec3d),
     subvolume_lambda: wp.array(dtype=wp.float64),
     use_cap: int,
     cap_targets: wp.array(dtype=wp.vec3),
@@ -233,7 +254,7 @@ def volume_correction_kernel(
         dp = wp.vec3d()
         for k in range(vertex_pair_offsets[i], vertex_pair_offsets[i + 1]):
             p = vertex_pairs[k]
-            dp += subvolume_lambda[pair_subvolume[p]] * pair_gradient[p]
+            dp += subvolume_lambda[pair_subvolume[p]] * pair_direction[p]
         xi = xi + wp.vec3(wp.float64(w) * dp)
     if use_cap != 0:
         t = cap_targets[i]

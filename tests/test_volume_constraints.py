@@ -71,16 +71,21 @@ def _rel_error(sv: SubVolumes, x: np.ndarray, centers: np.ndarray) -> np.ndarray
     return sv.volumes(_skin(x, sv.vertex_count), centers) / sv.rest_volume - 1.0
 
 
-def _gradients_numpy(sv: SubVolumes, points: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """Brute-force ``grad_i V_s`` [S, V, 3] from the closed triangles (float64)."""
+def _gradients_numpy(sv: SubVolumes, points: np.ndarray, centers: np.ndarray, surface_only: bool = False) -> np.ndarray:
+    """Brute-force ``grad_i V_s`` [S, V, 3] from the closed triangles (float64); with
+    ``surface_only`` from the surface triangles alone (without the closing fans), taken about
+    the vertex itself: a third of its triangles' area-weighted normals."""
     v = sv.vertex_count
     allp = np.concatenate([points, centers.reshape(-1, 3)]) - points.mean(axis=0)
     g = np.zeros((sv.count, allp.shape[0], 3))
     for s in range(sv.count):
         tri = sv.closed_triangles(s)
+        if surface_only:
+            tri = tri[(tri < v).all(axis=1)]
         for r in range(3):
             a, b, c = tri[:, r], tri[:, (r + 1) % 3], tri[:, (r + 2) % 3]
-            np.add.at(g[s], a, np.cross(allp[b], allp[c]) / 6.0)
+            o = allp[a] if surface_only else 0.0
+            np.add.at(g[s], a, np.cross(allp[b] - o, allp[c] - o) / 6.0)
     return g[:, :v]
 
 
@@ -177,11 +182,29 @@ def test_gradient_kernel_matches_central_finite_differences(device):
     assert np.array_equal(outside, ~member)
     # and the brute-force closed-triangle sum agrees
     np.testing.assert_allclose(got, _gradients_numpy(sv, p, centers), rtol=0, atol=1e-12 * scale)
-    # weighted norms w_i |grad_i V_s|^2
+    # the paper's projection moves along the gradient: weighted norms w_i |grad_i V_s|^2
     pair_vertex, pair_subvolume = vc.pair_vertex.numpy(), vc.pair_subvolume.numpy()
+    assert np.array_equal(vc.pair_direction.numpy(), vc.pair_gradient.numpy())
     w = model.particle_inv_mass.numpy()[pair_vertex].astype(np.float64)
     g = fd[pair_subvolume, pair_vertex]
     np.testing.assert_allclose(vc.pair_weighted_norm.numpy(), w * np.einsum("ij,ij->i", g, g), rtol=1e-7)
+    # along the normals: the surface triangles' part of the gradient (brute force), equal to the
+    # gradient off the cut loops and different on them (the fans' part); w_i grad_i V_s . d_i
+    along = VolumeConstraints(model, along_normals=True)
+    along.centers.assign(vc.centers.numpy())
+    along.gradients(state.x, model.particle_inv_mass, ws, along.centers)
+    np.testing.assert_array_equal(along.pair_gradient.numpy(), vc.pair_gradient.numpy())
+    direction = np.zeros_like(got)
+    direction[pair_subvolume, pair_vertex] = along.pair_direction.numpy()
+    surface = _gradients_numpy(sv, p, centers, surface_only=True)
+    np.testing.assert_allclose(direction, surface, rtol=0, atol=1e-12 * scale)
+    on_loop = np.zeros(v, dtype=bool)
+    on_loop[np.concatenate(sv.loops)] = True
+    np.testing.assert_allclose(direction[:, ~on_loop], got[:, ~on_loop], rtol=0, atol=1e-12 * scale)
+    assert np.abs(direction[:, on_loop] - got[:, on_loop]).max() > 1e-3 * scale
+    dd = surface[pair_subvolume, pair_vertex]
+    want = w * np.einsum("ij,ij->i", g, dd)
+    np.testing.assert_allclose(along.pair_weighted_norm.numpy(), want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 
 
 # --------------------------------------------------------------------------------------------
@@ -211,8 +234,10 @@ def test_one_projection_removes_the_error_of_a_single_closed_volume(device):
     np.testing.assert_array_equal(state.x.numpy()[v:], x[v:])
 
 
-def test_one_iteration_matches_numpy_pbd_with_inverse_masses(device):
+@pytest.mark.parametrize("along_normals", [False, True])
+def test_one_iteration_matches_numpy_pbd_with_inverse_masses(device, along_normals):
     model, vc, state, ws = _setup(device)
+    vc = VolumeConstraints(model, along_normals=along_normals)
     sv = _host(model).subvolumes
     v = model.vertex_count
     rng = np.random.default_rng(3)
@@ -227,14 +252,16 @@ def test_one_iteration_matches_numpy_pbd_with_inverse_masses(device):
     vc.project(state.x, im, ws, vc.centers, iterations=1, stiffness=stiffness)
     x1 = state.x.numpy()
 
-    # NumPy oracle: dp_i = w_i sum_s lambda_s grad_i V_s, lambda_s = -k C_s / sum_j w_j |grad_j V_s|^2
+    # NumPy oracle: dp_i = w_i sum_s lambda_s d_i, lambda_s = -k C_s / sum_j w_j grad_j V_s . d_j
+    # with d the gradient (the paper), or along the normals its surface part
     p = _skin(x0, v)
     centers = vc.centers.numpy().astype(np.float64)  # the float32 rest centers
     g = _gradients_numpy(sv, p, centers)
+    d = _gradients_numpy(sv, p, centers, surface_only=True) if along_normals else g
     w = inv_mass[:v].astype(np.float64) * scale[:v]
     vol = sv.volumes(p, centers)
-    lam = -float(np.float32(stiffness)) * (vol - sv.rest_volume) / np.einsum("v,svd,svd->s", w, g, g)
-    dp = w[:, None] * np.einsum("s,svd->vd", lam, g)
+    lam = -float(np.float32(stiffness)) * (vol - sv.rest_volume) / np.einsum("v,svd,svd->s", w, g, d)
+    dp = w[:, None] * np.einsum("s,svd->vd", lam, d)
     np.testing.assert_allclose(vc.subvolume_volume.numpy(), vol, rtol=1e-12)
     np.testing.assert_allclose(vc.subvolume_lambda.numpy(), lam, rtol=1e-9)
     np.testing.assert_allclose(x1[:v], p + dp, rtol=0, atol=2e-7)

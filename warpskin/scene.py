@@ -73,7 +73,7 @@ _SCHEMA: dict[str, set[str]] = {
     "subvolumes": {"enabled", "planes"},
     # Algorithm 1 settings
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
-               "fast_summation", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
+               "fast_summation", "volume_along_normals", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
                "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"},
     # skin self-collision (section 4.5)
     "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
@@ -208,8 +208,9 @@ class Scene:
                     "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"):
             if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
                 raise SceneError(f"{where}: [solver] {key} must be a number, got {table[key]!r}")
-        if "fast_summation" in table and not isinstance(table["fast_summation"], bool):
-            raise SceneError(f"{where}: [solver] fast_summation must be true or false")
+        for key in ("fast_summation", "volume_along_normals"):
+            if key in table and not isinstance(table[key], bool):
+                raise SceneError(f"{where}: [solver] {key} must be true or false")
         if "gravity" in table:
             table["gravity"] = _numbers(where, "[solver] gravity", table["gravity"], 3)
         params = SolverParams(**table)

@@ -40,6 +40,14 @@ class SolverParams:
         damping: Velocity damping rate [1/s]: ``v *= exp(-damping dt)`` per step, >= 0.
         fast_summation: Region sums by prefix scans along paths (True) or direct gather (False).
         volume_stiffness: Stiffness of the volume constraints in [0, 1].
+        volume_along_normals: The volume constraints move the skin along its surface normals
+            (a third of each vertex's triangles' area-weighted normals, the surface part of
+            the volume gradient), weighted by inverse masses floored at the skin's median mass,
+            in place of the paper's full gradient and inverse masses: a cut loop's vertices do
+            not slide along the bone by the closing fans' part of the gradient, and thin tissue
+            (light particles near their bone) does not take most of a sub-volume's correction.
+            ``warpskin pop`` turns it on (a pop's volume is taken back near the muscle, not at
+            a neck's thin tissue), its normal-only guide too.
         tether: Every particle stays within ``tether x its vertex's tissue depth + tether_floor
             x the body's diagonal`` of its LBS target (a maximum-distance constraint, applied
             once per step after the elasticity loop; the volume loop may then move a particle
@@ -79,6 +87,7 @@ class SolverParams:
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     damping: float = 2.0
     fast_summation: bool = False
+    volume_along_normals: bool = False
     volume_stiffness: float = 1.0
     tether: float = 1.5
     tether_floor: float = 0.01
@@ -179,13 +188,14 @@ class SkinSolver:
                 if self.params.fast_summation:
                     raise SceneError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
                 self.region_rest_offsets = wp.clone(model.region_rest_offsets)
-            # volume constraints
+            # volume constraints, and their weights' inverse masses
+            self._volume_inv_mass = model.volume_inv_mass if self.params.volume_along_normals else model.particle_inv_mass
             self.volume = None
             self.volume_weight_scale = wp.ones(n, dtype=wp.float32)
             if model.subvolume_count and self.params.volume_iterations > 0:
                 from .volume import VolumeConstraints
 
-                self.volume = VolumeConstraints(model)
+                self.volume = VolumeConstraints(model, along_normals=self.params.volume_along_normals)
                 self.volume_centres = self.volume.centers  # its fan centres, posed every step
             # a refined skin: the written mesh's volume on the loaded vertices, then the
             # sub-volumes again on the added ones (see step)
@@ -193,7 +203,8 @@ class SkinSolver:
             if self.volume is not None and model.written_surface is not None:
                 from .volume import VolumeConstraints
 
-                self.written_volume = VolumeConstraints(model.written_surface, device=dev)
+                self.written_volume = VolumeConstraints(model.written_surface, device=dev,
+                                                        along_normals=self.params.volume_along_normals)
                 self.split_weight_scale = wp.zeros(v, dtype=wp.float32)
             self.collision = None
             if model.collision is not None:
@@ -296,7 +307,7 @@ class SkinSolver:
         # the cap is fused into each iteration's correction launch, against the targets the
         # step's tether wrote (the skinning matrices do not change within a step)
         cap = None if self.tether_radius is None else (self.tether_targets, self.tether_cap, self.tether_clamped)
-        self.volume.project(x, self.model.particle_inv_mass, w, self.volume_centres, p.volume_iterations,
+        self.volume.project(x, self._volume_inv_mass, w, self.volume_centres, p.volume_iterations,
                             p.volume_stiffness, cap=cap)
 
     def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
@@ -315,7 +326,7 @@ class SkinSolver:
         col = self.collision if collide and self.collision.data.fail_safe_rounds > 0 else None
         if col is not None:
             wp.copy(self.x_before_volume, x, count=m.vertex_count)
-        self.written_volume.project(x, m.particle_inv_mass, self.split_weight_scale, self.written_volume.centers, 1,
+        self.written_volume.project(x, self._volume_inv_mass, self.split_weight_scale, self.written_volume.centers, 1,
                                     self.params.volume_stiffness)
         if col is not None:
             # what the projection pushed through goes back (without this, RiggedFigure had 4

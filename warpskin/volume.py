@@ -246,6 +246,9 @@ class VolumeConstraints:
             uploaded here).
         device: Warp device when ``source`` is a ``SubVolumes``; ignored for a model.
         block_dim: Threads per sub-volume in the block reductions on CUDA devices.
+        along_normals: Move the skin along the surface part of the gradient (``d_i``, see
+            :mod:`warpskin.kernels.volume`) instead of the whole gradient (the paper's
+            projection, the default).
 
     Attributes:
         centers: Fan centers [m], ``[C]`` vec3, a buffer for :meth:`center_positions`.
@@ -255,7 +258,10 @@ class VolumeConstraints:
         subvolume_lambda: ``lambda_s`` of the last iteration, ``[S]`` float64.
         pair_gradient: ``grad_i V_s`` [m^2] per pair, ``[P]`` vec3d (last iteration, or
             :meth:`gradients`).
-        pair_weighted_norm: ``w_i |grad_i V_s|^2`` per pair, ``[P]`` float64.
+        pair_direction: ``d_i``, along which the correction moves the vertex [m^2], ``[P]``
+            vec3d: ``grad_i V_s``, or with ``along_normals`` its surface part (without the
+            closing fans' triangles; equal to it off the cut loops).
+        pair_weighted_norm: ``w_i grad_i V_s . d_i`` per pair, ``[P]`` float64.
 
     References:
         Deul, Bender: Physically-based character skinning, VRIPHYS 2013, sections 4.2.2, 4.6.
@@ -270,7 +276,8 @@ class VolumeConstraints:
         particles are all pinned stays.
     """
 
-    def __init__(self, source, *, device=None, block_dim: int = BLOCK_DIM) -> None:
+    def __init__(self, source, *, device=None, block_dim: int = BLOCK_DIM, along_normals: bool = False) -> None:
+        self.along_normals = bool(along_normals)
         if isinstance(source, SubVolumes):
             self.device = resolve_device(device)
             data = upload_volume_layout(volume_layout(source), source, self.device)
@@ -301,6 +308,7 @@ class VolumeConstraints:
             self.subvolume_volume = wp.zeros(self.subvolume_count, dtype=wp.float64)
             self.subvolume_lambda = wp.zeros(self.subvolume_count, dtype=wp.float64)
             self.pair_gradient = wp.zeros(self.pair_count, dtype=wp.vec3d)
+            self.pair_direction = wp.zeros(self.pair_count, dtype=wp.vec3d)
             self.pair_weighted_norm = wp.zeros(self.pair_count, dtype=wp.float64)
             # what the correction launch binds where there is no cap
             self._no_targets = wp.zeros(0, dtype=wp.vec3)
@@ -365,8 +373,9 @@ class VolumeConstraints:
         return out
 
     def gradients(self, x: wp.array, inv_mass: wp.array, weight_scale: wp.array, centers: wp.array) -> None:
-        """Compute :attr:`pair_gradient` (``grad_i V_s`` [m^2]) and :attr:`pair_weighted_norm`
-        (``w_i |grad_i V_s|^2``) at ``x`` without moving anything (one launch)."""
+        """Compute :attr:`pair_gradient` (``grad_i V_s`` [m^2]), :attr:`pair_direction` and
+        :attr:`pair_weighted_norm` (``w_i grad_i V_s . d_i``) at ``x`` without moving anything
+        (one launch)."""
         self._check_all(x, inv_mass, weight_scale, centers)
         self._commands(x, inv_mass, weight_scale, centers, 1.0)[0].launch()
 
@@ -456,8 +465,9 @@ class VolumeConstraints:
                 self.pair_entry_offsets,
                 self.entry_points,
                 self.subvolume_origin,
+                int(self.along_normals),
             ],
-            outputs=[self.pair_gradient, self.pair_weighted_norm],
+            outputs=[self.pair_gradient, self.pair_direction, self.pair_weighted_norm],
             device=d,
             record_cmd=True,
         )
@@ -490,7 +500,7 @@ class VolumeConstraints:
                 self.vertex_pair_offsets,
                 self.vertex_pairs,
                 self.pair_subvolume,
-                self.pair_gradient,
+                self.pair_direction,
                 self.subvolume_lambda,
                 use_cap,
                 cap[0],
