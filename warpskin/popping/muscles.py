@@ -2,15 +2,20 @@
 
 A group is one or more bones of the multi-layer model. Clenched, it swells the fat, muscle and
 skin layers of the skin vertices those bones carry (their dominant bone) outward from the bone,
-as the paper's fusiform muscles: most at mid-bone, nothing at the joints,
+as the paper's fusiform muscles: a belly at mid-bone, nothing at the joints,
 
-    d_v = min(swell * h_v, cap * length_b) * sin(pi t_v)^2 * (x_v - f_v) / |x_v - f_v|
+    b_v = min(swell * h_v, cap * length_b) * (-sin^2(pi t_v) cos(2 pi t_v))
 
-with ``x_v`` the skin vertex at rest, ``f_v`` its foot on the bone's centre line, ``t_v`` in
-[0, 1] the foot's place along the bone, ``h_v`` the depth of fat and muscle there (skin to
-bone layer) and ``length_b`` the bone's length. The rest-shape drive of
-:func:`~warpskin.popping.layered.rest_offset_deltas` turns that into the model's clenched
-rest shape; the physical skin makes the pop.
+along ``(x_v - f_v) / |x_v - f_v|``, with ``x_v`` the skin vertex at rest, ``f_v`` its foot on
+the bone's centre line, ``t_v`` in [0, 1] the foot's place along the bone, ``h_v`` the depth of
+fat and muscle there (skin to bone layer) and ``length_b`` the bone's length. The tissue keeps
+its volume: a thinning around the belly (over the group's bones, their parents and children;
+smooth across the sub-volumes' cut planes; fading out before the skin other bones carry) takes
+back exactly what the belly adds to every sub-volume (:func:`_field`). Without that, the volume constraints took it back
+over the whole sub-volume, moving skin far from the muscle. The rest-shape drive of
+:func:`~warpskin.popping.layered.rest_offset_deltas` turns the swelling into the model's clenched
+rest shape; the physical skin makes the pop; :func:`belly_of_swelling` marks the skin it
+stretches on purpose (which the surface guard lets stretch).
 
 Found automatically: every bone at least ``min_length`` x the character's diagonal long that
 carries at least ``min_vertices`` skin vertices (upper arms, forearms, thighs, calves, a long
@@ -25,15 +30,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import SceneError
 
-__all__ = ["Muscle", "muscles_from_skeleton", "DEFAULT_SWELL"]
+__all__ = ["Muscle", "muscles_from_skeleton", "belly_of_swelling", "DEFAULT_SWELL"]
 
-DEFAULT_SWELL = 0.4
-"""Peak rest-shape swelling, as a share of the fat-plus-muscle depth (the skin rises by about
-half of it once the layers around it give)."""
+DEFAULT_SWELL = 0.3
+"""Peak rest-shape swelling of the belly, as a share of the fat-plus-muscle depth (with the
+thinning around it taken off, the skin rises by most of it)."""
 _CAP = 0.15  # the swelling is at most this share of its bone's length
+_BUFFER = 2  # rings over which the thinning fades towards the skin the group's neighbourhood does not carry
+_SMOOTH = 8  # rings over which the thinning's share passes from one sub-volume to the next
 
 
 @dataclass
@@ -56,25 +64,64 @@ class Muscle:
 
 
 def _profile(t: np.ndarray) -> np.ndarray:
-    """The swelling along the bone, ``t`` in [0, 1]: ``-sin^2(pi t) cos(2 pi t)``, 1 at mid-bone,
-    0 at the joints and at the quarter points, a shallow dip (at most 0.11) between them (the
-    belly gathers from the tendons, half the volume it adds taken from near the ends)."""
+    """The belly along the bone, ``t`` in [0, 1]: ``-sin^2(pi t) cos(2 pi t)``, 1 at mid-bone,
+    0 at the joints and at the quarter points, a shallow dip (at most 0.11) between them."""
     return -np.sin(np.pi * t) ** 2 * np.cos(2.0 * np.pi * t)
 
 
-def _field(layers, bones: np.ndarray, swell: float) -> np.ndarray:
-    """``[V, 3]`` the swelling of the skin vertices whose dominant bone is in ``bones``."""
+def _field(layers, bones: np.ndarray, swell: float, thinning: np.ndarray, volumes) -> np.ndarray:
+    """``[V, 3]`` the clenched swelling of the group of ``bones``.
+
+    The belly: ``min(swell * h_v, cap * length) * _profile(t_v)`` radially from the bone on the
+    skin vertices whose dominant bone is in ``bones``. Its volume is taken back by a thinning
+    ``sum_k m_k * thinning[v, k]`` radially inwards (``thinning [V, S]``: one smooth shape per
+    sub-volume, :func:`muscles_from_skeleton`), ``m`` such that every sub-volume keeps its
+    volume (``volumes(points) -> [S]``): Newton steps with the finite-difference Jacobian of
+    the volumes by ``m`` reach 1e-6 of each (the belly's second-order gain is about ``d / R``
+    of its first, a fifth at a third of a limb's radius: a first-order balance is not enough).
+
+    A clenched muscle keeps its volume (it thickens as it shortens): a swelling that added
+    volume would be taken back by the sub-volume's volume constraint, over all of that
+    sub-volume's skin, far from the muscle too."""
     skin, bone_layer = layers.positions[0], layers.positions[3]
     depth = np.linalg.norm(skin - bone_layer, axis=1)
     radial = skin - layers.foot
     r = np.linalg.norm(radial, axis=1)
-    on = np.isin(layers.bone, bones) & (r > 1e-9) & ~layers.unresolved
+    ok = (r > 1e-9) & ~layers.unresolved
+    on = np.isin(layers.bone, bones) & ok
     length = layers.bones.length[layers.bone]
     t = np.clip(layers.bone_t, 0.0, 1.0)
-    amount = np.minimum(swell * depth, _CAP * length) * _profile(t)
-    out = np.zeros_like(skin)
-    out[on] = (amount[on] / r[on])[:, None] * radial[on]
-    return out
+    amount = np.where(on, np.minimum(swell * depth, _CAP * length) * _profile(t), 0.0)
+    shapes = np.where(ok[:, None], thinning, 0.0)
+    direction = np.zeros_like(skin)
+    direction[ok] = radial[ok] / r[ok][:, None]
+    rest = volumes(skin)
+
+    def excess(m: np.ndarray) -> np.ndarray:
+        return volumes(skin + (amount - shapes @ m)[:, None] * direction) - rest
+
+    used = np.nonzero(shapes.max(axis=0) > 0.0)[0]
+    m = np.zeros(shapes.shape[1])
+    if used.size == 0 or not amount.any():
+        return amount[:, None] * direction
+    step = 1e-4  # [m] the finite differences' thinning
+    base = excess(m)
+    jac = np.zeros((len(rest), used.size))
+    for c, k in enumerate(used):
+        e = np.zeros_like(m)
+        e[k] = step
+        jac[:, c] = (excess(e) - base) / step
+    err = base
+    for _ in range(8):
+        if np.all(np.abs(err) <= 1e-6 * np.abs(rest)):
+            break
+        trial = m.copy()
+        trial[used] -= np.linalg.lstsq(jac, err, rcond=None)[0]
+        new = excess(trial)
+        if np.abs(new).max() >= np.abs(err).max():
+            break  # no longer converging: keep the best
+        m, err = trial, new
+    return (amount - shapes @ m)[:, None] * direction
 
 
 def muscles_from_skeleton(builder, groups: Sequence[str] | None = None, *, swell: float = DEFAULT_SWELL,
@@ -139,11 +186,64 @@ def muscles_from_skeleton(builder, groups: Sequence[str] | None = None, *, swell
             chosen.append((name, bones))
     muscles, fields = [], []
     depth = np.linalg.norm(layers.positions[0] - layers.positions[3], axis=1)
+    rig = builder.rig
+    sub = builder.subvolumes
+    piece = sub.triangle_labels() if sub is not None else np.zeros(len(rig.triangles), dtype=np.int64)
+    count = int(piece.max()) + 1
+    if sub is not None:
+        def volumes(x):
+            return sub.volumes(x, sub.center_rest)
+    else:  # the closed skin as one
+        def volumes(x):
+            t = rig.triangles
+            return np.array([np.einsum("ij,ij->", x[t[:, 0]], np.cross(x[t[:, 1]], x[t[:, 2]])) / 6.0])
+    v = rig.vertex_count
+    edges = np.concatenate([rig.triangles[:, [0, 1]], rig.triangles[:, [1, 2]], rig.triangles[:, [2, 0]]])
+    ring = sp.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(v, v))
+    ring = ((ring + ring.T + sp.identity(v)) > 0).astype(np.float64)
+    average = sp.diags(1.0 / np.asarray(ring.sum(axis=1)).ravel()) @ ring
+    # each vertex's share of each sub-volume's thinning: its sub-volume (most of its triangles),
+    # smoothed over a few rings, so that the thinning is continuous across the cuts
+    votes = np.zeros((v, count))
+    for k in range(3):
+        np.add.at(votes, (rig.triangles[:, k], piece), 1.0)
+    owner = np.zeros((v, count))
+    owner[np.arange(v), votes.argmax(axis=1)] = 1.0
+    for _ in range(_SMOOTH):
+        owner = average @ owner
+    parents = rig.skeleton.parents
+    dominant = rig.joint_indices[np.arange(v), np.argmax(rig.joint_weights, axis=1)]
     for name, bones in chosen:
-        d = _field(layers, np.asarray(bones), swell)
+        hood = sorted(set(bones) | {int(parents[j]) for j in bones if parents[j] >= 0}
+                      | {k for k in range(len(parents)) if parents[k] in bones})
+        share = np.where(np.isin(rig.joint_indices, hood), rig.joint_weights, 0.0).sum(axis=1)
+        # the thinning: where the group's bones, their parents and children carry the vertex
+        # (none where they carry at most half of it), fading to none over _BUFFER rings towards
+        # a vertex that another bone carries most, so that it does not reach the skin beyond
+        near = np.clip(2.0 * share - 1.0, 0.0, 1.0)
+        reached = ~np.isin(dominant, hood)
+        level = np.where(reached, 0, _BUFFER + 1)
+        for k in range(1, _BUFFER + 1):
+            reached = reached | (ring @ reached.astype(np.float64) > 0.0)
+            level = np.where(reached & (level > k), k, level)
+        near = near * np.clip(level / (_BUFFER + 1.0), 0.0, 1.0)
+        d = _field(layers, np.asarray(bones), swell, near[:, None] * owner, volumes)
         moved = np.linalg.norm(d, axis=1)
         on = np.isin(layers.bone, bones) & ~layers.unresolved
         muscles.append(Muscle(name, [names[j] for j in bones], int(np.count_nonzero(moved > 0.0)),
                               float(np.median(depth[on])) if on.any() else 0.0, float(moved.max())))
         fields.append(d)
     return muscles, np.stack(fields)
+
+
+def belly_of_swelling(builder, displacements: np.ndarray, share: float = 0.25) -> np.ndarray:
+    """``[V]`` the skin vertices that some group's clenched swelling (``displacements [G, V, 3]``
+    [m], as :func:`muscles_from_skeleton` returns them) moves outward, away from its bone, by
+    more than ``share`` of that group's largest outward move: the bellies, whose skin the pop
+    stretches on purpose (the thinning and the joints are not)."""
+    layers = builder.layers
+    radial = layers.positions[0] - layers.foot
+    radial /= np.maximum(np.linalg.norm(radial, axis=1), 1e-12)[:, None]
+    out = np.einsum("gvc,vc->gv", np.asarray(displacements, dtype=np.float64), radial)
+    top = np.maximum(out.max(axis=1, keepdims=True), 0.0)
+    return np.any((out > share * top) & (top > 0.0), axis=0)

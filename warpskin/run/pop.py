@@ -158,7 +158,9 @@ def run_popping(
             ``"none"`` or a cage mesh file, as :func:`~warpskin.run.simulate` takes it.
         normal_guide: Layered mode: also simulate the same frames without the pop and write
             that skin beside the result as the guide ``<skin>_normal`` (the paper's normal-only
-            skin; the pop's bulge is measured against it). Doubles the cost.
+            skin; the pop's bulge is measured against it). Doubles the cost. Both run with the
+            volume constraints along the normals (``[solver] volume_along_normals``) unless the
+            scene sets it.
         vibrate: Layered mode: the rest-shape drive follows each group's activation as the
             paper's skin follows its goal (:func:`~warpskin.popping.activation.vibrating`: ringing
             about it while clenched, with ``alpha_min`` per solver step, relaxing monotonely
@@ -256,14 +258,15 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                  swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True) -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
-    from ..popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
+    from ..popping.muscles import DEFAULT_SWELL, belly_of_swelling, muscles_from_skeleton
     from .simulate import simulate
 
     if examples is None and has_examples(scene):
         examples = examples_for_scene(scene)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    plan = FramePlan.for_scene(scene, frames, max_dt=scene.solver_params().dt, start_frame=start_frame)
+    solver = _pop_solver_params(scene)
+    plan = FramePlan.for_scene(scene, frames, max_dt=solver.dt, start_frame=start_frame)
     start, end = float(plan.times[0]), float(plan.times[-1])
     found: list = []
     groups: list[str] = []
@@ -294,6 +297,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         builder.set_rest_drive(muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, start)))
         timeline(list(examples.group_names))
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
+                          solver_params=solver,
                           comment=comment, start_frame=start_frame, topology=topology, builder=builder,
                           activation=activation, report_dir=report_dir)
     else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
@@ -304,14 +308,15 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                 raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats "
                                  f"FILE (muscle groups found: {', '.join(names)})")
             timeline(names)
-            builder.set_rest_drive(rest_offset_deltas(builder, swelling))
+            builder.set_rest_drive(rest_offset_deltas(builder, swelling), swelling=belly_of_swelling(builder, swelling))
 
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
+                          solver_params=solver,
                           comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
                           activation=activation, report_dir=report_dir)
     if normal_guide:  # the same run without the pop, beside it (twice the cost)
         _add_normal_guide(scene, result.path, device=device, frames=frames, start_frame=start_frame,
-                          topology=topology, cage=cage, progress=progress)
+                          topology=topology, cage=cage, progress=progress, solver_params=_pop_solver_params(scene))
     summary = dict(result.summary)
     summary["mode"] = "layered"
     summary["groups"] = groups
@@ -330,10 +335,19 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
 
 
-def _add_normal_guide(scene, path, *, device, frames, start_frame, topology, cage, progress) -> None:
-    """Simulate ``scene`` without the pop (the same frames, cage and topology) and add its skin to
-    the bake at ``path`` as the guide ``<skin>_normal`` (``warpskin:role`` ``normal``); the file
-    is replaced atomically."""
+def _pop_solver_params(scene):
+    """The scene's solver settings for a layered pop and its normal-only guide: the volume
+    constraints along the normals (``volume_along_normals``) unless the scene sets it."""
+    params = scene.solver_params()
+    if "volume_along_normals" not in scene.extra.get("solver", {}):
+        params.volume_along_normals = True
+    return params
+
+
+def _add_normal_guide(scene, path, *, device, frames, start_frame, topology, cage, progress, solver_params) -> None:
+    """Simulate ``scene`` without the pop (the same frames, cage, topology and solver settings)
+    and add its skin to the bake at ``path`` as the guide ``<skin>_normal`` (``warpskin:role``
+    ``normal``); the file is replaced atomically."""
     import os
     import tempfile
 
@@ -345,6 +359,7 @@ def _add_normal_guide(scene, path, *, device, frames, start_frame, topology, cag
     with tempfile.TemporaryDirectory(prefix="warpskin-normal-") as tmp:
         normal = Path(tmp) / "normal.usdc"
         simulate(scene, normal, device=device, frames=frames, start_frame=start_frame, topology=topology, cage=cage,
+                 solver_params=solver_params,
                  progress=progress, comment="normal-only guide")
         src, dst = Usd.Stage.Open(str(normal)), Usd.Stage.Open(str(out))
 
