@@ -191,6 +191,16 @@ def test_cesium_man_pops_on_the_beat(tmp_path, capsys, assets):
         assert o[4:9].mean() - o[:4].mean() > 2e-3, m.name  # millimetres out while clenched
 
 
+def test_pop_help_states_the_default_swell(capsys):
+    import re
+
+    assert main(["pop", "--help"]) == 0
+
+    text = " ".join(capsys.readouterr().out.split())
+    stated = re.search(r"--swell SWELL muscles found from the skeleton: [^(]*\(default ([0-9.]+)\)", text)
+    assert stated and float(stated.group(1)) == DEFAULT_SWELL
+
+
 def test_info_lists_the_muscles_pop_would_use(capsys):
     assert main(["info", "arm", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
