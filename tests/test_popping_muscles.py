@@ -265,3 +265,12 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
             assert series["bulge_mm"][f] == pytest.approx(want, rel=0.03, abs=0.05), (group, f)
         # millimetres out while clenched; before the beat: the same run
         assert max(series["bulge_mm"][7:14]) > 2.0 and series["bulge_mm"][3] == 0.0
+    # the farthest out and in over the run (trimesh's normals, every frame), and their map
+    far = np.zeros((17, np.asarray(skin.Get(0)).shape[0]))
+    for f in range(17):
+        s, b = np.asarray(skin.Get(f), dtype=np.float64), np.asarray(lbs.Get(f), dtype=np.float64)
+        far[f] = np.einsum("ij,ij->i", s - b, trimesh.Trimesh(b, faces, process=False).vertex_normals)
+    assert data["largest_out_mm"] == pytest.approx(1e3 * far.max(), rel=0.03)
+    assert data["largest_in_mm"] == pytest.approx(-1e3 * far.min(), rel=0.03)
+    assert data["largest_out_mm"] > 2.0 and data["largest_in_mm"] > 0.5  # the belly, and the thinning around it
+    assert (report / "popping_map.png").stat().st_size > 10_000

@@ -44,9 +44,14 @@ def belly_of_examples(rig, examples) -> dict[str, np.ndarray]:
     return out
 
 
-def bulge_series(path, bellies: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, list[float]]]:
+def bulge_series(path, bellies: dict[str, np.ndarray], moved: dict | None = None) -> tuple[np.ndarray, dict[str, list[float]]]:
     """``(time codes [F], {group: bulge per frame [m]})`` of the bake at ``path`` (a
-    ``warpskin pop`` output) for the groups' ``bellies`` (bool per written skin vertex)."""
+    ``warpskin pop`` output) for the groups' ``bellies`` (bool per written skin vertex): the
+    skin outside its reference (the normal-only guide, else LBS) along the reference's vertex
+    normals, mean over the belly. With ``moved`` (a dict), it also receives, per written skin
+    vertex, ``"out"`` and ``"in"``, the farthest the skin got outside and inside its reference
+    over the frames [m] (``[N]``, ``>= 0``), ``"rest"`` the skin's rest points ``[N, 3]`` and
+    ``"up"`` the stage's up axis."""
     from pxr import Usd, UsdGeom
 
     from ..preprocess.layers import _vertex_normals  # area-weighted unit normals
@@ -65,29 +70,40 @@ def bulge_series(path, bellies: dict[str, np.ndarray]) -> tuple[np.ndarray, dict
     belly = {g: np.asarray(m, dtype=bool) for g, m in bellies.items()}
     codes = np.array(skin.GetPointsAttr().GetTimeSamples(), dtype=np.float64)
     out: dict[str, list[float]] = {g: [] for g in belly}
+    far_out = far_in = None
     for tc in codes:
         s = np.asarray(skin.GetPointsAttr().Get(tc), dtype=np.float64)
         r = np.asarray(ref.GetPointsAttr().Get(tc), dtype=np.float64)
         outward = np.einsum("ij,ij->i", s - r, _vertex_normals(r, faces))
         for g, sel in belly.items():
             out[g].append(float(outward[sel].mean()) if sel.any() else 0.0)
+        far_out = np.maximum(outward, 0.0) if far_out is None else np.maximum(far_out, outward)
+        far_in = np.maximum(-outward, 0.0) if far_in is None else np.maximum(far_in, -outward)
+    if moved is not None and far_out is not None:
+        moved.update({"out": far_out, "in": far_in, "up": UsdGeom.GetStageUpAxis(stage),
+                      "rest": np.asarray(skin.GetPointsAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)})
     return codes, out
 
 
 def write_popping_report(report_dir, path, bellies: dict[str, np.ndarray], fps: float,
                          activation: Callable[[float, list[str]], np.ndarray]) -> dict:
-    """Write ``popping.json`` (per group: time codes, activation, bulge [mm]) and, with
-    matplotlib, ``popping.png`` (each group's bulge over time, its activation beside it) into
-    ``report_dir``; returns the JSON's content. ``activation(t, groups)``: the activations at
-    clip time ``t`` [s]."""
+    """Write ``popping.json`` (per group: time codes, activation, bulge [mm]; the farthest any
+    skin vertex got outside and inside its reference, ``largest_out_mm`` / ``largest_in_mm``)
+    and, with matplotlib, ``popping.png`` (each group's bulge over time, its activation beside
+    it) and ``popping_map.png`` (the rest pose, front and side, each vertex coloured by how far
+    the pop moved it out or in at most) into ``report_dir``; returns the JSON's content.
+    ``activation(t, groups)``: the activations at clip time ``t`` [s]."""
     report = Path(report_dir)
     report.mkdir(parents=True, exist_ok=True)
-    codes, bulge = bulge_series(path, bellies)
+    moved: dict = {}
+    codes, bulge = bulge_series(path, bellies, moved)
     names = list(bellies)
     act = np.array([activation(tc / fps, names) for tc in codes]).reshape(len(codes), len(names))
     data = {"time_codes": codes.tolist(), "fps": fps,
             "groups": {g: {"belly_vertices": int(np.count_nonzero(bellies[g])), "activation": act[:, k].tolist(),
-                           "bulge_mm": [1e3 * b for b in bulge[g]]} for k, g in enumerate(names)}}
+                           "bulge_mm": [1e3 * b for b in bulge[g]]} for k, g in enumerate(names)},
+            "largest_out_mm": 1e3 * float(moved["out"].max()) if moved else 0.0,
+            "largest_in_mm": 1e3 * float(moved["in"].max()) if moved else 0.0}
     (report / "popping.json").write_text(json.dumps(data, indent=1))
     try:
         import matplotlib
@@ -112,4 +128,30 @@ def write_popping_report(report_dir, path, bellies: dict[str, np.ndarray], fps: 
     fig.tight_layout()
     fig.savefig(report / "popping.png", dpi=100)
     plt.close(fig)
+    if moved:
+        _rest_map(report / "popping_map.png", moved, Path(path).name)
     return data
+
+
+def _rest_map(target: Path, moved: dict, name: str) -> None:
+    """The rest pose seen from the front and the side (with the stage's up axis up), each skin
+    vertex coloured by the farthest the pop moved it out (red) or in (blue) from its reference
+    [mm], the larger of the two; the most moved drawn on top."""
+    import matplotlib.pyplot as plt
+
+    signed = np.where(moved["out"] >= moved["in"], moved["out"], -moved["in"]) * 1e3
+    rest = moved["rest"]
+    up = 2 if moved["up"] == "Z" else 1
+    across, depth = (0, 1) if up == 2 else (0, 2)
+    order = np.argsort(np.abs(signed))
+    top = float(np.abs(signed).max()) or 1.0
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5.5))
+    for ax, (a, view) in zip(axes, [(across, "front"), (depth, "side")]):
+        sc = ax.scatter(rest[order, a], rest[order, up], c=signed[order], s=5, cmap="coolwarm", vmin=-top, vmax=top)
+        ax.set(title=view, aspect="equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.colorbar(sc, ax=axes, label="farthest out (+) or in (-) from the reference over the run [mm]", shrink=0.8)
+    fig.suptitle(f"{name}: where the pop moved the skin (rest pose)", fontsize=8)
+    fig.savefig(target, dpi=100)
+    plt.close(fig)
