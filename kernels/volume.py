@@ -124,15 +124,16 @@ def subvolume_volume_kernel(
 #   w_i = inv_mass_i * weight_scale_i   (weight_scale 0 pins a colliding particle)
 #
 # With along_normals (else d_i = grad_i V_s, the paper's projection), the correction moves
-# the vertex along the surface part of the gradient, d_i (the entries
-# whose two other points are skin vertices): the skin inflates or deflates along its normals.
+# the vertex along the surface part of the gradient, d_i (the entries whose two other points
+# are skin vertices): the skin inflates or deflates along its normals.
 # The fans are a construction that closes the sub-volume at a plane through the bone; along
 # their part of the gradient a vertex of the cut loop would slide along the bone, and most
 # there: the fan's whole area is shared by the loop's few vertices. d_i is taken about p_i,
 # 1/6 sum (p_b - p_i) x (p_c - p_i) over the surface entries (a third of the area-weighted
 # normals of its surface triangles: independent of the origin, which the open ring of a loop
-# vertex would not be otherwise), so d_i = grad_i V_s off the loops. The pair's share of the denominator is w_i grad_i V_s . d_i, so that to first order
-# one projection changes V_s by exactly -k (V_s - V_s^rest).
+# vertex would not be otherwise), so d_i = grad_i V_s off the loops. The pair's share of the
+# denominator is w_i grad_i V_s . d_i, so that to first order one projection changes V_s by
+# exactly -k (V_s - V_s^rest).
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def volume_gradient_kernel(

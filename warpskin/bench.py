@@ -260,7 +260,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         solver.params.fast_summation = fast0
         if solver.volume is not None:
             row["volume_ms"] = _best_ms(
-                lambda f: solver.volume.project(b.x, solver._volume_inv_mass, solver.volume_weight_scale,
+                lambda f: solver.volume.project(b.x, solver.volume_inv_mass, solver.volume_weight_scale,
                                                 solver.volume_centres, params.volume_iterations, params.volume_stiffness),
                 steps, repeat, dev)
         else:

@@ -188,8 +188,8 @@ class SkinSolver:
                 if self.params.fast_summation:
                     raise SceneError("the rest-shape drive (layered popping) needs the direct gather: set fast_summation = false")
                 self.region_rest_offsets = wp.clone(model.region_rest_offsets)
-            # volume constraints, and their weights' inverse masses
-            self._volume_inv_mass = model.volume_inv_mass if self.params.volume_along_normals else model.particle_inv_mass
+            # volume constraints, and the inverse masses of their weights
+            self.volume_inv_mass = model.volume_inv_mass if self.params.volume_along_normals else model.particle_inv_mass
             self.volume = None
             self.volume_weight_scale = wp.ones(n, dtype=wp.float32)
             if model.subvolume_count and self.params.volume_iterations > 0:
@@ -307,7 +307,7 @@ class SkinSolver:
         # the cap is fused into each iteration's correction launch, against the targets the
         # step's tether wrote (the skinning matrices do not change within a step)
         cap = None if self.tether_radius is None else (self.tether_targets, self.tether_cap, self.tether_clamped)
-        self.volume.project(x, self._volume_inv_mass, w, self.volume_centres, p.volume_iterations,
+        self.volume.project(x, self.volume_inv_mass, w, self.volume_centres, p.volume_iterations,
                             p.volume_stiffness, cap=cap)
 
     def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
@@ -326,7 +326,7 @@ class SkinSolver:
         col = self.collision if collide and self.collision.data.fail_safe_rounds > 0 else None
         if col is not None:
             wp.copy(self.x_before_volume, x, count=m.vertex_count)
-        self.written_volume.project(x, self._volume_inv_mass, self.split_weight_scale, self.written_volume.centers, 1,
+        self.written_volume.project(x, self.volume_inv_mass, self.split_weight_scale, self.written_volume.centers, 1,
                                     self.params.volume_stiffness)
         if col is not None:
             # what the projection pushed through goes back (without this, RiggedFigure had 4

@@ -11,8 +11,9 @@ the bone's centre line, ``t_v`` in [0, 1] the foot's place along the bone, ``h_v
 fat and muscle there (skin to bone layer) and ``length_b`` the bone's length. The tissue keeps
 its volume: a thinning around the belly (over the group's bones, their parents and children;
 smooth across the sub-volumes' cut planes; fading out before the skin other bones carry) takes
-back exactly what the belly adds to every sub-volume (:func:`_field`). Without that, the volume constraints took it back
-over the whole sub-volume, moving skin far from the muscle. The rest-shape drive of
+back exactly what the belly adds to every sub-volume (:func:`_field`). Without that, the volume
+constraints took it back over the whole sub-volume, moving skin far from the muscle. The
+rest-shape drive of
 :func:`~warpskin.popping.layered.rest_offset_deltas` turns the swelling into the model's clenched
 rest shape; the physical skin makes the pop; :func:`belly_of_swelling` marks the skin it
 stretches on purpose (which the surface guard lets stretch).
@@ -33,6 +34,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import SceneError
+from ..metrics import signed_volume
+from ..preprocess.fast_summation import vertex_adjacency
 
 __all__ = ["Muscle", "muscles_from_skeleton", "belly_of_swelling", "DEFAULT_SWELL"]
 
@@ -195,12 +198,9 @@ def muscles_from_skeleton(builder, groups: Sequence[str] | None = None, *, swell
             return sub.volumes(x, sub.center_rest)
     else:  # the closed skin as one
         def volumes(x):
-            t = rig.triangles
-            return np.array([np.einsum("ij,ij->", x[t[:, 0]], np.cross(x[t[:, 1]], x[t[:, 2]])) / 6.0])
+            return np.array([signed_volume(x, rig.triangles)])
     v = rig.vertex_count
-    edges = np.concatenate([rig.triangles[:, [0, 1]], rig.triangles[:, [1, 2]], rig.triangles[:, [2, 0]]])
-    ring = sp.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(v, v))
-    ring = ((ring + ring.T + sp.identity(v)) > 0).astype(np.float64)
+    ring = (vertex_adjacency(rig.triangles, v) + sp.identity(v, format="csr")).astype(np.float64)  # self included
     average = sp.diags(1.0 / np.asarray(ring.sum(axis=1)).ravel()) @ ring
     # each vertex's share of each sub-volume's thinning: its sub-volume (most of its triangles),
     # smoothed over a few rings, so that the thinning is continuous across the cuts

@@ -316,7 +316,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                           activation=activation, report_dir=report_dir)
     if normal_guide:  # the same run without the pop, beside it (twice the cost)
         _add_normal_guide(scene, result.path, device=device, frames=frames, start_frame=start_frame,
-                          topology=topology, cage=cage, progress=progress, solver_params=_pop_solver_params(scene))
+                          topology=topology, cage=cage, progress=progress, solver_params=solver)
     summary = dict(result.summary)
     summary["mode"] = "layered"
     summary["groups"] = groups
