@@ -118,6 +118,22 @@ def pose_space_kernel(
 # (1 - alpha)): it overshoots (changes sign) for alpha < 1 and vanishes in one step for alpha = 1.
 # Eq. 4 gives e' = (1 - beta h) e: monotone, no overshoot, for 0 < beta h <= 1.
 # --------------------------------------------------------------------------------------------
+@wp.func
+def vibration_step(o: wp.vec3, u: wp.vec3, goal: wp.vec3, alpha: float, clenching: float, beta: float,
+                   threshold: float, h: float):
+    """One step of eqs. 1-2 (``clenching`` != 0) or eq. 4 of offset ``o`` [m] and its velocity
+    ``u`` [m/s] towards ``goal`` [m]; returns the rows ``(o', u')`` of a 2 x 3 matrix."""
+    if clenching != 0.0:
+        u = (1.0 - alpha) * u + (alpha / h) * (goal - o)
+        o = o + h * u
+    else:
+        o = o + (beta * h) * (goal - o)
+        u = wp.vec3(0.0)
+        if wp.length(goal - o) < threshold:
+            o = goal
+    return wp.matrix_from_rows(o, u)
+
+
 @wp.kernel
 def popping_step_kernel(
     rest_points: wp.array(dtype=wp.vec3),
@@ -159,20 +175,82 @@ def popping_step_kernel(
     if dmax > 0.0:
         alpha = (alpha_min - 1.0) * wp.min(dist / dmax, 1.0) + 1.0
 
-    o = offset[i]
-    u = velocity[i]
-    if group_clenching[group] != 0.0:
-        u = (1.0 - alpha) * u + (alpha / h) * (goal - o)
-        o = o + h * u
-    else:
-        o = o + (beta * h) * (goal - o)
-        u = wp.vec3(0.0)
-        if wp.length(goal - o) < threshold:
-            o = goal
+    step = vibration_step(offset[i], velocity[i], goal, alpha, group_clenching[group], beta, threshold, h)
+    o = wp.vec3(step[0, 0], step[0, 1], step[0, 2])
 
     p = rest_points[i] + normal_displacement[i]
     offset[i] = o
-    velocity[i] = u
+    velocity[i] = wp.vec3(step[1, 0], step[1, 1], step[1, 2])
     points[i] = wp.transform_point(b, p + o)
     goal_points[i] = wp.transform_point(b, p + goal)
     alpha_out[i] = alpha
+
+
+# --------------------------------------------------------------------------------------------
+# The same vibration on a written surface (warpskin.popping.surface): a muscle group's clenched
+# disparity is a fixed rest-pose displacement D_g,i of the written point, the activations and
+# clench flags of every step are tables uploaded once, and the point's stiffness (eq. 3) is
+# measured at rest: alpha_i = (alpha_min - 1) |D_{g_i},i| / max_j |D_{g_i},j| + 1.
+# --------------------------------------------------------------------------------------------
+@wp.kernel
+def surface_vibration_kernel(
+    disparity: wp.array2d(dtype=wp.vec3),
+    disparity_max: wp.array(dtype=wp.float32),
+    activation: wp.array2d(dtype=wp.float32),
+    clenching: wp.array2d(dtype=wp.float32),
+    step: int,
+    alpha_min: float,
+    beta: float,
+    threshold: float,
+    h: float,
+    # read and written
+    offset: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+):
+    """Step ``step`` (a row of ``activation`` and ``clenching``, ``[S, G]``) of the rest-pose
+    popping offset of every point (``disparity [G, N]`` [m], ``disparity_max [G]`` [m])."""
+    i = wp.tid()
+    goal = wp.vec3(0.0)
+    group = int(0)
+    dist = float(-1.0)
+    for g in range(disparity.shape[0]):
+        d = disparity[g, i]
+        goal += activation[step, g] * d
+        length = wp.length(d)
+        if length > dist:
+            dist = length
+            group = g
+    alpha = float(1.0)
+    dmax = disparity_max[group]
+    if dmax > 0.0:
+        alpha = (alpha_min - 1.0) * wp.min(dist / dmax, 1.0) + 1.0
+    out = vibration_step(offset[i], velocity[i], goal, alpha, clenching[step, group], beta, threshold, h)
+    offset[i] = wp.vec3(out[0, 0], out[0, 1], out[0, 2])
+    velocity[i] = wp.vec3(out[1, 0], out[1, 1], out[1, 2])
+
+
+@wp.kernel
+def offset_clearance_kernel(
+    mesh: wp.uint64,
+    base: wp.array(dtype=wp.vec3),
+    offset: wp.array(dtype=wp.vec3),
+    start: float,
+    margin: float,
+    # output
+    scale: wp.array(dtype=wp.float32),
+):
+    """How much of ``offset[i]`` [m] point ``base[i]`` [m] (on ``mesh``) may take without
+    crossing the surface: ``clamp((gap / 2 - margin) / |offset|, 0, 1)``, ``gap`` the distance
+    along the offset to the first surface hit (the ray starts ``start`` [m] along it, past the
+    point's own faces), 1 where nothing is hit within twice the offset plus ``margin``. Half the
+    gap, so two surfaces pushed towards each other both stop short of the middle."""
+    i = wp.tid()
+    d = offset[i]
+    length = wp.length(d)
+    s = float(1.0)
+    if length > 0.0:
+        u = d / length
+        q = wp.mesh_query_ray(mesh, base[i] + u * start, u, 2.0 * (length + margin))
+        if q.result:
+            s = wp.clamp((0.5 * (q.t + start) - margin) / length, 0.0, 1.0)
+    scale[i] = s

@@ -15,6 +15,7 @@ from warpskin.cli import main
 from warpskin.errors import SceneError
 from warpskin.model import SkinModelBuilder
 from warpskin.popping.muscles import DEFAULT_SWELL, muscles_from_skeleton
+from warpskin.popping.surface import DEFAULT_SURFACE_SWELL
 from warpskin.scene import Scene, load_scene
 
 
@@ -197,8 +198,9 @@ def test_pop_help_states_the_default_swell(capsys):
     assert main(["pop", "--help"]) == 0
 
     text = " ".join(capsys.readouterr().out.split())
-    stated = re.search(r"--swell SWELL muscles found from the skeleton: [^(]*\(default ([0-9.]+)\)", text)
-    assert stated and float(stated.group(1)) == DEFAULT_SWELL
+    stated = re.search(r"--swell SWELL muscles found from the skeleton: [^(]*\(default ([0-9.]+); ([0-9.]+) with "
+                       r"--pop-on surface\)", text)
+    assert stated and float(stated.group(1)) == DEFAULT_SWELL and float(stated.group(2)) == DEFAULT_SURFACE_SWELL
 
 
 def test_info_lists_the_muscles_pop_would_use(capsys):

@@ -35,7 +35,7 @@ from .errors import SceneError
 from .guard import GuardParams, SurfaceGuard
 from .quality import WrittenMesh
 
-__all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices"]
+__all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices", "is_caged"]
 
 CAGE_MODES = ("auto", "always", "none")
 RIGID_MODES = ("cage", "joint")
@@ -54,6 +54,17 @@ def check_choices(cage, rigid_pieces: str) -> Path | None:
                              f"got {cage!r}")
         return Path(cage)
     return None
+
+
+def is_caged(rig, cage) -> bool:
+    """Whether ``rig`` is simulated through a cage for the choice ``cage`` (``"auto"``: where
+    its skin is not one closed manifold; ``"always"``; ``"none"``; a cage mesh file)."""
+    if check_choices(cage, "cage") is not None or cage == "always":
+        return True
+    if cage != "auto":
+        return False
+    report = rig.report or rig.validate(raise_on_error=False)
+    return not (report.closed and report.manifold)
 
 
 @dataclass
@@ -118,9 +129,7 @@ class Character:
 
         cage_file = self.cage_file = check_choices(self.cage, self.rigid_pieces)
         rig = self.rig
-        report = rig.report or rig.validate(raise_on_error=False)
-        closed = report.closed and report.manifold
-        self.caged = cage_file is not None or self.cage == "always" or (self.cage == "auto" and not closed)
+        self.caged = is_caged(rig, self.cage)
         t0 = time.perf_counter()
         self.soup = character_soup(rig)
         self.rigid = rigid_pieces(self.soup) if self.caged else np.full(len(self.soup.points), -1)

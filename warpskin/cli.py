@@ -452,17 +452,24 @@ def cmd_pop(args) -> int:
         topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode, beats=_beat_spec(args),
         muscles=_group_entries(args), swell=args.swell, cage=args.cage, report_dir=args.report,
-        normal_guide=not args.no_normal_guide, vibrate=not args.no_vibrate,
+        normal_guide=not args.no_normal_guide, vibrate=not args.no_vibrate, pop_on=args.pop_on,
     )
     s = result.summary
     if args.json:
         return _print_json({"path": str(result.path), "frames": result.frames, **s})
-    if s.get("mode") == "layered":
+    if s.get("mode") == "layered" and s.get("pop_on") == "surface":
+        print(
+            f"wrote {result.path} ({result.frames} frames, on the written meshes: muscles driven by groups {', '.join(s['groups'])} "
+            f"over the physical skin of {s['particles']} particles, {s['mean_step_ms']:.1f} ms per step on "
+            f"{s['device']}); each mesh it moves also written without it as <mesh>_normal"
+        )
+    elif s.get("mode") == "layered":
         print(
             f"wrote {result.path} ({result.frames} frames, layered: the muscle layer of {s['particles']} particles driven "
             f"by groups {', '.join(s['groups'])}, {s['mean_step_ms']:.1f} ms per step on {s['device']}); largest volume "
             f"deviation after the first frame {100 * s['max_volume_deviation']:.2f} %"
         )
+    if s.get("mode") == "layered":
         for m in s.get("muscles", []):
             print(f"  {m['name']}: bones {', '.join(m['joints'])}, {m['vertices']} skin vertices, tissue "
                   f"{m['depth_mm']:.0f} mm deep, swelling up to {m['peak_swell_mm']:.1f} mm")
@@ -698,7 +705,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "is not one closed manifold (auto), always, never, or your own cage FILE, as simulate does")
     s.add_argument("--swell", type=_positive("--swell"),
                    help="muscles found from the skeleton: peak swelling as a share of the fat-plus-muscle depth "
-                        "(default 0.3)")  # DEFAULT_SWELL, which a test compares: the parser imports no kernels
+                        "(default 0.3; 0.4 with --pop-on surface)")  # DEFAULT_SWELL, DEFAULT_SURFACE_SWELL,
+    # which a test compares: the parser imports no kernels
+    s.add_argument("--pop-on", choices=("auto", "layers", "surface"), default="auto",
+                   help="muscles found from the skeleton: swell the multi-layer model's rest shape (layers: the "
+                        "physical skin makes the pop), or the written meshes over the physical skin (surface: the "
+                        "paper's goal-driven skin, one simulation); auto: the surface through a cage, else the layers")
     s.add_argument("-o", "--output", help="output .usdc (default format), .usda or .usd")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
     s.add_argument("--fps", type=_positive("--fps"), help="output frame rate (default: the scene's)")

@@ -13,6 +13,11 @@ and slide back without vibration when the dancer relaxes:
   mesh while relaxing (eq. 4). :class:`PoppingDynamics`, one Warp kernel per step.
 * **Activation**: a clench/relax signal per muscle group over time, keyed to music beats.
   :class:`ActivationTimeline`.
+* **Muscles without examples**: groups found from the skeleton; their clenched shape a fusiform
+  swelling of the multi-layer model's muscle layer (:mod:`warpskin.popping.muscles`, the
+  physical skin makes the pop) or of the written meshes themselves, each written point
+  vibrating by eqs. 1-4 over the physical normal skin (:mod:`warpskin.popping.surface`, the
+  default through a cage).
 * :func:`warpskin.run.run_popping` plays a scene to USD (``warpskin pop``) through the frame
   runner, :func:`warpskin.bench.run_popping_bench` times it.
 

@@ -37,7 +37,7 @@ from ..errors import SceneError
 from ..metrics import signed_volume
 from ..preprocess.fast_summation import vertex_adjacency
 
-__all__ = ["Muscle", "muscles_from_skeleton", "belly_of_swelling", "DEFAULT_SWELL"]
+__all__ = ["Muscle", "muscles_from_skeleton", "belly_of_swelling", "choose_groups", "groups_of_model", "DEFAULT_SWELL"]
 
 DEFAULT_SWELL = 0.3
 """Peak rest-shape swelling of the belly, as a share of the fat-plus-muscle depth (with the
@@ -70,6 +70,27 @@ def _profile(t: np.ndarray) -> np.ndarray:
     """The belly along the bone, ``t`` in [0, 1]: ``-sin^2(pi t) cos(2 pi t)``, 1 at mid-bone,
     0 at the joints and at the quarter points, a shallow dip (at most 0.11) between them."""
     return -np.sin(np.pi * t) ** 2 * np.cos(2.0 * np.pi * t)
+
+
+def neighbourhood(bones: Sequence[int], parents: np.ndarray) -> list[int]:
+    """The joints a group's thinning may use: its ``bones``, their parents and their children."""
+    return sorted(set(bones) | {int(parents[j]) for j in bones if parents[j] >= 0}
+                  | {k for k in range(len(parents)) if parents[k] in bones})
+
+
+def thinning_reach(share: np.ndarray, in_hood: np.ndarray, ring: sp.csr_matrix) -> np.ndarray:
+    """``[V]`` in [0, 1], where a group's thinning may act: ``clip(2 share - 1)`` (none where
+    the neighbourhood's joints carry at most half the vertex, ``share [V]`` their summed
+    weights), faded to none over ``_BUFFER`` rings (``ring``: adjacency, self included) towards
+    a vertex whose dominant joint is outside the neighbourhood (``in_hood [V]`` False), so that
+    it does not reach the skin beyond."""
+    near = np.clip(2.0 * share - 1.0, 0.0, 1.0)
+    reached = ~np.asarray(in_hood, dtype=bool)
+    level = np.where(reached, 0, _BUFFER + 1)
+    for k in range(1, _BUFFER + 1):
+        reached = reached | (ring @ reached.astype(np.float64) > 0.0)
+        level = np.where(reached & (level > k), k, level)
+    return near * np.clip(level / (_BUFFER + 1.0), 0.0, 1.0)
 
 
 def _field(layers, bones: np.ndarray, swell: float, thinning: np.ndarray, volumes) -> np.ndarray:
@@ -127,6 +148,63 @@ def _field(layers, bones: np.ndarray, swell: float, thinning: np.ndarray, volume
     return (amount - shapes @ m)[:, None] * direction
 
 
+def choose_groups(names: Sequence[str], length: np.ndarray, count: np.ndarray, diagonal: float,
+                  groups: Sequence[str] | None, *, min_length: float = 0.08, min_vertices: int = 12,
+                  where: str = "--groups") -> list[tuple[str, list[int]]]:
+    """The muscle groups ``[(name, joint indices)]`` of a skeleton whose bones (joint ``j``:
+    ``names[j]``, ``length[j]`` [m]) carry ``count[j]`` skin vertices, on a character of
+    ``diagonal`` [m]: every bone ``min_length`` x the diagonal long carrying ``min_vertices``
+    (``groups`` None), else the entries of ``groups`` as :func:`muscles_from_skeleton` reads them.
+
+    Raises:
+        SceneError: no group found, or a bad entry (naming it and listing the bones).
+    """
+    names = list(names)
+    carried = [j for j in range(len(names)) if count[j] > 0 and length[j] > 0.0]
+    found = {names[j]: [j] for j in carried if length[j] >= min_length * diagonal and count[j] >= min_vertices}
+    chosen: list[tuple[str, list[int]]] = []
+    if groups is None:
+        if not found:
+            longest = sorted(carried, key=lambda j: -length[j])[:6]
+            raise SceneError(f"no muscle group found from the skeleton (no bone {min_length:g} of the "
+                             f"{diagonal:.3g} m diagonal long that carries {min_vertices} skin vertices; longest: "
+                             f"{', '.join(f'{names[j]} {length[j]:.3g} m' for j in longest)}): "
+                             f"name them with --groups NAME=JOINT_PATTERN")
+        return list(found.items())
+    seen = set()
+    for entry in groups:
+        name, eq, pattern = (str(entry).partition("="))
+        name, pattern = name.strip(), pattern.strip()
+        if not name or (eq and not pattern) or name in seen:
+            raise SceneError(f"{where}: {entry!r}: give NAME or NAME=JOINT_PATTERN, each name once")
+        seen.add(name)
+        if eq:
+            bones = [j for j in carried if fnmatch.fnmatchcase(names[j].lower(), pattern.lower())]
+            if not bones:
+                raise SceneError(f"{where}: {entry!r}: no bone that carries skin matches {pattern!r} (bones: "
+                                 f"{', '.join(names[j] for j in carried[:12])}{', ...' if len(carried) > 12 else ''})")
+        elif name in found:
+            bones = found[name]
+        elif name in names and names.index(name) in carried:
+            bones = [names.index(name)]
+        else:
+            raise SceneError(f"{where}: no muscle group {name!r}; found: {', '.join(found) or 'none'} (or name "
+                             f"one: {name}=JOINT_PATTERN)")
+        chosen.append((name, bones))
+    return chosen
+
+
+def groups_of_model(builder, groups: Sequence[str] | None = None, *, min_length: float = 0.08,
+                    min_vertices: int = 12, where: str = "--groups") -> list[tuple[str, list[int]]]:
+    """The muscle groups ``[(name, joint indices)]`` of a multi-layer model (built here if it
+    is not), by :func:`choose_groups` over the bones its skin vertices project to."""
+    builder.build()
+    layers = builder.layers
+    count = np.bincount(layers.bone[~layers.unresolved], minlength=len(layers.bones.joint_names))
+    return choose_groups(layers.bones.joint_names, layers.bones.length, count, builder.rig.size(), groups,
+                         min_length=min_length, min_vertices=min_vertices, where=where)
+
+
 def muscles_from_skeleton(builder, groups: Sequence[str] | None = None, *, swell: float = DEFAULT_SWELL,
                           min_length: float = 0.08, min_vertices: int = 12,
                           where: str = "--groups") -> tuple[list[Muscle], np.ndarray]:
@@ -149,44 +227,9 @@ def muscles_from_skeleton(builder, groups: Sequence[str] | None = None, *, swell
     """
     if not (isinstance(swell, (int, float)) and 0.0 < swell <= 2.0):
         raise SceneError(f"swell must be in (0, 2] (a share of the tissue depth), got {swell!r}")
-    builder.build()
+    chosen = groups_of_model(builder, groups, min_length=min_length, min_vertices=min_vertices, where=where)
     layers = builder.layers
     names = list(layers.bones.joint_names)
-    count = np.bincount(layers.bone[~layers.unresolved], minlength=len(names))
-    carried = [j for j in range(len(names)) if count[j] > 0 and layers.bones.length[j] > 0.0]
-    diagonal = builder.rig.size()
-    found = {names[j]: [j] for j in carried
-             if layers.bones.length[j] >= min_length * diagonal and count[j] >= min_vertices}
-    chosen: list[tuple[str, list[int]]] = []
-    if groups is None:
-        if not found:
-            longest = sorted(carried, key=lambda j: -layers.bones.length[j])[:6]
-            raise SceneError(f"no muscle group found from the skeleton (no bone {min_length:g} of the "
-                             f"{diagonal:.3g} m diagonal long that carries {min_vertices} skin vertices; longest: "
-                             f"{', '.join(f'{names[j]} {layers.bones.length[j]:.3g} m' for j in longest)}): "
-                             f"name them with --groups NAME=JOINT_PATTERN")
-        chosen = list(found.items())
-    else:
-        seen = set()
-        for entry in groups:
-            name, eq, pattern = (str(entry).partition("="))
-            name, pattern = name.strip(), pattern.strip()
-            if not name or (eq and not pattern) or name in seen:
-                raise SceneError(f"{where}: {entry!r}: give NAME or NAME=JOINT_PATTERN, each name once")
-            seen.add(name)
-            if eq:
-                bones = [j for j in carried if fnmatch.fnmatchcase(names[j].lower(), pattern.lower())]
-                if not bones:
-                    raise SceneError(f"{where}: {entry!r}: no bone that carries skin matches {pattern!r} (bones: "
-                                     f"{', '.join(names[j] for j in carried[:12])}{', ...' if len(carried) > 12 else ''})")
-            elif name in found:
-                bones = found[name]
-            elif name in names and names.index(name) in carried:
-                bones = [names.index(name)]
-            else:
-                raise SceneError(f"{where}: no muscle group {name!r}; found: {', '.join(found) or 'none'} (or name "
-                                 f"one: {name}=JOINT_PATTERN)")
-            chosen.append((name, bones))
     muscles, fields = [], []
     depth = np.linalg.norm(layers.positions[0] - layers.positions[3], axis=1)
     rig = builder.rig
@@ -214,19 +257,9 @@ def muscles_from_skeleton(builder, groups: Sequence[str] | None = None, *, swell
     parents = rig.skeleton.parents
     dominant = rig.joint_indices[np.arange(v), np.argmax(rig.joint_weights, axis=1)]
     for name, bones in chosen:
-        hood = sorted(set(bones) | {int(parents[j]) for j in bones if parents[j] >= 0}
-                      | {k for k in range(len(parents)) if parents[k] in bones})
+        hood = neighbourhood(bones, parents)
         share = np.where(np.isin(rig.joint_indices, hood), rig.joint_weights, 0.0).sum(axis=1)
-        # the thinning: where the group's bones, their parents and children carry the vertex
-        # (none where they carry at most half of it), fading to none over _BUFFER rings towards
-        # a vertex that another bone carries most, so that it does not reach the skin beyond
-        near = np.clip(2.0 * share - 1.0, 0.0, 1.0)
-        reached = ~np.isin(dominant, hood)
-        level = np.where(reached, 0, _BUFFER + 1)
-        for k in range(1, _BUFFER + 1):
-            reached = reached | (ring @ reached.astype(np.float64) > 0.0)
-            level = np.where(reached & (level > k), k, level)
-        near = near * np.clip(level / (_BUFFER + 1.0), 0.0, 1.0)
+        near = thinning_reach(share, np.isin(dominant, hood), ring)
         d = _field(layers, np.asarray(bones), swell, near[:, None] * owner, volumes)
         moved = np.linalg.norm(d, axis=1)
         on = np.isin(layers.bone, bones) & ~layers.unresolved

@@ -44,14 +44,17 @@ def belly_of_examples(rig, examples) -> dict[str, np.ndarray]:
     return out
 
 
-def bulge_series(path, bellies: dict[str, np.ndarray], moved: dict | None = None) -> tuple[np.ndarray, dict[str, list[float]]]:
+def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.ndarray, dict[str, list[float]]]:
     """``(time codes [F], {group: bulge per frame [m]})`` of the bake at ``path`` (a
-    ``warpskin pop`` output) for the groups' ``bellies`` (bool per written skin vertex): the
-    skin outside its reference (the normal-only guide, else LBS) along the reference's vertex
-    normals, mean over the belly. With ``moved`` (a dict), it also receives, per written skin
-    vertex, ``"out"`` and ``"in"``, the farthest the skin got outside and inside its reference
-    over the frames [m] (``[N]``, ``>= 0``), ``"rest"`` the skin's rest points ``[N, 3]`` and
-    ``"up"`` the stage's up axis."""
+    ``warpskin pop`` output) for the groups' ``bellies``: per group a bool mask per written
+    skin vertex, or ``{prim name: mask per vertex of that mesh}`` for a pop that moves several
+    meshes (the skin by its prim name too). Each mesh is measured outside its reference (its
+    ``<name>_normal`` guide, the skin's normal-only guide, else its LBS guide) along the
+    reference's vertex normals; the bulge is the mean over the group's belly vertices of every
+    mesh. With ``moved`` (a dict), it also receives, per written skin vertex, ``"out"`` and
+    ``"in"``, the farthest the skin got outside and inside its reference over the frames [m]
+    (``[N]``, ``>= 0``), ``"rest"`` the skin's rest points ``[N, 3]`` and ``"up"`` the stage's
+    up axis."""
     from pxr import Usd, UsdGeom
 
     from ..preprocess.layers import _vertex_normals  # area-weighted unit normals
@@ -66,19 +69,32 @@ def bulge_series(path, bellies: dict[str, np.ndarray], moved: dict | None = None
         skin, ref = by_role.get("skin"), by_role.get("normal", by_role.get("lbs"))
     if skin is None or ref is None:
         raise ValueError(f"{path}: no skin beside a normal or LBS guide to measure the pop against")
-    faces = np.asarray(skin.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
-    belly = {g: np.asarray(m, dtype=bool) for g, m in bellies.items()}
+    skin_name = skin.GetPrim().GetName()
+    belly = {g: ({skin_name: np.asarray(m, dtype=bool)} if not isinstance(m, dict)
+                 else {k: np.asarray(v, dtype=bool) for k, v in m.items()}) for g, m in bellies.items()}
+    pairs = {skin_name: (skin, ref)}
+    for name in sorted({k for m in belly.values() for k in m} - {skin_name}):
+        guide = by_name.get(f"{name}_normal") or by_name.get(f"{name}_lbs")
+        if name not in by_name or guide is None:
+            raise ValueError(f"{path}: no mesh {name!r} beside a normal or LBS guide to measure the pop against")
+        pairs[name] = (by_name[name], guide)
+    faces = {k: np.asarray(m.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3) for k, (m, _) in pairs.items()}
     codes = np.array(skin.GetPointsAttr().GetTimeSamples(), dtype=np.float64)
     out: dict[str, list[float]] = {g: [] for g in belly}
     far_out = far_in = None
     for tc in codes:
-        s = np.asarray(skin.GetPointsAttr().Get(tc), dtype=np.float64)
-        r = np.asarray(ref.GetPointsAttr().Get(tc), dtype=np.float64)
-        outward = np.einsum("ij,ij->i", s - r, _vertex_normals(r, faces))
-        for g, sel in belly.items():
-            out[g].append(float(outward[sel].mean()) if sel.any() else 0.0)
-        far_out = np.maximum(outward, 0.0) if far_out is None else np.maximum(far_out, outward)
-        far_in = np.maximum(-outward, 0.0) if far_in is None else np.maximum(far_in, -outward)
+        outward = {}
+        for k, (mesh, guide) in pairs.items():
+            s = np.asarray(mesh.GetPointsAttr().Get(tc), dtype=np.float64)
+            r = np.asarray(guide.GetPointsAttr().Get(tc), dtype=np.float64)
+            outward[k] = np.einsum("ij,ij->i", s - r, _vertex_normals(r, faces[k]))
+        for g, masks in belly.items():
+            total = sum(float(outward[k][sel].sum()) for k, sel in masks.items())
+            count = sum(int(np.count_nonzero(sel)) for sel in masks.values())
+            out[g].append(total / count if count else 0.0)
+        o = outward[skin_name]
+        far_out = np.maximum(o, 0.0) if far_out is None else np.maximum(far_out, o)
+        far_in = np.maximum(-o, 0.0) if far_in is None else np.maximum(far_in, -o)
     if moved is not None and far_out is not None:
         moved.update({"out": far_out, "in": far_in, "up": UsdGeom.GetStageUpAxis(stage),
                       "rest": np.asarray(skin.GetPointsAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)})
@@ -100,7 +116,7 @@ def write_popping_report(report_dir, path, bellies: dict[str, np.ndarray], fps: 
     names = list(bellies)
     act = np.array([activation(tc / fps, names) for tc in codes]).reshape(len(codes), len(names))
     data = {"time_codes": codes.tolist(), "fps": fps,
-            "groups": {g: {"belly_vertices": int(np.count_nonzero(bellies[g])), "activation": act[:, k].tolist(),
+            "groups": {g: {"belly_vertices": _count(bellies[g]), "activation": act[:, k].tolist(),
                            "bulge_mm": [1e3 * b for b in bulge[g]]} for k, g in enumerate(names)},
             "largest_out_mm": 1e3 * float(moved["out"].max()) if moved else 0.0,
             "largest_in_mm": 1e3 * float(moved["in"].max()) if moved else 0.0}
@@ -131,6 +147,11 @@ def write_popping_report(report_dir, path, bellies: dict[str, np.ndarray], fps: 
     if moved:
         _rest_map(report / "popping_map.png", moved, Path(path).name)
     return data
+
+
+def _count(mask) -> int:
+    """Vertices in a belly mask, or in every mesh's mask of a ``{prim name: mask}``."""
+    return sum(int(np.count_nonzero(m)) for m in mask.values()) if isinstance(mask, dict) else int(np.count_nonzero(mask))
 
 
 def _rest_map(target: Path, moved: dict, name: str) -> None:

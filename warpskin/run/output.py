@@ -104,7 +104,7 @@ class CharacterOutput:
             self._render_kwargs(writer, render, kw)
         if as_is or render is not None or not self.is_character_mesh(triangles):
             return writer.add_mesh(name, triangles, rest_points=rest, **kw)
-        kw["prim_name"] = self.prim_of(name)
+        kw["prim_name"] = kw.get("prim_name") or self.prim_of(name)
         if self.topology == "welded":
             return writer.add_mesh(name, triangles, rest_points=self.rest, **kw)
         rig = self.rig

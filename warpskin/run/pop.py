@@ -18,12 +18,17 @@ from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene, examples_from_file, has_examples
 from ..popping.layered import muscle_rest_offset_deltas
 from ..popping.pose_space import PoseSpaceDeformer
+from ..character import is_caged
 from ..scene import resolve_scene
 from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping"]
+__all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping", "POP_ON"]
+
+POP_ON = ("auto", "layers", "surface")
+_CLEAR = 2.5e-4  # the gap a surface pop keeps to a surface it meets, in body diagonals
+"""Where muscles found from the skeleton swell (:func:`run_popping`'s ``pop_on``)."""
 
 
 @dataclass
@@ -125,6 +130,7 @@ def run_popping(
     report_dir=None,
     normal_guide: bool = True,
     vibrate: bool = True,
+    pop_on: str = "auto",
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -152,7 +158,8 @@ def run_popping(
             :func:`~warpskin.popping.muscles_from_skeleton` takes them (``name=pattern`` or a
             found group's name); default every group found from the skeleton.
         swell: Their peak swelling as a share of the fat-plus-muscle depth (default
-            :data:`~warpskin.popping.muscles.DEFAULT_SWELL`).
+            :data:`~warpskin.popping.muscles.DEFAULT_SWELL` in the layers,
+            :data:`~warpskin.popping.surface.DEFAULT_SURFACE_SWELL` on the surface).
         cage: Layered mode without examples: ``"auto"`` (an open character simulates through
             an automatic cage, whose muscles pop and carry the written meshes), ``"always"``,
             ``"none"`` or a cage mesh file, as :func:`~warpskin.run.simulate` takes it.
@@ -165,6 +172,12 @@ def run_popping(
             paper's skin follows its goal (:func:`~warpskin.popping.activation.vibrating`: ringing
             about it while clenched, with ``alpha_min`` per solver step, relaxing monotonely
             with ``beta``); ``False``: it follows the activation as it is.
+        pop_on: Layered mode without examples: where the muscles swell. ``"layers"``: the
+            multi-layer model's rest shape (the physical skin makes the pop); ``"surface"``: the
+            written meshes, by the paper's goal-driven skin over the physical normal skin
+            (:mod:`warpskin.popping.surface`; one simulation, the guide free); ``"auto"``
+            (default): the surface through a cage (whose tissue is not the character's), else
+            the layers.
         report_dir: Also write the report there: each muscle group's bulge against its
             activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
             in layered mode beside the simulation's own report.
@@ -191,6 +204,8 @@ def run_popping(
     if mode is not None:
         settings.mode = mode
     settings.check(f"{where}: [popping]")
+    if pop_on not in POP_ON:
+        raise SceneError(f"pop_on must be one of {', '.join(POP_ON)}, got {pop_on!r}")
     if examples is None and not has_examples(scene):
         examples = examples_from_file(scene)  # the file's own clenched blend shapes, if any
     if settings.mode is None:
@@ -199,7 +214,7 @@ def run_popping(
         return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
                             progress=progress, comment=comment, start_frame=start_frame, topology=topology,
                             beats=beats, muscles=muscles, swell=swell, cage=cage, report_dir=report_dir,
-                            normal_guide=normal_guide, vibrate=vibrate)
+                            normal_guide=normal_guide, vibrate=vibrate, pop_on=pop_on)
     if muscles is not None and any("=" in str(m) for m in muscles):
         raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
                          "NAME=JOINT_PATTERN groups need --mode layered")
@@ -248,14 +263,15 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
     skin is ``rig``'s (``bellies`` per welded vertex); returns its folder."""
     from ..popping.report import write_popping_report
 
-    masks = {g: (m[rig.weld_map] if topology == "file" else m) for g, m in bellies.items()}
+    masks = {g: (m[rig.weld_map] if topology == "file" and not isinstance(m, dict) else m) for g, m in bellies.items()}
     write_popping_report(report_dir, path, masks, fps, lambda t, names: settings.activation.sample(t, names))
     return str(report_dir)
 
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
-                 swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True) -> PoppingRun:
+                 swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True,
+                 pop_on="auto") -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
     from ..popping.muscles import DEFAULT_SWELL, belly_of_swelling, muscles_from_skeleton
@@ -270,10 +286,15 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     start, end = float(plan.times[0]), float(plan.times[-1])
     found: list = []
     groups: list[str] = []
+    surface = False
+    surface_bellies: list = []  # per group, {written mesh: belly mask} (on the written surface)
     drive: list = []  # the rest drive's activation over clip time, once the groups are known
 
-    def timeline(names: list[str]) -> None:
+    def timeline(names: list[str], respond: bool = True) -> None:
         groups[:] = names
+        if beats is None and not settings.activation.groups:
+            raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats "
+                             f"FILE (muscle groups found: {', '.join(names)})")
         if beats is not None:
             settings.activation = beats.timeline(names, start, end)
         settings.activation.check_groups(names, "[popping.activation]")
@@ -284,7 +305,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         # the drive follows each group's activation as the paper's skin follows its goal: ringing
         # about it while clenched (alpha_min per solver step), relaxing monotonely (beta)
         drive[:] = [vibrating(raw, start - 1.0 / plan.fps, end + plan.dt, h=plan.dt, alpha=settings.alpha_min,
-                              beta=settings.beta) if vibrate else raw]
+                              beta=settings.beta) if vibrate and respond else raw]
 
     def activation(t: float) -> np.ndarray:
         return drive[0](t)
@@ -300,25 +321,41 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                           solver_params=solver,
                           comment=comment, start_frame=start_frame, topology=topology, builder=builder,
                           activation=activation, report_dir=report_dir)
+    elif pop_on == "surface" or (pop_on == "auto" and is_caged(rig, cage)):  # on the written meshes
+        surface = True
+        made: list = []
+
+        def overlay(character, builder, frames_plan):
+            from ..popping.surface import DEFAULT_SURFACE_SWELL
+
+            pop = _surface_pop(character, builder, frames_plan, settings, muscles,
+                               DEFAULT_SURFACE_SWELL if swell is None else swell, found, timeline, device, vibrate,
+                               surface_bellies)
+            pop.normal_guide = bool(normal_guide)
+            made.append(pop)
+            return pop
+
+        result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
+                          comment=comment, start_frame=start_frame, topology=topology, cage=cage, overlay=overlay,
+                          report_dir=report_dir)
     else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
         def prepare(builder) -> None:
             found[:], swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
-            names = [m.name for m in found]
-            if beats is None and not settings.activation.groups:
-                raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats "
-                                 f"FILE (muscle groups found: {', '.join(names)})")
-            timeline(names)
+            timeline([m.name for m in found])
             builder.set_rest_drive(rest_offset_deltas(builder, swelling), swelling=belly_of_swelling(builder, swelling))
 
         result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
                           solver_params=solver,
                           comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
                           activation=activation, report_dir=report_dir)
-    if normal_guide:  # the same run without the pop, beside it (twice the cost)
+    if normal_guide and not surface:  # the same run without the pop, beside it (twice the cost)
         _add_normal_guide(scene, result.path, device=device, frames=frames, start_frame=start_frame,
                           topology=topology, cage=cage, progress=progress, solver_params=solver)
     summary = dict(result.summary)
     summary["mode"] = "layered"
+    summary["pop_on"] = "surface" if surface else "layers"
+    if surface and made:  # the largest share of an offset the clearance to another surface took back
+        summary["clearance_held"] = made[0].held
     summary["groups"] = groups
     summary["normal_guide"] = bool(normal_guide)
     if found:
@@ -328,11 +365,62 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         from ..popping.report import belly_of_bones, belly_of_examples
 
         render = scene.rig()
-        bellies = (belly_of_examples(render, examples) if examples is not None
-                   else {m.name: belly_of_bones(render, m.joints) for m in found})
-        summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate,
-                                            settings)
+        if surface:  # every written mesh the pop moves, by its prim name
+            from ..io.usd_export import _prim_name
+            from .output import CharacterOutput
+
+            skin_prim = CharacterOutput(render, topology).skin_prim
+            bellies = {}
+            for g, masks in zip(groups, surface_bellies):
+                bellies[g] = {(skin_prim if name == "skin" else _prim_name(name)):
+                              (m[render.weld_map] if name == "skin" and topology == "file" else m)
+                              for name, m in masks.items() if m.any()}
+            summary["popping_report"] = _report(report_dir, result.path, bellies, render, "welded",
+                                                scene.frame_rate, settings)
+        else:
+            bellies = (belly_of_examples(render, examples) if examples is not None
+                       else {m.name: belly_of_bones(render, m.joints) for m in found})
+            summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology,
+                                                scene.frame_rate, settings)
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
+
+
+def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
+                 bellies: list):
+    """The written meshes' muscles (:func:`~warpskin.popping.surface.surface_swelling`) and
+    their goal-driven offset (:class:`~warpskin.popping.surface.SurfacePop`), stepped with the
+    solver's steps of ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh:
+    belly mask per point}``) and sets the activation ``timeline``."""
+    from ..popping.muscles import groups_of_model
+    from ..popping.surface import SurfacePop, belly_of_groups, surface_swelling
+    from ..preprocess.bones import Bones
+    from ..rig import Clip
+
+    soup, rig = character.soup, character.rig
+    bones = builder.layers.bones
+    # the simulated skin's bones into the soup's space (its skinning at the rest pose)
+    rest = builder.rig.skinning_matrices(Clip("rest"), 0.0)
+
+    def moved(p):
+        return np.einsum("jab,jb->ja", rest[:, :3, :3], p) + rest[:, :3, 3]
+
+    stage = Bones(start=moved(bones.start), end=moved(bones.end), joint_names=list(bones.joint_names))
+    chosen = groups_of_model(builder, muscles)  # as `warpskin info` lists them
+    mesh = np.zeros(len(soup.points), dtype=np.int64)
+    for k, (_, start, count) in enumerate(soup.pieces):
+        mesh[start:start + count] = k
+    found[:], swelling = surface_swelling(soup.points, soup.triangles, soup.dense_weights, stage, rig.skeleton.parents,
+                                          chosen, swell=swell, bone_fraction=builder.params.layers.bone,
+                                          mesh_of_point=mesh, device=device)
+    names = [m.name for m in found]
+    bellies[:] = [character.split(mask) for mask in belly_of_groups(soup.points, soup.dense_weights, stage, chosen)]
+    timeline(names, respond=False)  # the points themselves vibrate
+    diagonal = character.rig.size()
+    return SurfacePop(swelling, soup.dense_weights, rig.skinning_matrices(Clip("rest"), 0.0), plan.substep_times(),
+                      lambda t: settings.activation.sample(t, names), h=plan.dt,
+                      alpha_min=settings.alpha_min if vibrate else 1.0, beta=settings.beta,
+                      threshold=settings.threshold, triangles=soup.triangles, margin=_CLEAR * diagonal,
+                      start=1e-5 * diagonal, device=device)
 
 
 def _pop_solver_params(scene):

@@ -30,6 +30,7 @@ __all__ = ["SimulationResult", "simulate"]
 
 _SKIN_COLOR = (0.85, 0.64, 0.52)
 _LBS_COLOR = (0.4, 0.55, 0.85)
+_NORMAL_COLOR = (0.55, 0.75, 0.55)
 
 
 @dataclass
@@ -322,6 +323,7 @@ def simulate(
     physics_weights: dict[str, float] | None = None,
     guard=None,
     prepare: Callable | None = None,
+    overlay: Callable | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
@@ -333,7 +335,13 @@ def simulate(
     precomputed and uploaded once, like the poses). ``prepare(builder)``, where given, is called
     on the model builder of the simulated surface (the skin, or the character's cage) before
     the model is finalised, for example to set the rest-shape drive that ``activation`` drives
-    (layered popping on any character). ``collision``
+    (layered popping on any character). ``overlay(character, builder, plan)``, where given, is
+    called once the character is bound and returns an offset of what is written, stepped with
+    the physics (:class:`~warpskin.popping.surface.SurfacePop`: its ``advance(steps)`` takes a
+    frame's solver steps, its ``offsets(skinning matrices, points) -> [N, 3]`` [m] is added to
+    every written point, before the written meshes are measured; its ``moved`` lists the points
+    it may move); with its ``normal_guide`` true, every mesh it moves is also written without
+    it, as the guide ``<mesh>_normal`` (the skin's: ``<skin>_normal``). ``collision``
     (:class:`~warpskin.collision.CollisionParams`) defaults to the scene's ``[collision]``
     section (on unless disabled). If a frame finds more contact candidates than the buffers
     hold, the frame is run again with larger buffers. ``check_intersections`` counts
@@ -415,6 +423,7 @@ def simulate(
         builder.params.collision = collision
     model = builder.finalize(device)
     character.bind(builder, device=model.device)
+    pop = overlay(character, builder, plan) if overlay is not None else None
     build_s = time.perf_counter() - t_build
     if check_intersections is None:
         check_intersections = report_dir is not None
@@ -425,6 +434,15 @@ def simulate(
     output = CharacterOutput(sim, topology, clip) if caged is None else CharacterOutput(render, topology)
     quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures, output.skin_prim)
     meshes = _meshes_to_write(character, builder, render, with_lbs, with_layers)
+    guided = []  # the meshes the overlay moves, each written without it beside it as a guide
+    if pop is not None and pop.normal_guide:
+        guided = [p for p in character.parts if np.any((pop.moved >= p.start) & (pop.moved < p.start + p.count))]
+        for p in guided:
+            if p.name == "skin":
+                meshes.insert(1, ("normal", meshes[0][1], meshes[0][2], {"color": _NORMAL_COLOR, "purpose": "guide",
+                                                                        "prim_name": f"{output.skin_prim}_normal"}))
+            else:
+                meshes.append((f"{p.name}_normal", p.triangles, p.rest, {"color": _NORMAL_COLOR, "purpose": "guide"}))
     render_deviation = np.zeros(render.output_count)  # the written skin's, per vertex, over the frames
 
     class _Writes:
@@ -446,6 +464,13 @@ def simulate(
             # the surface's LBS of the frame: the tether's targets of its last step, where it stepped
             targets = stepper.solver.tether_targets if (i > 0 and params.tether > 0) else None
             written = character.written(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all, surface_lbs=targets)
+            normal = written
+            if pop is not None:  # the overlay's offsets, stepped with the physics
+                if i > 0:
+                    pop.advance(plan.substeps)
+                every = np.concatenate([written[p.name] for p in character.parts])
+                offsets = character.split(pop.offsets(render.skinning_matrices(clip, t), every))
+                written = {k: v + offsets[k] for k, v in written.items()}
             lbs_by = character.split(lbs_all)
             quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
             out = dict(written) if caged is not None else {"skin": written["skin"]}
@@ -455,6 +480,8 @@ def simulate(
             deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
             render_deviation[:] = np.maximum(render_deviation, deviation)
             out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
+            for p in guided:
+                out["normal" if p.name == "skin" else f"{p.name}_normal"] = normal[p.name]
             if with_lbs:
                 out["lbs"] = lbs
                 if caged is not None:

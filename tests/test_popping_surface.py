@@ -1,0 +1,266 @@
+"""Popping on the written surface (an open character through its cage): the swelling's closed
+form, its first-order volume, its reach, the paper's per-point vibration against NumPy, the
+clearance to another surface, and ``warpskin pop`` on an open multi-piece character."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from pxr import Usd, UsdGeom
+
+from characters import mannequin_file
+from test_characters import _assert_keeps_its_surface, written_quality
+from warpskin.cli import main
+from warpskin.popping.muscles import _profile
+from warpskin.popping.surface import SurfacePop, belly_of_groups, clench_table, surface_swelling
+from warpskin.preprocess.bones import Bones
+
+R = 0.0473  # [m] the tube's radius (generic)
+L = 0.3117  # [m] every bone's length
+
+
+def _tube(bones: int, segments: int = 37, rings_per_bone: int = 29, radius: float = R):
+    """An open tube along +y over ``bones`` bones of length ``L`` (joint k at y = k L), each
+    ring skinned wholly to the bone it lies on (half-rings off the joints: no tie)."""
+    y = (np.arange(bones * rings_per_bone) + 0.5) * (L / rings_per_bone)
+    a = 2.0 * np.pi * (np.arange(segments) + 0.25) / segments
+    pts = np.array([(radius * np.cos(u), yy, radius * np.sin(u)) for yy in y for u in a])
+    tris = []
+    for r in range(len(y) - 1):
+        for s in range(segments):
+            i, j = r * segments + s, r * segments + (s + 1) % segments
+            tris += [(i, j + segments, j), (i, i + segments, j + segments)]
+    weights = np.zeros((len(pts), bones + 1))
+    weights[np.arange(len(pts)), np.minimum((pts[:, 1] // L).astype(int), bones - 1)] = 1.0
+    start = np.array([(0.0, k * L, 0.0) for k in range(bones + 1)])
+    end = np.array([(0.0, (k + 1) * L, 0.0) for k in range(bones + 1)])
+    skeleton = Bones(start=start, end=end, joint_names=[f"b{k}" for k in range(bones + 1)])
+    parents = np.arange(bones + 1) - 1
+    return pts, np.array(tris), weights, skeleton, parents
+
+
+def _outward_normal_flux(points, tris, field) -> float:
+    """sum over the surface of (displacement . normal) dA, by trimesh's face areas and normals."""
+    mesh = trimesh.Trimesh(points, tris, process=False)
+    flux = 0.0
+    for k in range(3):
+        flux += np.sum(mesh.area_faces / 3.0 * np.einsum("ij,ij->i", field[tris[:, k]], mesh.face_normals))
+    return float(flux)
+
+
+def test_the_belly_is_the_closed_form_and_the_thinning_keeps_the_volume():
+    # bones b0 (parent), b1 (the group), b2 (child), b3 (beyond the neighbourhood)
+    pts, tris, w, bones, parents = _tube(4)
+    swell = 0.15  # the tube stretches by 0.15 * 0.8 < 25 % around: the stretch limit is not reached
+    muscles, field = surface_swelling(pts, tris, w, bones, parents, [("biceps", [1])], swell=swell)
+    (m,), f = muscles, field[0]
+    # the depth: 0.8 of the way to the bone, but no deeper than half the tube is thick (the
+    # 37-gon's vertex to the edge across: R (1 + cos(pi / 37)))
+    half = 0.5 * R * (1.0 + np.cos(np.pi / 37))
+    assert m.name == "biceps" and m.joints == ["b1"] and m.depth_m == pytest.approx(0.8 * half, rel=1e-5)
+    t = (pts[:, 1] - L) / L
+    radial = pts * np.array([1.0, 0.0, 1.0])
+    radial /= np.linalg.norm(radial, axis=1)[:, None]
+    out = np.einsum("ij,ij->i", f, radial)
+    # nothing but radial motion
+    assert np.allclose(f - out[:, None] * radial, 0.0, atol=1e-12)
+    # the belly (where the profile is 1, no thinning there) is swell * depth, closed form
+    on = (t > 0) & (t < 1)
+    depth = np.full(len(pts), 0.8 * half)
+    mid = on & (_profile(np.clip(t, 0, 1)) > 0.999)
+    assert mid.any()
+    assert np.allclose(out[mid], swell * depth[mid] * _profile(t[mid]), rtol=2e-3)
+    # elsewhere on the bone it is the profile less one thinning depth times (1 - profile)
+    p = _profile(np.clip(t, 0, 1))
+    sel = on & (p > 0.05) & (p < 0.95)
+    thin = (swell * depth * p - out)[sel] / (1.0 - p[sel])
+    assert np.ptp(thin) < 1e-4 * thin.mean() and 0.0 < thin[0] < 0.25 * swell * 0.8 * half  # (float32 rays)
+    # first-order volume: the flux through the tube is zero (the thinning is not capped here)
+    gain = _outward_normal_flux(pts, tris, np.where(on[:, None], (swell * depth * p)[:, None] * radial, 0.0))
+    assert gain > 0.0
+    assert abs(_outward_normal_flux(pts, tris, f)) < 1e-6 * gain
+    # the skin of the bone beyond the child is not the neighbourhood's: it never moves
+    assert np.all(f[pts[:, 1] > 3 * L] == 0.0)
+
+
+def test_a_piece_near_the_belly_keeps_it_from_moving_there():
+    pts, tris, w, bones, parents = _tube(3)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.0311)
+    centre = np.array([R + 0.0217, 1.5 * L, 0.0])  # beside the belly, cutting into the tube
+    ball = sphere.vertices + centre
+    all_pts = np.concatenate([pts, ball])
+    all_tris = np.concatenate([tris, sphere.faces + len(pts)])
+    ball_w = np.zeros((len(ball), w.shape[1]))
+    ball_w[:, 0] = 1.0  # carried by another bone
+    muscles, field = surface_swelling(all_pts, all_tris, np.concatenate([w, ball_w]), bones, parents,
+                                      [("biceps", [1])], swell=0.15)
+    f = np.linalg.norm(field[0][: len(pts)], axis=1)
+    peak = 0.15 * 0.8 * R
+    gap = np.linalg.norm(pts - centre, axis=1) - 0.0311  # to the sphere (within 0.3 % of its radius)
+    assert np.all(f[np.abs(gap) < 0.9 * peak] == 0.0)  # where it nears the ball, the tube stays
+    far = (gap > 3.2 * peak) & (np.abs(pts[:, 1] - 1.5 * L) < 0.05 * L)
+    assert far.any() and np.all(f[far] > 0.9 * peak)  # away from it, the belly is whole
+    assert np.all(field[0][len(pts):] == 0.0)  # the ball is another bone's
+
+
+def test_no_edge_stretches_more_than_a_quarter():
+    pts, tris, w, bones, parents = _tube(3, segments=9, rings_per_bone=7)  # a coarse tube
+    _, field = surface_swelling(pts, tris, w, bones, parents, [("biceps", [1])], swell=1.3)
+    x = pts + field[0]
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    ratio = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1) / np.linalg.norm(pts[e[:, 0]] - pts[e[:, 1]], axis=1)
+    assert np.abs(ratio - 1.0).max() <= 0.25 + 1e-9
+    assert np.abs(ratio - 1.0).max() > 0.2  # and it still swells as far as that allows
+
+
+def _reference_vibration(disparity, activation, alpha_min, beta, h, threshold):
+    """Son & Han eqs. 1-4 per point in NumPy: the offsets after every step ``[S, N, 3]``."""
+    g, n = disparity.shape[:2]
+    lengths = np.linalg.norm(disparity, axis=2)  # [G, N]
+    group = np.argmax(lengths, axis=0)
+    dist = lengths[group, np.arange(n)]
+    top = lengths.max(axis=1)
+    alpha = np.where(top[group] > 0, (alpha_min - 1.0) * np.minimum(dist / np.where(top[group] > 0, top[group], 1), 1)
+                     + 1.0, 1.0)
+    o, u = np.zeros((n, 3)), np.zeros((n, 3))
+    prev, clench = np.zeros(g), np.zeros(g, dtype=bool)
+    out = []
+    for a in activation:
+        clench = np.where(a > prev, True, np.where(a < prev, False, clench))
+        prev = a
+        goal = np.einsum("g,gnc->nc", a, disparity)
+        for i in range(n):
+            if clench[group[i]]:
+                u[i] = (1.0 - alpha[i]) * u[i] + alpha[i] / h * (goal[i] - o[i])
+                o[i] = o[i] + h * u[i]
+            else:
+                o[i] = o[i] + beta * h * (goal[i] - o[i])
+                u[i] = 0.0
+                if np.linalg.norm(goal[i] - o[i]) < threshold:
+                    o[i] = goal[i]
+        out.append(o.copy())
+    return np.array(out)
+
+
+def test_the_points_vibrate_by_the_papers_rules(device):
+    rng = np.random.default_rng(7)
+    disparity = rng.normal(size=(2, 5, 3)) * 0.004
+    disparity[1, :2] = 0.0
+    h, steps = 1.0 / 240.0, 80
+    times = (np.arange(steps) + 1) * h
+    acts = np.stack([(times > 0.021) & (times < 0.151), (times > 0.0433) & (times < 0.0917)], axis=1) * \
+        np.array([1.0, 0.7])
+    table = {round(t, 9): a for t, a in zip(times, acts)}
+    weights = np.zeros((5, 2))
+    weights[:, 0] = 1.0
+    pop = SurfacePop(disparity, weights, np.tile(np.eye(4), (2, 1, 1)), times, lambda t: table[round(t, 9)], h=h,
+                     alpha_min=0.13, beta=30.0, threshold=1e-5, device=device)
+    ref = _reference_vibration(disparity, acts, 0.13, 30.0, h, 1e-5)
+    got = []
+    for _ in range(steps):
+        pop.advance(1)
+        got.append(pop.offsets(np.tile(np.eye(4), (2, 1, 1))))
+    assert np.allclose(np.array(got), ref, atol=2e-6)
+    assert np.abs(ref).max() > 1e-3 and ref[40:].std() > 0  # it moved, and it rang
+    assert np.array_equal(clench_table(acts), np.where(
+        np.stack([(times > 0.021) & (times < 0.151), (times > 0.0433) & (times < 0.0917)], axis=1), 1.0, 0.0))
+    # posed: the rest-pose offset is carried by the point's skinning, L(t) L_rest^-1 o
+    turn = np.eye(4)
+    turn[:3, :3] = trimesh.transformations.rotation_matrix(0.6, [0, 0, 1])[:3, :3]
+    rest = np.tile(np.eye(4), (2, 1, 1))
+    rest[1, :3, :3] = trimesh.transformations.rotation_matrix(-0.2, [1, 0, 0])[:3, :3]
+    weights[:, :] = [[0.7, 0.3]]
+    pop = SurfacePop(disparity, weights, rest, times, lambda t: table[round(t, 9)], h=h, alpha_min=0.13, beta=30.0,
+                     threshold=1e-5, device=device)
+    pop.advance(30)
+    posed = np.stack([turn, np.eye(4)])
+    blend = lambda m: 0.7 * m[0, :3, :3] + 0.3 * m[1, :3, :3]  # noqa: E731
+    want = (blend(posed) @ np.linalg.inv(blend(rest)) @ ref[29].T).T
+    assert np.allclose(pop.offsets(posed), want, atol=2e-6)
+
+
+def test_an_offset_stops_at_half_the_gap_to_a_surface(device):
+    # a patch pushed towards a wall 13.1 mm above it keeps half the gap less the margin
+    g = np.linspace(-0.01, 0.01, 4)
+    patch = np.array([(x, y, 0.0) for y in g for x in g])
+    ptris = np.array([(r * 4 + c, r * 4 + c + 1, r * 4 + c + 5) for r in range(3) for c in range(3)]
+                     + [(r * 4 + c, r * 4 + c + 5, r * 4 + c + 4) for r in range(3) for c in range(3)])
+    wall = np.array([(-0.1, -0.1, 0.0131), (0.1, -0.1, 0.0131), (0.1, 0.1, 0.0131), (-0.1, 0.1, 0.0131)])
+    points = np.concatenate([patch, wall])
+    tris = np.concatenate([ptris, np.array([(0, 1, 2), (0, 2, 3)]) + 16])
+    disparity = np.zeros((1, 20, 3))
+    disparity[0, :16, 2] = 0.0202
+    weights = np.zeros((20, 1))
+    weights[:, 0] = 1.0
+    eye = np.eye(4)[None]
+    pop = SurfacePop(disparity, weights, eye, [0.01] * 3, lambda t: np.ones(1), h=0.01, alpha_min=1.0, beta=30.0,
+                     triangles=tris, margin=0.0004, start=1e-6, device=device)
+    pop.advance(3)  # alpha 1: on the goal at once
+    free = pop.offsets(eye)
+    assert np.allclose(free[:16, 2], 0.0202, atol=1e-7)
+    held = pop.offsets(eye, points)
+    assert np.allclose(held[:16, 2], 0.5 * 0.0131 - 0.0004, atol=2e-6)
+    assert np.all(held[16:] == 0.0) and pop.held == pytest.approx(1.0 - (0.5 * 0.0131 - 0.0004) / 0.0202, abs=1e-4)
+
+
+def _child(names, parents, j: int) -> int:
+    """The joint a limb bone ends at: its child with the same side suffix."""
+    return int(next(k for k in np.nonzero(np.asarray(parents) == j)[0] if names[k][-2:] == names[j][-2:]))
+
+
+def _meshes(stage):
+    root = stage.GetDefaultPrim()
+    return {p.GetName(): UsdGeom.Mesh(p) for p in root.GetChildren() if p.IsA(UsdGeom.Mesh)}
+
+
+def test_an_open_character_pops_on_its_written_surface(tmp_path, capsys, device):
+    # the open mannequin (37 pieces, shoes and fists) through its cage: the beat at 0.2037 s
+    # (between frames 6 and 7 at 30 fps, off every step), held 0.25 s
+    from warpskin.rig import Clip
+    from warpskin.scene import Scene
+
+    glb = mannequin_file(tmp_path)
+    out = tmp_path / "pop.usdc"
+    assert main(["pop", str(glb), "--clip", "walk", "--frames", "0:16", "--bpm", "120", "--offset", "0.2037",
+                 "--quiet", "--device", device, "-o", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["pop_on"] == "surface" and summary["cage"] is not None
+    stage = Usd.Stage.Open(str(out))
+    meshes = _meshes(stage)
+    assert {"body", "body_normal", "body_lbs"} <= set(meshes)
+    assert meshes["body_normal"].GetPrim().GetCustomDataByKey("warpskin:role") == "normal"
+    rig = Scene.from_rig_file(glb).rig()
+    body, normal = meshes["body"], meshes["body_normal"]
+    codes = body.GetPointsAttr().GetTimeSamples()
+    x = np.array([np.asarray(body.GetPointsAttr().Get(c), dtype=np.float64) for c in codes])
+    n = np.array([np.asarray(normal.GetPointsAttr().Get(c), dtype=np.float64) for c in codes])
+    assert np.array_equal(x[:7], n[:7])  # nothing before the beat
+    # each group's belly: the file vertices on the middle of its bone (dominant joint; foot
+    # between 30 % and 70 % of it), out along the normal-only skin's normals by 20 % of the
+    # depth there at least, within one frame of the beat
+    faces = np.asarray(body.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    rest = np.asarray(body.GetPointsAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)
+    names = list(rig.skeleton.joint_names)
+    joints = rig.joint_world_transforms(Clip("rest"), 0.0)[:, :3, 3]
+    dom = rig.joint_indices[np.arange(rig.vertex_count), np.argmax(rig.joint_weights, axis=1)][rig.weld_map]
+    out_by_frame = np.array([np.einsum("ij,ij->i", x[k] - n[k], trimesh.Trimesh(n[k], faces, process=False)
+                                       .vertex_normals) for k in range(len(codes))])
+    limbs = [m for m in summary["muscles"] if m["name"] != "chest"]  # the chest: a rounded box, no limb
+    assert len(limbs) == 8
+    for m in limbs:
+        j = names.index(m["joints"][0])
+        a, b = joints[j], joints[_child(names, rig.skeleton.parents, j)]
+        axis = (b - a) / np.linalg.norm(b - a)
+        t = np.einsum("ij,j->i", rest - a, axis) / np.linalg.norm(b - a)
+        belly = (dom == j) & (t > 0.3) & (t < 0.7)
+        depth = 0.8 * np.linalg.norm(np.cross(rest[belly] - a, axis), axis=1)
+        bulge = out_by_frame[7:9, belly].mean(axis=1).max()
+        assert bulge > 0.2 * np.median(depth), m["name"]
+    # the skin of bones more than two away from every group never moves
+    far = np.isin(dom, [names.index("head"), names.index("toe_l"), names.index("toe_r")])
+    assert far.any() and np.array_equal(x[:, far], n[:, far])
+    q = written_quality(out)
+    _assert_keeps_its_surface({k: v for k, v in q.items() if not k.endswith("_normal")}, 17)

@@ -1,0 +1,361 @@
+"""Muscles on the written surface: the pop of a character simulated through a cage.
+
+A cage is coarser and deeper than the character it carries (its tissue under an upper arm is
+the cage's, not the arm's), and the capture carries only part of a cage's bulge to the meshes
+that are written. So where the character is simulated through a cage, the muscles swell the
+**written** meshes themselves, by the paper's method (Son & Han 2007): each group's clenched
+example is its rest-pose swelling (below); the normal skin is the physical skin the cage
+carries; every written point follows its goal, normal plus the activated swelling, with the
+goal-driven vibration while clenching and the monotone relaxation afterwards (eqs. 1-4, one
+Warp kernel per solver step, :func:`warpskin.kernels.popping.surface_vibration_kernel`).
+
+The swelling of a group of bones, per written point ``x`` whose dominant joint is one of them,
+radially from the bone's centre line (``f`` the point's foot on that line, ``t`` in [0, 1] its
+place along the bone, :func:`bone_coordinates`):
+
+    b(x) = min(swell * depth, cap * length) * (-sin^2(pi t) cos(2 pi t)),
+    depth = bone * min(|x - f|, thickness / 2)
+
+(``bone``: the model's bone-layer fraction, so ``depth`` is the fat-plus-muscle depth the
+layered model gives that point, but no more than half the part is thick, the shape diameter
+along the inward normal; ``length``: the bone's). Points one mesh holds at one position (seams,
+flat shading) are one point of its surface. Then, in this order:
+
+* **clearance**: none where another connected piece is nearer than the belly's peak at rest (a
+  limb's end inside a ball joint), all of it beyond three times the peak;
+* **volume**: a thinning takes back the swelling's flux ``sum_i A_i n_i . d_i`` (area-weighted
+  normals: its volume to first order) on every connected piece, lying on the neighbourhood's
+  skin away from the belly (the ends of the group's bones, their parents' and children's skin
+  where those carry most of it, :func:`~warpskin.popping.muscles.thinning_reach`), at most a
+  quarter of the belly's peak deep (a piece with little skin to thin keeps part of the gain);
+* **stretch**: the swelling is scaled down locally until no edge is stretched or shortened by
+  more than a quarter of its length (a coarse piece is not stretched across one edge).
+
+The skin beyond the groups' bones, their parents and children never moves. While the skin is
+written, each offset also stops at half the gap to any surface it would meet in that frame
+(:meth:`SurfacePop.offsets`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+import warp as wp
+
+from ..errors import SceneError
+from ..kernels import popping as _k
+from ..preprocess.fast_summation import vertex_adjacency
+from .muscles import _CAP, Muscle, _profile, neighbourhood, thinning_reach
+
+__all__ = ["DEFAULT_SURFACE_SWELL", "surface_swelling", "bone_coordinates", "belly_of_groups", "clench_table", "SurfacePop"]
+
+DEFAULT_SURFACE_SWELL = 0.4
+"""Peak swelling of a belly on the written surface, as a share of the fat-plus-muscle depth
+(its belly's mean rises by about 0.7 of it; the clearance and the stretch limit take a little)."""
+_THIN = 0.25  # the thinning is at most this share of the belly's peak
+_STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
+
+
+def _area_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``[N, 3]`` a third of the summed (area x unit normal) of each point's triangles [m^2]."""
+    p = points[triangles]
+    cross = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    out = np.zeros_like(points)
+    for k in range(3):
+        np.add.at(out, triangles[:, k], cross / 3.0)
+    return out
+
+
+def _smooth(x: np.ndarray) -> np.ndarray:
+    """The smoothstep ``3 x^2 - 2 x^3`` of ``x`` in [0, 1]."""
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _stretch_limit(points: np.ndarray, field: np.ndarray, edges: np.ndarray, lengths: np.ndarray,
+                   ring: sp.csr_matrix, passes: int = 8) -> np.ndarray:
+    """``[N]`` factors in [0, 1] such that ``points + field * factor`` (``[N, 3]`` [m])
+    stretches or shortens no edge (``edges [E, 2]``, rest ``lengths [E]`` [m]) by more than
+    ``_STRETCH`` of its length: a bulge no steeper than the mesh can carry, so a coarse piece
+    is not stretched across one edge. Each pass takes every point's factor down by what its
+    worst edge asks (the stretch is nearly linear in the factor), eased over its ring
+    (``ring``: adjacency, self included)."""
+    n = len(field)
+    factor = np.ones(n)
+    mean = sp.diags(1.0 / np.asarray(ring.sum(axis=1)).ravel()) @ ring
+    for _ in range(passes):
+        x = points + field * factor[:, None]
+        change = np.abs(np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / lengths - 1.0)
+        allowed = np.where(change > _STRETCH, _STRETCH / np.maximum(change, 1e-30), np.inf)
+        if allowed.min() >= 1.0 - 1e-9:
+            break
+        cut = np.ones(n)
+        np.minimum.at(cut, edges[:, 0], allowed)
+        np.minimum.at(cut, edges[:, 1], allowed)
+        cut = np.minimum(cut, mean @ cut)  # the neighbours of a cut point give a little too
+        factor *= np.clip(cut, 0.0, 1.0)
+    return factor
+
+
+def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray) -> np.ndarray:
+    """``[N]`` each point's distance to the nearest other connected piece [m] (``inf`` for a
+    single piece): to samples of its triangles (a 4 x 4 barycentric grid on each), which is the
+    distance to its surface to within an eighth of an edge."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(points), np.inf)
+    pieces = np.unique(piece)
+    if pieces.size < 2:
+        return out
+    k = 4
+    bary = np.array([(i, j, k - i - j) for i in range(k + 1) for j in range(k + 1 - i)], dtype=np.float64) / k
+    samples = np.einsum("sc,tcd->tsd", bary, points[triangles]).reshape(-1, 3)
+    owner = np.repeat(piece[triangles[:, 0]], len(bary))
+    for k in pieces:
+        mine = piece == k
+        others = owner != k
+        if others.any():
+            out[mine] = cKDTree(samples[others]).query(points[mine])[0]
+    return out
+
+
+def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: np.ndarray, bones, parents: np.ndarray,
+                     groups: Sequence[tuple[str, Sequence[int]]], *, swell: float,
+                     bone_fraction: float = 0.8, mesh_of_point: np.ndarray | None = None,
+                     device=None) -> tuple[list[Muscle], np.ndarray]:
+    """The muscle groups of written meshes and their rest-pose swellings (module docstring).
+
+    Args:
+        points: ``[N, 3]`` every written point at rest [m] (a
+            :class:`~warpskin.preprocess.cage.CharacterSoup`'s).
+        triangles: ``[T, 3]`` their triangles.
+        dense_weights: ``[N, J]`` their LBS weights.
+        bones: :class:`~warpskin.preprocess.bones.Bones` in the points' space.
+        parents: ``[J]`` the skeleton's parents (-1: a root).
+        groups: ``[(name, joint indices)]`` the muscle groups
+            (:func:`~warpskin.popping.muscles.groups_of_model`).
+        swell: Peak swelling as a share of the fat-plus-muscle depth, in (0, 2].
+        bone_fraction: The bone layer's place from skin (0) to the bone's centre line (1).
+        mesh_of_point: ``[N]`` each point's mesh: points of one mesh at one position are one
+            point of its surface (seams, flat shading); default: one mesh.
+        device: Warp device of the shape-diameter rays.
+
+    Returns:
+        ``(muscles, displacements [G, N, 3] [m])``: each group's rest-pose swelling of every
+        point (zero outside its neighbourhood).
+
+    Raises:
+        SceneError: a bad ``swell``.
+    """
+    if not (isinstance(swell, (int, float)) and 0.0 < swell <= 2.0):
+        raise SceneError(f"swell must be in (0, 2] (a share of the tissue depth), got {swell!r}")
+    from scipy.sparse.csgraph import connected_components
+
+    from ..capture import point_normals, shape_diameter, welded_pieces
+
+    every = np.asarray(points, dtype=np.float64)
+    mesh = np.zeros(len(every), dtype=np.int64) if mesh_of_point is None else np.asarray(mesh_of_point)
+    # one point per position within a mesh (a flat-shaded file splits every facet), so that
+    # rings, pieces and edges are the surface's
+    first, cls, tris, _ = welded_pieces(every, triangles, mesh)
+    points = every[first]
+    w = np.asarray(dense_weights, dtype=np.float64)[first]
+    n = len(points)
+    names = list(bones.joint_names)
+    dominant = np.argmax(w, axis=1)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    t, radial = bone_coordinates(points, dominant, bones)
+    r = np.linalg.norm(radial, axis=1)
+    ok = r > 1e-9 * max(diagonal, 1e-12)
+    direction = np.zeros_like(points)
+    direction[ok] = radial[ok] / r[ok, None]
+    # the tissue is no deeper than half the part is thick (a hand far from its forearm's line,
+    # a stylised rig's shell), the shape diameter along the inward normal
+    thick = shape_diameter(points, point_normals(points, tris), points, tris, device=device)
+    depth = bone_fraction * np.minimum(r, 0.5 * thick)
+    profile = _profile(t)
+    length = bones.length[dominant]
+    flux = np.einsum("ij,ij->i", _area_normals(points, tris), direction)  # per unit radial move [m^2]
+    ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).astype(np.float64)
+    _, piece = connected_components(ring, directed=False)
+    clear = _clearance(points, tris, piece)
+    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+    edges, lengths = edges[lengths > 0.0], lengths[lengths > 0.0]
+    muscles, fields = [], []
+    for name, group in groups:
+        on = np.isin(dominant, group) & ok
+        amount = np.where(on, np.minimum(swell * depth, _CAP * length) * profile, 0.0)
+        hood = neighbourhood(group, parents)
+        near = thinning_reach(w[:, hood].sum(axis=1), np.isin(dominant, hood), ring) * ok
+        shape = near * np.where(on, 1.0 - np.clip(profile, 0.0, 1.0), 1.0)  # away from the belly
+        # none where another piece is nearer than the belly's peak at rest (a limb's end in a
+        # ball joint, a sleeve on its arm): moving there would cross that piece's surface; full
+        # beyond three times the peak
+        reach = max(float(np.abs(amount).max()), 1e-12)
+        fade = _smooth(np.clip(clear / reach - 1.0, 0.0, 2.0) / 2.0)
+        amount, shape = amount * fade, shape * fade
+        amount = amount * _stretch_limit(points, amount[:, None] * direction, edges, lengths, ring)
+        gain = np.bincount(piece, amount * flux, minlength=piece.max() + 1)
+        cost = np.bincount(piece, shape * flux, minlength=piece.max() + 1)
+        # per piece, the thinning's depth m that makes the flux zero, at most a quarter of the
+        # belly's peak (a piece with little skin to thin keeps part of the gain: a deeper
+        # thinning there would crease it)
+        m = np.where(cost > 1e-12 * diagonal ** 2, gain / np.where(cost > 0.0, cost, 1.0), 0.0)
+        m = np.clip(m, 0.0, _THIN * amount.max() if amount.size else 0.0)
+        field = (amount - m[piece] * shape)[:, None] * direction
+        field *= _stretch_limit(points, field, edges, lengths, ring)[:, None]
+        moved = np.linalg.norm(field, axis=1)
+        belly = on & (t > 0.3) & (t < 0.7)  # the depth there: under the belly (belly_of_groups)
+        where = belly if belly.any() else on
+        muscles.append(Muscle(name, [names[j] for j in group], int(np.count_nonzero(moved[cls] > 0.0)),
+                              float(np.median(depth[where])) if where.any() else 0.0, float(moved.max())))
+        fields.append(field[cls])
+    return muscles, np.stack(fields)
+
+
+def bone_coordinates(points: np.ndarray, dominant: np.ndarray, bones) -> tuple[np.ndarray, np.ndarray]:
+    """Where each point lies along its dominant joint's bone.
+
+    Returns ``(t [N], radial [N, 3])``: ``t`` in [0, 1] the place of the point's foot on the
+    bone's centre line (0 at its joint, 1 at its end; clamped), ``radial`` the point less its
+    foot on the bone's (unbounded) line [m], so that it is square to the bone everywhere."""
+    p = np.asarray(points, dtype=np.float64)
+    a, d = bones.start[dominant], bones.end[dominant] - bones.start[dominant]
+    dd = np.einsum("ij,ij->i", d, d)
+    raw = np.where(dd > 0.0, np.einsum("ij,ij->i", p - a, d) / np.where(dd > 0.0, dd, 1.0), 0.0)
+    return np.clip(raw, 0.0, 1.0), p - (a + raw[:, None] * d)
+
+
+def belly_of_groups(points: np.ndarray, dense_weights: np.ndarray, bones, groups) -> np.ndarray:
+    """``[G, N]`` bool: the points on the middle of each group's bones (dominant joint in the
+    group, foot between 30 % and 70 % of the bone, :func:`bone_coordinates`), as
+    :func:`~warpskin.popping.report.belly_of_bones` marks a skin's."""
+    dominant = np.argmax(np.asarray(dense_weights), axis=1)
+    t, _ = bone_coordinates(points, dominant, bones)
+    middle = (t > 0.3) & (t < 0.7)
+    return np.array([np.isin(dominant, list(group)) & middle for _, group in groups], dtype=bool).reshape(len(groups), -1)
+
+
+def clench_table(activation: np.ndarray) -> np.ndarray:
+    """``[S, G]`` 1 while each group clenches, 0 while it relaxes, from its activations over
+    the steps ``[S, G]``: rising starts a clench, falling a relaxation, otherwise it goes on
+    (from relaxed before the first step)."""
+    a = np.asarray(activation, dtype=np.float64)
+    out = np.zeros_like(a)
+    prev = np.zeros(a.shape[1])
+    state = np.zeros(a.shape[1])
+    for s in range(a.shape[0]):
+        state = np.where(a[s] > prev, 1.0, np.where(a[s] < prev, 0.0, state))
+        out[s] = state
+        prev = a[s]
+    return out
+
+
+class SurfacePop:
+    """The goal-driven popping offset of written points (module docstring), stepped with the
+    physics and added to what is written.
+
+    Args:
+        displacements: ``[G, N, 3]`` each group's rest-pose swelling [m] (:func:`surface_swelling`).
+        dense_weights: ``[N, J]`` the points' LBS weights.
+        rest_matrices: ``[J, 4, 4]`` the skinning matrices of the rest pose the points are in.
+        step_times: Clip time at the end of every solver step [s], ``[S]``.
+        activation: ``activation(t) -> [G]`` in [0, 1] at clip time ``t``.
+        h: Step length [s]; ``beta * h <= 1``.
+        alpha_min, beta, threshold: The paper's stiffness at the largest disparity (eq. 3),
+            relaxation rate [1/s] and snap distance [m] (eq. 4).
+        device: Warp device.
+
+    Every array is allocated here; a step launches one kernel with the step's index (its
+    activations were uploaded once).
+    """
+
+    def __init__(self, displacements: np.ndarray, dense_weights: np.ndarray, rest_matrices: np.ndarray,
+                 step_times: Sequence[float], activation: Callable[[float], np.ndarray], *, h: float,
+                 alpha_min: float, beta: float, threshold: float = 1e-4, triangles: np.ndarray | None = None,
+                 margin: float = 0.0, start: float = 1e-5, device=None) -> None:
+        d = np.asarray(displacements, dtype=np.float64)
+        g, n = d.shape[:2]
+        self.point_count = n
+        self.margin, self._start = float(margin), float(start)
+        self.moved = np.nonzero(np.linalg.norm(d, axis=2).max(axis=0) > 0.0)[0]  # the points it may move
+        self.weights = np.asarray(dense_weights, dtype=np.float64)[self.moved]
+        self._rest_inv = np.linalg.inv(self._linear(rest_matrices))  # [P, 3, 3]
+        acts = np.array([np.asarray(activation(float(t)), dtype=np.float64).reshape(g) for t in step_times]) \
+            if len(step_times) else np.zeros((0, g))
+        if acts.size and not (np.all(acts >= 0.0) and np.all(acts <= 1.0)):
+            raise SceneError(f"popping: activations must be in [0, 1], got {acts.min():.3g} to {acts.max():.3g}")
+        if not (h > 0.0 and beta * h <= 1.0 + 1e-12):
+            raise SceneError(f"popping: step {h!r} s needs beta * dt <= 1 (beta = {beta} /s)")
+        self.steps = len(acts)
+        self.h, self.alpha_min, self.beta, self.threshold = float(h), float(alpha_min), float(beta), float(threshold)
+        with wp.ScopedDevice(device):
+            self.device = wp.get_device()
+            self.disparity = wp.array(d[:, self.moved].astype(np.float32), dtype=wp.vec3)
+            top = np.linalg.norm(d, axis=2).max(axis=1)
+            self.disparity_max = wp.array(top.astype(np.float32), dtype=wp.float32)
+            self.activation = wp.array(np.maximum(acts, 0.0).astype(np.float32).reshape(-1, g), dtype=wp.float32)
+            self.clenching = wp.array(clench_table(acts).astype(np.float32).reshape(-1, g), dtype=wp.float32)
+            self.offset = wp.zeros(len(self.moved), dtype=wp.vec3)
+            self.velocity = wp.zeros(len(self.moved), dtype=wp.vec3)
+            self._mesh = None
+            if triangles is not None:  # the written surface, for the offsets' clearance
+                tris = np.asarray(triangles, dtype=np.int64)
+                self._surface = wp.zeros(n, dtype=wp.vec3)
+                self._mesh = wp.Mesh(points=self._surface, indices=wp.array(tris.astype(np.int32).ravel(), dtype=wp.int32))
+                self._base = wp.zeros(len(self.moved), dtype=wp.vec3)
+                self._world = wp.zeros(len(self.moved), dtype=wp.vec3)
+                self._scale = wp.zeros(len(self.moved), dtype=wp.float32)
+                ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
+                self._ring = ring[self.moved][:, self.moved].astype(np.float64)  # among the moved points
+                self._ring_mean = sp.diags(1.0 / np.asarray(self._ring.sum(axis=1)).ravel()) @ self._ring
+        self.done = 0  # steps taken
+        self.held = 0.0  # the largest share of an offset the clearance took back, over the frames
+
+    def _linear(self, matrices: np.ndarray) -> np.ndarray:
+        """``[P, 3, 3]`` the linear part of every moved point's blended skinning matrix."""
+        return np.einsum("pj,jab->pab", self.weights, np.asarray(matrices, dtype=np.float64)[:, :3, :3])
+
+    def advance(self, steps: int) -> None:
+        """Take the next ``steps`` solver steps (at most the steps left)."""
+        for _ in range(min(steps, self.steps - self.done)):
+            wp.launch(_k.surface_vibration_kernel, dim=len(self.moved),
+                      inputs=[self.disparity, self.disparity_max, self.activation, self.clenching, self.done,
+                              self.alpha_min, self.beta, self.threshold, self.h],
+                      outputs=[self.offset, self.velocity], device=self.device)
+            self.done += 1
+
+    def offsets(self, matrices: np.ndarray, surface: np.ndarray | None = None) -> np.ndarray:
+        """``[N, 3]`` the popping offset of every point in the pose of skinning ``matrices``
+        ``[J, 4, 4]`` [m]: its rest-pose offset carried by its blended skinning's linear part,
+        ``L(t) L_rest^-1 o``. With ``surface`` (``[N, 3]`` the points without it, where the
+        pop was made with ``triangles``), each offset is shortened so that it crosses no
+        surface (:func:`~warpskin.kernels.popping.offset_clearance_kernel`: at most half the
+        gap along it, less ``margin``), the shortening eased over the point's ring (its
+        neighbours' smallest share, averaged over the ring), so the skin stops short of
+        another part it meets (an arm swinging against the torso) without a crease."""
+        out = np.zeros((self.point_count, 3))
+        if not len(self.moved):
+            return out
+        o = self.offset.numpy().astype(np.float64)
+        carry = np.einsum("pab,pbc->pac", self._linear(matrices), self._rest_inv)
+        world = np.einsum("pab,pb->pa", carry, o)
+        if surface is not None and self._mesh is not None:
+            self._surface.assign(np.asarray(surface, dtype=np.float32))
+            self._mesh.refit()
+            self._base.assign(np.asarray(surface, dtype=np.float32)[self.moved])
+            self._world.assign(world.astype(np.float32))
+            wp.launch(_k.offset_clearance_kernel, dim=len(self.moved),
+                      inputs=[self._mesh.id, self._base, self._world, self._start, self.margin],
+                      outputs=[self._scale], device=self.device)
+            scale = self._scale.numpy().astype(np.float64)
+            low = scale.copy()  # the ring's smallest, then its mean over the ring
+            rows = self._ring.tocoo()
+            np.minimum.at(low, rows.row, scale[rows.col])
+            eased = np.minimum(scale, self._ring_mean @ low)
+            world *= eased[:, None]
+            self.held = max(self.held, float(1.0 - eased.min()))
+        out[self.moved] = world
+        return out
