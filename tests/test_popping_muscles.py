@@ -139,14 +139,15 @@ def _outward(path, rig, field: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-@pytest.mark.parametrize("cage", ["auto", "always"])
-def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder, cage):
+@pytest.mark.parametrize("pop_on, cage", [("layers", "auto"), ("layers", "always"), ("surface", "auto")])
+def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder, pop_on, cage):
     # the shipped arm has no popping examples: layered mode, its two muscles found (on its own
-    # skin, or on its cage whose pop the written skin takes on), popping at 0.2037 s (between
-    # frames 6 and 7 at 30 fps, off every step) for 0.25 s (to frame 13.6)
+    # skin, or on its cage whose pop the written skin takes on; or on the written skin itself),
+    # popping at 0.2037 s (between frames 6 and 7 at 30 fps, off every step) for 0.25 s (to
+    # frame 13.6)
     out = tmp_path / "arm_pop.usdc"
     assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2037", "--frames", "0:16", "--quiet",
-                 "--device", device, "--cage", cage, "--no-normal-guide"]) == 0
+                 "--device", device, "--cage", cage, "--no-normal-guide", "--pop-on", pop_on]) == 0
     text = capsys.readouterr().out
     assert "driven by groups shoulder, elbow" in text and "shoulder: bones shoulder" in text
     muscles, fields = muscles_from_skeleton(arm_builder)
@@ -199,8 +200,8 @@ def test_pop_help_states_the_default_swell(capsys):
 
     text = " ".join(capsys.readouterr().out.split())
     stated = re.search(r"--swell SWELL muscles found from the skeleton: [^(]*\(default ([0-9.]+); ([0-9.]+) with "
-                       r"--pop-on surface\)", text)
-    assert stated and float(stated.group(1)) == DEFAULT_SWELL and float(stated.group(2)) == DEFAULT_SURFACE_SWELL
+                       r"--pop-on layers\)", text)
+    assert stated and float(stated.group(1)) == DEFAULT_SURFACE_SWELL and float(stated.group(2)) == DEFAULT_SWELL
 
 
 def test_info_lists_the_muscles_pop_would_use(capsys):
@@ -228,7 +229,7 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
 
     out, report = tmp_path / "arm.usdc", tmp_path / "report"
     assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2037", "--frames", "0:16", "--quiet",
-                 "--report", str(report)]) == 0
+                 "--report", str(report), "--pop-on", "layers"]) == 0
     # the normal-only guide is the same simulation without the pop: what simulate writes with the
     # pop's solver settings (the volume constraints along the normals), exactly
     from warpskin.run import simulate

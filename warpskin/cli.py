@@ -705,12 +705,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "is not one closed manifold (auto), always, never, or your own cage FILE, as simulate does")
     s.add_argument("--swell", type=_positive("--swell"),
                    help="muscles found from the skeleton: peak swelling as a share of the fat-plus-muscle depth "
-                        "(default 0.3; 0.4 with --pop-on surface)")  # DEFAULT_SWELL, DEFAULT_SURFACE_SWELL,
+                        "(default 0.4; 0.3 with --pop-on layers)")  # DEFAULT_SWELL, DEFAULT_SURFACE_SWELL,
     # which a test compares: the parser imports no kernels
-    s.add_argument("--pop-on", choices=("auto", "layers", "surface"), default="auto",
-                   help="muscles found from the skeleton: swell the multi-layer model's rest shape (layers: the "
-                        "physical skin makes the pop), or the written meshes over the physical skin (surface: the "
-                        "paper's goal-driven skin, one simulation); auto: the surface through a cage, else the layers")
+    s.add_argument("--pop-on", choices=("surface", "layers"), default="surface",
+                   help="muscles found from the skeleton: swell the written meshes over the physical skin (surface, "
+                        "the default: the paper's goal-driven skin, one simulation) or the multi-layer model's rest "
+                        "shape (layers: the physical skin, or its cage, makes the pop)")
     s.add_argument("-o", "--output", help="output .usdc (default format), .usda or .usd")
     s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
     s.add_argument("--fps", type=_positive("--fps"), help="output frame rate (default: the scene's)")

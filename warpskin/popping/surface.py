@@ -13,8 +13,10 @@ The swelling of a group of bones, per written point ``x`` whose dominant joint i
 radially from the bone's centre line (``f`` the point's foot on that line, ``t`` in [0, 1] its
 place along the bone, :func:`bone_coordinates`):
 
-    b(x) = min(swell * depth, cap * length) * (-sin^2(pi t) cos(2 pi t)),
+    b(x) = min(swell * depth, cap * length) * belly(t),
     depth = bone * min(|x - f|, thickness / 2)
+
+(``belly``: :func:`belly_profile`, 1 over the middle of the bone, none near the joints)
 
 (``bone``: the model's bone-layer fraction, so ``depth`` is the fat-plus-muscle depth the
 layered model gives that point, but no more than half the part is thick, the shape diameter
@@ -29,7 +31,8 @@ flat shading) are one point of its surface. Then, in this order:
   where those carry most of it, :func:`~warpskin.popping.muscles.thinning_reach`), at most a
   quarter of the belly's peak deep (a piece with little skin to thin keeps part of the gain);
 * **stretch**: the swelling is scaled down locally until no edge is stretched or shortened by
-  more than a quarter of its length (a coarse piece is not stretched across one edge).
+  more than a quarter of its length (a coarse piece is not stretched across one edge), each
+  group's and all groups' together.
 
 The skin beyond the groups' bones, their parents and children never moves. While the skin is
 written, each offset also stops at half the gap to any surface it would meet in that frame
@@ -47,15 +50,23 @@ import warp as wp
 from ..errors import SceneError
 from ..kernels import popping as _k
 from ..preprocess.fast_summation import vertex_adjacency
-from .muscles import _CAP, Muscle, _profile, neighbourhood, thinning_reach
+from .muscles import _CAP, Muscle, neighbourhood, thinning_reach
 
-__all__ = ["DEFAULT_SURFACE_SWELL", "surface_swelling", "bone_coordinates", "belly_of_groups", "clench_table", "SurfacePop"]
+__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "belly_of_groups", "clench_table", "SurfacePop"]
 
 DEFAULT_SURFACE_SWELL = 0.4
 """Peak swelling of a belly on the written surface, as a share of the fat-plus-muscle depth
-(its belly's mean rises by about 0.7 of it; the clearance and the stretch limit take a little)."""
+(over the middle of the bone; the stretch limit and the clearance may take some of it)."""
 _THIN = 0.25  # the thinning is at most this share of the belly's peak
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
+
+
+def belly_profile(t: np.ndarray) -> np.ndarray:
+    """The belly along the bone, ``t`` in [0, 1]: 0 up to 10 % of the bone and from 90 %, 1
+    over its middle (30 % to 70 %), smoothstep ramps between: a long fusiform belly, none at the
+    joints, whose middle stands out as far as its peak (the stretch limit caps the peak)."""
+    t = np.asarray(t, dtype=np.float64)
+    return _smooth(np.clip((t - 0.1) / 0.2, 0.0, 1.0)) * _smooth(np.clip((0.9 - t) / 0.2, 0.0, 1.0))
 
 
 def _area_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -98,25 +109,28 @@ def _stretch_limit(points: np.ndarray, field: np.ndarray, edges: np.ndarray, len
     return factor
 
 
-def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray) -> np.ndarray:
-    """``[N]`` each point's distance to the nearest other connected piece [m] (``inf`` for a
-    single piece): to samples of its triangles (a 4 x 4 barycentric grid on each), which is the
-    distance to its surface to within an eighth of an edge."""
+def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, reach: float) -> np.ndarray:
+    """``[N]`` each point's distance to the nearest other connected piece [m], ``inf`` where
+    none is within ``reach`` [m]: to samples of its triangles (a 4 x 4 barycentric grid on
+    each), which is the distance to its surface to within an eighth of an edge. Each piece is
+    queried against the other pieces' samples in its box grown by ``reach``."""
     from scipy.spatial import cKDTree
 
     out = np.full(len(points), np.inf)
     pieces = np.unique(piece)
-    if pieces.size < 2:
+    if pieces.size < 2 or not reach > 0.0:
         return out
-    k = 4
-    bary = np.array([(i, j, k - i - j) for i in range(k + 1) for j in range(k + 1 - i)], dtype=np.float64) / k
+    grid = 4
+    bary = np.array([(i, j, grid - i - j) for i in range(grid + 1) for j in range(grid + 1 - i)],
+                    dtype=np.float64) / grid
     samples = np.einsum("sc,tcd->tsd", bary, points[triangles]).reshape(-1, 3)
     owner = np.repeat(piece[triangles[:, 0]], len(bary))
     for k in pieces:
         mine = piece == k
-        others = owner != k
-        if others.any():
-            out[mine] = cKDTree(samples[others]).query(points[mine])[0]
+        lo, hi = points[mine].min(axis=0) - reach, points[mine].max(axis=0) + reach
+        near = (owner != k) & np.all((samples >= lo) & (samples <= hi), axis=1)
+        if near.any():
+            out[mine] = cKDTree(samples[near]).query(points[mine], distance_upper_bound=reach)[0]
     return out
 
 
@@ -174,12 +188,13 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     # a stylised rig's shell), the shape diameter along the inward normal
     thick = shape_diameter(points, point_normals(points, tris), points, tris, device=device)
     depth = bone_fraction * np.minimum(r, 0.5 * thick)
-    profile = _profile(t)
+    profile = belly_profile(t)
     length = bones.length[dominant]
     flux = np.einsum("ij,ij->i", _area_normals(points, tris), direction)  # per unit radial move [m^2]
     ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).astype(np.float64)
     _, piece = connected_components(ring, directed=False)
-    clear = _clearance(points, tris, piece)
+    # the fade below needs the distance to three belly peaks at most
+    clear = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)))
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
     lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
     edges, lengths = edges[lengths > 0.0], lengths[lengths > 0.0]
@@ -211,8 +226,12 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
         where = belly if belly.any() else on
         muscles.append(Muscle(name, [names[j] for j in group], int(np.count_nonzero(moved[cls] > 0.0)),
                               float(np.median(depth[where])) if where.any() else 0.0, float(moved.max())))
-        fields.append(field[cls])
-    return muscles, np.stack(fields)
+        fields.append(field)
+    # groups that pop together: their sum keeps the same limit (two bones side by side, a
+    # palm's metacarpals, swell towards each other)
+    together = np.stack(fields)
+    together *= _stretch_limit(points, together.sum(axis=0), edges, lengths, ring)[None, :, None]
+    return muscles, together[:, cls]
 
 
 def bone_coordinates(points: np.ndarray, dominant: np.ndarray, bones) -> tuple[np.ndarray, np.ndarray]:
@@ -309,6 +328,12 @@ class SurfacePop:
                 self._world = wp.zeros(len(self.moved), dtype=wp.vec3)
                 self._scale = wp.zeros(len(self.moved), dtype=wp.float32)
                 ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
+                from ..metrics import PairQuery
+
+                self._triangles = tris
+                self._pairs = PairQuery(tris)
+                self._slot = np.full(n, -1, dtype=np.int64)
+                self._slot[self.moved] = np.arange(len(self.moved))
                 self._ring = ring[self.moved][:, self.moved].astype(np.float64)  # among the moved points
                 self._ring_mean = sp.diags(1.0 / np.asarray(self._ring.sum(axis=1)).ravel()) @ self._ring
         self.done = 0  # steps taken
@@ -335,7 +360,9 @@ class SurfacePop:
         surface (:func:`~warpskin.kernels.popping.offset_clearance_kernel`: at most half the
         gap along it, less ``margin``), the shortening eased over the point's ring (its
         neighbours' smallest share, averaged over the ring), so the skin stops short of
-        another part it meets (an arm swinging against the torso) without a crease."""
+        another part it meets (an arm swinging against the torso) without a crease; and
+        shortened further where the offsets still make two triangles intersect that do not
+        without them (:meth:`_untangle`)."""
         out = np.zeros((self.point_count, 3))
         if not len(self.moved):
             return out
@@ -351,11 +378,43 @@ class SurfacePop:
                       inputs=[self._mesh.id, self._base, self._world, self._start, self.margin],
                       outputs=[self._scale], device=self.device)
             scale = self._scale.numpy().astype(np.float64)
-            low = scale.copy()  # the ring's smallest, then its mean over the ring
-            rows = self._ring.tocoo()
-            np.minimum.at(low, rows.row, scale[rows.col])
-            eased = np.minimum(scale, self._ring_mean @ low)
+            eased = np.minimum(scale, self._ring_mean @ self._ring_min(scale))
+            eased *= self._untangle(np.asarray(surface, dtype=np.float64), world * eased[:, None])
             world *= eased[:, None]
             self.held = max(self.held, float(1.0 - eased.min()))
         out[self.moved] = world
         return out
+
+    def _ring_min(self, values: np.ndarray) -> np.ndarray:
+        """``[P]`` the smallest of ``values`` over each moved point's ring (among the moved)."""
+        low = values.copy()
+        rows = self._ring.tocoo()
+        np.minimum.at(low, rows.row, values[rows.col])
+        return low
+
+    def _untangle(self, surface: np.ndarray, world: np.ndarray, rounds: int = 8) -> np.ndarray:
+        """``[P]`` factors in (0, 1] on the moved points' offsets ``world`` ``[P, 3]`` [m] such
+        that the surface with them (``surface`` ``[N, 3]`` without them) has no intersecting
+        triangle pair that it has not without them (a ray misses where two surfaces meet
+        between its points: fingers side by side): each round shortens the offsets of the new
+        pairs' corners by 30 %, eased over their rings (:func:`~warpskin.metrics.PairQuery`,
+        exact), for at most ``rounds`` rounds."""
+        factor = np.ones(len(self.moved))
+        x = surface.copy()
+        x[self.moved] += world
+        with_pop, without = self._pairs.of_two(x, surface)
+        before = {tuple(p) for p in without.tolist()}
+        for _ in range(rounds):
+            new = [p for p in with_pop.tolist() if tuple(p) not in before]
+            if not new:
+                break
+            corners = self._slot[np.unique(self._triangles[np.asarray(new)].ravel())]
+            hit = np.zeros(len(self.moved))
+            hit[corners[corners >= 0]] = 1.0
+            if not hit.any():
+                break  # the pairs are not the pop's to undo
+            factor *= 1.0 - 0.3 * hit
+            factor = np.minimum(factor, self._ring_mean @ factor)  # eased over the ring
+            x[self.moved] = surface[self.moved] + world * factor[:, None]
+            with_pop = self._pairs.pairs(x)
+        return factor

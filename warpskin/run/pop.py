@@ -18,7 +18,6 @@ from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene, examples_from_file, has_examples
 from ..popping.layered import muscle_rest_offset_deltas
 from ..popping.pose_space import PoseSpaceDeformer
-from ..character import is_caged
 from ..scene import resolve_scene
 from .output import CharacterOutput
 from .plan import FramePlan
@@ -26,7 +25,7 @@ from .runner import FrameRunner
 
 __all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping", "POP_ON"]
 
-POP_ON = ("auto", "layers", "surface")
+POP_ON = ("surface", "layers")
 _CLEAR = 2.5e-4  # the gap a surface pop keeps to a surface it meets, in body diagonals
 """Where muscles found from the skeleton swell (:func:`run_popping`'s ``pop_on``)."""
 
@@ -130,7 +129,7 @@ def run_popping(
     report_dir=None,
     normal_guide: bool = True,
     vibrate: bool = True,
-    pop_on: str = "auto",
+    pop_on: str = "surface",
 ) -> PoppingRun:
     """Play a popping scene and write it to USD (the ``warpskin pop`` command).
 
@@ -172,12 +171,11 @@ def run_popping(
             paper's skin follows its goal (:func:`~warpskin.popping.activation.vibrating`: ringing
             about it while clenched, with ``alpha_min`` per solver step, relaxing monotonely
             with ``beta``); ``False``: it follows the activation as it is.
-        pop_on: Layered mode without examples: where the muscles swell. ``"layers"``: the
-            multi-layer model's rest shape (the physical skin makes the pop); ``"surface"``: the
-            written meshes, by the paper's goal-driven skin over the physical normal skin
-            (:mod:`warpskin.popping.surface`; one simulation, the guide free); ``"auto"``
-            (default): the surface through a cage (whose tissue is not the character's), else
-            the layers.
+        pop_on: Layered mode without examples: where the muscles swell. ``"surface"``
+            (default): the written meshes, by the paper's goal-driven skin over the physical
+            normal skin (:mod:`warpskin.popping.surface`; one simulation, the guide free);
+            ``"layers"``: the multi-layer model's rest shape (the skin's, or its cage's), the
+            physical skin making the pop.
         report_dir: Also write the report there: each muscle group's bulge against its
             activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
             in layered mode beside the simulation's own report.
@@ -271,7 +269,7 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
                  swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True,
-                 pop_on="auto") -> PoppingRun:
+                 pop_on="surface") -> PoppingRun:
     from ..model import SkinModelBuilder
     from ..popping.layered import rest_offset_deltas
     from ..popping.muscles import DEFAULT_SWELL, belly_of_swelling, muscles_from_skeleton
@@ -321,7 +319,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                           solver_params=solver,
                           comment=comment, start_frame=start_frame, topology=topology, builder=builder,
                           activation=activation, report_dir=report_dir)
-    elif pop_on == "surface" or (pop_on == "auto" and is_caged(rig, cage)):  # on the written meshes
+    elif pop_on == "surface":  # on the written meshes
         surface = True
         made: list = []
 
