@@ -112,7 +112,13 @@ def test_a_piece_near_the_belly_keeps_it_from_moving_there():
     f = np.linalg.norm(field[0][: len(pts)], axis=1)
     peak = 0.15 * 0.8 * R
     gap = np.linalg.norm(pts - centre, axis=1) - 0.0311  # to the sphere (within 0.3 % of its radius)
-    assert np.all(f[np.abs(gap) < 0.9 * peak] == 0.0)  # where it nears the ball, the tube stays
+    # near the ball the tube moves by a third of its distance to the ball at most (none where
+    # the ball is nearer than the belly's height there, all of it from three times that), so
+    # it never reaches the ball's surface (0.1 mm for the search's samples, an eighth of the
+    # ball's 4 mm edges apart)
+    near = np.abs(gap) < peak
+    assert near.sum() > 10 and np.all(f[near] <= np.abs(gap[near]) / 3.0 + 1e-4)
+    assert np.count_nonzero(f[near] == 0.0) > 0.5 * near.sum()
     far = (gap > 3.2 * peak) & (np.abs(pts[:, 1] - 1.5 * L) < 0.05 * L)
     assert far.any() and np.all(f[far] > 0.9 * peak)  # away from it, the belly is whole
     assert np.all(field[0][len(pts):] == 0.0)  # the ball is another bone's

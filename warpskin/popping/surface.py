@@ -23,8 +23,9 @@ layered model gives that point, but no more than half the part is thick, the sha
 along the inward normal; ``length``: the bone's). Points one mesh holds at one position (seams,
 flat shading) are one point of its surface. Then, in this order:
 
-* **clearance**: none where another connected piece is nearer than the belly's peak at rest (a
-  limb's end inside a ball joint), all of it beyond three times the peak;
+* **clearance**: none where another connected piece is nearer than the belly's height there at
+  rest (a limb's end inside a ball joint), all of it beyond three times that height (the
+  thinning: three times the belly's peak);
 * **volume**: a thinning takes back the swelling's flux ``sum_i A_i n_i . d_i`` (area-weighted
   normals: its volume to first order) on every connected piece, lying on the neighbourhood's
   skin away from the belly (the ends of the group's bones, their parents' and children's skin
@@ -209,8 +210,9 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
         # ball joint, a sleeve on its arm): moving there would cross that piece's surface; full
         # beyond three times the peak
         reach = max(float(np.abs(amount).max()), 1e-12)
-        fade = _smooth(np.clip(clear / reach - 1.0, 0.0, 2.0) / 2.0)
-        amount, shape = amount * fade, shape * fade
+        local = np.maximum(np.abs(amount), 1e-3 * reach)  # the belly by its own height there
+        amount = amount * _smooth(np.clip(clear / local - 1.0, 0.0, 2.0) / 2.0)
+        shape = shape * _smooth(np.clip(clear / reach - 1.0, 0.0, 2.0) / 2.0)
         amount = amount * _stretch_limit(points, amount[:, None] * direction, edges, lengths, ring)
         gain = np.bincount(piece, amount * flux, minlength=piece.max() + 1)
         cost = np.bincount(piece, shape * flux, minlength=piece.max() + 1)
