@@ -119,6 +119,15 @@ def pose_space_kernel(
 # Eq. 4 gives e' = (1 - beta h) e: monotone, no overshoot, for 0 < beta h <= 1.
 # --------------------------------------------------------------------------------------------
 @wp.func
+def stiffness(dist: float, dist_max: float, alpha_min: float):
+    """Eq. 3: ``(alpha_min - 1) min(dist / dist_max, 1) + 1``, 1 where ``dist_max`` is 0."""
+    alpha = float(1.0)
+    if dist_max > 0.0:
+        alpha = (alpha_min - 1.0) * wp.min(dist / dist_max, 1.0) + 1.0
+    return alpha
+
+
+@wp.func
 def vibration_step(o: wp.vec3, u: wp.vec3, goal: wp.vec3, alpha: float, clenching: float, beta: float,
                    threshold: float, h: float):
     """One step of eqs. 1-2 (``clenching`` != 0) or eq. 4 of offset ``o`` [m] and its velocity
@@ -170,10 +179,7 @@ def popping_step_kernel(
             dist = length
             group = g
 
-    alpha = float(1.0)
-    dmax = disparity_max[group]
-    if dmax > 0.0:
-        alpha = (alpha_min - 1.0) * wp.min(dist / dmax, 1.0) + 1.0
+    alpha = stiffness(dist, disparity_max[group], alpha_min)
 
     step = vibration_step(offset[i], velocity[i], goal, alpha, group_clenching[group], beta, threshold, h)
     o = wp.vec3(step[0, 0], step[0, 1], step[0, 2])
@@ -220,10 +226,7 @@ def surface_vibration_kernel(
         if length > dist:
             dist = length
             group = g
-    alpha = float(1.0)
-    dmax = disparity_max[group]
-    if dmax > 0.0:
-        alpha = (alpha_min - 1.0) * wp.min(dist / dmax, 1.0) + 1.0
+    alpha = stiffness(dist, disparity_max[group], alpha_min)
     out = vibration_step(offset[i], velocity[i], goal, alpha, clenching[step, group], beta, threshold, h)
     offset[i] = wp.vec3(out[0, 0], out[0, 1], out[0, 2])
     velocity[i] = wp.vec3(out[1, 0], out[1, 1], out[1, 2])
