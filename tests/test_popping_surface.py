@@ -290,3 +290,33 @@ def test_an_open_character_pops_on_its_written_surface(tmp_path, capsys, device)
     skin = _meshes(alone)["body"].GetPointsAttr()
     for k, c in enumerate(codes):
         assert np.array_equal(np.asarray(skin.Get(c)), n[k].astype(np.float32))
+
+
+def test_a_belly_pressed_on_one_side_swells_more_on_the_other(device):
+    # a patch swelled outward (+z) by one group; a corner of it held back to 60 %: the held
+    # outward volume (area x offset, trimesh's vertex areas) is spread over the rest, the free
+    # points taking it whole and the held ones by their kept share to the fourth
+    g = np.linspace(-0.02, 0.02, 6) + np.array([0, 0.0013, -0.0007, 0.0011, 0.0004, 0])
+    points = np.array([(x, y, 0.0) for y in g for x in g])
+    tris = np.array([(r * 6 + c, r * 6 + c + 1, r * 6 + c + 7) for r in range(5) for c in range(5)]
+                    + [(r * 6 + c, r * 6 + c + 7, r * 6 + c + 6) for r in range(5) for c in range(5)])
+    disparity = np.zeros((1, 36, 3))
+    disparity[0, :, 2] = 0.004 + 0.001 * np.sin(np.arange(36))
+    weights = np.ones((36, 1))
+    eye = np.eye(4)[None]
+    pop = SurfacePop(disparity, weights, eye, [0.01] * 2, lambda t: np.ones(1), h=0.01, alpha_min=1.0, beta=30.0,
+                     triangles=tris, points=points, device=device)
+    pop.advance(2)
+    world = pop.offsets(eye)
+    kept = np.where((points[:, 0] < -0.005) & (points[:, 1] < -0.005), 0.6, 1.0)
+    area = trimesh.Trimesh(points, tris, process=False).area_faces
+    vertex_area = np.zeros(36)
+    for k in range(3):
+        np.add.at(vertex_area, tris[:, k], area / 3.0)
+    size = vertex_area * np.linalg.norm(world, axis=1)
+    extra = min(np.sum(size * (1 - kept)) / np.sum(size * kept), 0.3)
+    assert 0.0 < extra < 0.3  # not at the cap
+    np.testing.assert_allclose(pop._pressed(world, kept), 1.0 + extra * kept ** 4, rtol=1e-9)
+    # pressed hard (a fifth kept on most of it), the free side takes at most 30 % more
+    hard = np.where(points[:, 0] < 0.01, 0.2, 1.0)
+    np.testing.assert_allclose(pop._pressed(world, hard), 1.0 + 0.3 * hard ** 4, rtol=1e-9)

@@ -59,6 +59,7 @@ DEFAULT_SURFACE_SWELL = 0.4
 """Peak swelling of a belly on the written surface, as a share of the fat-plus-muscle depth
 (over the middle of the bone; the stretch limit and the clearance may take some of it)."""
 _THIN = 0.25  # the thinning is at most this share of the belly's peak
+_PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
 
 
@@ -296,7 +297,8 @@ class SurfacePop:
     def __init__(self, displacements: np.ndarray, dense_weights: np.ndarray, rest_matrices: np.ndarray,
                  step_times: Sequence[float], activation: Callable[[float], np.ndarray], *, h: float,
                  alpha_min: float, beta: float, threshold: float = 1e-4, triangles: np.ndarray | None = None,
-                 margin: float = 0.0, start: float = 1e-5, device=None) -> None:
+                 margin: float = 0.0, start: float = 1e-5, points: np.ndarray | None = None,
+                 device=None) -> None:
         d = np.asarray(displacements, dtype=np.float64)
         g, n = d.shape[:2]
         self.point_count = n
@@ -322,6 +324,17 @@ class SurfacePop:
             self.offset = wp.zeros(len(self.moved), dtype=wp.vec3)
             self.velocity = wp.zeros(len(self.moved), dtype=wp.vec3)
             self._mesh = None
+            # each moved point's group (the one that moves it most) and its direction at rest
+            lengths = np.linalg.norm(d[:, self.moved], axis=2)  # [G, P]
+            self._groups = g
+            self._group = np.argmax(lengths, axis=0) if len(self.moved) else np.zeros(0, dtype=np.int64)
+            top = d[self._group, self.moved]
+            self._direction = top / np.maximum(np.linalg.norm(top, axis=1), 1e-30)[:, None]
+            self._area = None
+            if triangles is not None and points is not None:  # each point's share of the surface
+                p = np.asarray(points, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
+                a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+                self._area = np.bincount(np.asarray(triangles).ravel(), np.repeat(a / 3.0, 3), minlength=n)[self.moved]
             if triangles is not None:  # the written surface, for the offsets' clearance
                 tris = np.asarray(triangles, dtype=np.int64)
                 self._surface = wp.zeros(n, dtype=wp.vec3)
@@ -362,9 +375,10 @@ class SurfacePop:
         surface (:func:`~warpskin.kernels.popping.offset_clearance_kernel`: at most half the
         gap along it, less ``margin``), the shortening eased over the point's ring (its
         neighbours' smallest share, averaged over the ring), so the skin stops short of
-        another part it meets (an arm swinging against the torso) without a crease; and
-        shortened further where the offsets still make two triangles intersect that do not
-        without them (:meth:`_untangle`)."""
+        another part it meets (an arm swinging against the torso) without a crease; a belly
+        held back so swells more where it is free (:meth:`_pressed`); and the offsets are
+        shortened where they still make two triangles intersect that do not without them
+        (:meth:`_untangle`)."""
         out = np.zeros((self.point_count, 3))
         if not len(self.moved):
             return out
@@ -381,11 +395,29 @@ class SurfacePop:
                       outputs=[self._scale], device=self.device)
             scale = self._scale.numpy().astype(np.float64)
             eased = np.minimum(scale, self._ring_mean @ self._ring_min(scale))
+            eased *= self._pressed(world, eased)
             eased *= self._untangle(np.asarray(surface, dtype=np.float64), world * eased[:, None])
             world *= eased[:, None]
             self.held = max(self.held, float(1.0 - eased.min()))
         out[self.moved] = world
         return out
+
+    def _pressed(self, world: np.ndarray, kept: np.ndarray) -> np.ndarray:
+        """``[P]`` factors >= 1 on the moved points' offsets: a belly held back where it meets
+        another surface (``kept [P]`` in [0, 1], the share of each offset ``world [P, 3]`` [m]
+        left) swells more where it is free, as an incompressible muscle pressed on one side
+        does. Per group, the outward volume held back (area x offset) is spread over its free
+        points' outward offsets, at most ``_PRESSED`` more, fading in with ``kept ** 4``."""
+        out = np.ones(len(kept))
+        if self._area is None or not len(kept):
+            return out
+        outward = np.einsum("pc,pc->p", self.offset.numpy().astype(np.float64), self._direction) > 0.0
+        size = np.where(outward, self._area * np.linalg.norm(world, axis=1), 0.0)
+        g = self._group
+        lost = np.bincount(g, size * (1.0 - kept), minlength=self._groups)
+        free = np.bincount(g, size * kept, minlength=self._groups)
+        extra = np.where(free > 0.0, np.minimum(lost / np.where(free > 0.0, free, 1.0), _PRESSED), 0.0)
+        return np.where(outward, 1.0 + extra[g] * kept ** 4, 1.0)
 
     def _ring_min(self, values: np.ndarray) -> np.ndarray:
         """``[P]`` the smallest of ``values`` over each moved point's ring (among the moved)."""

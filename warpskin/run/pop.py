@@ -418,7 +418,7 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
                       lambda t: settings.activation.sample(t, names), h=plan.dt,
                       alpha_min=settings.alpha_min if vibrate else 1.0, beta=settings.beta,
                       threshold=settings.threshold, triangles=soup.triangles, margin=_CLEAR * diagonal,
-                      start=1e-5 * diagonal, device=device)
+                      start=1e-5 * diagonal, points=soup.points, device=device)
 
 
 def _pop_solver_params(scene):
