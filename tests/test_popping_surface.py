@@ -320,3 +320,24 @@ def test_a_belly_pressed_on_one_side_swells_more_on_the_other(device):
     # pressed hard (a fifth kept on most of it), the free side takes at most 30 % more
     hard = np.where(points[:, 0] < 0.01, 0.2, 1.0)
     np.testing.assert_allclose(pop._pressed(world, hard), 1.0 + 0.3 * hard ** 4, rtol=1e-9)
+
+
+def test_a_limb_mesh_bunched_at_one_end_pops_where_its_surface_is():
+    # a tube over 75-115 % of its bone (a stylised rig's upper arm: a ball at the elbow), and one
+    # along its whole bone: the first is measured along the surface it carries, the second along
+    # the bone
+    from warpskin.popping.surface import bone_coordinates, point_areas
+
+    pts, tris, w, bones, parents = _tube(1, rings_per_bone=41)
+    whole_t, _ = bone_coordinates(pts, np.zeros(len(pts), dtype=int), bones, point_areas(pts, tris))
+    np.testing.assert_allclose(whole_t, np.clip(pts[:, 1] / L, 0, 1), rtol=1e-12, atol=1e-15)
+    bunched = pts.copy()
+    bunched[:, 1] = 0.75 * L + 0.4 * pts[:, 1]  # raw 0.75 .. 1.15
+    t, radial = bone_coordinates(bunched, np.zeros(len(pts), dtype=int), bones, point_areas(bunched, tris))
+    raw = bunched[:, 1] / L
+    assert np.all(np.diff(t[np.argsort(raw)]) >= 0.0)  # still in order along the bone
+    assert abs(np.median(raw[np.abs(t - 0.5) < 0.02]) - 0.95) < 0.01  # the middle: the surface's median
+    assert t.min() == 0.0 and t.max() == 1.0
+    np.testing.assert_allclose(np.linalg.norm(radial, axis=1), R, rtol=1e-12)  # square to the bone
+    belly = belly_of_groups(bunched, tris, np.ones((len(pts), 1)), bones, [("arm", [0])])[0]
+    assert np.array_equal(belly, (t > 0.3) & (t < 0.7)) and 0.3 < belly.mean() < 0.5

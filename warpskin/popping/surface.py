@@ -53,12 +53,13 @@ from ..kernels import popping as _k
 from ..preprocess.fast_summation import vertex_adjacency
 from .muscles import _CAP, Muscle, neighbourhood, thinning_reach
 
-__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "belly_of_groups", "clench_table", "SurfacePop"]
+__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "point_areas", "belly_of_groups", "clench_table", "SurfacePop"]
 
 DEFAULT_SURFACE_SWELL = 0.4
 """Peak swelling of a belly on the written surface, as a share of the fat-plus-muscle depth
 (over the middle of the bone; the stretch limit and the clearance may take some of it)."""
 _THIN = 0.25  # the thinning is at most this share of the belly's peak
+_BARE = 0.05  # a bone with less of its surface than this over its middle pops on the surface it carries
 _PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
 
@@ -181,7 +182,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     names = list(bones.joint_names)
     dominant = np.argmax(w, axis=1)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    t, radial = bone_coordinates(points, dominant, bones)
+    t, radial = bone_coordinates(points, dominant, bones, point_areas(points, tris))
     r = np.linalg.norm(radial, axis=1)
     ok = r > 1e-9 * max(diagonal, 1e-12)
     direction = np.zeros_like(points)
@@ -237,25 +238,61 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     return muscles, together[:, cls]
 
 
-def bone_coordinates(points: np.ndarray, dominant: np.ndarray, bones) -> tuple[np.ndarray, np.ndarray]:
+def point_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``[N]`` a third of the area of each point's triangles [m^2]."""
+    p = np.asarray(points, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
+    a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return np.bincount(np.asarray(triangles, dtype=np.int64).ravel(), np.repeat(a / 3.0, 3), minlength=len(points))
+
+
+def _quantiles(x: np.ndarray, weight: np.ndarray, q) -> np.ndarray:
+    """The ``q`` quantiles (in [0, 1]) of ``x`` weighted by ``weight`` (no weight: unweighted)."""
+    order = np.argsort(x)
+    x, wt = x[order], np.asarray(weight, dtype=np.float64)[order]
+    if not wt.sum() > 0.0:
+        wt = np.ones_like(x)
+    cdf = np.cumsum(wt) - 0.5 * wt
+    return np.interp(np.asarray(q, dtype=np.float64) * wt.sum(), cdf, x)
+
+
+def bone_coordinates(points: np.ndarray, dominant: np.ndarray, bones,
+                     area: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where each point lies along its dominant joint's bone.
 
     Returns ``(t [N], radial [N, 3])``: ``t`` in [0, 1] the place of the point's foot on the
-    bone's centre line (0 at its joint, 1 at its end; clamped), ``radial`` the point less its
-    foot on the bone's (unbounded) line [m], so that it is square to the bone everywhere."""
+    bone's centre line, 0 at its joint and 1 at its end (clamped); ``radial`` the point less its
+    foot on the bone's (unbounded) line [m], square to the bone everywhere. A bone whose
+    surface (its points weighted by ``area [N]``; default: not checked) has less than
+    ``_BARE`` of its area over the bone's middle (30-70 %: a stylised rig's limb mesh bunched
+    at one end, a stick to a ball) is measured along the surface it carries instead: ``t``
+    piecewise linear from its 2nd percentile (0) through its median (0.5) to its 98th (1), so
+    the belly sits on that surface."""
     p = np.asarray(points, dtype=np.float64)
     a, d = bones.start[dominant], bones.end[dominant] - bones.start[dominant]
     dd = np.einsum("ij,ij->i", d, d)
     raw = np.where(dd > 0.0, np.einsum("ij,ij->i", p - a, d) / np.where(dd > 0.0, dd, 1.0), 0.0)
-    return np.clip(raw, 0.0, 1.0), p - (a + raw[:, None] * d)
+    t = np.clip(raw, 0.0, 1.0)
+    if area is not None:
+        area = np.asarray(area, dtype=np.float64)
+        for k in np.unique(dominant):
+            mine = dominant == k
+            middle = mine & (raw > 0.3) & (raw < 0.7)
+            if area[middle].sum() >= _BARE * area[mine].sum():
+                continue
+            lo, mid, hi = _quantiles(raw[mine], area[mine], [0.02, 0.5, 0.98])
+            if lo < mid < hi:
+                x = raw[mine] - mid
+                t[mine] = np.clip(0.5 + 0.5 * np.where(x < 0.0, x / (mid - lo), x / (hi - mid)), 0.0, 1.0)
+    return t, p - (a + raw[:, None] * d)
 
 
-def belly_of_groups(points: np.ndarray, dense_weights: np.ndarray, bones, groups) -> np.ndarray:
+def belly_of_groups(points: np.ndarray, triangles: np.ndarray, dense_weights: np.ndarray, bones,
+                    groups) -> np.ndarray:
     """``[G, N]`` bool: the points on the middle of each group's bones (dominant joint in the
-    group, foot between 30 % and 70 % of the bone, :func:`bone_coordinates`), as
-    :func:`~warpskin.popping.report.belly_of_bones` marks a skin's."""
+    group, between 30 % and 70 % along the bone, :func:`bone_coordinates` with the areas of
+    ``triangles``), as :func:`~warpskin.popping.report.belly_of_bones` marks a skin's."""
     dominant = np.argmax(np.asarray(dense_weights), axis=1)
-    t, _ = bone_coordinates(points, dominant, bones)
+    t, _ = bone_coordinates(points, dominant, bones, point_areas(points, triangles))
     middle = (t > 0.3) & (t < 0.7)
     return np.array([np.isin(dominant, list(group)) & middle for _, group in groups], dtype=bool).reshape(len(groups), -1)
 
@@ -332,9 +369,7 @@ class SurfacePop:
             self._direction = top / np.maximum(np.linalg.norm(top, axis=1), 1e-30)[:, None]
             self._area = None
             if triangles is not None and points is not None:  # each point's share of the surface
-                p = np.asarray(points, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
-                a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-                self._area = np.bincount(np.asarray(triangles).ravel(), np.repeat(a / 3.0, 3), minlength=n)[self.moved]
+                self._area = point_areas(points, triangles)[self.moved]
             if triangles is not None:  # the written surface, for the offsets' clearance
                 tris = np.asarray(triangles, dtype=np.int64)
                 self._surface = wp.zeros(n, dtype=wp.vec3)

@@ -411,7 +411,8 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
                                           chosen, swell=swell, bone_fraction=builder.params.layers.bone,
                                           mesh_of_point=mesh, device=device)
     names = [m.name for m in found]
-    bellies[:] = [character.split(mask) for mask in belly_of_groups(soup.points, soup.dense_weights, stage, chosen)]
+    bellies[:] = [character.split(mask) for mask in belly_of_groups(soup.points, soup.triangles, soup.dense_weights, stage,
+                                                                  chosen)]
     timeline(names, respond=False)  # the points themselves vibrate
     diagonal = character.rig.size()
     return SurfacePop(swelling, soup.dense_weights, rig.skinning_matrices(Clip("rest"), 0.0), plan.substep_times(),
