@@ -341,3 +341,32 @@ def test_a_limb_mesh_bunched_at_one_end_pops_where_its_surface_is():
     np.testing.assert_allclose(np.linalg.norm(radial, axis=1), R, rtol=1e-12)  # square to the bone
     belly = belly_of_groups(bunched, tris, np.ones((len(pts), 1)), bones, [("arm", [0])])[0]
     assert np.array_equal(belly, (t > 0.3) & (t < 0.7)) and 0.3 < belly.mean() < 0.5
+
+
+def test_a_surface_cut_into_pieces_pops_across_its_seams():
+    # the tube cut across its belly into two pieces 0.1 mm apart (a body split by material):
+    # the cut's two border rings are a seam, the pieces are one surface, and the belly runs
+    # over the cut as on the whole tube
+    from warpskin.popping.surface import seam_points
+
+    pts, tris, w, bones, parents = _tube(3)
+    ring_y = np.unique(pts[:, 1])
+    cut_y = ring_y[np.searchsorted(ring_y, 1.5 * L)]  # a ring near mid-bone: both pieces hold it
+    on_cut = np.nonzero(pts[:, 1] == cut_y)[0]
+    copy = np.arange(len(pts))
+    copy[on_cut] = len(pts) + np.arange(len(on_cut))  # the upper piece's own copy of that ring
+    upper_tri = (pts[tris, 1] >= cut_y).all(axis=1)
+    cut_tris = np.where(upper_tri[:, None], copy[tris], tris)
+    cut_pts = np.concatenate([pts, pts[on_cut]])
+    cut_pts[(cut_pts[:, 1] > cut_y) | (np.arange(len(cut_pts)) >= len(pts))] += [0.0, 1e-4, 0.0]
+    cut_w = np.concatenate([w, w[on_cut]])
+    seam = seam_points(cut_pts, cut_tris)
+    assert seam.sum() == 2 * 37 and np.all(np.abs(cut_pts[seam, 1] - cut_y) < 2e-4)  # the cut's two rings
+    _, whole = surface_swelling(pts, tris, w, bones, parents, [("biceps", [1])], swell=0.15)
+    _, cut = surface_swelling(cut_pts, cut_tris, cut_w, bones, parents, [("biceps", [1])], swell=0.15)
+    cut = cut[:, : len(pts)]
+    near = np.abs(pts[:, 1] - cut_y) < 0.05 * L
+    peak = 0.15 * 0.8 * R
+    assert np.all(np.linalg.norm(cut[0][near], axis=1) > 0.9 * peak)
+    np.testing.assert_allclose(np.linalg.norm(cut[0][near], axis=1), np.linalg.norm(whole[0][near], axis=1),
+                               rtol=0.05)

@@ -23,9 +23,10 @@ layered model gives that point, but no more than half the part is thick, the sha
 along the inward normal; ``length``: the bone's). Points one mesh holds at one position (seams,
 flat shading) are one point of its surface. Then, in this order:
 
-* **clearance**: none where another connected piece is nearer than the belly's height there at
+* **clearance**: none where another piece is nearer than the belly's height there at
   rest (a limb's end inside a ball joint), all of it beyond three times that height (the
-  thinning: three times the belly's peak);
+  thinning: three times the belly's peak); pieces whose open borders meet (a surface cut into
+  pieces along its seams) count as one;
 * **volume**: a thinning takes back the swelling's flux ``sum_i A_i n_i . d_i`` (area-weighted
   normals: its volume to first order) on every connected piece, lying on the neighbourhood's
   skin away from the belly (the ends of the group's bones, their parents' and children's skin
@@ -53,7 +54,7 @@ from ..kernels import popping as _k
 from ..preprocess.fast_summation import vertex_adjacency
 from .muscles import _CAP, Muscle, neighbourhood, thinning_reach
 
-__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "point_areas", "belly_of_groups", "clench_table", "SurfacePop"]
+__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "point_areas", "seam_points", "belly_of_groups", "clench_table", "SurfacePop"]
 
 DEFAULT_SURFACE_SWELL = 0.4
 """Peak swelling of a belly on the written surface, as a share of the fat-plus-muscle depth
@@ -110,6 +111,53 @@ def _stretch_limit(points: np.ndarray, field: np.ndarray, edges: np.ndarray, len
         cut = np.minimum(cut, mean @ cut)  # the neighbours of a cut point give a little too
         factor *= np.clip(cut, 0.0, 1.0)
     return factor
+
+
+def _seams(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, *, share: float = 0.25,
+           least: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Where connected pieces continue one another: two pieces whose open borders meet (at
+    least ``least`` border points of one within ``share`` of the median edge of a border point
+    of the other: a surface cut into pieces along its seams). Returns ``(merged [N], seam
+    [N])``: the pieces with those merged, and the border points that meet another piece's."""
+    from scipy.spatial import cKDTree
+    from scipy.sparse.csgraph import connected_components
+
+    seam = np.zeros(len(points), dtype=bool)
+    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(e, axis=0, return_counts=True)
+    border = np.unique(edges[count == 1].ravel())
+    if border.size == 0 or np.unique(piece).size < 2:
+        return piece, seam
+    tol = share * float(np.median(np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)))
+    pairs = np.array(sorted(cKDTree(points[border]).query_pairs(tol)), dtype=np.int64).reshape(-1, 2)
+    a, b = piece[border[pairs[:, 0]]], piece[border[pairs[:, 1]]]
+    other = a != b
+    if not other.any():
+        return piece, seam
+    key, inverse, times = np.unique(np.sort(np.stack([a[other], b[other]], axis=1), axis=1), axis=0,
+                                    return_inverse=True, return_counts=True)
+    kept = times[inverse.ravel()] >= least
+    seam[border[pairs[other][kept].ravel()]] = True
+    key = key[times >= least]
+    m = int(piece.max()) + 1
+    join = sp.csr_matrix((np.ones(len(key)), (key[:, 0], key[:, 1])), shape=(m, m))
+    _, merged = connected_components(join, directed=False)
+    return merged[piece], seam
+
+
+def seam_points(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.ndarray | None = None) -> np.ndarray:
+    """``[N]`` bool: the points on a seam where two pieces of the surface meet (:func:`_seams`,
+    after welding each mesh's points by position)."""
+    from scipy.sparse.csgraph import connected_components
+
+    from ..capture import welded_pieces
+
+    every = np.asarray(points, dtype=np.float64)
+    mesh = np.zeros(len(every), dtype=np.int64) if mesh_of_point is None else np.asarray(mesh_of_point)
+    first, cls, tris, _ = welded_pieces(every, triangles, mesh)
+    n = len(first)
+    _, piece = connected_components(vertex_adjacency(tris, n) + sp.identity(n, format="csr"), directed=False)
+    return _seams(every[first], tris, piece)[1][cls]
 
 
 def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, reach: float) -> np.ndarray:
@@ -196,6 +244,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     flux = np.einsum("ij,ij->i", _area_normals(points, tris), direction)  # per unit radial move [m^2]
     ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).astype(np.float64)
     _, piece = connected_components(ring, directed=False)
+    piece, _ = _seams(points, tris, piece)
     # the fade below needs the distance to three belly peaks at most
     clear = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)))
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
@@ -335,7 +384,7 @@ class SurfacePop:
                  step_times: Sequence[float], activation: Callable[[float], np.ndarray], *, h: float,
                  alpha_min: float, beta: float, threshold: float = 1e-4, triangles: np.ndarray | None = None,
                  margin: float = 0.0, start: float = 1e-5, points: np.ndarray | None = None,
-                 device=None) -> None:
+                 seams: np.ndarray | None = None, device=None) -> None:
         d = np.asarray(displacements, dtype=np.float64)
         g, n = d.shape[:2]
         self.point_count = n
@@ -381,6 +430,8 @@ class SurfacePop:
                 from ..metrics import PairQuery
 
                 self._triangles = tris
+                on_seam = np.zeros(n, dtype=bool) if seams is None else np.asarray(seams, dtype=bool)
+                self._seam_triangle = on_seam[tris].any(axis=1)
                 self._pairs = PairQuery(tris)
                 self._slot = np.full(n, -1, dtype=np.int64)
                 self._slot[self.moved] = np.arange(len(self.moved))
@@ -467,14 +518,17 @@ class SurfacePop:
         triangle pair that it has not without them (a ray misses where two surfaces meet
         between its points: fingers side by side): each round shortens the offsets of the new
         pairs' corners by 30 %, eased over their rings (:func:`~warpskin.metrics.PairQuery`,
-        exact), for at most ``rounds`` rounds."""
+        exact), for at most ``rounds`` rounds. Two triangles that both touch a seam between
+        pieces (a surface cut into pieces) are left: their borders lie on one another by
+        design."""
         factor = np.ones(len(self.moved))
         x = surface.copy()
         x[self.moved] += world
         with_pop, without = self._pairs.of_two(x, surface)
         before = {tuple(p) for p in without.tolist()}
         for _ in range(rounds):
-            new = [p for p in with_pop.tolist() if tuple(p) not in before]
+            new = [p for p in with_pop.tolist() if tuple(p) not in before
+                   and not (self._seam_triangle[p[0]] and self._seam_triangle[p[1]])]  # across a seam
             if not new:
                 break
             corners = self._slot[np.unique(self._triangles[np.asarray(new)].ravel())]

@@ -390,7 +390,7 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
     solver's steps of ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh:
     belly mask per point}``) and sets the activation ``timeline``."""
     from ..popping.muscles import groups_of_model
-    from ..popping.surface import SurfacePop, belly_of_groups, surface_swelling
+    from ..popping.surface import SurfacePop, belly_of_groups, seam_points, surface_swelling
     from ..preprocess.bones import Bones
     from ..rig import Clip
 
@@ -419,7 +419,8 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
                       lambda t: settings.activation.sample(t, names), h=plan.dt,
                       alpha_min=settings.alpha_min if vibrate else 1.0, beta=settings.beta,
                       threshold=settings.threshold, triangles=soup.triangles, margin=_CLEAR * diagonal,
-                      start=1e-5 * diagonal, points=soup.points, device=device)
+                      start=1e-5 * diagonal, points=soup.points,
+                      seams=seam_points(soup.points, soup.triangles, mesh), device=device)
 
 
 def _pop_solver_params(scene):
