@@ -1,13 +1,14 @@
-"""Muscles on the written surface: the pop of a character simulated through a cage.
+"""Muscles on the written surface: ``warpskin pop``'s default for a rig without examples.
 
-A cage is coarser and deeper than the character it carries (its tissue under an upper arm is
-the cage's, not the arm's), and the capture carries only part of a cage's bulge to the meshes
-that are written. So where the character is simulated through a cage, the muscles swell the
-**written** meshes themselves, by the paper's method (Son & Han 2007): each group's clenched
-example is its rest-pose swelling (below); the normal skin is the physical skin the cage
-carries; every written point follows its goal, normal plus the activated swelling, with the
-goal-driven vibration while clenching and the monotone relaxation afterwards (eqs. 1-4, one
-Warp kernel per solver step, :func:`warpskin.kernels.popping.surface_vibration_kernel`).
+The muscles swell the **written** meshes themselves, over the physical skin. A cage is coarser
+and deeper than the character it carries and the capture carries only part of its bulge, and a
+pop of the multi-layer model's muscle layer moves skin far from the muscle through the volume
+constraints; on the written surface the pop is where the muscle is, by the paper's method (Son &
+Han 2007): each group's clenched example is its rest-pose swelling (below); the normal skin is
+the physical skin (simulated directly, or carried by the cage); every written point follows its
+goal, normal plus the activated swelling, with the goal-driven vibration while clenching and the
+monotone relaxation afterwards (eqs. 1-4, one Warp kernel per solver step,
+:func:`warpskin.kernels.popping.surface_vibration_kernel`).
 
 The swelling of a group of bones, per written point ``x`` whose dominant joint is one of them,
 radially from the bone's centre line (``f`` the point's foot on that line, ``t`` in [0, 1] its
