@@ -162,19 +162,21 @@ def cmd_scenes(args) -> int:
 
 
 def _muscle_summary(scene, character):
-    """The muscle groups ``pop`` finds from the skeleton of what is simulated (the skin, or the
-    cage), as the pop summary lists them; or the one line why none are found."""
+    """The muscle groups ``pop`` (``--pop-on surface``, the default) finds from the skeleton
+    of what is simulated (the skin, or the cage), swelling the written meshes, as the pop
+    summary lists them; or the one line why none are found."""
     from .errors import InputError
     from .model import SkinModelBuilder
     from .popping.examples import has_examples
-    from .popping.muscles import muscles_from_skeleton
+    from .run.pop import surface_muscles
 
     if has_examples(scene):
         return "the scene's popping examples"
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            found, _ = muscles_from_skeleton(SkinModelBuilder(character.sim_rig, scene.model_params()))
+            builder = SkinModelBuilder(character.sim_rig, scene.model_params())
+            found = surface_muscles(character, builder)[0]
     except InputError as exc:
         return f"no muscle groups ({exc})"
     return [{"name": m.name, "joints": m.joints, "vertices": m.vertices, "depth_mm": 1e3 * m.depth_m,
@@ -251,7 +253,7 @@ def cmd_info(args) -> int:
     if isinstance(muscles, list):
         print(f"pop would use ({len(muscles)} muscle groups from the skeleton; --groups NAME=JOINT_PATTERN names others):")
         for m in muscles:
-            print(f"  {m['name']}: {m['vertices']} {'cage ' if out['simulation'] == 'cage' else ''}vertices, tissue "
+            print(f"  {m['name']}: {m['vertices']} written points, tissue "
                   f"{m['depth_mm']:.0f} mm deep, swelling up to {m['peak_swell_mm']:.1f} mm")
     else:
         print(f"pop would use: {muscles}")

@@ -23,7 +23,7 @@ from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping", "POP_ON"]
+__all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping", "surface_muscles", "POP_ON"]
 
 POP_ON = ("surface", "layers")
 _CLEAR = 2.5e-4  # the gap a surface pop keeps to a surface it meets, in body diagonals
@@ -324,11 +324,8 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         made: list = []
 
         def overlay(character, builder, frames_plan):
-            from ..popping.surface import DEFAULT_SURFACE_SWELL
-
-            pop = _surface_pop(character, builder, frames_plan, settings, muscles,
-                               DEFAULT_SURFACE_SWELL if swell is None else swell, found, timeline, device, vibrate,
-                               surface_bellies)
+            pop = _surface_pop(character, builder, frames_plan, settings, muscles, swell, found, timeline, device,
+                               vibrate, surface_bellies)
             pop.normal_guide = bool(normal_guide)
             made.append(pop)
             return pop
@@ -383,18 +380,21 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
 
 
-def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
-                 bellies: list):
-    """The written meshes' muscles (:func:`~warpskin.popping.surface.surface_swelling`) and
-    their goal-driven offset (:class:`~warpskin.popping.surface.SurfacePop`), stepped with the
-    solver's steps of ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh:
-    belly mask per point}``) and sets the activation ``timeline``."""
+def surface_muscles(character, builder, muscles=None, swell: float | None = None, device=None):
+    """The muscle groups of a character's written meshes and their rest-pose swellings, as
+    ``warpskin pop`` (``--pop-on surface``) uses them: the groups of ``builder``'s model
+    (:func:`~warpskin.popping.muscles.groups_of_model`, the skin's or its cage's) on the
+    character's written points (:func:`~warpskin.popping.surface.surface_swelling`).
+
+    Returns ``(muscles, displacements [G, N, 3] [m], groups [(name, joints)], bones in the
+    written points' space, mesh of every written point [N])``."""
     from ..popping.muscles import groups_of_model
-    from ..popping.surface import SurfacePop, belly_of_groups, seam_points, surface_swelling
+    from ..popping.surface import DEFAULT_SURFACE_SWELL, surface_swelling
     from ..preprocess.bones import Bones
     from ..rig import Clip
 
-    soup, rig = character.soup, character.rig
+    soup = character.soup
+    chosen = groups_of_model(builder, muscles)  # builds the model
     bones = builder.layers.bones
     # the simulated skin's bones into the soup's space (its skinning at the rest pose)
     rest = builder.rig.skinning_matrices(Clip("rest"), 0.0)
@@ -403,13 +403,27 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
         return np.einsum("jab,jb->ja", rest[:, :3, :3], p) + rest[:, :3, 3]
 
     stage = Bones(start=moved(bones.start), end=moved(bones.end), joint_names=list(bones.joint_names))
-    chosen = groups_of_model(builder, muscles)  # as `warpskin info` lists them
     mesh = np.zeros(len(soup.points), dtype=np.int64)
     for k, (_, start, count) in enumerate(soup.pieces):
         mesh[start:start + count] = k
-    found[:], swelling = surface_swelling(soup.points, soup.triangles, soup.dense_weights, stage, rig.skeleton.parents,
-                                          chosen, swell=swell, bone_fraction=builder.params.layers.bone,
-                                          mesh_of_point=mesh, device=device)
+    found, swelling = surface_swelling(soup.points, soup.triangles, soup.dense_weights, stage,
+                                       character.rig.skeleton.parents, chosen,
+                                       swell=DEFAULT_SURFACE_SWELL if swell is None else swell,
+                                       bone_fraction=builder.params.layers.bone, mesh_of_point=mesh, device=device)
+    return found, swelling, chosen, stage, mesh
+
+
+def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
+                 bellies: list):
+    """The written meshes' muscles (:func:`surface_muscles`) and their goal-driven offset
+    (:class:`~warpskin.popping.surface.SurfacePop`), stepped with the solver's steps of
+    ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh: belly mask per
+    point}``) and sets the activation ``timeline``."""
+    from ..popping.surface import SurfacePop, belly_of_groups, seam_points
+    from ..rig import Clip
+
+    soup, rig = character.soup, character.rig
+    found[:], swelling, chosen, stage, mesh = surface_muscles(character, builder, muscles, swell, device)
     names = [m.name for m in found]
     bellies[:] = [character.split(mask) for mask in belly_of_groups(soup.points, soup.triangles, soup.dense_weights, stage,
                                                                   chosen)]
