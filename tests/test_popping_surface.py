@@ -14,7 +14,8 @@ from pxr import Usd, UsdGeom
 from characters import mannequin_file
 from test_characters import _assert_keeps_its_surface, written_quality
 from warpskin.cli import main
-from warpskin.popping.surface import SurfacePop, belly_of_groups, clench_table, surface_swelling
+from warpskin.popping.activation import clench_table
+from warpskin.popping.surface import SurfacePop, belly_of_groups, surface_swelling
 from warpskin.preprocess.bones import Bones
 
 R = 0.0473  # [m] the tube's radius (generic)
@@ -282,14 +283,18 @@ def test_an_open_character_pops_on_its_written_surface(tmp_path, capsys, device)
     assert far.any() and np.array_equal(x[:, far], n[:, far])
     q = written_quality(out)
     _assert_keeps_its_surface({k: v for k, v in q.items() if not k.endswith("_normal")}, 17)
-    # the guide is what `warpskin simulate` writes of the same frames, bit for bit
+    # the guide is what `warpskin simulate` writes of the same frames (bit for bit on the CPU)
     plain = tmp_path / "plain.usdc"
     assert main(["simulate", str(glb), "--clip", "walk", "--frames", "0:16", "--quiet", "--device", device,
                  "-o", str(plain)]) == 0
     alone = Usd.Stage.Open(str(plain))
     skin = _meshes(alone)["body"].GetPointsAttr()
     for k, c in enumerate(codes):
-        assert np.array_equal(np.asarray(skin.Get(c)), n[k].astype(np.float32))
+        a = np.asarray(skin.Get(c))
+        if device == "cpu":
+            assert np.array_equal(a, n[k].astype(np.float32))
+        else:  # atomics order the contacts differently from run to run on a GPU
+            np.testing.assert_allclose(a, n[k], atol=1e-4 * rig.size())
 
 
 def test_a_belly_pressed_on_one_side_swells_more_on_the_other(device):
@@ -316,17 +321,25 @@ def test_a_belly_pressed_on_one_side_swells_more_on_the_other(device):
     size = vertex_area * np.linalg.norm(world, axis=1)
     extra = min(np.sum(size * (1 - kept)) / np.sum(size * kept), 0.3)
     assert 0.0 < extra < 0.3  # not at the cap
-    np.testing.assert_allclose(pop._pressed(world, kept), 1.0 + extra * kept ** 4, rtol=1e-9)
+    rest = pop.offset.numpy().astype(np.float64)  # the rest-pose offsets (outward: along the swelling)
+    np.testing.assert_allclose(pop._pressed(rest, world, kept), 1.0 + extra * kept ** 4, rtol=1e-9)
     # pressed hard (a fifth kept on most of it), the free side takes at most 30 % more
     hard = np.where(points[:, 0] < 0.01, 0.2, 1.0)
-    np.testing.assert_allclose(pop._pressed(world, hard), 1.0 + 0.3 * hard ** 4, rtol=1e-9)
+    np.testing.assert_allclose(pop._pressed(rest, world, hard), 1.0 + 0.3 * hard ** 4, rtol=1e-9)
 
 
 def test_a_limb_mesh_bunched_at_one_end_pops_where_its_surface_is():
     # a tube over 75-115 % of its bone (a stylised rig's upper arm: a ball at the elbow), and one
     # along its whole bone: the first is measured along the surface it carries, the second along
     # the bone
-    from warpskin.popping.surface import bone_coordinates, point_areas
+    from warpskin.popping.surface import bone_coordinates
+
+    def point_areas(points, faces):  # a third of each incident triangle's area, by trimesh
+        mesh = trimesh.Trimesh(points, faces, process=False)
+        out = np.zeros(len(points))
+        for k in range(3):
+            np.add.at(out, faces[:, k], mesh.area_faces / 3.0)
+        return out
 
     pts, tris, w, bones, parents = _tube(1, rings_per_bone=41)
     whole_t, _ = bone_coordinates(pts, np.zeros(len(pts), dtype=int), bones, point_areas(pts, tris))

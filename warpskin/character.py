@@ -180,6 +180,14 @@ class Character:
         return len(self.soup.points)
 
     @property
+    def mesh_of_point(self) -> np.ndarray:
+        """``[N]`` the written mesh (its index in :attr:`parts`) of every written point."""
+        out = np.zeros(self.point_count, dtype=np.int64)
+        for k, part in enumerate(self.parts):
+            out[part.start:part.start + part.count] = k
+        return out
+
+    @property
     def rigid_piece_count(self) -> int:
         return int(self.rigid.max()) + 1 if self.rigid.size else 0
 
@@ -201,9 +209,7 @@ class Character:
         t0 = time.perf_counter()
         soup = self.soup
         n = self.point_count
-        mesh_of = np.zeros(n, dtype=np.int64)
-        for k, part in enumerate(self.parts):
-            mesh_of[part.start:part.start + part.count] = k
+        mesh_of = self.mesh_of_point
         if self.caged:
             sim = self.sim_rig
             cage_dense = sim._dense_weights(sim.joint_indices, sim.joint_weights)

@@ -294,6 +294,21 @@ class BeatSpec:
         return ActivationTimeline(keys, where=where)
 
 
+def clench_table(activation: np.ndarray) -> np.ndarray:
+    """``[S, G]`` 1 while each group clenches, 0 while it relaxes, from its activations over
+    the steps ``[S, G]``: rising starts a clench, falling a relaxation, otherwise it goes on
+    (from relaxed before the first step)."""
+    a = np.asarray(activation, dtype=np.float64)
+    out = np.zeros_like(a)
+    prev = np.zeros(a.shape[1])
+    state = np.zeros(a.shape[1])
+    for s in range(a.shape[0]):
+        state = np.where(a[s] > prev, 1.0, np.where(a[s] < prev, 0.0, state))
+        out[s] = state
+        prev = a[s]
+    return out
+
+
 def vibrating(sample: Callable[[float], np.ndarray], start: float, end: float, *, h: float, alpha: float,
               beta: float, threshold: float = 1e-6) -> Callable[[float], np.ndarray]:
     """The paper's skin response (Son & Han, eqs. 1, 2 and 4) applied to each group's activation,
@@ -312,14 +327,12 @@ def vibrating(sample: Callable[[float], np.ndarray], start: float, end: float, *
     times = start + h * np.arange(count)
     goal = np.array([np.asarray(sample(float(t)), dtype=np.float64).ravel() for t in times])  # [n, G]
     a = np.zeros(goal.shape[1])
-    u, prev = np.zeros_like(a), np.zeros_like(a)
-    clench = np.zeros(a.shape, dtype=bool)
+    u = np.zeros_like(a)
+    clenching = clench_table(goal) > 0.0
     out = np.empty_like(goal)
     for k in range(count):
         g = goal[k]
-        clench = np.where(g > prev, True, np.where(g < prev, False, clench))
-        prev = g
-        c, r = clench, ~clench
+        c, r = clenching[k], ~clenching[k]
         u[c] = (1.0 - alpha) * u[c] + alpha * (g[c] - a[c]) / h
         a[c] += h * u[c]
         a[r] += beta * h * (g[r] - a[r])

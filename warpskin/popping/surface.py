@@ -52,10 +52,12 @@ import warp as wp
 
 from ..errors import SceneError
 from ..kernels import popping as _k
+from ..preprocess.bone_heat import vertex_areas
 from ..preprocess.fast_summation import vertex_adjacency
+from .activation import clench_table
 from .muscles import _CAP, Muscle, neighbourhood, thinning_reach
 
-__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "point_areas", "seam_points", "belly_of_groups", "clench_table", "SurfacePop"]
+__all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "seam_points", "belly_of_groups", "SurfacePop"]
 
 DEFAULT_SURFACE_SWELL = 0.4
 """Peak swelling of a belly on the written surface, as a share of the fat-plus-muscle depth
@@ -146,19 +148,25 @@ def _seams(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, *, shar
     return merged[piece], seam
 
 
-def seam_points(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.ndarray | None = None) -> np.ndarray:
-    """``[N]`` bool: the points on a seam where two pieces of the surface meet (:func:`_seams`,
-    after welding each mesh's points by position)."""
-    from scipy.sparse.csgraph import connected_components
-
+def _welded_surface(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.ndarray | None):
+    """The written points as one surface: each mesh's points welded by position (seams, flat
+    shading; :func:`~warpskin.capture.welded_pieces`). Returns ``(first [C], cls [N], triangles
+    over the welded points, piece [C], seam [C])``: pieces whose borders meet merged, and the
+    border points where they meet (:func:`_seams`)."""
     from ..capture import welded_pieces
 
     every = np.asarray(points, dtype=np.float64)
     mesh = np.zeros(len(every), dtype=np.int64) if mesh_of_point is None else np.asarray(mesh_of_point)
-    first, cls, tris, _ = welded_pieces(every, triangles, mesh)
-    n = len(first)
-    _, piece = connected_components(vertex_adjacency(tris, n) + sp.identity(n, format="csr"), directed=False)
-    return _seams(every[first], tris, piece)[1][cls]
+    first, cls, tris, piece = welded_pieces(every, triangles, mesh)
+    piece, seam = _seams(every[first], tris, piece)
+    return first, cls, tris, piece, seam
+
+
+def seam_points(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.ndarray | None = None) -> np.ndarray:
+    """``[N]`` bool: the points on a seam where two pieces of the surface meet (:func:`_seams`,
+    after welding each mesh's points by position)."""
+    _, cls, _, _, seam = _welded_surface(points, triangles, mesh_of_point)
+    return seam[cls]
 
 
 def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, reach: float) -> np.ndarray:
@@ -216,22 +224,18 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     """
     if not (isinstance(swell, (int, float)) and 0.0 < swell <= 2.0):
         raise SceneError(f"swell must be in (0, 2] (a share of the tissue depth), got {swell!r}")
-    from scipy.sparse.csgraph import connected_components
+    from ..capture import point_normals, shape_diameter
 
-    from ..capture import point_normals, shape_diameter, welded_pieces
-
-    every = np.asarray(points, dtype=np.float64)
-    mesh = np.zeros(len(every), dtype=np.int64) if mesh_of_point is None else np.asarray(mesh_of_point)
     # one point per position within a mesh (a flat-shaded file splits every facet), so that
     # rings, pieces and edges are the surface's
-    first, cls, tris, _ = welded_pieces(every, triangles, mesh)
-    points = every[first]
+    first, cls, tris, piece, _ = _welded_surface(points, triangles, mesh_of_point)
+    points = np.asarray(points, dtype=np.float64)[first]
     w = np.asarray(dense_weights, dtype=np.float64)[first]
     n = len(points)
     names = list(bones.joint_names)
     dominant = np.argmax(w, axis=1)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    t, radial = bone_coordinates(points, dominant, bones, point_areas(points, tris))
+    t, radial = bone_coordinates(points, dominant, bones, vertex_areas(points, tris, kind="barycentric"))
     r = np.linalg.norm(radial, axis=1)
     ok = r > 1e-9 * max(diagonal, 1e-12)
     direction = np.zeros_like(points)
@@ -244,8 +248,6 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     length = bones.length[dominant]
     flux = np.einsum("ij,ij->i", _area_normals(points, tris), direction)  # per unit radial move [m^2]
     ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).astype(np.float64)
-    _, piece = connected_components(ring, directed=False)
-    piece, _ = _seams(points, tris, piece)
     # the fade below needs the distance to three belly peaks at most
     clear = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)))
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
@@ -286,13 +288,6 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     together = np.stack(fields)
     together *= _stretch_limit(points, together.sum(axis=0), edges, lengths, ring)[None, :, None]
     return muscles, together[:, cls]
-
-
-def point_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """``[N]`` a third of the area of each point's triangles [m^2]."""
-    p = np.asarray(points, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
-    a = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return np.bincount(np.asarray(triangles, dtype=np.int64).ravel(), np.repeat(a / 3.0, 3), minlength=len(points))
 
 
 def _quantiles(x: np.ndarray, weight: np.ndarray, q) -> np.ndarray:
@@ -342,24 +337,9 @@ def belly_of_groups(points: np.ndarray, triangles: np.ndarray, dense_weights: np
     group, between 30 % and 70 % along the bone, :func:`bone_coordinates` with the areas of
     ``triangles``), as :func:`~warpskin.popping.report.belly_of_bones` marks a skin's."""
     dominant = np.argmax(np.asarray(dense_weights), axis=1)
-    t, _ = bone_coordinates(points, dominant, bones, point_areas(points, triangles))
+    t, _ = bone_coordinates(points, dominant, bones, vertex_areas(points, triangles, kind="barycentric"))
     middle = (t > 0.3) & (t < 0.7)
     return np.array([np.isin(dominant, list(group)) & middle for _, group in groups], dtype=bool).reshape(len(groups), -1)
-
-
-def clench_table(activation: np.ndarray) -> np.ndarray:
-    """``[S, G]`` 1 while each group clenches, 0 while it relaxes, from its activations over
-    the steps ``[S, G]``: rising starts a clench, falling a relaxation, otherwise it goes on
-    (from relaxed before the first step)."""
-    a = np.asarray(activation, dtype=np.float64)
-    out = np.zeros_like(a)
-    prev = np.zeros(a.shape[1])
-    state = np.zeros(a.shape[1])
-    for s in range(a.shape[0]):
-        state = np.where(a[s] > prev, 1.0, np.where(a[s] < prev, 0.0, state))
-        out[s] = state
-        prev = a[s]
-    return out
 
 
 class SurfacePop:
@@ -419,7 +399,7 @@ class SurfacePop:
             self._direction = top / np.maximum(np.linalg.norm(top, axis=1), 1e-30)[:, None]
             self._area = None
             if triangles is not None and points is not None:  # each point's share of the surface
-                self._area = point_areas(points, triangles)[self.moved]
+                self._area = vertex_areas(points, triangles, kind="barycentric")[self.moved]
             if triangles is not None:  # the written surface, for the offsets' clearance
                 tris = np.asarray(triangles, dtype=np.int64)
                 self._surface = wp.zeros(n, dtype=wp.vec3)
@@ -438,6 +418,8 @@ class SurfacePop:
                 self._slot[self.moved] = np.arange(len(self.moved))
                 self._ring = ring[self.moved][:, self.moved].astype(np.float64)  # among the moved points
                 self._ring_mean = sp.diags(1.0 / np.asarray(self._ring.sum(axis=1)).ravel()) @ self._ring
+                coo = self._ring.tocoo()
+                self._ring_rows, self._ring_cols = coo.row, coo.col
         self.done = 0  # steps taken
         self.held = 0.0  # the largest share of an offset the clearance took back, over the frames
 
@@ -482,23 +464,24 @@ class SurfacePop:
                       outputs=[self._scale], device=self.device)
             scale = self._scale.numpy().astype(np.float64)
             eased = np.minimum(scale, self._ring_mean @ self._ring_min(scale))
-            eased *= self._pressed(world, eased)
+            eased *= self._pressed(o, world, eased)
             eased *= self._untangle(np.asarray(surface, dtype=np.float64), world * eased[:, None])
             world *= eased[:, None]
             self.held = max(self.held, float(1.0 - eased.min()))
         out[self.moved] = world
         return out
 
-    def _pressed(self, world: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    def _pressed(self, rest: np.ndarray, world: np.ndarray, kept: np.ndarray) -> np.ndarray:
         """``[P]`` factors >= 1 on the moved points' offsets: a belly held back where it meets
         another surface (``kept [P]`` in [0, 1], the share of each offset ``world [P, 3]`` [m]
         left) swells more where it is free, as an incompressible muscle pressed on one side
         does. Per group, the outward volume held back (area x offset) is spread over its free
-        points' outward offsets, at most ``_PRESSED`` more, fading in with ``kept ** 4``."""
+        points' outward offsets (outward: the rest-pose offset ``rest [P, 3]`` along the
+        group's swelling), at most ``_PRESSED`` more, fading in with ``kept ** 4``."""
         out = np.ones(len(kept))
         if self._area is None or not len(kept):
             return out
-        outward = np.einsum("pc,pc->p", self.offset.numpy().astype(np.float64), self._direction) > 0.0
+        outward = np.einsum("pc,pc->p", rest, self._direction) > 0.0
         size = np.where(outward, self._area * np.linalg.norm(world, axis=1), 0.0)
         g = self._group
         lost = np.bincount(g, size * (1.0 - kept), minlength=self._groups)
@@ -509,8 +492,7 @@ class SurfacePop:
     def _ring_min(self, values: np.ndarray) -> np.ndarray:
         """``[P]`` the smallest of ``values`` over each moved point's ring (among the moved)."""
         low = values.copy()
-        rows = self._ring.tocoo()
-        np.minimum.at(low, rows.row, values[rows.col])
+        np.minimum.at(low, self._ring_rows, values[self._ring_cols])
         return low
 
     def _untangle(self, surface: np.ndarray, world: np.ndarray, rounds: int = 8) -> np.ndarray:
@@ -526,13 +508,15 @@ class SurfacePop:
         x = surface.copy()
         x[self.moved] += world
         with_pop, without = self._pairs.of_two(x, surface)
-        before = {tuple(p) for p in without.tolist()}
+        count = np.int64(len(self._triangles))
+        with_pop, without = with_pop.astype(np.int64), without.astype(np.int64)
+        before = without[:, 0] * count + without[:, 1]  # one key per pair
         for _ in range(rounds):
-            new = [p for p in with_pop.tolist() if tuple(p) not in before
-                   and not (self._seam_triangle[p[0]] and self._seam_triangle[p[1]])]  # across a seam
-            if not new:
+            new = with_pop[~np.isin(with_pop[:, 0] * count + with_pop[:, 1], before)
+                           & ~(self._seam_triangle[with_pop[:, 0]] & self._seam_triangle[with_pop[:, 1]])]  # seams
+            if not len(new):
                 break
-            corners = self._slot[np.unique(self._triangles[np.asarray(new)].ravel())]
+            corners = self._slot[np.unique(self._triangles[new].ravel())]
             hit = np.zeros(len(self.moved))
             hit[corners[corners >= 0]] = 1.0
             if not hit.any():
@@ -540,5 +524,5 @@ class SurfacePop:
             factor *= 1.0 - 0.3 * hit
             factor = np.minimum(factor, self._ring_mean @ factor)  # eased over the ring
             x[self.moved] = surface[self.moved] + world * factor[:, None]
-            with_pop = self._pairs.pairs(x)
+            with_pop = self._pairs.pairs(x).astype(np.int64)
         return factor

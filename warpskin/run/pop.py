@@ -26,8 +26,8 @@ from .runner import FrameRunner
 __all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping", "surface_muscles", "POP_ON"]
 
 POP_ON = ("surface", "layers")
-_CLEAR = 2.5e-4  # the gap a surface pop keeps to a surface it meets, in body diagonals
 """Where muscles found from the skeleton swell (:func:`run_popping`'s ``pop_on``)."""
+_CLEAR = 2.5e-4  # the gap a surface pop keeps to a surface it meets, in body diagonals
 
 
 @dataclass
@@ -258,7 +258,8 @@ def run_popping(
 
 def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, settings) -> str:
     """The popping report (:func:`~warpskin.popping.report.write_popping_report`) of a bake whose
-    skin is ``rig``'s (``bellies`` per welded vertex); returns its folder."""
+    skin is ``rig``'s (``bellies``: per group a mask per welded skin vertex, or ``{prim name:
+    mask per written point of that mesh}`` as written); returns its folder."""
     from ..popping.report import write_popping_report
 
     masks = {g: (m[rig.weld_map] if topology == "file" and not isinstance(m, dict) else m) for g, m in bellies.items()}
@@ -370,13 +371,11 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                 bellies[g] = {(skin_prim if name == "skin" else _prim_name(name)):
                               (m[render.weld_map] if name == "skin" and topology == "file" else m)
                               for name, m in masks.items() if m.any()}
-            summary["popping_report"] = _report(report_dir, result.path, bellies, render, "welded",
-                                                scene.frame_rate, settings)
         else:
             bellies = (belly_of_examples(render, examples) if examples is not None
                        else {m.name: belly_of_bones(render, m.joints) for m in found})
-            summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology,
-                                                scene.frame_rate, settings)
+        summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate,
+                                            settings)
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
 
 
@@ -403,9 +402,7 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
         return np.einsum("jab,jb->ja", rest[:, :3, :3], p) + rest[:, :3, 3]
 
     stage = Bones(start=moved(bones.start), end=moved(bones.end), joint_names=list(bones.joint_names))
-    mesh = np.zeros(len(soup.points), dtype=np.int64)
-    for k, (_, start, count) in enumerate(soup.pieces):
-        mesh[start:start + count] = k
+    mesh = character.mesh_of_point
     found, swelling = surface_swelling(soup.points, soup.triangles, soup.dense_weights, stage,
                                        character.rig.skeleton.parents, chosen,
                                        swell=DEFAULT_SURFACE_SWELL if swell is None else swell,
