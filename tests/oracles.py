@@ -97,11 +97,12 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, triangles: np.ndar
     return out
 
 
-def usd_skinned_world(stage, mesh_path: str, tc: float) -> np.ndarray:
+def usd_skinned_world(stage, mesh_path: str, tc: float, blend_weights: dict[str, float] | None = None) -> np.ndarray:
     """World-space skinned points ``[N, 3]`` of ``mesh_path`` as usd-core's own UsdSkel
     computes them (``SkinningQuery.ComputeSkinnedPoints``, then the skeleton's local-to-world)
-    at time code ``tc``."""
-    from pxr import Usd, UsdGeom, UsdSkel
+    at time code ``tc``; with ``blend_weights`` (``{shape name: weight}``, others 0) the mesh's
+    blend shapes and their inbetweens are applied first by ``UsdSkel.BlendShapeQuery``."""
+    from pxr import Usd, UsdGeom, UsdSkel, Vt
 
     predicate = Usd.TraverseInstanceProxies()
     cache = UsdSkel.Cache()
@@ -116,6 +117,13 @@ def usd_skinned_world(stage, mesh_path: str, tc: float) -> np.ndarray:
                     continue
                 skel_query = cache.GetSkelQuery(binding.GetSkeleton())
                 points = UsdGeom.Mesh(target.GetPrim()).GetPointsAttr().Get(tc)
+                if blend_weights is not None:
+                    shape_binding = UsdSkel.BindingAPI(target.GetPrim())
+                    names = list(shape_binding.GetBlendShapesAttr().Get())
+                    query = UsdSkel.BlendShapeQuery(shape_binding)
+                    sub = query.ComputeSubShapeWeights(Vt.FloatArray([blend_weights.get(n, 0.0) for n in names]))
+                    assert query.ComputeDeformedPoints(*sub, query.ComputeBlendShapePointIndices(),
+                                                       query.ComputeSubShapePointOffsets(), points)
                 xforms = skel_query.ComputeSkinningTransforms(tc)
                 assert target.ComputeSkinnedPoints(xforms, points, tc)
                 l2w = np.array(UsdGeom.Xformable(skel_query.GetPrim()).ComputeLocalToWorldTransform(tc)).T

@@ -20,6 +20,7 @@ root transform of every root joint, which is the rig's convention
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -760,23 +761,29 @@ def _read_animation(
 # --------------------------------------------------------------------------------------------
 
 
-def read_usd_blend_shapes(path: str | Path, *, mesh: str | None = None) -> dict[str, np.ndarray]:
-    """The UsdSkel blend shapes bound to one skinned mesh, as offsets per file point.
+def _dense_offsets(offsets: Any, indices: np.ndarray | None, n: int, label: str, where: _Where) -> np.ndarray:
+    """A blend shape's (or inbetween's) offsets as one row per file point ``[n, 3]``: dense, or
+    scattered by the shape's ``pointIndices`` (0 elsewhere). ``label`` names it in errors."""
+    offsets = np.asarray(offsets if offsets is not None else [], dtype=np.float64).reshape(-1, 3)
+    full = np.zeros((n, 3))
+    if indices is None:
+        if offsets.shape[0] != n:
+            raise where.error(f"{label} has {offsets.shape[0]} offsets for {n} points and no pointIndices")
+        full[:] = offsets
+    else:
+        if indices.shape[0] != offsets.shape[0]:
+            raise where.error(f"{label}: {offsets.shape[0]} offsets for {indices.shape[0]} pointIndices")
+        full[indices] = offsets
+    if not np.all(np.isfinite(full)):
+        raise where.error(f"{label} holds NaN or inf offsets")
+    return full
 
-    Args:
-        path: A ``.usd``/``.usda``/``.usdc``/``.usdz`` file.
-        mesh: The skinned mesh, as for :func:`load_usd` (default: the one with the most points).
 
-    Returns:
-        ``{name: offsets [N, 3]}`` in the order of the mesh's ``skel:blendShapes``, per file point
-        (0 where a sparse shape's ``pointIndices`` leave a point out), in skeleton space
-        (``geomBindTransform``'s linear part applied) and in the stage's units (multiply by the
-        rig's ``meters_per_unit``). Inbetween shapes are not returned.
-
-    Raises:
-        RigError: names and targets that do not pair up, a target that is not a BlendShape,
-            offsets that do not match the points or their indices; naming the file and prim.
-    """
+def _blend_shapes(path: str | Path, mesh: str | None) -> tuple[Any, list[tuple[str, Any, np.ndarray | None]], int,
+                                                               np.ndarray, _Where]:
+    """The blend shapes bound to the chosen skinned mesh: ``(stage, [(name, BlendShape, point
+    indices or None)], point count, geomBindTransform's linear part, where)``; the shapes are
+    valid while the caller holds the stage."""
     pxr, stage, p = _open_stage(path)
     _, targets, others = _scan(pxr, stage)
     tg = _select(targets, others, mesh, p, pxr)
@@ -789,28 +796,79 @@ def read_usd_blend_shapes(path: str | Path, *, mesh: str | None = None) -> dict[
     if len(names) != len(paths):
         raise where.error(f"skel:blendShapes names {len(names)} shapes but skel:blendShapeTargets has {len(paths)}")
     geom_bind = np.array(tg.skinning.GetGeomBindTransform(t0), dtype=np.float64).T
-    out: dict[str, np.ndarray] = {}
+    shapes = []
     for name, target in zip(names, paths):
         shape = pxr.UsdSkel.BlendShape(stage.GetPrimAtPath(target))
         if not shape:
             raise where.error(f"blend shape {name!r}: {target} is not a BlendShape prim")
-        offsets = np.asarray(shape.GetOffsetsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
         indices = shape.GetPointIndicesAttr().Get()
-        full = np.zeros((n, 3))
-        if indices is None or len(indices) == 0:
-            if offsets.shape[0] != n:
-                raise where.error(f"blend shape {name!r} ({target}) has {offsets.shape[0]} offsets for {n} points "
-                                  "and no pointIndices")
-            full[:] = offsets
-        else:
-            idx = np.asarray(indices, dtype=np.int64)
-            if idx.shape[0] != offsets.shape[0] or idx.min() < 0 or idx.max() >= n:
-                raise where.error(f"blend shape {name!r} ({target}): {offsets.shape[0]} offsets for {idx.shape[0]} "
-                                  f"pointIndices, which must lie in [0, {n - 1}]")
-            full[idx] = offsets
-        if not np.all(np.isfinite(full)):
-            raise where.error(f"blend shape {name!r} ({target}) holds NaN or inf offsets")
-        out[str(name)] = full @ geom_bind[:3, :3].T
+        idx = None if indices is None or len(indices) == 0 else np.asarray(indices, dtype=np.int64)
+        if idx is not None and (idx.min() < 0 or idx.max() >= n):
+            raise where.error(f"blend shape {name!r} ({target}): pointIndices must lie in [0, {n - 1}]")
+        shapes.append((str(name), shape, idx))
+    return stage, shapes, n, geom_bind[:3, :3], where
+
+
+def read_usd_blend_shapes(path: str | Path, *, mesh: str | None = None) -> dict[str, np.ndarray]:
+    """The UsdSkel blend shapes bound to one skinned mesh, as offsets per file point.
+
+    Args:
+        path: A ``.usd``/``.usda``/``.usdc``/``.usdz`` file.
+        mesh: The skinned mesh, as for :func:`load_usd` (default: the one with the most points).
+
+    Returns:
+        ``{name: offsets [N, 3]}`` in the order of the mesh's ``skel:blendShapes``, per file point
+        (0 where a sparse shape's ``pointIndices`` leave a point out), in skeleton space
+        (``geomBindTransform``'s linear part applied) and in the stage's units (multiply by the
+        rig's ``meters_per_unit``). The shapes' inbetweens: :func:`read_usd_inbetweens`.
+
+    Raises:
+        RigError: names and targets that do not pair up, a target that is not a BlendShape,
+            offsets that do not match the points or their indices; naming the file and prim.
+    """
+    stage, shapes, n, bind, where = _blend_shapes(path, mesh)  # noqa: F841 (holds the stage open)
+    return {name: _dense_offsets(shape.GetOffsetsAttr().Get(), idx, n, f"blend shape {name!r} ({shape.GetPath()})",
+                                 where) @ bind.T
+            for name, shape, idx in shapes}
+
+
+def read_usd_inbetweens(path: str | Path, *, mesh: str | None = None) -> dict[str, list[tuple[float, np.ndarray]]]:
+    """The inbetween shapes of the UsdSkel blend shapes bound to one skinned mesh.
+
+    A blend shape with inbetweens moves its points piecewise linearly in its weight ``w``:
+    through 0 at ``w = 0``, each inbetween's offsets at its weight, and the shape's own offsets
+    at ``w = 1`` (UsdSkel's blend shape rule, as ``UsdSkel.BlendShapeQuery`` computes it).
+
+    Args:
+        path, mesh: As :func:`read_usd_blend_shapes`.
+
+    Returns:
+        ``{shape name: [(weight, offsets [N, 3]), ...]}`` for the shapes that have inbetweens
+        with weights strictly between 0 and 1 (sorted by weight; inbetweens outside [0, 1] only
+        act on weights that an activation in [0, 1] never reaches and are left out), offsets
+        per file point in the same space and units as :func:`read_usd_blend_shapes`'s.
+
+    Raises:
+        RigError: an inbetween at weight 0 or 1 or two at one weight, or offsets that do not
+            match the shape's points; naming the file, prim and inbetween.
+    """
+    stage, shapes, n, bind, where = _blend_shapes(path, mesh)  # noqa: F841 (holds the stage open)
+    out: dict[str, list[tuple[float, np.ndarray]]] = {}
+    for name, shape, idx in shapes:
+        levels = []
+        for inb in shape.GetInbetweens():
+            w = float(inb.GetWeight())
+            label = f"inbetween {inb.GetAttr().GetBaseName()!r} of blend shape {name!r} ({shape.GetPath()})"
+            if not math.isfinite(w) or w in (0.0, 1.0):
+                raise where.error(f"{label} has weight {w}; an inbetween's weight must not be 0 or 1")
+            if 0.0 < w < 1.0:
+                levels.append((w, _dense_offsets(inb.GetOffsets(), idx, n, label, where) @ bind.T))
+        levels.sort(key=lambda item: item[0])
+        for (a, _), (b, _) in zip(levels, levels[1:]):
+            if a == b:
+                raise where.error(f"blend shape {name!r} ({shape.GetPath()}) has two inbetweens at weight {a}")
+        if levels:
+            out[name] = levels
     return out
 
 
@@ -855,7 +913,7 @@ def load_usd(path: str | Path, *, mesh: str | None = None, weld: bool = True) ->
         where.warn(f"skel:skinningMethod is {method!r}; the rig is skinned with linear blend skinning")
     if sq.HasBlendShapes():
         where.warn("blend shapes are not applied to the skin (warpskin pop reads those named *clench*, *flex* or "
-                   "*pump* as clenched examples)")
+                   "*pump* as clenched examples, and those a scene's [popping.examples] maps)")
     geom_bind = np.array(sq.GetGeomBindTransform(t0), dtype=np.float64).T
     if not np.all(np.isfinite(geom_bind)) or abs(np.linalg.det(geom_bind[:3, :3])) < 1e-30:
         raise where.error("primvars:skel:geomBindTransform is singular or holds NaN/inf")
