@@ -21,6 +21,10 @@ wp.set_module_options({"enable_backward": False})
 # uploads nothing and nothing can race with it.
 GROUP_CAPACITY = 8
 group_vector = wp.types.vector(length=GROUP_CAPACITY, dtype=wp.float32)
+# A group's disparity rows: its inbetween shapes (UsdSkel) by weight, then its clenched shape;
+# one row where it has no inbetween. The rows' activation coefficients travel the same way.
+ROW_CAPACITY = 32
+row_vector = wp.types.vector(length=ROW_CAPACITY, dtype=wp.float32)
 
 
 @wp.func
@@ -46,11 +50,13 @@ def blend_matrix(
 # cardinal weights w_e(pose) (w_e(pose_k) = delta_ek, sum_e w_e = 1). Per vertex:
 #
 #   n_i   = sum_{e in normal}  w_e  N_{e,i}                 rest-frame normal displacement
-#   D_g,i = sum_{e in group g} w_e  (C_{e,i} - N_{e,i})     rest-frame disparity of group g
+#   D_r,i = sum_{e in row r}   w_e  (C_{e,i} - N_{e,i})     rest-frame disparity of row r
 #
 #   normal_points_i   = B_i [r_i + n_i, 1]                  the example-based normal mesh
-#   clenched_points_i = B_i [r_i + n_i + sum_g D_g,i, 1]    every group clenched
-#   disparity_max_g   = max_i |L_i D_g,i|                   dist_max of eq. 3, per group
+#   clenched_points_i = B_i [r_i + n_i + sum_g D_g,i, 1]    every group clenched (full rows)
+#   disparity_max_r   = max_i |L_i D_r,i|                   dist_max of eq. 3, per row
+#
+# A row is one group's clenched shape (row_full 1) or one of its inbetweens (row_full 0).
 #
 # disparity_max is reduced with atomic max (order-independent, hence deterministic); the caller
 # zeroes it before the launch.
@@ -66,6 +72,7 @@ def pose_space_kernel(
     clenched_examples: wp.array2d(dtype=wp.vec3),
     clenched_group: wp.array(dtype=wp.int32),
     clenched_weights: wp.array(dtype=wp.float32),
+    row_full: wp.array(dtype=wp.int32),
     # outputs
     normal_displacement: wp.array(dtype=wp.vec3),
     disparity: wp.array2d(dtype=wp.vec3),
@@ -90,7 +97,8 @@ def pose_space_kernel(
     total = wp.vec3(0.0)
     for g in range(group_count):
         d = disparity[g, i]
-        total += d
+        if row_full[g] != 0:
+            total += d
         wp.atomic_max(disparity_max, g, wp.length(wp.transform_vector(b, d)))
 
     p = rest_points[i] + n
@@ -107,6 +115,11 @@ def pose_space_kernel(
 #   goal offset     o*_i = sum_g a_g D_g,i                  (a_g: activation of group g)
 #   muscle group    g_i  = argmax_g |L_i D_g,i|             (the group that moves vertex i most)
 #   stiffness (3)   alpha_i = (alpha_min - 1) |L_i D_{g_i},i| / disparity_max_{g_i} + 1
+#
+# With inbetweens the goal is sum_r c_r D_r,i over the rows, c_r the row's coefficient at its
+# group's activation (a tent on the group's weights 0 < w_1 < ... < 1: the goal runs piecewise
+# linearly through the inbetweens); without, c_r = a_g and the sum is the paper's. D_g,i above
+# (the group and its stiffness) is the group's full row.
 #
 #   clenching (1-2) u <- (1 - alpha) u + alpha (o* - o) / h ;   o <- o + h u
 #   relaxing  (4)   o <- o + beta h (o* - o) ;  u <- 0 ;  o <- o*  when |o* - o| < threshold
@@ -152,7 +165,9 @@ def popping_step_kernel(
     normal_displacement: wp.array(dtype=wp.vec3),
     disparity: wp.array2d(dtype=wp.vec3),
     disparity_max: wp.array(dtype=wp.float32),
-    group_activation: group_vector,
+    row_group: wp.array(dtype=wp.int32),
+    row_full: wp.array(dtype=wp.int32),
+    row_coefficient: row_vector,
     group_clenching: group_vector,
     alpha_min: float,
     beta: float,
@@ -169,19 +184,20 @@ def popping_step_kernel(
     b = blend_matrix(i, joint_indices, joint_weights, skin_matrices)
 
     goal = wp.vec3(0.0)
-    group = int(0)
+    row = int(0)
     dist = float(-1.0)
-    for g in range(disparity.shape[0]):
-        d = disparity[g, i]
-        goal += group_activation[g] * d
-        length = wp.length(wp.transform_vector(b, d))
-        if length > dist:
-            dist = length
-            group = g
+    for r in range(disparity.shape[0]):
+        d = disparity[r, i]
+        goal += row_coefficient[r] * d
+        if row_full[r] != 0:
+            length = wp.length(wp.transform_vector(b, d))
+            if length > dist:
+                dist = length
+                row = r
 
-    alpha = stiffness(dist, disparity_max[group], alpha_min)
+    alpha = stiffness(dist, disparity_max[row], alpha_min)
 
-    step = vibration_step(offset[i], velocity[i], goal, alpha, group_clenching[group], beta, threshold, h)
+    step = vibration_step(offset[i], velocity[i], goal, alpha, group_clenching[row_group[row]], beta, threshold, h)
     o = wp.vec3(step[0, 0], step[0, 1], step[0, 2])
 
     p = rest_points[i] + normal_displacement[i]

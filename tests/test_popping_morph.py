@@ -152,3 +152,181 @@ def test_usd_blend_shapes_are_clenched_examples(tmp_path, capsys):
     rig = load_rig(path)
     moved = np.isin(np.arange(rig.file_vertex_count), top)  # the USD's own point numbers
     assert np.allclose(d[moved], 0.1, atol=1e-6) and np.all(d[~moved] < 1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# UsdSkel inbetweens and the scene's mapping of file shapes to groups and poses, against
+# usd-core's own blend shapes and skinning (UsdSkel.BlendShapeQuery, SkinningQuery)
+# --------------------------------------------------------------------------------------------
+_TOP, _MID = [8, 9, 10, 11], [4, 5, 6, 7]
+_FULL = [(0.10, 0.0, 0.0), (0.08, 0.01, 0.0), (0.12, 0.0, 0.02), (0.09, -0.02, 0.0)]
+_INBETWEENS = {  # not along the full shape: the goal bends through them
+    0.4: [(0.0, 0.05, 0.0), (0.02, 0.04, 0.01), (0.03, 0.0, 0.03), (-0.01, 0.05, 0.0)],
+    0.75: [(0.05, 0.05, 0.01), (0.06, 0.0, 0.0), (0.02, 0.03, 0.03), (0.07, 0.01, -0.01)],
+    1.3: [(0.5, 0.5, 0.5)] * 4,  # outside [0, 1]: no activation reaches it
+    -0.5: [(-0.5, 0.5, 0.5)] * 4,
+}
+
+
+def _shaped_box(tmp_path, shapes: dict, with_anim: bool = False):
+    """The UsdSkel test box with sparse blend shapes ``{name: (point indices, offsets,
+    {weight: inbetween offsets})}``."""
+    from pxr import Gf, UsdSkel, Vt
+    from test_usdskel_import import build_box
+
+    def add(stage, binding):
+        paths = []
+        for name, (idx, offsets, inbetweens) in shapes.items():
+            shape = UsdSkel.BlendShape.Define(stage, f"/World/Char/Box/{name}")
+            shape.CreateOffsetsAttr(Vt.Vec3fArray([Gf.Vec3f(*o) for o in offsets]))
+            shape.CreatePointIndicesAttr(Vt.IntArray(idx))
+            for k, (w, offs) in enumerate(inbetweens.items()):
+                inb = shape.CreateInbetween(f"in{k}")
+                inb.SetWeight(w)
+                inb.SetOffsets(Vt.Vec3fArray([Gf.Vec3f(*o) for o in offs]))
+            paths.append(shape.GetPath())
+        binding.CreateBlendShapesAttr(Vt.TokenArray(list(shapes)))
+        binding.CreateBlendShapeTargetsRel().SetTargets(paths)
+
+    return build_box(tmp_path / "box.usda", with_anim=with_anim, mutate=add)
+
+
+def test_usd_inbetweens_are_read_as_usdskel_defines_them(tmp_path):
+    from warpskin.io.usdskel import read_usd_inbetweens
+
+    path = _shaped_box(tmp_path, {"biceps_clenched": (_TOP, _FULL, _INBETWEENS), "plain": (_MID, _FULL, {})})
+    got = read_usd_inbetweens(path)
+    assert list(got) == ["biceps_clenched"] and [w for w, _ in got["biceps_clenched"]] == pytest.approx([0.4, 0.75])
+    for w, offsets in got["biceps_clenched"]:
+        want = np.zeros((12, 3))
+        want[_TOP] = _INBETWEENS[round(w, 2)]
+        assert np.abs(offsets - want).max() < 1e-7  # float32 in the file
+
+
+def test_usd_inbetweens_shape_the_goal_and_the_skin_follows_the_papers_rules(tmp_path, capsys, device):
+    # activations 0.2, 0.55, 0.9 and 1 on four beats: the goal mesh is the box with the blend
+    # shape at that weight, as UsdSkel.BlendShapeQuery bends it through the inbetweens, and the
+    # skin's offset from the normal mesh follows eqs. 1-4 towards it, in NumPy
+    from oracles import usd_skinned_world
+
+    path = _shaped_box(tmp_path, {"biceps_clenched": (_TOP, _FULL, _INBETWEENS)})
+    beats = tmp_path / "beats.csv"
+    levels = {0.0513: 0.2, 0.2513: 0.55, 0.4513: 0.9, 0.6513: 1.0}
+    beats.write_text("time,group,activation\n" + "".join(f"{t},biceps,{a}\n" for t, a in levels.items()))
+    out = tmp_path / "pop.usdc"
+    h = 1.0 / 120.0
+    assert main(["pop", str(path), "-o", str(out), "--beats", str(beats), "--hold", "0.1", "--frames", "0:27",
+                 "--dt", str(h), "--device", str(device), "--quiet"]) == 0
+    assert "groups biceps" in capsys.readouterr().out
+    src, stage = Usd.Stage.Open(str(path)), Usd.Stage.Open(str(out))
+    popping, normal, goal = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("popping", "normal", "goal"))
+    rest = usd_skinned_world(src, "/World/Char/Box", 0.0)
+
+    def target(a):  # the written-space offset of the shape at weight a, by usd-core
+        return usd_skinned_world(src, "/World/Char/Box", 0.0, {"biceps_clenched": a}) - rest
+
+    for frame, a in ((3, 0.2), (9, 0.55), (15, 0.9), (21, 1.0)):  # mid-hold frames
+        assert np.abs(np.asarray(goal.Get(frame)) - (rest + target(a))).max() < 1e-6, (frame, a)
+    full = np.linalg.norm(target(1.0), axis=1)
+    alpha = ((0.1 - 1.0) * full / full.max() + 1.0)[:, None]  # eq. 3 from the clenched shape
+    beta, threshold, fps = 30.0, 1e-4, 30.0
+
+    def activation(t):
+        return next((a for b, a in levels.items() if b <= t < b + 0.1), 0.0)
+
+    o, u, prev, clench = np.zeros_like(rest), np.zeros_like(rest), 0.0, False
+    goals = {a: target(a) for a in (0.0, *levels.values())}
+    for frame in range(28):
+        for s in range(4):
+            a = activation(frame / fps - 1.0 / fps + (s + 1) * h)
+            clench = True if a > prev else (False if a < prev else clench)
+            prev = a
+            g = goals[a]
+            if clench:
+                u = (1 - alpha) * u + alpha * (g - o) / h
+                o = o + h * u
+            else:
+                o = o + beta * h * (g - o)
+                u[:] = 0.0
+                snap = np.linalg.norm(g - o, axis=1) < threshold
+                o[snap] = g[snap]
+        got = np.asarray(popping.Get(frame), dtype=np.float64) - np.asarray(normal.Get(frame), dtype=np.float64)
+        assert np.abs(got - o).max() < 2e-5 * full.max(), frame
+    # the inbetween bent the path: at 0.2 the skin heads along the 0.4 inbetween (mostly +y
+    # in the file), not along the clenched shape (+x)
+    assert np.abs(np.asarray(goal.Get(3)) - rest - 0.2 * target(1.0)).max() > 0.01
+
+
+def test_a_scene_maps_file_shapes_to_groups_and_poses(tmp_path, capsys, device):
+    # a corrective "elbow_fix" is the normal example at 0.5 s, "biceps_bent" the clench sculpted
+    # there (on top of the corrective) and "biceps_clenched" the clench at the bind pose: at
+    # 0.5 s the written normal and goal meshes are usd-core's blend-shaped, skinned box
+    from oracles import usd_skinned_world
+
+    fix = [(0.0, 0.0, 0.03), (0.01, 0.0, 0.03), (0.0, -0.01, 0.03), (0.02, 0.0, 0.02)]
+    bent = [(0.0, 0.06, 0.0), (0.01, 0.07, 0.0), (0.0, 0.05, 0.02), (-0.01, 0.06, 0.0)]
+    path = _shaped_box(tmp_path, {"elbow_fix": (_MID, fix, {}), "biceps_clenched": (_TOP, _FULL, {}),
+                                  "biceps_bent": (_TOP, bent, {})}, with_anim=True)
+    scene = tmp_path / "pop.toml"
+    scene.write_text(f'''[scene]
+name = "box_pop"
+[rig]
+file = "{path.name}"
+[popping.examples]
+normal = [{{shape = "elbow_fix", pose = 0.5}}]
+[popping.examples.clenched]
+biceps = [{{shape = "biceps_clenched"}}, {{shape = "biceps_bent", pose = 0.5}}]
+[popping.activation.biceps]
+beats = [0.4513]
+hold = 0.2
+''')
+    out = tmp_path / "pop.usdc"
+    assert main(["pop", str(scene), "-o", str(out), "--frames", "0:20", "--device", str(device), "--quiet"]) == 0
+    capsys.readouterr()
+    src, stage = Usd.Stage.Open(str(path)), Usd.Stage.Open(str(out))
+    normal, goal = (UsdGeom.Mesh(prim(stage, n)).GetPointsAttr() for n in ("normal", "goal"))
+    box = "/World/Char/Box"
+    # 0.5 s (time code 15): the examples' own pose
+    assert np.abs(np.asarray(normal.Get(15)) - usd_skinned_world(src, box, 15.0, {"elbow_fix": 1.0})).max() < 1e-5
+    want = usd_skinned_world(src, box, 15.0, {"elbow_fix": 1.0, "biceps_bent": 1.0})
+    assert np.abs(np.asarray(goal.Get(15)) - want).max() < 1e-5
+    # the bind pose (time 0): no corrective, and the bind clench
+    assert np.abs(np.asarray(normal.Get(0)) - usd_skinned_world(src, box, 0.0)).max() < 1e-5
+    # the bent clench differs from the bind one skinned there: the mapping, not a default, made it
+    other = usd_skinned_world(src, box, 15.0, {"elbow_fix": 1.0, "biceps_clenched": 1.0})
+    assert np.abs(want - other).max() > 0.05
+
+
+@pytest.mark.parametrize("table, message", [
+    ('normal = [{shape = "nope", pose = 0.5}]\n[popping.examples.clenched]\nbiceps = [{shape = "biceps_clenched"}]',
+     r"\[popping.examples\] normal\[0\]: no blend shape 'nope' in the rig file; its shapes: \['biceps_clenched'\]"),
+    ('[popping.examples.clenched]\nbiceps = [{shape = "biceps_clenched", pose = 9.5}]',
+     r"clenched.biceps\[0\]: pose 9.5 s lies outside the clip's 0-0.6667 s"),
+    ('[popping.examples.clenched]\nbiceps = [{pose = 0.5}]', r"clenched.biceps\[0\]: a clenched example needs a shape"),
+    ('[popping.examples.clenched]\nbiceps = [{shape = "biceps_clenched", pose = "rest"}]',
+     r"pose must be a clip time \[s\] or \"bind\", got 'rest'"),
+    ('clenched = 3', r"clenched must be a table of muscle groups"),
+    ('[popping.examples.clenched]\nbiceps = [{shape = "biceps_clenched", weight = 1}]', r"unknown key\(s\) \['weight'\]"),
+])
+def test_bad_example_tables_name_the_key(tmp_path, capsys, table, message):
+    import re
+
+    path = _shaped_box(tmp_path, {"biceps_clenched": (_TOP, _FULL, {})}, with_anim=True)
+    scene = tmp_path / "pop.toml"
+    scene.write_text(f'[scene]\nname = "box_pop"\n[rig]\nfile = "{path.name}"\n[popping.examples]\n{table}\n'
+                     '[popping.activation.biceps]\nbeats = [0.2]\nhold = 0.1\n')
+    assert main(["pop", str(scene), "-o", str(tmp_path / "pop.usdc"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("warpskin: error:")]
+    assert len(errors) == 1 and re.search(message, errors[0]) and str(scene) in errors[0], err
+    assert not (tmp_path / "pop.usdc").exists()
+
+
+def test_an_example_table_needs_a_rig_file(tmp_path, capsys):
+    scene = tmp_path / "arm_pop.toml"
+    scene.write_text('[scene]\nname = "arm_pop"\n[rig]\ngenerator = "popping_arm"\n'
+                     '[popping.examples.clenched]\nbiceps = [{shape = "biceps_clenched"}]\n'
+                     '[popping.activation.biceps]\nbeats = [0.2]\nhold = 0.1\n')
+    assert main(["pop", str(scene), "-o", str(tmp_path / "pop.usdc"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "[popping.examples] maps blend shapes of a glTF or USD rig file; this scene's rig is generated" in err

@@ -177,8 +177,6 @@ def test_the_written_volume_is_restored_on_the_loaded_vertices_and_the_sub_volum
     brings the written mesh's volume back (NumPy signed volume of the loaded vertices), then
     the sub-volume iterations on the added vertices alone bring the sub-volumes back
     (SubVolumes.volumes, NumPy) without undoing it; the inner layers do not move."""
-    import warp as wp
-
     from warpskin.metrics import signed_volume
     from warpskin.run import initial_state
     from warpskin.solver import SkinSolver

@@ -84,7 +84,7 @@ _SCHEMA: dict[str, set[str]] = {
     "guard": {"enabled", "strain", "flip_degrees", "pairs", "match", "rounds", "back_off", "recover", "spread",
               "trust_flipped", "trust_strained"},
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
-    "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"},
+    "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation", "examples"},
 }
 
 
@@ -263,20 +263,26 @@ class Scene:
                                  f"got {value!r}")
         return {str(k): float(v) for k, v in table.items()}
 
-    def input_paths(self) -> list[Path]:
-        """The files this scene reads: its TOML (or rig) file and the rig file it names."""
-        out = [self.source] if self.source is not None else []
+    def rig_file(self) -> Path | None:
+        """The rig file this scene reads: ``[rig] file`` (relative to the scene's TOML) or the
+        shared ``asset``; ``None`` for a generated rig or an asset without an assets folder."""
         spec = self.rig_spec
         if "file" in spec:
             path = Path(spec["file"])
             if not path.is_absolute() and self.source is not None and self.source.suffix == ".toml":
                 path = self.source.parent / path
-            out.append(path)
-        elif "asset" in spec:
+            return path
+        if "asset" in spec:
             assets = find_assets_dir()
             if assets is not None:
-                out.append(assets / spec["asset"])
-        return out
+                return assets / spec["asset"]
+        return None
+
+    def input_paths(self) -> list[Path]:
+        """The files this scene reads: its TOML (or rig) file and the rig file it names."""
+        out = [self.source] if self.source is not None else []
+        path = self.rig_file()
+        return out + ([path] if path is not None else [])
 
     def frame_time(self, frame: int) -> float:
         """Clip time [s] of a frame: ``frame / frame_rate``."""

@@ -388,7 +388,7 @@ class PoppingSettings:
             raise SceneError(f"{where}: rbf_width must be a positive angle [rad], got {self.rbf_width!r}")
 
 
-_SETTING_KEYS = {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation"}
+_SETTING_KEYS = {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation", "examples"}
 
 
 def popping_settings(scene) -> PoppingSettings:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,12 @@ class PoppingExamples:
         clenched_disparities: Per group, rest-frame ``clenched - normal`` displacements of its
             examples [m], ``[E_g, V, 3]`` (each clenched example minus the normal example at the
             same pose, its *partner*).
+        clenched_inbetweens: Per group, its inbetween shapes (UsdSkel's): ``[(weight, [E_g, V,
+            3]), ...]`` sorted by weight in (0, 1), the disparities of the group's examples at
+            that activation. With them a group's goal at activation ``a`` runs piecewise
+            linearly through 0 at ``a = 0``, each inbetween at its weight and
+            ``clenched_disparities`` at ``a = 1``; without (an empty list, or no list at all),
+            it is ``a`` times the clenched disparity, as in the paper.
     """
 
     vertex_count: int
@@ -59,6 +65,11 @@ class PoppingExamples:
     group_names: list[str]
     clenched_matrices: list[np.ndarray]
     clenched_disparities: list[np.ndarray]
+    clenched_inbetweens: list[list[tuple[float, np.ndarray]]] = field(default_factory=list)
+
+    def inbetweens(self, group: int) -> list[tuple[float, np.ndarray]]:
+        """Group ``group``'s inbetweens (an empty list where it has none)."""
+        return list(self.clenched_inbetweens[group]) if group < len(self.clenched_inbetweens) else []
 
     @property
     def group_count(self) -> int:
@@ -211,6 +222,9 @@ def examples_from_meshes(
 CLENCH_PATTERNS = ("*clench*", "*flex*", "*pump*")
 """Names of a rig file's blend shapes (glTF morph targets) taken for clenched examples."""
 
+BIND = "bind"
+"""The pose of an example sculpted on the rig's bind mesh (``pose = "bind"`` in a scene)."""
+
 
 def _group_of(target: str) -> str:
     """The muscle group a clenched target stands for: its name without the clench word
@@ -221,40 +235,158 @@ def _group_of(target: str) -> str:
     return left or target
 
 
+def _read_file_shapes(path: str, mesh: str | None) -> tuple[dict, dict]:
+    """A rig file's blend shapes ``{name: offsets per file vertex}`` and their inbetweens
+    ``{name: [(weight, offsets)]}`` (UsdSkel only; glTF morph targets have none)."""
+    suffix = Path(path).suffix.lower()
+    if suffix in (".glb", ".gltf"):
+        from ..io.gltf import read_gltf_morph_targets
+
+        return read_gltf_morph_targets(path, mesh=mesh), {}
+    from ..io.usdskel import read_usd_blend_shapes, read_usd_inbetweens
+
+    return read_usd_blend_shapes(path, mesh=mesh), read_usd_inbetweens(path, mesh=mesh)
+
+
+def _example_list(value, label: str, shapes: Mapping, clip_times: tuple[float, float] | None,
+                  need_shape: bool) -> list[tuple]:
+    """``[{shape = NAME, pose = TIME | "bind"}, ...]`` of a scene's ``[popping.examples]`` as
+    ``[(shape, pose), ...]`` (pose ``"bind"`` where absent), checked against the file's shapes."""
+    if isinstance(value, Mapping):
+        value = [value]
+    if not isinstance(value, list) or not value:
+        raise RigError(f"{label} must be a list of {{shape = NAME, pose = TIME or \"bind\"}} tables")
+    out = []
+    for k, item in enumerate(value):
+        where = f"{label}[{k}]"
+        if not isinstance(item, Mapping):
+            raise RigError(f"{where} must be a table {{shape = NAME, pose = TIME or \"bind\"}}, got {item!r}")
+        unknown = sorted(set(item) - {"shape", "pose"})
+        if unknown:
+            raise RigError(f"{where}: unknown key(s) {unknown}; known: ['pose', 'shape']")
+        shape = item.get("shape")
+        if shape is not None and (not isinstance(shape, str) or shape not in shapes):
+            raise RigError(f"{where}: no blend shape {shape!r} in the rig file; its shapes: {sorted(shapes)}")
+        if need_shape and shape is None:
+            raise RigError(f"{where}: a clenched example needs a shape")
+        pose = item.get("pose", BIND)
+        if pose != BIND:
+            if isinstance(pose, bool) or not isinstance(pose, (int, float)) or not math.isfinite(pose):
+                raise RigError(f"{where}: pose must be a clip time [s] or \"bind\", got {pose!r}")
+            if clip_times is not None and not (clip_times[0] - 1e-9 <= pose <= clip_times[1] + 1e-9):
+                raise RigError(f"{where}: pose {pose} s lies outside the clip's {clip_times[0]:.4g}-{clip_times[1]:.4g} s")
+            pose = float(pose)
+        out.append((shape, pose))
+    return out
+
+
 def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
-    """Clenched examples from a rig file's own blend shapes: every glTF morph target or UsdSkel
-    blend shape whose name matches :data:`CLENCH_PATTERNS` (case-insensitive) is one muscle
-    group's clenched shape
-    (named by :func:`_group_of`), sculpted at the bind pose; the normal example is the rest
-    mesh. ``None`` where the scene's rig is not a glTF or USD file or has no such shape.
+    """Popping examples from a rig file's own blend shapes (glTF morph targets, UsdSkel blend
+    shapes with their inbetweens).
+
+    With a scene's ``[popping.examples]`` table, the examples it maps::
+
+        [popping.examples]
+        clip = "Walk"                                   # whose times the poses are (default: the scene's)
+        normal = [{shape = "elbow_fix", pose = 1.25}]   # corrective shapes and where they were sculpted
+        [popping.examples.clenched]
+        biceps = [{shape = "biceps_clenched"}, {shape = "biceps_bent", pose = 1.25}]
+
+    A pose is a time [s] of the clip or ``"bind"`` (the default: the skeleton's bind pose, where
+    file shapes are sculpted, placed where the clip's first frame places the body's roots); a normal example's shape may be left out (the bind mesh at that pose).
+    Shapes add, as in the DCC they were sculpted in: a clenched example is the bind mesh plus
+    the normal example's shape at its pose (if any) plus its own shape (and its inbetweens),
+    skinned at the pose; a clenched pose without a normal example gets the bind mesh as its
+    normal partner. Without the table every shape whose name matches
+    :data:`CLENCH_PATTERNS` (case-insensitive) is one muscle group's clenched shape (named by
+    :func:`_group_of`) at the bind pose, with the bind mesh as the normal example.
+
+    Returns:
+        The examples, or ``None`` where the scene's rig is not a glTF or USD file, or (without
+        the table) has no such shape.
 
     Raises:
-        RigError: an unreadable target (as :func:`~warpskin.io.gltf.read_gltf_morph_targets`).
+        RigError: an unreadable shape (as :func:`~warpskin.io.gltf.read_gltf_morph_targets`), a
+            table that names no shape of the file, a bad pose; naming the scene and key.
     """
     import fnmatch
 
-    path = scene.rig_spec.get("file")
-    suffix = Path(path).suffix.lower() if path else ""
-    if suffix in (".glb", ".gltf"):
-        from ..io.gltf import read_gltf_morph_targets as read
-    elif suffix in (".usd", ".usda", ".usdc", ".usdz"):
-        from ..io.usdskel import read_usd_blend_shapes as read
-    else:
+    table = (scene.extra.get("popping") or {}).get("examples") if isinstance(scene.extra, dict) else None
+    where = f"{scene.source or scene.name}: [popping.examples]"
+    path = scene.rig_file()
+    suffix = path.suffix.lower() if path is not None else ""
+    if suffix not in (".glb", ".gltf", ".usd", ".usda", ".usdc", ".usdz"):
+        if table is not None:
+            raise RigError(f"{where} maps blend shapes of a glTF or USD rig file; this scene's rig is "
+                           f"{'generated' if path is None else str(path)}")
         return None
-    targets = read(path, mesh=scene.rig_spec.get("mesh"))
-    chosen = [n for n in targets if any(fnmatch.fnmatchcase(n.lower(), p) for p in CLENCH_PATTERNS)]
-    if not chosen:
-        return None
+    targets, inbetweens = _read_file_shapes(str(path), scene.rig_spec.get("mesh"))
     rig = rig if rig is not None else scene.rig()
-    pose = rig.skinning_matrices(None, 0.0)
-    groups: dict[str, list] = {}
-    for name in chosen:
-        g = _group_of(name)
-        while g in groups:  # two targets for one group: each its own group
-            g += "_2"
-        groups[g] = [(name, pose)]
+    clip = rig.clip(table.get("clip", scene.clip) if isinstance(table, Mapping) and isinstance(
+        table.get("clip", scene.clip), (str, type(None))) else scene.clip)
+    # the bind pose where the clip's first frame places the body (its roots as there)
+    bind = rig.skinning_matrices_from_bind(clip, float(clip.start), 0.0)
+    if table is None:
+        chosen = [n for n in targets if any(fnmatch.fnmatchcase(n.lower(), p) for p in CLENCH_PATTERNS)]
+        if not chosen:
+            return None
+        groups: dict[str, list] = {}
+        for name in chosen:
+            g = _group_of(name)
+            while g in groups:  # two targets for one group: each its own group
+                g += "_2"
+            groups[g] = [(name, bind)]
+        normal: list = [(None, bind)]
+    else:
+        if not isinstance(table, Mapping):
+            raise RigError(f"{where} must be a table with 'normal' and 'clenched'")
+        unknown = sorted(set(table) - {"clip", "normal", "clenched"})
+        if unknown:
+            raise RigError(f"{where}: unknown key(s) {unknown}; known: ['clenched', 'clip', 'normal']")
+        clip_name = table.get("clip", scene.clip)
+        if clip_name is not None and not isinstance(clip_name, str):
+            raise RigError(f"{where}: clip must be a clip name, got {clip_name!r}")
+        span = (float(clip.start), float(clip.end)) if clip.end > clip.start else None
+        clenched = table.get("clenched")
+        if not isinstance(clenched, Mapping) or not clenched:
+            raise RigError(f"{where}: clenched must be a table of muscle groups, each a list of "
+                           "{shape = NAME, pose = TIME or \"bind\"}")
+        groups = {str(g): _example_list(v, f"{where} clenched.{g}", targets, span, True) for g, v in clenched.items()}
+        normal = _example_list(table["normal"], f"{where} normal", targets, span, False) if "normal" in table else []
+
+        def at(pose):
+            return bind if pose == BIND else rig.skinning_matrices(clip, pose)
+
+        normal = [(shape, at(pose)) for shape, pose in normal]
+        for k, (_, m) in enumerate(normal):
+            for k2 in range(k):
+                if _same_pose(m, normal[k2][1]):
+                    raise RigError(f"{where} normal[{k}] is at the same pose as normal[{k2}]; keep one normal "
+                                   "example per pose")
+        mapped: dict[str, list] = {}
+        targets = dict(targets)
+        inbetweens = dict(inbetweens)
+        for g, items in groups.items():
+            mapped[g] = []
+            for shape, pose in items:
+                m = at(pose)
+                base = next((n for n, m2 in normal if _same_pose(m, m2)), False)
+                if base is False:  # the bind mesh partners a clenched pose no normal example has
+                    normal.append((None, m))
+                    base = None
+                if base is not None:  # blend shapes add: the clench on top of the pose's corrective
+                    name = f"{base}+{shape}"
+                    targets[name] = targets[base] + targets[shape]
+                    if shape in inbetweens:
+                        inbetweens[name] = [(w, o + targets[base]) for w, o in inbetweens[shape]]
+                    shape = name
+                mapped[g].append((shape, m))
+        groups = mapped
+        chosen = sorted({s for s, _ in normal if s is not None} | {s for it in groups.values() for s, _ in it})
     scaled = {n: np.asarray(targets[n], dtype=np.float64) * rig.meters_per_unit for n in chosen}
-    return examples_from_morph_targets(rig, scaled, normal=[(None, pose)], clenched=groups)
+    levels = {n: [(w, np.asarray(o, dtype=np.float64) * rig.meters_per_unit) for w, o in inbetweens[n]]
+              for n in chosen if n in inbetweens}
+    return examples_from_morph_targets(rig, scaled, normal=normal, clenched=groups, clip=clip, inbetweens=levels)
 
 
 def has_examples(scene) -> bool:
@@ -291,6 +423,7 @@ def examples_from_morph_targets(
     normal: Sequence[tuple[str | None, object]],
     clenched: Mapping[str, Sequence[tuple[str, object]]],
     clip: Clip | str | None = None,
+    inbetweens: Mapping[str, Sequence[tuple[float, np.ndarray]]] | None = None,
 ) -> PoppingExamples:
     """Popping examples from morph targets of the rig's mesh (for instance from
     :func:`warpskin.io.gltf.read_gltf_morph_targets`).
@@ -307,16 +440,24 @@ def examples_from_morph_targets(
         clenched: ``{group: [(target, pose), ...]}``: the clenched examples of each muscle group,
             each at the pose of a normal example.
         clip: Clip for poses given as times.
+        inbetweens: ``{target: [(weight, offsets), ...]}``: a clenched target's inbetween
+            shapes (weights in (0, 1), offsets as the targets'); the target then moves its
+            points piecewise linearly in the activation (:attr:`PoppingExamples.clenched_inbetweens`).
+            The examples of one group may have different inbetween weights: each is taken at
+            all of them (exactly, as its offsets are linear between its own weights).
 
     Raises:
-        RigError: an unknown target (listing the known ones), offsets of the wrong size.
+        RigError: an unknown target (listing the known ones), offsets of the wrong size,
+            inbetween weights outside (0, 1).
     """
-    def welded(name: str | None, label: str) -> np.ndarray:
+    inbetweens = dict(inbetweens or {})
+
+    def welded(name: str | None, label: str, d=None) -> np.ndarray:
         if name is None:
             return np.zeros_like(rig.vertices)
         if name not in targets:
             raise RigError(f"{label}: no morph target {name!r}; targets: {sorted(targets)}")
-        d = np.asarray(targets[name], dtype=np.float64)
+        d = np.asarray(targets[name] if d is None else d, dtype=np.float64)
         if d.shape == (rig.file_vertex_count, 3):
             first = np.zeros(rig.vertex_count, dtype=np.int64)
             first[rig.weld_map[::-1]] = np.arange(rig.file_vertex_count)[::-1]  # first file vertex of each
@@ -326,9 +467,24 @@ def examples_from_morph_targets(
         raise RigError(f"{label}: morph target {name!r} has offsets of shape {d.shape}; the rig has "
                        f"{rig.file_vertex_count} file vertices ({rig.vertex_count} welded)")
 
-    def mesh_at(name, pose, label):
+    def curve(name: str, w: float, label: str) -> np.ndarray:
+        """The target's offsets at weight ``w``: piecewise linear through (0, 0), its
+        inbetweens and (1, the target)."""
+        knots = [(0.0, np.zeros_like(rig.vertices))]
+        for k, (wk, d) in enumerate(inbetweens.get(name, ())):
+            if not (0.0 < float(wk) < 1.0) or float(wk) <= knots[-1][0]:
+                raise RigError(f"{label}: inbetween {k} of {name!r} has weight {wk!r}; the weights must rise "
+                               "strictly inside (0, 1)")
+            knots.append((float(wk), welded(name, label, d)))
+        knots.append((1.0, welded(name, label)))
+        k = next(k for k in range(1, len(knots)) if w <= knots[k][0])
+        (w0, d0), (w1, d1) = knots[k - 1], knots[k]
+        u = (w - w0) / (w1 - w0)
+        return (1.0 - u) * d0 + u * d1
+
+    def mesh_at(name, pose, label, w: float = 1.0):
         mats = _pose_matrices(rig, pose, clip, label)
-        pts = rig.vertices + welded(name, label)
+        pts = rig.vertices + (welded(name, label) if w == 1.0 or name is None else curve(name, w, label))
         return linear_blend_skin(pts, rig.joint_indices, rig.joint_weights, mats), mats
 
     normal_meshes = [mesh_at(n, pose, f"normal example {k}") for k, (n, pose) in enumerate(normal)]
@@ -336,4 +492,20 @@ def examples_from_morph_targets(
         group: [mesh_at(n, pose, f"clenched example {k} of {group!r}") for k, (n, pose) in enumerate(items)]
         for group, items in clenched.items()
     }
-    return examples_from_meshes(rig, normal_meshes, clenched_meshes)
+    examples = examples_from_meshes(rig, normal_meshes, clenched_meshes)
+    levels = []
+    for g, (group, items) in enumerate(clenched.items()):
+        weights = sorted({float(w) for n, _ in items for w, _ in inbetweens.get(n, ())})
+        rows = []
+        for w in weights:
+            d = []
+            for k, (n, pose) in enumerate(items):
+                label = f"clenched example {k} of {group!r} at weight {w:g}"
+                pts, mats = mesh_at(n, pose, label, w)
+                partner = next(e for e, m2 in enumerate(examples.normal_matrices) if _same_pose(mats, m2))
+                d.append(_rest_displacement(rig, pts, mats, label) - examples.normal_displacements[partner])
+            rows.append((w, np.stack(d)))
+        levels.append(rows)
+    if any(levels):
+        examples.clenched_inbetweens = levels
+    return examples

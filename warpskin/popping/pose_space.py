@@ -156,8 +156,14 @@ class PoseSpaceDeformer:
         normal_points: Example-based normal mesh [m], ``[V]`` vec3.
         clenched_points: Example-based mesh with every group clenched [m], ``[V]`` vec3.
         normal_displacement: Interpolated rest-frame normal displacement [m], ``[V]`` vec3.
-        disparity: Interpolated rest-frame ``clenched - normal`` per group [m], ``[G, V]`` vec3.
-        disparity_max: ``max_i |L_i D_g,i|`` per group [m], ``[G]``.
+        disparity: Interpolated rest-frame ``clenched - normal`` per row [m], ``[R, V]`` vec3:
+            per group its inbetweens by weight (:attr:`PoppingExamples.clenched_inbetweens`),
+            then its clenched shape; one row per group (``R = G``) where none has inbetweens.
+        disparity_max: ``max_i |L_i D_r,i|`` per row [m], ``[R]``.
+        row_group: The group of each row, ``[R]`` int.
+        row_weight: The activation at which each row is the group's goal, ``[R]`` (1: its
+            clenched shape).
+        row_full: Whether each row is its group's clenched shape, ``[R]`` bool.
     """
 
     def __init__(
@@ -198,13 +204,27 @@ class PoseSpaceDeformer:
             idx = np.array([sk.index(n) for n in joints])
         self.joints = idx
         self.joint_names = [sk.joint_names[j] for j in idx]
-        # one RBF per example set (normal, then each group), solved once; per frame all sets'
+        # the disparity rows: per group its inbetweens by weight, then its clenched shape
+        rows = []  # (group, weight, disparities [E_g, V, 3])
+        for g in range(examples.group_count):
+            rows += [(g, float(w), d) for w, d in examples.inbetweens(g)]
+            rows.append((g, 1.0, examples.clenched_disparities[g]))
+        if len(rows) > _k.ROW_CAPACITY:
+            raise RigError(f"{len(rows)} clenched shapes and inbetweens; at most {_k.ROW_CAPACITY} are supported")
+        self.row_group = np.array([g for g, _, _ in rows], dtype=np.int32)
+        self.row_weight = np.array([w for _, w, _ in rows])
+        self.row_full = self.row_weight == 1.0
+        self._full_rows = np.nonzero(self.row_full)[0]
+        # one RBF per example set (normal, then each row), solved once; per frame all sets'
         # cardinal weights come from one distance evaluation and one block-diagonal product
         en = examples.normal_count
-        sizes = [en] + [len(m) for m in examples.clenched_matrices]
-        labels = ["normal examples"] + [f"clenched examples of group {n!r}" for n in examples.group_names]
+        sizes = [en] + [len(examples.clenched_matrices[g]) for g, _, _ in rows]
+        labels = ["normal examples"] + [f"clenched examples of group {examples.group_names[g]!r}" for g, _, _ in rows]
         e_all = sum(sizes)
-        self._poses = all_rot[:, idx]
+        first = np.cumsum([en] + [len(m) for m in examples.clenched_matrices])  # group g's first example
+        order = np.concatenate([np.arange(en)] + [first[g] + np.arange(len(examples.clenched_matrices[g]))
+                                                  for g, _, _ in rows])
+        self._poses = all_rot[order][:, idx]
         self._conj_left = _conj_left_matrices(self._poses)  # [E_all, K, 4, 4]
         self._width = np.zeros(e_all)
         self._lam = np.zeros((e_all, e_all))
@@ -218,17 +238,19 @@ class PoseSpaceDeformer:
             start += size
         self.rbf_width = float(self._width[0])
 
-        v, g = rig.vertex_count, examples.group_count
-        c_disp = np.concatenate(examples.clenched_disparities)
-        c_group = np.concatenate([np.full(len(d), k, dtype=np.int32) for k, d in enumerate(examples.clenched_disparities)])
+        v, r = rig.vertex_count, len(rows)
+        c_disp = np.concatenate([d for _, _, d in rows])
+        c_group = np.concatenate([np.full(len(d), k, dtype=np.int32) for k, (_, _, d) in enumerate(rows)])
         with wp.ScopedDevice(self.device):
             self.normal_examples = wp.array(examples.normal_displacements.astype(np.float32), dtype=wp.vec3)
             self.clenched_examples = wp.array(c_disp.astype(np.float32), dtype=wp.vec3)
-            self.clenched_group = wp.array(c_group, dtype=wp.int32)
+            self.clenched_group = wp.array(c_group, dtype=wp.int32)  # the row of each clenched example
+            self.row_group_device = wp.array(self.row_group, dtype=wp.int32)
+            self.row_full_device = wp.array(self.row_full.astype(np.int32), dtype=wp.int32)
             self.example_weights = wp.zeros(e_all, dtype=wp.float32)  # normal, then clenched
             self.normal_displacement = wp.zeros(v, dtype=wp.vec3)
-            self.disparity = wp.zeros((g, v), dtype=wp.vec3)
-            self.disparity_max = wp.zeros(g, dtype=wp.float32)
+            self.disparity = wp.zeros((r, v), dtype=wp.vec3)
+            self.disparity_max = wp.zeros(r, dtype=wp.float32)
             self.normal_points = wp.zeros(v, dtype=wp.vec3)
             self.clenched_points = wp.zeros(v, dtype=wp.vec3)
         self.normal_weights = self.example_weights[:en]  # views, made once
@@ -241,7 +263,8 @@ class PoseSpaceDeformer:
             _k.pose_space_kernel,
             dim=rig.vertex_count,
             inputs=[s.rest_points, s.joint_indices, s.joint_weights, s.skin_matrices, self.normal_examples,
-                    self.normal_weights, self.clenched_examples, self.clenched_group, self.clenched_weights],
+                    self.normal_weights, self.clenched_examples, self.clenched_group, self.clenched_weights,
+                    self.row_full_device],
             outputs=[self.normal_displacement, self.disparity, self.disparity_max, self.normal_points,
                      self.clenched_points],
             device=self.device,
@@ -255,7 +278,7 @@ class PoseSpaceDeformer:
     def weights(self, skin_matrices: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         """Cardinal RBF weights of the pose: normal ``[E]`` and per group ``[E_g]``."""
         w = self._weights(np.asarray(skin_matrices, dtype=np.float64))
-        return w[self._slices[0]], [w[sl] for sl in self._slices[1:]]
+        return w[self._slices[0]], [w[self._slices[1 + r]] for r in self._full_rows]
 
     def _weights(self, skin_matrices: np.ndarray) -> np.ndarray:
         sk = self.rig.skeleton
@@ -277,7 +300,7 @@ class PoseSpaceDeformer:
         """
         self.skinner.set_skin_matrices(skin_matrices)
         w = self._weights(np.asarray(skin_matrices, dtype=np.float64))
-        self.pose_weights = (w[self._slices[0]], [w[sl] for sl in self._slices[1:]])
+        self.pose_weights = (w[self._slices[0]], [w[self._slices[1 + r]] for r in self._full_rows])
         self._h_weights[:] = w
         if not self.device.is_cpu:
             self.example_weights.assign(self._h_weights)

@@ -204,8 +204,9 @@ def run_popping(
     settings.check(f"{where}: [popping]")
     if pop_on not in POP_ON:
         raise SceneError(f"pop_on must be one of {', '.join(POP_ON)}, got {pop_on!r}")
-    if examples is None and not has_examples(scene):
-        examples = examples_from_file(scene)  # the file's own clenched blend shapes, if any
+    mapped = "examples" in (scene.extra.get("popping") or {})
+    if examples is None and (mapped or not has_examples(scene)):
+        examples = examples_from_file(scene)  # the file's blend shapes: mapped, or those named *clench* ...
     if settings.mode is None:
         settings.mode = "goal" if examples is not None or has_examples(scene) else "layered"
     if settings.mode == "layered":
