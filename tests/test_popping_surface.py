@@ -125,6 +125,27 @@ def test_a_piece_near_the_belly_keeps_it_from_moving_there():
     assert np.all(field[0][len(pts):] == 0.0)  # the ball is another bone's
 
 
+def test_groups_that_pop_together_thin_off_each_others_bellies():
+    # b1 and its child b2 both swell: b1's thinning may lie on b2's skin, but not on its belly
+    # (else popping both would take back part of b2's swelling); b2's likewise off b1's belly;
+    # each group's flux is still zero where its thinning finds room (b0 and b3 are long)
+    pts, tris, w, bones, parents = _tube(4, lengths=[2.4 * L, L, L, 2.4 * L], rings_per_bone=31)
+    _, field = surface_swelling(pts, tris, w, bones, parents, [("a", [1]), ("b", [2])], swell=0.15)
+    y = pts[:, 1]
+    t1, t2 = (y - 2.4 * L) / L, (y - 3.4 * L) / L
+    belly1, belly2 = (t1 > 0.3) & (t1 < 0.7), (t2 > 0.3) & (t2 < 0.7)
+    assert belly1.any() and belly2.any()
+    assert np.all(field[0][belly2] == 0.0) and np.all(field[1][belly1] == 0.0)
+    # what each thins lies between the bellies and beyond them, radially inward
+    radial = pts * np.array([1.0, 0.0, 1.0])
+    radial /= np.linalg.norm(radial, axis=1)[:, None]
+    out = [np.einsum("ij,ij->i", f, radial) for f in field]
+    assert out[0][(t2 > 0.0) & (t2 < 0.1)].max() < 0.0 and out[1][(t1 > 0.9) & (t1 < 1.0)].max() < 0.0
+    for o, f in zip(out, field):
+        gain = _outward_normal_flux(pts, tris, np.maximum(o, 0.0)[:, None] * radial)
+        assert gain > 0.0 and abs(_outward_normal_flux(pts, tris, f)) < 1e-6 * gain
+
+
 def test_no_edge_stretches_more_than_a_quarter():
     pts, tris, w, bones, parents = _tube(3, segments=9, rings_per_bone=7)  # a coarse tube
     _, field = surface_swelling(pts, tris, w, bones, parents, [("biceps", [1])], swell=1.3)
@@ -383,3 +404,35 @@ def test_a_surface_cut_into_pieces_pops_across_its_seams():
     assert np.all(np.linalg.norm(cut[0][near], axis=1) > 0.9 * peak)
     np.testing.assert_allclose(np.linalg.norm(cut[0][near], axis=1), np.linalg.norm(whole[0][near], axis=1),
                                rtol=0.05)
+
+
+def test_the_bulge_is_measured_on_the_surface_of_a_flat_shaded_mesh(tmp_path):
+    # a hexagonal tube whose every triangle has its own corners (flat shading, as glTF writes
+    # it), moved out radially by delta: the report's bulge is delta (the corners' own facet
+    # normals lie 30 degrees off the radial and would read delta * cos 30)
+    from pxr import Vt
+
+    from warpskin.popping.report import bulge_series
+
+    pts, tris, *_ = _tube(1, segments=6, rings_per_bone=5)
+    soup = pts[tris.ravel()]  # three corners of its own per triangle
+    faces = np.arange(len(soup)).reshape(-1, 3)
+    radial = soup * np.array([1.0, 0.0, 1.0])
+    radial /= np.linalg.norm(radial, axis=1)[:, None]
+    delta = 0.00731
+    path = tmp_path / "bake.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    root = UsdGeom.Xform.Define(stage, "/char")
+    stage.SetDefaultPrim(root.GetPrim())
+    for name, role, offset in (("skin", "skin", delta), ("skin_normal", "normal", 0.0)):
+        mesh = UsdGeom.Mesh.Define(stage, f"/char/{name}")
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(faces.ravel().tolist()))
+        mesh.GetPrim().SetCustomDataByKey("warpskin:role", role)
+        for tc in (0.0, 1.0):
+            mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy((soup + tc * offset * radial).astype(np.float32)), tc)
+    stage.GetRootLayer().Save()
+    middle = np.abs(soup[:, 1] - 0.5 * L) < 0.3 * L
+    codes, bulge = bulge_series(path, {"biceps": middle})
+    assert codes.tolist() == [0.0, 1.0]
+    assert abs(bulge["biceps"][0]) < 1e-7 and bulge["biceps"][1] == pytest.approx(delta, rel=1e-4)

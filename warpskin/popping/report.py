@@ -50,8 +50,10 @@ def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.nda
     skin vertex, or ``{prim name: mask per vertex of that mesh}`` for a pop that moves several
     meshes (the skin by its prim name too). Each mesh is measured outside its reference (its
     ``<name>_normal`` guide, the skin's normal-only guide, else its LBS guide) along the
-    reference's vertex normals; the bulge is the mean over the group's belly vertices of every
-    mesh. With ``moved`` (a dict), it also receives, per written skin vertex, ``"out"`` and
+    reference's vertex normals (area-weighted, over the surface with the vertices one mesh holds
+    at one position joined: a flat-shaded mesh splits every corner into one vertex per facet,
+    whose own normals would measure a move along the surface as none); the bulge is the mean
+    over the group's belly vertices of every mesh. With ``moved`` (a dict), it also receives, per written skin vertex, ``"out"`` and
     ``"in"``, the farthest the skin got outside and inside its reference over the frames [m]
     (``[N]``, ``>= 0``), ``"rest"`` the skin's rest points ``[N, 3]`` and ``"up"`` the stage's
     up axis."""
@@ -80,6 +82,13 @@ def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.nda
         pairs[name] = (by_name[name], guide)
     faces = {k: np.asarray(m.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3) for k, (m, _) in pairs.items()}
     codes = np.array(skin.GetPointsAttr().GetTimeSamples(), dtype=np.float64)
+    # each mesh's vertices at one position (in its reference's first frame) are one vertex
+    joined = {}
+    for k, (_, guide) in pairs.items():
+        first = np.asarray(guide.GetPointsAttr().Get(codes[0] if len(codes) else Usd.TimeCode.Default()),
+                           dtype=np.float64)
+        _, one, cls = np.unique(first, axis=0, return_index=True, return_inverse=True)
+        joined[k] = (one, cls.ravel(), cls.ravel()[faces[k]])
     out: dict[str, list[float]] = {g: [] for g in belly}
     far_out = far_in = None
     for tc in codes:
@@ -87,7 +96,8 @@ def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.nda
         for k, (mesh, guide) in pairs.items():
             s = np.asarray(mesh.GetPointsAttr().Get(tc), dtype=np.float64)
             r = np.asarray(guide.GetPointsAttr().Get(tc), dtype=np.float64)
-            outward[k] = np.einsum("ij,ij->i", s - r, _vertex_normals(r, faces[k]))
+            one, cls, tris = joined[k]
+            outward[k] = np.einsum("ij,ij->i", s - r, _vertex_normals(r[one], tris)[cls])
         for g, masks in belly.items():
             total = sum(float(outward[k][sel].sum()) for k, sel in masks.items())
             count = sum(int(np.count_nonzero(sel)) for sel in masks.values())
