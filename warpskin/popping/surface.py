@@ -30,9 +30,10 @@ flat shading) are one point of its surface. Then, in this order:
   pieces along its seams) count as one;
 * **volume**: a thinning takes back the swelling's flux ``sum_i A_i n_i . d_i`` (area-weighted
   normals: its volume to first order) on every connected piece, lying on the neighbourhood's
-  skin away from the belly (the ends of the group's bones, their parents' and children's skin
-  where those carry most of it, :func:`~warpskin.popping.muscles.thinning_reach`), at most a
-  quarter of the belly's peak deep (a piece with little skin to thin keeps part of the gain);
+  skin away from every group's belly (the ends of the group's bones, their parents' and
+  children's skin where those carry most of it,
+  :func:`~warpskin.popping.muscles.thinning_reach`), at most a quarter of the belly's peak
+  deep (a piece with little skin to thin keeps part of the gain);
 * **stretch**: the swelling is scaled down locally until no edge is stretched or shortened by
   more than a quarter of its length (a coarse piece is not stretched across one edge), each
   group's and all groups' together.
@@ -254,12 +255,15 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
     edges, lengths = edges[lengths > 0.0], lengths[lengths > 0.0]
     muscles, fields = [], []
+    # every group's bones: a thinning stays off all bellies, so groups that pop together do not
+    # take back each other's swelling
+    bellied = np.isin(dominant, [j for _, group in groups for j in group]) & ok
     for name, group in groups:
         on = np.isin(dominant, group) & ok
         amount = np.where(on, np.minimum(swell * depth, _CAP * length) * profile, 0.0)
         hood = neighbourhood(group, parents)
         near = thinning_reach(w[:, hood].sum(axis=1), np.isin(dominant, hood), ring) * ok
-        shape = near * np.where(on, 1.0 - np.clip(profile, 0.0, 1.0), 1.0)  # away from the belly
+        shape = near * np.where(bellied, 1.0 - np.clip(profile, 0.0, 1.0), 1.0)  # away from the bellies
         # none where another piece is nearer than the belly's peak at rest (a limb's end in a
         # ball joint, a sleeve on its arm): moving there would cross that piece's surface; full
         # beyond three times the peak
