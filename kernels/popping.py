@@ -22,9 +22,7 @@ wp.set_module_options({"enable_backward": False})
 GROUP_CAPACITY = 8
 group_vector = wp.types.vector(length=GROUP_CAPACITY, dtype=wp.float32)
 # A group's disparity rows: its inbetween shapes (UsdSkel) by weight, then its clenched shape;
-# one row where it has no inbetween. The rows' activation coefficients travel the same way.
-ROW_CAPACITY = 32
-row_vector = wp.types.vector(length=ROW_CAPACITY, dtype=wp.float32)
+# one row where it has no inbetween (see popping_step_kernel).
 
 
 @wp.func
@@ -116,10 +114,11 @@ def pose_space_kernel(
 #   muscle group    g_i  = argmax_g |L_i D_g,i|             (the group that moves vertex i most)
 #   stiffness (3)   alpha_i = (alpha_min - 1) |L_i D_{g_i},i| / disparity_max_{g_i} + 1
 #
-# With inbetweens the goal is sum_r c_r D_r,i over the rows, c_r the row's coefficient at its
-# group's activation (a tent on the group's weights 0 < w_1 < ... < 1: the goal runs piecewise
-# linearly through the inbetweens); without, c_r = a_g and the sum is the paper's. D_g,i above
-# (the group and its stiffness) is the group's full row.
+# With inbetweens (popping_step_rows_kernel) the goal is sum_r c_r D_r,i over the rows, c_r a
+# tent in its group's activation a: rising from the weight below the row's (lo) to its own (w),
+# falling to the one above (hi); the group's clenched row (w = 1) has hi = 2, so it stays 1
+# above w, and the goal runs piecewise linearly through the inbetweens. D_g,i above (the group
+# and its stiffness) is the group's clenched row.
 #
 #   clenching (1-2) u <- (1 - alpha) u + alpha (o* - o) / h ;   o <- o + h u
 #   relaxing  (4)   o <- o + beta h (o* - o) ;  u <- 0 ;  o <- o*  when |o* - o| < threshold
@@ -165,9 +164,7 @@ def popping_step_kernel(
     normal_displacement: wp.array(dtype=wp.vec3),
     disparity: wp.array2d(dtype=wp.vec3),
     disparity_max: wp.array(dtype=wp.float32),
-    row_group: wp.array(dtype=wp.int32),
-    row_full: wp.array(dtype=wp.int32),
-    row_coefficient: row_vector,
+    group_activation: group_vector,
     group_clenching: group_vector,
     alpha_min: float,
     beta: float,
@@ -184,20 +181,28 @@ def popping_step_kernel(
     b = blend_matrix(i, joint_indices, joint_weights, skin_matrices)
 
     goal = wp.vec3(0.0)
-    row = int(0)
+    group = int(0)
     dist = float(-1.0)
-    for r in range(disparity.shape[0]):
-        d = disparity[r, i]
-        goal += row_coefficient[r] * d
-        if row_full[r] != 0:
-            length = wp.length(wp.transform_vector(b, d))
-            if length > dist:
-                dist = length
-                row = r
+    for g in range(disparity.shape[0]):
+        d = disparity[g, i]
+        goal += group_activation[g] * d
+        length = wp.length(wp.transform_vector(b, d))
+        if length > dist:
+            dist = length
+            group = g
 
-    alpha = stiffness(dist, disparity_max[row], alpha_min)
+    alpha = stiffness(dist, disparity_max[group], alpha_min)
+    _write_step(i, b, goal, alpha, group_clenching[group], beta, threshold, h, rest_points, normal_displacement,
+                offset, velocity, points, goal_points, alpha_out)
 
-    step = vibration_step(offset[i], velocity[i], goal, alpha, group_clenching[row_group[row]], beta, threshold, h)
+
+@wp.func
+def _write_step(i: int, b: wp.mat44, goal: wp.vec3, alpha: float, clenching: float, beta: float, threshold: float,
+                h: float, rest_points: wp.array(dtype=wp.vec3), normal_displacement: wp.array(dtype=wp.vec3),
+                offset: wp.array(dtype=wp.vec3), velocity: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
+                goal_points: wp.array(dtype=wp.vec3), alpha_out: wp.array(dtype=wp.float32)):
+    """Vertex ``i``'s step towards ``goal`` (eqs. 1-2 or 4) and its skinned point and goal."""
+    step = vibration_step(offset[i], velocity[i], goal, alpha, clenching, beta, threshold, h)
     o = wp.vec3(step[0, 0], step[0, 1], step[0, 2])
 
     p = rest_points[i] + normal_displacement[i]
@@ -206,6 +211,56 @@ def popping_step_kernel(
     points[i] = wp.transform_point(b, p + o)
     goal_points[i] = wp.transform_point(b, p + goal)
     alpha_out[i] = alpha
+
+
+@wp.kernel
+def popping_step_rows_kernel(
+    rest_points: wp.array(dtype=wp.vec3),
+    joint_indices: wp.array2d(dtype=wp.int32),
+    joint_weights: wp.array2d(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    normal_displacement: wp.array(dtype=wp.vec3),
+    disparity: wp.array2d(dtype=wp.vec3),
+    disparity_max: wp.array(dtype=wp.float32),
+    row_group: wp.array(dtype=wp.int32),
+    row_full: wp.array(dtype=wp.int32),
+    row_tent: wp.array(dtype=wp.vec4),
+    group_activation: group_vector,
+    group_clenching: group_vector,
+    alpha_min: float,
+    beta: float,
+    threshold: float,
+    h: float,
+    # outputs (offset and velocity are read and written)
+    offset: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    goal_points: wp.array(dtype=wp.vec3),
+    alpha_out: wp.array(dtype=wp.float32),
+):
+    """:func:`popping_step_kernel` over disparity rows with inbetweens (above): each row's
+    coefficient a tent in its group's activation, the stiffness and the clench flag the
+    group's (its clenched row's)."""
+    i = wp.tid()
+    b = blend_matrix(i, joint_indices, joint_weights, skin_matrices)
+
+    goal = wp.vec3(0.0)
+    row = int(0)
+    dist = float(-1.0)
+    for r in range(disparity.shape[0]):
+        d = disparity[r, i]
+        a = group_activation[row_group[r]]
+        tent = row_tent[r]  # (lo, 1 / (w - lo), hi, 1 / (hi - w))
+        goal += wp.min(wp.clamp((a - tent[0]) * tent[1], 0.0, 1.0), wp.clamp((tent[2] - a) * tent[3], 0.0, 1.0)) * d
+        if row_full[r] != 0:
+            length = wp.length(wp.transform_vector(b, d))
+            if length > dist:
+                dist = length
+                row = r
+
+    alpha = stiffness(dist, disparity_max[row], alpha_min)
+    _write_step(i, b, goal, alpha, group_clenching[row_group[row]], beta, threshold, h, rest_points,
+                normal_displacement, offset, velocity, points, goal_points, alpha_out)
 
 
 # --------------------------------------------------------------------------------------------

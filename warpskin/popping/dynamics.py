@@ -80,40 +80,23 @@ class PoppingDynamics:
         self._clench = np.zeros(_k.GROUP_CAPACITY, dtype=np.float32)
         self._g = g
         self.steps = 0
-        # each disparity row's coefficient is a tent in its group's activation a: rising from
-        # the weight below it (lo) to its own (w), falling to the weight above it (hi); a
-        # group's clenched row (w = 1) stays at 1 above it. One row per group: exactly a.
-        rg, rw = deformer.row_group, deformer.row_weight
-        lo = np.zeros(len(rg))
-        hi = np.full(len(rg), 2.0)
-        for r in range(len(rg)):
-            if r > 0 and rg[r - 1] == rg[r]:
-                lo[r] = rw[r - 1]
-            if r + 1 < len(rg) and rg[r + 1] == rg[r]:
-                hi[r] = rw[r + 1]
-        self._row_group = rg.astype(np.int64)
-        self._lo = lo.astype(np.float32)
-        self._rise = (rw - lo).astype(np.float32)
-        self._hi = hi.astype(np.float32)
-        self._fall = (hi - rw).astype(np.float32)
-        self._row_act = np.zeros(len(rg), dtype=np.float32)
-        self._row_down = np.zeros(len(rg), dtype=np.float32)
-        self._coef = np.zeros(_k.ROW_CAPACITY, dtype=np.float32)
         d, sk = deformer, deformer.skinner
-        # recorded once; a step only re-packs the activations and h (cheaper than wp.launch)
+        # recorded once; a step only re-packs the activations and h (cheaper than wp.launch);
+        # inbetweens (disparity rows beyond one per group) take the rows' kernel
+        rows = [] if d.row_full.all() else [d.row_group_device, d.row_full_device, d.row_tent]
+        kernel = _k.popping_step_rows_kernel if rows else _k.popping_step_kernel
         self._launch = wp.launch(
-            _k.popping_step_kernel,
+            kernel,
             dim=d.rig.vertex_count,
             inputs=[sk.rest_points, sk.joint_indices, sk.joint_weights, sk.skin_matrices, d.normal_displacement,
-                    d.disparity, d.disparity_max, d.row_group_device, d.row_full_device, _k.row_vector(),
-                    _k.group_vector(), self.alpha_min, self.beta,
-                    self.threshold, 1.0],
+                    d.disparity, d.disparity_max, *rows, _k.group_vector(), _k.group_vector(), self.alpha_min,
+                    self.beta, self.threshold, 1.0],
             outputs=[self.offset, self.velocity, self.points, self.goal_points, self.alpha],
             device=self.device,
             record_cmd=True,
         )
-        names = [a.label for a in _k.popping_step_kernel.adj.args]
-        self._i_coef, self._i_clench, self._i_h = (names.index(n) for n in ("row_coefficient", "group_clenching", "h"))
+        names = [a.label for a in kernel.adj.args]
+        self._i_act, self._i_clench, self._i_h = (names.index(n) for n in ("group_activation", "group_clenching", "h"))
 
     @property
     def clenching(self) -> np.ndarray:
@@ -151,16 +134,6 @@ class PoppingDynamics:
         self._clench[act > self._prev] = 1.0
         self._clench[act < self._prev] = 0.0
         self._prev[:] = act
-        # the rows' coefficients (preallocated: a step allocates nothing of the vertices' size)
-        r = len(self._row_group)
-        up, down = self._row_act, self._row_down
-        np.take(act, self._row_group, out=up)
-        np.subtract(self._hi, up, out=down)
-        np.subtract(up, self._lo, out=up)
-        np.divide(up, self._rise, out=up)
-        np.divide(down, self._fall, out=down)
-        np.minimum(up, down, out=self._coef[:r])
-        np.clip(self._coef[:r], 0.0, 1.0, out=self._coef[:r])
 
     def step(self, dt: float, activation: Activation) -> wp.array:
         """Advance the skin by one step.
@@ -181,7 +154,7 @@ class PoppingDynamics:
             )
         self._set_activation(activation)
         cmd = self._launch
-        cmd.set_param_at_index(self._i_coef, _k.row_vector(*self._coef))
+        cmd.set_param_at_index(self._i_act, _k.group_vector(*self._act))
         cmd.set_param_at_index(self._i_clench, _k.group_vector(*self._clench))
         cmd.set_param_at_index(self._i_h, float(dt))
         cmd.launch()

@@ -134,6 +134,21 @@ def _radial_basis(poses: np.ndarray, width: float | None, label: str) -> tuple[f
     return width, x[:e], x[e]
 
 
+def _tents(row_group: np.ndarray, row_weight: np.ndarray) -> np.ndarray:
+    """``[R, 4]`` each disparity row's ``(lo, 1 / (w - lo), hi, 1 / (hi - w))``: ``lo`` and
+    ``hi`` the weights of the rows below and above it in its group (0 below the first; 2
+    above the clenched row, ``w = 1``), so its goal coefficient ``min((a - lo) / (w - lo),
+    (hi - a) / (hi - w))`` clamped to [0, 1] is a tent in the group's activation ``a``."""
+    lo = np.zeros(len(row_group))
+    hi = np.full(len(row_group), 2.0)
+    for r in range(len(row_group)):
+        if r > 0 and row_group[r - 1] == row_group[r]:
+            lo[r] = row_weight[r - 1]
+        if r + 1 < len(row_group) and row_group[r + 1] == row_group[r]:
+            hi[r] = row_weight[r + 1]
+    return np.stack([lo, 1.0 / (row_weight - lo), hi, 1.0 / (hi - row_weight)], axis=1)
+
+
 class PoseSpaceDeformer:
     """Example-based skinning: pose space deformation of the normal and clenched examples,
     then linear blend skinning, on one Warp device.
@@ -164,6 +179,10 @@ class PoseSpaceDeformer:
         row_weight: The activation at which each row is the group's goal, ``[R]`` (1: its
             clenched shape).
         row_full: Whether each row is its group's clenched shape, ``[R]`` bool.
+        row_tent: Each row's goal coefficient as a tent in its group's activation: 0 at ``lo``
+            rising to 1 at its weight ``w`` and falling to 0 at ``hi`` (2 for a clenched row:
+            it stays 1), as ``(lo, 1 / (w - lo), hi, 1 / (hi - w))``, ``[R]`` vec4
+            (:func:`_tents`, :func:`warpskin.kernels.popping.popping_step_kernel`).
     """
 
     def __init__(
@@ -209,8 +228,6 @@ class PoseSpaceDeformer:
         for g in range(examples.group_count):
             rows += [(g, float(w), d) for w, d in examples.inbetweens(g)]
             rows.append((g, 1.0, examples.clenched_disparities[g]))
-        if len(rows) > _k.ROW_CAPACITY:
-            raise RigError(f"{len(rows)} clenched shapes and inbetweens; at most {_k.ROW_CAPACITY} are supported")
         self.row_group = np.array([g for g, _, _ in rows], dtype=np.int32)
         self.row_weight = np.array([w for _, w, _ in rows])
         self.row_full = self.row_weight == 1.0
@@ -247,6 +264,7 @@ class PoseSpaceDeformer:
             self.clenched_group = wp.array(c_group, dtype=wp.int32)  # the row of each clenched example
             self.row_group_device = wp.array(self.row_group, dtype=wp.int32)
             self.row_full_device = wp.array(self.row_full.astype(np.int32), dtype=wp.int32)
+            self.row_tent = wp.array(_tents(self.row_group, self.row_weight).astype(np.float32), dtype=wp.vec4)
             self.example_weights = wp.zeros(e_all, dtype=wp.float32)  # normal, then clenched
             self.normal_displacement = wp.zeros(v, dtype=wp.vec3)
             self.disparity = wp.zeros((r, v), dtype=wp.vec3)
