@@ -155,112 +155,80 @@ def vibration_step(o: wp.vec3, u: wp.vec3, goal: wp.vec3, alpha: float, clenchin
     return wp.matrix_from_rows(o, u)
 
 
-@wp.kernel
-def popping_step_kernel(
-    rest_points: wp.array(dtype=wp.vec3),
-    joint_indices: wp.array2d(dtype=wp.int32),
-    joint_weights: wp.array2d(dtype=wp.float32),
-    skin_matrices: wp.array(dtype=wp.mat44),
-    normal_displacement: wp.array(dtype=wp.vec3),
-    disparity: wp.array2d(dtype=wp.vec3),
-    disparity_max: wp.array(dtype=wp.float32),
-    group_activation: group_vector,
-    group_clenching: group_vector,
-    alpha_min: float,
-    beta: float,
-    threshold: float,
-    h: float,
-    # outputs (offset and velocity are read and written)
-    offset: wp.array(dtype=wp.vec3),
-    velocity: wp.array(dtype=wp.vec3),
-    points: wp.array(dtype=wp.vec3),
-    goal_points: wp.array(dtype=wp.vec3),
-    alpha_out: wp.array(dtype=wp.float32),
-):
-    i = wp.tid()
-    b = blend_matrix(i, joint_indices, joint_weights, skin_matrices)
+def _popping_step(rows: bool) -> wp.Kernel:
+    """The step kernel (eqs. 1-4 above), for one disparity row per group (``rows`` False: the
+    paper's sum, the row arrays unread) or for rows with inbetweens (``rows`` True: each row's
+    coefficient a tent in its group's activation, ``row_tent`` its ``(lo, 1 / (w - lo), hi,
+    1 / (hi - w))``; the stiffness and the clench flag the group's, from its clenched row)."""
 
-    goal = wp.vec3(0.0)
-    group = int(0)
-    dist = float(-1.0)
-    for g in range(disparity.shape[0]):
-        d = disparity[g, i]
-        goal += group_activation[g] * d
-        length = wp.length(wp.transform_vector(b, d))
-        if length > dist:
-            dist = length
-            group = g
+    def step(
+        rest_points: wp.array(dtype=wp.vec3),
+        joint_indices: wp.array2d(dtype=wp.int32),
+        joint_weights: wp.array2d(dtype=wp.float32),
+        skin_matrices: wp.array(dtype=wp.mat44),
+        normal_displacement: wp.array(dtype=wp.vec3),
+        disparity: wp.array2d(dtype=wp.vec3),
+        disparity_max: wp.array(dtype=wp.float32),
+        row_group: wp.array(dtype=wp.int32),
+        row_full: wp.array(dtype=wp.int32),
+        row_tent: wp.array(dtype=wp.vec4),
+        group_activation: group_vector,
+        group_clenching: group_vector,
+        alpha_min: float,
+        beta: float,
+        threshold: float,
+        h: float,
+        # outputs (offset and velocity are read and written)
+        offset: wp.array(dtype=wp.vec3),
+        velocity: wp.array(dtype=wp.vec3),
+        points: wp.array(dtype=wp.vec3),
+        goal_points: wp.array(dtype=wp.vec3),
+        alpha_out: wp.array(dtype=wp.float32),
+    ):
+        i = wp.tid()
+        b = blend_matrix(i, joint_indices, joint_weights, skin_matrices)
 
-    alpha = stiffness(dist, disparity_max[group], alpha_min)
-    _write_step(i, b, goal, alpha, group_clenching[group], beta, threshold, h, rest_points, normal_displacement,
-                offset, velocity, points, goal_points, alpha_out)
+        goal = wp.vec3(0.0)
+        row = int(0)
+        dist = float(-1.0)
+        for r in range(disparity.shape[0]):
+            d = disparity[r, i]
+            full = int(1)
+            if wp.static(rows):
+                a = group_activation[row_group[r]]
+                tent = row_tent[r]
+                goal += wp.min(wp.clamp((a - tent[0]) * tent[1], 0.0, 1.0),
+                               wp.clamp((tent[2] - a) * tent[3], 0.0, 1.0)) * d
+                full = row_full[r]
+            else:
+                goal += group_activation[r] * d
+            if full != 0:
+                length = wp.length(wp.transform_vector(b, d))
+                if length > dist:
+                    dist = length
+                    row = r
+
+        alpha = stiffness(dist, disparity_max[row], alpha_min)
+        group = row
+        if wp.static(rows):
+            group = row_group[row]
+        step = vibration_step(offset[i], velocity[i], goal, alpha, group_clenching[group], beta, threshold, h)
+        o = wp.vec3(step[0, 0], step[0, 1], step[0, 2])
+
+        p = rest_points[i] + normal_displacement[i]
+        offset[i] = o
+        velocity[i] = wp.vec3(step[1, 0], step[1, 1], step[1, 2])
+        points[i] = wp.transform_point(b, p + o)
+        goal_points[i] = wp.transform_point(b, p + goal)
+        alpha_out[i] = alpha
+
+    key = "popping_step_rows_kernel" if rows else "popping_step_kernel"
+    step.__name__ = step.__qualname__ = key
+    return wp.Kernel(step, key=key)
 
 
-@wp.func
-def _write_step(i: int, b: wp.mat44, goal: wp.vec3, alpha: float, clenching: float, beta: float, threshold: float,
-                h: float, rest_points: wp.array(dtype=wp.vec3), normal_displacement: wp.array(dtype=wp.vec3),
-                offset: wp.array(dtype=wp.vec3), velocity: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
-                goal_points: wp.array(dtype=wp.vec3), alpha_out: wp.array(dtype=wp.float32)):
-    """Vertex ``i``'s step towards ``goal`` (eqs. 1-2 or 4) and its skinned point and goal."""
-    step = vibration_step(offset[i], velocity[i], goal, alpha, clenching, beta, threshold, h)
-    o = wp.vec3(step[0, 0], step[0, 1], step[0, 2])
-
-    p = rest_points[i] + normal_displacement[i]
-    offset[i] = o
-    velocity[i] = wp.vec3(step[1, 0], step[1, 1], step[1, 2])
-    points[i] = wp.transform_point(b, p + o)
-    goal_points[i] = wp.transform_point(b, p + goal)
-    alpha_out[i] = alpha
-
-
-@wp.kernel
-def popping_step_rows_kernel(
-    rest_points: wp.array(dtype=wp.vec3),
-    joint_indices: wp.array2d(dtype=wp.int32),
-    joint_weights: wp.array2d(dtype=wp.float32),
-    skin_matrices: wp.array(dtype=wp.mat44),
-    normal_displacement: wp.array(dtype=wp.vec3),
-    disparity: wp.array2d(dtype=wp.vec3),
-    disparity_max: wp.array(dtype=wp.float32),
-    row_group: wp.array(dtype=wp.int32),
-    row_full: wp.array(dtype=wp.int32),
-    row_tent: wp.array(dtype=wp.vec4),
-    group_activation: group_vector,
-    group_clenching: group_vector,
-    alpha_min: float,
-    beta: float,
-    threshold: float,
-    h: float,
-    # outputs (offset and velocity are read and written)
-    offset: wp.array(dtype=wp.vec3),
-    velocity: wp.array(dtype=wp.vec3),
-    points: wp.array(dtype=wp.vec3),
-    goal_points: wp.array(dtype=wp.vec3),
-    alpha_out: wp.array(dtype=wp.float32),
-):
-    """:func:`popping_step_kernel` over disparity rows with inbetweens (above): each row's
-    coefficient a tent in its group's activation, the stiffness and the clench flag the
-    group's (its clenched row's)."""
-    i = wp.tid()
-    b = blend_matrix(i, joint_indices, joint_weights, skin_matrices)
-
-    goal = wp.vec3(0.0)
-    row = int(0)
-    dist = float(-1.0)
-    for r in range(disparity.shape[0]):
-        d = disparity[r, i]
-        a = group_activation[row_group[r]]
-        tent = row_tent[r]  # (lo, 1 / (w - lo), hi, 1 / (hi - w))
-        goal += wp.min(wp.clamp((a - tent[0]) * tent[1], 0.0, 1.0), wp.clamp((tent[2] - a) * tent[3], 0.0, 1.0)) * d
-        if row_full[r] != 0:
-            length = wp.length(wp.transform_vector(b, d))
-            if length > dist:
-                dist = length
-                row = r
-
-    alpha = stiffness(dist, disparity_max[row], alpha_min)
-    _write_step(i, b, goal, alpha, group_clenching[row_group[row]], beta, threshold, h, rest_points,
-                normal_displacement, offset, velocity, points, goal_points, alpha_out)
+popping_step_kernel = _popping_step(False)
+popping_step_rows_kernel = _popping_step(True)
 
 
 # --------------------------------------------------------------------------------------------

@@ -83,14 +83,13 @@ class PoppingDynamics:
         d, sk = deformer, deformer.skinner
         # recorded once; a step only re-packs the activations and h (cheaper than wp.launch);
         # inbetweens (disparity rows beyond one per group) take the rows' kernel
-        rows = [] if d.row_full.all() else [d.row_group_device, d.row_full_device, d.row_tent]
-        kernel = _k.popping_step_rows_kernel if rows else _k.popping_step_kernel
+        kernel = _k.popping_step_kernel if d.row_full.all() else _k.popping_step_rows_kernel
         self._launch = wp.launch(
             kernel,
             dim=d.rig.vertex_count,
             inputs=[sk.rest_points, sk.joint_indices, sk.joint_weights, sk.skin_matrices, d.normal_displacement,
-                    d.disparity, d.disparity_max, *rows, _k.group_vector(), _k.group_vector(), self.alpha_min,
-                    self.beta, self.threshold, 1.0],
+                    d.disparity, d.disparity_max, d.row_group_device, d.row_full_device, d.row_tent,
+                    _k.group_vector(), _k.group_vector(), self.alpha_min, self.beta, self.threshold, 1.0],
             outputs=[self.offset, self.velocity, self.points, self.goal_points, self.alpha],
             device=self.device,
             record_cmd=True,
