@@ -64,12 +64,39 @@ def test_unknown_target_is_named(tmp_path):
                                     clenched={"biceps": [("clench", 0.0)]})
 
 
+def _eqs_1_to_4(goal, activation, alpha, h, *, frames, fps=30.0, beta=30.0, threshold=1e-4) -> list:
+    """Son & Han's skin vibration in NumPy, as ``warpskin pop`` steps it: the offsets from the
+    normal mesh at the end of each frame (``[N, 3]`` each; frame f's steps end at f / fps, the
+    first frame's included). ``goal(a)``: the goal offsets at activation ``a``;
+    ``activation(t)``: the activation at time ``t``; ``alpha``: ``[N, 1]`` stiffness (eq. 3).
+    Rising activation -> clench: u <- (1 - alpha) u + alpha (o* - o) / h, o <- o + h u;
+    falling -> relax: o <- o + beta h (o* - o), u <- 0, snapping to o* within the threshold."""
+    o = u = None
+    prev, clench, out = 0.0, False, []
+    for frame in range(frames):
+        for s in range(int(round(1.0 / (fps * h)))):
+            a = activation(frame / fps - 1.0 / fps + (s + 1) * h)
+            clench = True if a > prev else (False if a < prev else clench)
+            prev = a
+            g = goal(a)
+            if o is None:
+                o, u = np.zeros_like(g), np.zeros_like(g)
+            if clench:
+                u = (1 - alpha) * u + alpha * (g - o) / h
+                o = o + h * u
+            else:
+                o = o + beta * h * (g - o)
+                u = np.zeros_like(u)
+                snap = np.linalg.norm(g - o, axis=1) < threshold
+                o[snap] = g[snap]
+        out.append(o.copy())
+    return out
+
+
 def test_a_rig_files_clenched_target_pops_by_the_papers_rules(tmp_path, capsys):
     # `warpskin pop box.glb --bpm`: the file's "biceps_clenched" morph target is the biceps'
     # clenched example (goal mode, no scene); the written skin's offset from the normal mesh
-    # follows eqs. 1-4 step by step, here in NumPy: rising activation -> clench
-    #   u <- (1 - alpha) u + alpha (o* - o) / h,  o <- o + h u
-    # falling -> relax: o <- o + beta h (o* - o), u <- 0, snapping to o* within the threshold
+    # follows eqs. 1-4 step by step, here in NumPy (_eqs_1_to_4)
     path = _box_with_target(tmp_path, "biceps_clenched")
     out = tmp_path / "pop.usdc"
     h = 1.0 / 120.0
@@ -83,28 +110,11 @@ def test_a_rig_files_clenched_target_pops_by_the_papers_rules(tmp_path, capsys):
     d = _bulge(file_pos).astype(np.float32).astype(np.float64)  # the clenched offsets (bind pose: no skinning)
     moved = np.linalg.norm(d, axis=1) > 0
     alpha = np.where(moved, 0.1, 1.0)[:, None]  # eq. 3: every moved vertex at the largest disparity
-    beta, threshold = 30.0, 1e-4
 
     def activation(t):
         return 1.0 if any(b <= t < b + 0.2513 for b in (0.1037, 0.6037)) else 0.0
 
-    o, u, prev, clench = np.zeros_like(d), np.zeros_like(d), 0.0, False
-    fps = 30.0
-    for frame in range(31):
-        for s in range(4):  # the frame's steps end at its time
-            t = frame / fps - 1.0 / fps + (s + 1) * h
-            a = activation(t)
-            clench = True if a > prev else (False if a < prev else clench)
-            prev = a
-            goal = a * d
-            if clench:
-                u = (1 - alpha) * u + alpha * (goal - o) / h
-                o = o + h * u
-            else:
-                o = o + beta * h * (goal - o)
-                u[:] = 0.0
-                snap = np.linalg.norm(goal - o, axis=1) < threshold
-                o[snap] = goal[snap]
+    for frame, o in enumerate(_eqs_1_to_4(lambda a: a * d, activation, alpha, h, frames=31)):
         got = np.asarray(popping.Get(frame), dtype=np.float64) - np.asarray(normal.Get(frame), dtype=np.float64)
         assert np.abs(got - o).max() < 2e-5 * np.abs(d).max(), frame  # float32 kernel and file
         if frame == 17:  # 0.567 s: relaxed from the first pop and snapped, before the second beat
@@ -229,27 +239,12 @@ def test_usd_inbetweens_shape_the_goal_and_the_skin_follows_the_papers_rules(tmp
         assert np.abs(np.asarray(goal.Get(frame)) - (rest + target(a))).max() < 1e-6, (frame, a)
     full = np.linalg.norm(target(1.0), axis=1)
     alpha = ((0.1 - 1.0) * full / full.max() + 1.0)[:, None]  # eq. 3 from the clenched shape
-    beta, threshold, fps = 30.0, 1e-4, 30.0
 
     def activation(t):
         return next((a for b, a in levels.items() if b <= t < b + 0.1), 0.0)
 
-    o, u, prev, clench = np.zeros_like(rest), np.zeros_like(rest), 0.0, False
     goals = {a: target(a) for a in (0.0, *levels.values())}
-    for frame in range(28):
-        for s in range(4):
-            a = activation(frame / fps - 1.0 / fps + (s + 1) * h)
-            clench = True if a > prev else (False if a < prev else clench)
-            prev = a
-            g = goals[a]
-            if clench:
-                u = (1 - alpha) * u + alpha * (g - o) / h
-                o = o + h * u
-            else:
-                o = o + beta * h * (g - o)
-                u[:] = 0.0
-                snap = np.linalg.norm(g - o, axis=1) < threshold
-                o[snap] = g[snap]
+    for frame, o in enumerate(_eqs_1_to_4(goals.__getitem__, activation, alpha, h, frames=28)):
         got = np.asarray(popping.Get(frame), dtype=np.float64) - np.asarray(normal.Get(frame), dtype=np.float64)
         assert np.abs(got - o).max() < 2e-5 * full.max(), frame
     # the inbetween bent the path: at 0.2 the skin heads along the 0.4 inbetween (mostly +y
