@@ -764,6 +764,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="do not list the pictures written")
     s.set_defaults(func=cmd_render)
 
+    from .batch import add_parser as add_batch, cmd_batch
+
+    add_batch(sub)
+    sub.choices["batch"].set_defaults(func=cmd_batch)
+
     s = sub.add_parser("warmup", help="compile and cache the Warp kernels")
     s.add_argument("--device", help="cpu, cuda or cuda:N")
     s.set_defaults(func=cmd_warmup)

@@ -1,0 +1,674 @@
+"""``warpskin batch``: many bakes (characters x clips) as one batch on this machine, each job in
+its own process, resumable and fault tolerant.
+
+A batch is a list of jobs, each one ``warpskin simulate|skin|pop`` command line: from a JOBS
+file (TOML, ``[[job]]`` tables) or from rig files with ``--clips all``. Every job runs the same
+code as its single command, in a process of its own (``python -m warpskin ...``), so a crash
+takes only that job, and writes the same file, atomically as every command does.
+
+OUTDIR holds the bakes, ``manifest.json`` (per job: its inputs' key, exit code, message,
+timing, attempts and output), ``index.md`` (the batch at a glance) and ``logs/`` (each job's
+standard output and error). A job whose manifest entry has the same key (the input files'
+SHA-256, the command line, the warpskin version) and whose output exists is not run again; a
+job whose process dies (a signal, the out-of-memory killer) is run again up to ``retries``
+times; a job that fails (exit 2: bad input, 3: the run failed) is recorded and the batch goes
+on.
+
+Exit codes of :func:`run_batch`'s command: 0 every job succeeded, 3 some failed (listed), 2 a bad
+JOBS file or option (nothing run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import glob
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+from .errors import InputError
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11
+    import tomli as tomllib
+
+__all__ = ["BatchError", "Job", "BatchResult", "read_jobs", "jobs_for_rigs", "run_batch", "COMMANDS"]
+
+COMMANDS = ("simulate", "skin", "pop")
+"""The commands a job may run."""
+_JOB_KEYS = {"rig", "command", "clip", "frames", "output", "args"}
+_MANIFEST = "manifest.json"
+_RETRYABLE_EXITS = {128 + signal.SIGTERM, 128 + signal.SIGHUP}  # the command's own signal exits
+
+
+class BatchError(InputError):
+    """A bad JOBS file or batch option: one line naming the file, the job and the key."""
+
+
+@dataclass
+class Job:
+    """One bake of a batch.
+
+    Attributes:
+        id: Its output path relative to OUTDIR (POSIX separators): unique in the batch.
+        rig: A rig file (absolute path), a TOML scene path or a shipped scene name.
+        command: ``simulate``, ``skin`` or ``pop``.
+        clip: The rig's clip, or ``None`` (the rig's or scene's own).
+        frames: ``"A:B"`` or ``None`` (every frame).
+        args: The command's own options, as on its command line.
+        output: The bake [absolute path].
+    """
+
+    id: str
+    rig: str
+    command: str
+    clip: str | None
+    frames: str | None
+    args: list[str]
+    output: Path
+
+    def argv(self) -> list[str]:
+        """The job's command line (``python -m warpskin ...``)."""
+        out = [sys.executable, "-m", "warpskin", self.command, self.rig, "-o", str(self.output)]
+        if self.clip is not None:
+            out += ["--clip", self.clip]
+        if self.frames is not None:
+            out += ["--frames", self.frames]
+        return out + list(self.args) + ["--quiet", "--json"]
+
+    def key(self, version: str) -> str:
+        """SHA-256 of what the bake depends on: the input files' contents, the command line
+        (less the interpreter) and the warpskin version."""
+        h = hashlib.sha256()
+        h.update(json.dumps([version, self.command, self.rig, self.clip, self.frames, self.args]).encode())
+        for path in _input_files(self.rig):
+            h.update(str(path).encode())
+            h.update(_file_hash(path).encode())
+        return h.hexdigest()
+
+
+@dataclass
+class BatchResult:
+    """What :func:`run_batch` did.
+
+    Attributes:
+        entries: The manifest's entry of every job, by job id.
+        ran: Ids of the jobs run this time (retries counted once).
+        skipped: Ids of the jobs already done (manifest key matched, output present).
+        failed: Ids of the jobs that failed (their entries hold the exit code and message).
+        seconds: Wall time of the batch [s].
+    """
+
+    entries: dict[str, dict] = field(default_factory=dict)
+    ran: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def exit_code(self) -> int:
+        return 3 if self.failed else 0
+
+
+# ------------------------------------------------------------------------------ the jobs
+def _file_hash(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _input_files(rig: str) -> list[Path]:
+    """The files a job's rig reads (its file; a scene's TOML and the rig file it names)."""
+    from .scene import resolve_scene
+
+    try:
+        paths = resolve_scene(rig).input_paths()
+    except InputError:
+        paths = [Path(rig)]
+    return [p for p in paths if p is not None and Path(p).is_file()]
+
+
+def _check_rig(rig: str, where: str) -> None:
+    """A rig that exists: a file, or a shipped scene name."""
+    from .scene import list_scenes
+
+    names = [s["name"] for s in list_scenes()]
+    if Path(rig).is_file() or rig in names:
+        return
+    raise BatchError(f"{where}: rig {rig!r} is neither a file nor a shipped scene ({', '.join(names)})")
+
+
+def _check_args(command: str, rig: str, args: list[str], where: str) -> None:
+    """Parse the job's command line as the command would, so that a bad option fails the batch
+    before anything runs (argparse's own message, its last line)."""
+    from .cli import build_parser
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        try:
+            build_parser().parse_args([command, rig, "-o", "x.usdc", *args])
+        except SystemExit:
+            last = (err.getvalue().strip().splitlines() or ["bad arguments"])[-1]
+            raise BatchError(f"{where}: args: {re.sub(r'^warpskin( [a-z]+)?: error: ', '', last)}") from None
+    for flag, key in (("-o", "output"), ("--output", "output"), ("--clip", "clip"), ("--frames", "frames"),
+                      ("--json", None), ("--quiet", None)):
+        if flag in args:
+            use = f" (use the job's {key} key)" if key else ""
+            raise BatchError(f"{where}: args: {flag} is the batch's to set{use}")
+
+
+def _clips_of(rig: str) -> list[str | None]:
+    """Every clip of a rig (``[None]`` for a rig without any, its rest pose, and for a rig that
+    does not load: its one job fails when run, with the command's own message)."""
+    import warnings
+
+    from .scene import resolve_scene
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            clips = list(resolve_scene(rig).rig().clips)
+    except InputError:
+        return [None]
+    return clips or [None]
+
+
+def _stem(rig: str) -> str:
+    return Path(rig).stem if (Path(rig).suffix or os.sep in rig) else rig
+
+
+def _output_of(value, rig: str, clip: str | None, outdir: Path, where: str, stem: str | None = None) -> tuple[str, Path]:
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", clip).strip("._") if clip else ""
+    rel = value if value is not None else f"{stem or _stem(rig)}/{safe or 'default'}.usdc"
+    if not isinstance(rel, str) or not rel:
+        raise BatchError(f"{where}: output must be a path relative to OUTDIR, got {value!r}")
+    pure = PurePosixPath(rel.replace(os.sep, "/"))
+    if pure.is_absolute() or ".." in pure.parts:
+        raise BatchError(f"{where}: output {rel!r} must stay inside OUTDIR (a relative path without '..')")
+    if pure.suffix.lower() not in (".usdc", ".usda", ".usd"):
+        raise BatchError(f"{where}: output {rel!r} must end in .usdc, .usda or .usd")
+    return str(pure), outdir / pure
+
+
+def _make_jobs(specs: list[tuple[dict, str]], outdir: Path) -> list[Job]:
+    """Jobs from ``[(table, where)]``: checked, clips expanded, outputs unique."""
+    jobs: list[Job] = []
+    seen: dict[str, str] = {}
+    # rigs of one name (CesiumMan.glb, CesiumMan.usdz) keep their kind in their folder's name
+    rigs_of: dict[str, set] = {}
+    for spec, _ in specs:
+        if isinstance(spec.get("rig"), str):
+            rigs_of.setdefault(_stem(spec["rig"]), set()).add(spec["rig"])
+    clash = {stem for stem, rigs in rigs_of.items() if len(rigs) > 1}
+    for spec, where in specs:
+        unknown = sorted(set(spec) - _JOB_KEYS)
+        if unknown:
+            raise BatchError(f"{where}: unknown key(s) {unknown}; known: {sorted(_JOB_KEYS)}")
+        rig = spec.get("rig")
+        if not isinstance(rig, str) or not rig:
+            raise BatchError(f"{where}: rig must be a rig file, a TOML scene or a shipped scene name")
+        _check_rig(rig, where)
+        command = spec.get("command", "simulate")
+        if command not in COMMANDS:
+            raise BatchError(f"{where}: command must be one of {', '.join(COMMANDS)}, got {command!r}")
+        args = spec.get("args", [])
+        if isinstance(args, str):
+            args = shlex.split(args)
+        if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
+            raise BatchError(f"{where}: args must be a list of strings or one string, got {args!r}")
+        frames = spec.get("frames")
+        if frames is not None and not (isinstance(frames, str) and len(frames.split(":")) == 2
+                                       and all(p.strip().lstrip("-").isdigit() for p in frames.split(":"))):
+            raise BatchError(f"{where}: frames must be \"A:B\" (inclusive), got {frames!r}")
+        clip = spec.get("clip")
+        if clip is not None and not isinstance(clip, str):
+            raise BatchError(f"{where}: clip must be a clip name or \"all\", got {clip!r}")
+        _check_args(command, rig, args, where)
+        clips = _clips_of(rig) if clip == "all" else [clip]
+        if clip == "all" and spec.get("output") is not None:
+            raise BatchError(f"{where}: output names one file; with clip = \"all\" leave it out (<rig>/<clip>.usdc)")
+        for c in clips:
+            stem = _stem(rig)
+            if stem in clash and Path(rig).suffix:
+                stem = f"{stem}_{Path(rig).suffix.lstrip('.').lower()}"
+            rel, path = _output_of(spec.get("output"), rig, c, outdir, where, stem)
+            if rel in seen:
+                raise BatchError(f"{where}: output {rel!r} is also {seen[rel]}'s; give each job its own output")
+            seen[rel] = where
+            jobs.append(Job(rel, rig, command, c, frames, args, path))
+    return jobs
+
+
+def read_jobs(path: str | Path, outdir: str | Path) -> list[Job]:
+    """The jobs of a JOBS file: a TOML file of ``[[job]]`` tables, each with ``rig`` (a rig
+    file or TOML scene, relative to the JOBS file, or a shipped scene name), ``command``
+    (``simulate``, default, ``skin`` or ``pop``), ``clip`` (a name or ``"all"``: one job per
+    clip), ``frames`` (``"A:B"``), ``output`` (relative to OUTDIR; default
+    ``<rig stem>/<clip>.usdc``) and ``args`` (the command's own options).
+
+    Raises:
+        BatchError: an unreadable file or a bad job, naming the file, the job and the key.
+    """
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise BatchError(f"{p}: cannot read the jobs: {exc}") from None
+    unknown = sorted(set(data) - {"job"})
+    if unknown:
+        raise BatchError(f"{p}: unknown key(s) {unknown}; a JOBS file holds [[job]] tables")
+    tables = data.get("job")
+    if not isinstance(tables, list) or not tables:
+        raise BatchError(f"{p}: no jobs; a JOBS file holds [[job]] tables (rig, command, clip, frames, output, args)")
+    specs = []
+    for k, table in enumerate(tables, start=1):
+        where = f"{p}: job {k}"
+        if not isinstance(table, dict):
+            raise BatchError(f"{where} must be a table")
+        spec = dict(table)
+        rig = spec.get("rig")
+        if isinstance(rig, str) and (Path(rig).suffix or "/" in rig) and not Path(rig).is_absolute():
+            spec["rig"] = str((p.parent / rig).resolve())
+        elif isinstance(rig, str) and Path(rig).is_absolute():
+            spec["rig"] = str(Path(rig).resolve())
+        specs.append((spec, f"{where} ({table.get('rig', '?')})"))
+    return _make_jobs(specs, Path(outdir))
+
+
+def jobs_for_rigs(patterns: list[str], outdir: str | Path, *, command: str = "simulate", clips: str | None = None,
+                  frames: str | None = None, args: list[str] | None = None) -> list[Job]:
+    """One job per rig (file paths or glob patterns, or shipped scene names) and, with
+    ``clips="all"``, per clip; outputs ``<rig stem>/<clip>.usdc``.
+
+    Raises:
+        BatchError: a pattern that matches nothing, or a bad option.
+    """
+    rigs: list[str] = []
+    for pattern in patterns:
+        matched = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+        if not matched:
+            raise BatchError(f"{pattern}: matches no file")
+        rigs += [str(Path(m).resolve()) if Path(m).is_file() else m for m in matched]
+    specs = [({"rig": r, "command": command, "clip": clips, "frames": frames, "args": list(args or [])}, r)
+             for r in rigs]
+    return _make_jobs([({k: v for k, v in s.items() if v is not None}, w) for s, w in specs], Path(outdir))
+
+
+# ------------------------------------------------------------------------------ the runs
+def _write_json(path: Path, data) -> None:
+    """Write JSON atomically (a temporary file beside it, then a rename)."""
+    staged = path.with_name(f".{path.name}.tmp")
+    try:
+        staged.write_text(json.dumps(data, indent=1))
+        os.replace(staged, path)
+    finally:
+        staged.unlink(missing_ok=True)
+
+
+def _load_manifest(outdir: Path) -> dict:
+    p = outdir / _MANIFEST
+    if not p.is_file():
+        return {}
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}  # unreadable: every job runs again
+    return data.get("jobs", {}) if isinstance(data, dict) else {}
+
+
+def _last_line(path: Path) -> str:
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    errors = [ln for ln in lines if ln.startswith("warpskin:") and "warning:" not in ln]
+    return (errors or lines or [""])[-1]
+
+
+def _log_name(job_id: str) -> str:
+    return job_id.replace("/", "__")
+
+
+def _fmt_seconds(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
+
+
+class _Processes:
+    """Jobs as processes of this machine, ``capacity`` at a time, their output in log files."""
+
+    def __init__(self, capacity: int, env: dict | None) -> None:
+        self.capacity, self.env = capacity, env
+        self.running: dict[str, tuple] = {}
+
+    def start(self, job: Job, out: Path, err: Path) -> int:
+        stdout, stderr = open(out, "w"), open(err, "w")
+        proc = subprocess.Popen(job.argv(), stdout=stdout, stderr=stderr, env=self.env)
+        self.running[job.id] = (proc, stdout, stderr)
+        return proc.pid
+
+    def finished(self) -> list[tuple[str, int]]:
+        """``[(job id, exit code)]`` of the jobs that ended since the last call."""
+        time.sleep(0.05)
+        out = []
+        for jid in [j for j, (p, *_) in self.running.items() if p.poll() is not None]:
+            proc, stdout, stderr = self.running.pop(jid)
+            stdout.close()
+            stderr.close()
+            out.append((jid, proc.returncode))
+        return out
+
+    def close(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        for proc, *_ in self.running.values():  # an interrupted batch leaves no worker behind
+            with contextlib.suppress(OSError):
+                proc.terminate()
+        for proc, stdout, stderr in self.running.values():
+            with contextlib.suppress(subprocess.TimeoutExpired, OSError):
+                proc.wait(timeout=10)
+            stdout.close()
+            stderr.close()
+
+
+def _ray_job(argv: list[str]) -> tuple[int, str, str]:
+    """A job on a Ray worker: its command line run by that worker's Python (a process of its
+    own, as locally), returning ``(exit code, stdout, stderr)``."""
+    proc = subprocess.run([sys.executable, *argv[1:]], capture_output=True, text=True)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+class _RayTasks:
+    """Jobs as Ray tasks (``num_gpus=1`` each for a CUDA job), as many at a time as the cluster
+    schedules; their output comes back with the result and goes to the log files here. The
+    bakes are written where the job's output path points on the worker: give a path every
+    node sees (a shared filesystem) on a cluster of several machines."""
+
+    def __init__(self, address: str, retries: int) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise BatchError("--ray needs Ray: pip install 'warpskin[farm]'") from None
+        self.ray = ray
+        self.owned = not ray.is_initialized()  # shut down at the end what this batch started
+        if self.owned:
+            kw = {"include_dashboard": False, "log_to_driver": False, "logging_level": "ERROR"}
+            if address == "auto":
+                try:
+                    ray.init(address="auto", **kw)  # the cluster `ray start` made
+                except ConnectionError:
+                    ray.init(**kw)  # else a local one
+            else:
+                try:
+                    ray.init(address=address, **kw)
+                except ConnectionError as exc:
+                    raise BatchError(f"--ray {address}: no Ray cluster there ({exc})") from None
+        self.remote = ray.remote(_ray_job)
+        self.retries = retries
+        self.capacity = 1 << 30  # Ray schedules by the cluster's resources
+        self.running: dict = {}  # object ref -> (job id, out, err)
+
+    def start(self, job: Job, out: Path, err: Path) -> None:
+        gpu = "cuda" in " ".join(job.args)
+        ref = self.remote.options(num_cpus=1, num_gpus=1 if gpu else 0, max_retries=self.retries,
+                                  retry_exceptions=False).remote(job.argv())
+        self.running[ref] = (job.id, out, err)
+
+    def finished(self) -> list[tuple[str, int]]:
+        if not self.running:
+            return []
+        done, _ = self.ray.wait(list(self.running), num_returns=1, timeout=0.5)
+        out = []
+        for ref in done:
+            jid, stdout, stderr = self.running.pop(ref)
+            try:
+                rc, text_out, text_err = self.ray.get(ref)
+            except self.ray.exceptions.RayError as exc:  # the worker died past its retries
+                rc, text_out, text_err = -signal.SIGKILL, "", f"warpskin: error: the Ray worker died: {exc}"
+            stdout.write_text(text_out)
+            stderr.write_text(text_err)
+            out.append((jid, rc))
+        return out
+
+    def stop(self) -> None:
+        for ref in self.running:
+            with contextlib.suppress(Exception):
+                self.ray.cancel(ref, force=True)
+
+    def close(self) -> None:
+        if self.owned:
+            self.ray.shutdown()
+
+
+def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None, retries: int = 1,
+              progress: bool = True, env: dict | None = None, ray: str | None = None) -> BatchResult:
+    """Run ``jobs``: on this machine, ``workers`` processes at a time (default: one per core),
+    each job in its own process; or, with ``ray``, as tasks of a Ray cluster.
+
+    Args:
+        jobs: The jobs (:func:`read_jobs`, :func:`jobs_for_rigs`).
+        outdir: Where the bakes, ``manifest.json``, ``index.md`` and ``logs/`` go.
+        workers: Jobs at a time on this machine, >= 1 (not with ``ray``: the cluster's
+            resources decide).
+        retries: Runs again a job whose process died of a signal (killed, out of memory), at
+            most this many times (with ``ray`` also a task whose worker died, by Ray).
+        progress: One status line on stderr (done / running / failed, eta).
+        env: The jobs' environment on this machine (default this process's).
+        ray: A Ray cluster's address, or ``"auto"`` (the cluster ``ray start`` made, else a
+            local one); needs the ``farm`` extra.
+
+    Returns:
+        A :class:`BatchResult`; the manifest is written after every job.
+
+    Raises:
+        BatchError: bad ``workers`` or ``retries``, or no Ray.
+    """
+    from . import __version__
+
+    workers = (os.cpu_count() or 1) if workers is None else workers
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise BatchError(f"--workers must be a whole number >= 1, got {workers!r}")
+    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+        raise BatchError(f"--retries must be a whole number >= 0, got {retries!r}")
+    runner = _RayTasks(ray, retries) if ray else _Processes(workers, env)
+    out = Path(outdir)
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    old = _load_manifest(out)
+    entries: dict[str, dict] = {}
+    result = BatchResult(entries=entries)
+    t0 = time.perf_counter()
+    queue: list[Job] = []
+    by_id = {job.id: job for job in jobs}
+    for job in jobs:
+        key = job.key(__version__)
+        prev = old.get(job.id)
+        if prev and prev.get("key") == key and prev.get("status") == "ok" and job.output.is_file():
+            entries[job.id] = prev
+            result.skipped.append(job.id)
+            continue
+        entries[job.id] = {"key": key, "rig": job.rig, "command": job.command, "clip": job.clip,
+                           "frames": job.frames, "args": job.args, "output": job.id, "status": "queued",
+                           "attempts": 0, "warpskin": __version__}
+        queue.append(job)
+
+    def save() -> None:
+        _write_json(out / _MANIFEST, {"warpskin": __version__, "jobs": entries})
+
+    save()
+    started: dict[str, float] = {}
+    durations: list[float] = []
+    tty = progress and sys.stderr.isatty()
+    slots = workers if not ray else None
+
+    def status() -> None:
+        if not progress:
+            return
+        done = len(result.ran) - len(result.failed)
+        left = len(queue) + len(started)
+        eta = (sum(durations) / len(durations)) * math.ceil(left / (slots or max(len(started), 1))) \
+            if durations and left else 0.0
+        line = (f"batch: {done} done, {len(started)} running, {len(result.failed)} failed, {left} left"
+                + (f", eta {_fmt_seconds(eta)}" if eta else "") + f" ({len(result.skipped)} up to date)")
+        print(("\r" + line.ljust(78)) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+
+    try:
+        while queue or started:
+            while queue and len(started) < runner.capacity:
+                job = queue.pop(0)
+                e = entries[job.id]
+                e["attempts"] += 1
+                job.output.parent.mkdir(parents=True, exist_ok=True)
+                pid = runner.start(job, logs / f"{_log_name(job.id)}.out", logs / f"{_log_name(job.id)}.err")
+                e["status"] = "running"
+                if pid is not None:
+                    e["pid"] = pid
+                started[job.id] = time.perf_counter()
+                save()
+                status()
+            for jid, rc in runner.finished():
+                job, e = by_id[jid], entries[jid]
+                e.pop("pid", None)
+                e["exit_code"] = rc
+                e["seconds"] = round(time.perf_counter() - started.pop(jid), 3)
+                died = rc < 0 or rc in _RETRYABLE_EXITS
+                if died and e["attempts"] <= retries:
+                    e["status"] = "retrying"
+                    e["message"] = f"its process died ({_signal_name(rc)}); run again"
+                    queue.append(job)
+                    save()
+                    status()
+                    continue
+                if jid not in result.ran:
+                    result.ran.append(jid)
+                if rc == 0 and job.output.is_file():
+                    durations.append(e["seconds"])
+                    e.update(status="ok", message="")
+                    e["summary"] = _summary(logs / f"{_log_name(jid)}.out")
+                else:
+                    e["status"] = "failed"
+                    e["message"] = (f"its process died ({_signal_name(rc)})" if died else
+                                    _last_line(logs / f"{_log_name(jid)}.err") or f"exit {rc}, no output")
+                    result.failed.append(jid)
+                save()
+                status()
+    except BaseException:
+        runner.stop()
+        for jid in started:
+            entries[jid].update(status="interrupted")
+            entries[jid].pop("pid", None)
+        save()
+        raise
+    finally:
+        runner.close()
+    if tty:
+        print(file=sys.stderr)
+    result.seconds = time.perf_counter() - t0
+    _write_index(out, jobs, entries, result)
+    return result
+
+
+def _signal_name(rc: int) -> str:
+    n = -rc if rc < 0 else rc - 128
+    try:
+        return signal.Signals(n).name
+    except ValueError:
+        return f"exit {rc}"
+
+
+def _summary(path: Path) -> dict:
+    """The few figures of a job's JSON summary the index shows."""
+    try:
+        s = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+    keep = ("frames", "device", "vertices", "particles", "max_volume_deviation", "max_volume_deviation_lbs",
+            "mean_step_ms", "groups")
+    return {k: s[k] for k in keep if k in s}
+
+
+def _write_index(out: Path, jobs: list[Job], entries: dict, result: BatchResult) -> None:
+    """``index.md``: every job's status, time, frames and output or message."""
+    rows = ["| job | command | status | time | frames | output or message |", "|---|---|---|---|---|---|"]
+    for job in jobs:
+        e = entries[job.id]
+        what = f"[{job.id}]({job.id})" if e.get("status") == "ok" else str(e.get("message", "")).replace("|", "/")
+        seconds = e.get("seconds")
+        rows.append(f"| {job.id} | {job.command} | {e.get('status')} | "
+                    f"{'' if seconds is None else f'{seconds:.1f} s'} | {e.get('summary', {}).get('frames', '')} | {what} |")
+    head = (f"# warpskin batch\n\n{len(jobs)} jobs: {len(jobs) - len(result.failed)} succeeded "
+            f"({len(result.skipped)} up to date), {len(result.failed)} failed; {result.seconds:.1f} s.\n\n")
+    text = head + "\n".join(rows) + "\n"
+    staged = out / ".index.md.tmp"
+    try:
+        staged.write_text(text)
+        os.replace(staged, out / "index.md")
+    finally:
+        staged.unlink(missing_ok=True)
+
+
+# ------------------------------------------------------------------------------ the command
+def add_parser(sub) -> None:
+    s = sub.add_parser("batch", help="bake many rigs x clips, each job in its own process; resumable (JSON manifest)")
+    s.add_argument("jobs", nargs="+", metavar="JOBS",
+                   help="a JOBS file (TOML, [[job]] tables), or rig files / glob patterns / shipped scenes")
+    s.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="where the bakes, manifest.json and index.md go")
+    s.add_argument("--workers", type=int, default=None, help="jobs at a time on this machine (default: one per core)")
+    s.add_argument("--ray", metavar="ADDRESS", default=None,
+                   help="run each job as a task of the Ray cluster at ADDRESS, or 'auto' (the cluster `ray start` "
+                        "made, else a local one); pip install 'warpskin[farm]'")
+    s.add_argument("--retries", type=int, default=1, help="runs again a job whose process died, this many times (default 1)")
+    s.add_argument("--command", choices=COMMANDS, default="simulate", help="with rig files: what each job runs")
+    s.add_argument("--clips", metavar="NAME|all", default=None, help="with rig files: a clip, or all of them (one job each)")
+    s.add_argument("--frames", metavar="A:B", default=None, help="with rig files: the frames of every job")
+    s.add_argument("--args", default="", metavar="'OPTIONS'", help="with rig files: the command's own options")
+    s.add_argument("--quiet", action="store_true", help="no progress line")
+    s.add_argument("--json", action="store_true", help="print the manifest's entries as JSON")
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    first = Path(args.jobs[0])
+    is_jobs_file = len(args.jobs) == 1 and first.suffix.lower() == ".toml" and first.is_file() and _has_jobs(first)
+    if is_jobs_file:
+        jobs = read_jobs(first, args.output)
+    else:
+        jobs = jobs_for_rigs(args.jobs, args.output, command=args.command, clips=args.clips, frames=args.frames,
+                             args=shlex.split(args.args))
+    if args.ray and args.workers is not None:
+        raise BatchError("--workers is for this machine; with --ray the cluster's resources decide")
+    result = run_batch(jobs, args.output, workers=args.workers, retries=args.retries, progress=not args.quiet,
+                       ray=args.ray)
+    if args.json:
+        print(json.dumps(result.entries, indent=1))
+    else:
+        width = max(len(j.id) for j in jobs)
+        for job in jobs:
+            e = result.entries[job.id]
+            state = "up to date" if job.id in result.skipped else e["status"]
+            note = "" if e["status"] == "ok" else f"  exit {e.get('exit_code')}: {e.get('message', '')}"
+            seconds = e.get("seconds")
+            print(f"{job.id:{width}s}  {state:10s} {'' if seconds is None else f'{seconds:7.1f} s'}{note}")
+        print(f"{len(jobs)} jobs in {result.seconds:.1f} s: {len(result.ran) - len(result.failed)} ran, "
+              f"{len(result.skipped)} up to date, {len(result.failed)} failed; {Path(args.output) / 'index.md'}")
+    return result.exit_code
+
+
+def _has_jobs(path: Path) -> bool:
+    try:
+        return "job" in tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return True  # read_jobs names the problem
