@@ -81,6 +81,8 @@ rig = "{bad.name}"
         _same_bake(out / rel, alone)
     index = (out / "index.md").read_text()
     assert "| arm/sim.usdc | simulate | ok |" in index and "| broken/default.usdc | simulate | failed |" in index
+    sim = next(line for line in index.splitlines() if line.startswith("| arm/sim.usdc"))
+    assert "cpu, 3 frames" in sim and "ms/step" in sim and "(LBS " in sim  # its summary's figures
     # a rerun does no work: the finished jobs are up to date (their files untouched), the
     # failed one runs again
     stamps = {k: (out / k).stat().st_mtime_ns for k in ("arm/default.usdc", "arm/sim.usdc")}
@@ -196,3 +198,19 @@ def test_the_same_bakes_through_a_ray_cluster(tmp_path, capsys, monkeypatch):
     for rel in ("arm/default.usdc", "popping_arm/default.usdc"):
         _same_bake(tmp_path / "ray_out" / rel, tmp_path / "local_out" / rel)
     assert _manifest(tmp_path / "ray_out")["arm/default.usdc"]["status"] == "ok"
+
+
+def test_cuda_jobs_get_a_gpu_each(tmp_path):
+    # three jobs on --device cuda and two GPUs (given; the scheduling is the same with Warp's
+    # count): each job runs with CUDA_VISIBLE_DEVICES one of its own, so at most two at a time
+    # whatever --workers says; where no CUDA driver exists each job fails with its one line
+    from warpskin.batch import jobs_for_rigs, run_batch
+
+    jobs = jobs_for_rigs(["arm", "popping_arm", "mannequin"], tmp_path / "out", command="skin",
+                         frames="0:1", args=["--device", "cuda"])
+    result = run_batch(jobs, tmp_path / "out", workers=3, progress=False, gpus=2)
+    gpus = [result.entries[j.id].get("gpu") for j in jobs]
+    assert sorted(set(gpus)) == [0, 1] and len(gpus) == 3
+    for j in jobs:
+        e = result.entries[j.id]
+        assert e["status"] == "ok" or (e["exit_code"] == 2 and "cuda" in e["message"].lower()), e

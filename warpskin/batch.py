@@ -51,6 +51,11 @@ COMMANDS = ("simulate", "skin", "pop")
 _JOB_KEYS = {"rig", "command", "clip", "frames", "output", "args"}
 _MANIFEST = "manifest.json"
 _RETRYABLE_EXITS = {128 + signal.SIGTERM, 128 + signal.SIGHUP}  # the command's own signal exits
+# A job's process: the installed warpskin's command line. Not `python -m warpskin`, which puts
+# the working folder first on the module path, where a source checkout (warpskin/ without the
+# kernels and scenes it is installed with) would shadow the package; relative paths in a job's
+# args still mean what they mean on the batch's own command line.
+_BOOT = "import sys; sys.path.pop(0); from warpskin.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
 class BatchError(InputError):
@@ -80,8 +85,8 @@ class Job:
     output: Path
 
     def argv(self) -> list[str]:
-        """The job's command line (``python -m warpskin ...``)."""
-        out = [sys.executable, "-m", "warpskin", self.command, self.rig, "-o", str(self.output)]
+        """The job's command line: ``warpskin COMMAND ...`` run by this Python (:data:`_BOOT`)."""
+        out = [sys.executable, "-c", _BOOT, self.command, self.rig, "-o", str(self.output)]
         if self.clip is not None:
             out += ["--clip", self.clip]
         if self.frames is not None:
@@ -286,7 +291,7 @@ def read_jobs(path: str | Path, outdir: str | Path) -> list[Job]:
         elif isinstance(rig, str) and Path(rig).is_absolute():
             spec["rig"] = str(Path(rig).resolve())
         specs.append((spec, f"{where} ({table.get('rig', '?')})"))
-    return _make_jobs(specs, Path(outdir))
+    return _make_jobs(specs, Path(outdir).resolve())
 
 
 def jobs_for_rigs(patterns: list[str], outdir: str | Path, *, command: str = "simulate", clips: str | None = None,
@@ -305,7 +310,7 @@ def jobs_for_rigs(patterns: list[str], outdir: str | Path, *, command: str = "si
         rigs += [str(Path(m).resolve()) if Path(m).is_file() else m for m in matched]
     specs = [({"rig": r, "command": command, "clip": clips, "frames": frames, "args": list(args or [])}, r)
              for r in rigs]
-    return _make_jobs([({k: v for k, v in s.items() if v is not None}, w) for s, w in specs], Path(outdir))
+    return _make_jobs([({k: v for k, v in s.items() if v is not None}, w) for s, w in specs], Path(outdir).resolve())
 
 
 # ------------------------------------------------------------------------------ the runs
@@ -347,16 +352,43 @@ def _fmt_seconds(s: float) -> str:
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
 
 
-class _Processes:
-    """Jobs as processes of this machine, ``capacity`` at a time, their output in log files."""
+def _device_of(job: Job) -> str:
+    """The ``--device`` a job's args give (``cpu`` where they give none)."""
+    args = job.args
+    for k, a in enumerate(args):
+        if a == "--device" and k + 1 < len(args):
+            return args[k + 1]
+        if a.startswith("--device="):
+            return a.split("=", 1)[1]
+    return "cpu"
 
-    def __init__(self, capacity: int, env: dict | None) -> None:
+
+class _Processes:
+    """Jobs as processes of this machine, ``capacity`` at a time, their output in log files.
+    A job on ``--device cuda`` (no index) gets a GPU of its own, ``CUDA_VISIBLE_DEVICES`` set
+    to one of ``gpus`` free ones, and waits while none is free."""
+
+    def __init__(self, capacity: int, env: dict | None, gpus: int = 0) -> None:
         self.capacity, self.env = capacity, env
+        self.free_gpus = list(range(gpus))
         self.running: dict[str, tuple] = {}
+        self.gpu_of: dict[str, int] = {}
+
+    def can_start(self, job: Job) -> bool:
+        return _device_of(job) != "cuda" or bool(self.free_gpus) or not self.gpu_count
+
+    @property
+    def gpu_count(self) -> int:
+        return len(self.free_gpus) + len(self.gpu_of)
 
     def start(self, job: Job, out: Path, err: Path) -> int:
+        env = self.env
+        if _device_of(job) == "cuda" and self.free_gpus:
+            gpu = self.free_gpus.pop(0)
+            self.gpu_of[job.id] = gpu
+            env = {**(os.environ if env is None else env), "CUDA_VISIBLE_DEVICES": str(gpu)}
         stdout, stderr = open(out, "w"), open(err, "w")
-        proc = subprocess.Popen(job.argv(), stdout=stdout, stderr=stderr, env=self.env)
+        proc = subprocess.Popen(job.argv(), stdout=stdout, stderr=stderr, env=env)
         self.running[job.id] = (proc, stdout, stderr)
         return proc.pid
 
@@ -368,6 +400,8 @@ class _Processes:
             proc, stdout, stderr = self.running.pop(jid)
             stdout.close()
             stderr.close()
+            if jid in self.gpu_of:
+                self.free_gpus.append(self.gpu_of.pop(jid))
             out.append((jid, proc.returncode))
         return out
 
@@ -383,6 +417,15 @@ class _Processes:
                 proc.wait(timeout=10)
             stdout.close()
             stderr.close()
+
+
+def _cuda_device_count() -> int:
+    import warp as wp
+
+    try:
+        return int(wp.get_cuda_device_count())
+    except Exception:  # no driver: no GPU
+        return 0
 
 
 def _ray_job(argv: list[str]) -> tuple[int, str, str]:
@@ -422,8 +465,11 @@ class _RayTasks:
         self.capacity = 1 << 30  # Ray schedules by the cluster's resources
         self.running: dict = {}  # object ref -> (job id, out, err)
 
+    def can_start(self, job: Job) -> bool:
+        return True
+
     def start(self, job: Job, out: Path, err: Path) -> None:
-        gpu = "cuda" in " ".join(job.args)
+        gpu = _device_of(job).startswith("cuda")
         ref = self.remote.options(num_cpus=1, num_gpus=1 if gpu else 0, max_retries=self.retries,
                                   retry_exceptions=False).remote(job.argv())
         self.running[ref] = (job.id, out, err)
@@ -455,14 +501,16 @@ class _RayTasks:
 
 
 def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None, retries: int = 1,
-              progress: bool = True, env: dict | None = None, ray: str | None = None) -> BatchResult:
+              progress: bool = True, env: dict | None = None, ray: str | None = None,
+              gpus: int | None = None) -> BatchResult:
     """Run ``jobs``: on this machine, ``workers`` processes at a time (default: one per core),
     each job in its own process; or, with ``ray``, as tasks of a Ray cluster.
 
     Args:
         jobs: The jobs (:func:`read_jobs`, :func:`jobs_for_rigs`).
         outdir: Where the bakes, ``manifest.json``, ``index.md`` and ``logs/`` go.
-        workers: Jobs at a time on this machine, >= 1 (not with ``ray``: the cluster's
+        workers: Jobs at a time on this machine, >= 1 (default: one per core, or one per GPU
+            when every job runs on ``--device cuda``; not with ``ray``: the cluster's
             resources decide).
         retries: Runs again a job whose process died of a signal (killed, out of memory), at
             most this many times (with ``ray`` also a task whose worker died, by Ray).
@@ -470,6 +518,8 @@ def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None
         env: The jobs' environment on this machine (default this process's).
         ray: A Ray cluster's address, or ``"auto"`` (the cluster ``ray start`` made, else a
             local one); needs the ``farm`` extra.
+        gpus: CUDA devices of this machine for the jobs on ``--device cuda`` (each gets one of
+            its own, ``CUDA_VISIBLE_DEVICES``); default: Warp's count, where a job asks.
 
     Returns:
         A :class:`BatchResult`; the manifest is written after every job.
@@ -479,12 +529,16 @@ def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None
     """
     from . import __version__
 
-    workers = (os.cpu_count() or 1) if workers is None else workers
+    cuda = any(_device_of(j) == "cuda" for j in jobs)
+    if gpus is None:
+        gpus = _cuda_device_count() if cuda and not ray else 0
+    if workers is None:  # one per core; one per GPU for a batch of CUDA jobs
+        workers = gpus if cuda and gpus and all(_device_of(j).startswith("cuda") for j in jobs) else (os.cpu_count() or 1)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise BatchError(f"--workers must be a whole number >= 1, got {workers!r}")
     if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
         raise BatchError(f"--retries must be a whole number >= 0, got {retries!r}")
-    runner = _RayTasks(ray, retries) if ray else _Processes(workers, env)
+    runner = _RayTasks(ray, retries) if ray else _Processes(workers, env, gpus)
     out = Path(outdir)
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -529,7 +583,10 @@ def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None
     try:
         while queue or started:
             while queue and len(started) < runner.capacity:
-                job = queue.pop(0)
+                job = next((j for j in queue if runner.can_start(j)), None)
+                if job is None:
+                    break  # every queued job waits for a GPU
+                queue.remove(job)
                 e = entries[job.id]
                 e["attempts"] += 1
                 job.output.parent.mkdir(parents=True, exist_ok=True)
@@ -537,6 +594,8 @@ def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None
                 e["status"] = "running"
                 if pid is not None:
                     e["pid"] = pid
+                if job.id in getattr(runner, "gpu_of", {}):
+                    e["gpu"] = runner.gpu_of[job.id]
                 started[job.id] = time.perf_counter()
                 save()
                 status()
@@ -601,15 +660,48 @@ def _summary(path: Path) -> dict:
     return {k: s[k] for k in keep if k in s}
 
 
+def _figures(summary: dict) -> str:
+    """A job's summary in a few words: device, frames, cost, volume beside LBS."""
+    parts = []
+    if "device" in summary:
+        parts.append(str(summary["device"]))
+    if "frames" in summary:
+        parts.append(f"{summary['frames']} frames")
+    if "mean_step_ms" in summary:
+        parts.append(f"{summary['mean_step_ms']:.1f} ms/step")
+    if "max_volume_deviation" in summary:
+        lbs = summary.get("max_volume_deviation_lbs")
+        parts.append(f"volume {100 * summary['max_volume_deviation']:.2f} %"
+                     + (f" (LBS {100 * lbs:.2f} %)" if lbs is not None else ""))
+    if summary.get("groups"):
+        parts.append(f"groups {', '.join(map(str, summary['groups']))}")
+    return ", ".join(parts)
+
+
+def _report_of(job: Job) -> str | None:
+    """The report folder a job's args ask for (``--report DIR``), if any."""
+    for k, a in enumerate(job.args):
+        if a == "--report" and k + 1 < len(job.args):
+            return job.args[k + 1]
+    return None
+
+
 def _write_index(out: Path, jobs: list[Job], entries: dict, result: BatchResult) -> None:
-    """``index.md``: every job's status, time, frames and output or message."""
-    rows = ["| job | command | status | time | frames | output or message |", "|---|---|---|---|---|---|"]
+    """``index.md``: every job's status, time, figures (device, frames, cost, volume beside
+    LBS), its bake and report, or its message; written atomically."""
+    rows = ["| job | command | status | time | figures | output or message |", "|---|---|---|---|---|---|"]
     for job in jobs:
         e = entries[job.id]
-        what = f"[{job.id}]({job.id})" if e.get("status") == "ok" else str(e.get("message", "")).replace("|", "/")
+        if e.get("status") == "ok":
+            what = f"[{job.id}]({job.id})"
+            report = _report_of(job)
+            if report:
+                what += f", [report]({Path(report).resolve().as_uri()})"
+        else:
+            what = f"exit {e.get('exit_code')}: " + str(e.get("message", "")).replace("|", "/")
         seconds = e.get("seconds")
         rows.append(f"| {job.id} | {job.command} | {e.get('status')} | "
-                    f"{'' if seconds is None else f'{seconds:.1f} s'} | {e.get('summary', {}).get('frames', '')} | {what} |")
+                    f"{'' if seconds is None else f'{seconds:.1f} s'} | {_figures(e.get('summary', {}))} | {what} |")
     head = (f"# warpskin batch\n\n{len(jobs)} jobs: {len(jobs) - len(result.failed)} succeeded "
             f"({len(result.skipped)} up to date), {len(result.failed)} failed; {result.seconds:.1f} s.\n\n")
     text = head + "\n".join(rows) + "\n"
