@@ -727,7 +727,8 @@ def add_parser(sub) -> None:
     s.add_argument("--command", choices=COMMANDS, default="simulate", help="with rig files: what each job runs")
     s.add_argument("--clips", metavar="NAME|all", default=None, help="with rig files: a clip, or all of them (one job each)")
     s.add_argument("--frames", metavar="A:B", default=None, help="with rig files: the frames of every job")
-    s.add_argument("--args", default="", metavar="'OPTIONS'", help="with rig files: the command's own options")
+    s.add_argument("--args", default="", metavar="'OPTIONS'",
+                   help="with rig files: the command's own options, as --args='--bpm 120 --lbs'")
     s.add_argument("--quiet", action="store_true", help="no progress line")
     s.add_argument("--json", action="store_true", help="print the manifest's entries as JSON")
 
