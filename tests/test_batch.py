@@ -100,7 +100,7 @@ rig = "{bad.name}"
 
 def test_a_killed_worker_is_run_again(tmp_path, capsys):
     jobs = tmp_path / "jobs.toml"
-    jobs.write_text('[[job]]\nrig = "arm"\nframes = "0:12"\n')
+    jobs.write_text('[[job]]\nrig = "arm"\nframes = "0:24"\n')
     out = tmp_path / "out"
     done: list[int] = []
     batch = threading.Thread(target=lambda: done.append(main(["batch", str(jobs), "-o", str(out), "--quiet"])))
@@ -121,7 +121,7 @@ def test_a_killed_worker_is_run_again(tmp_path, capsys):
     entry = _manifest(out)["arm/default.usdc"]
     assert entry["status"] == "ok" and entry["attempts"] == 2 and "pid" not in entry
     frames = _points(out / "arm" / "default.usdc")
-    assert all(len(v) == 13 for v in frames.values())  # every frame written by the second run
+    assert all(len(v) == 25 for v in frames.values())  # every frame written by the second run
     assert not [p for p in (out / "arm").iterdir() if p.name.startswith(".")]  # no temporary file left
 
 

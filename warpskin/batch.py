@@ -314,11 +314,11 @@ def jobs_for_rigs(patterns: list[str], outdir: str | Path, *, command: str = "si
 
 
 # ------------------------------------------------------------------------------ the runs
-def _write_json(path: Path, data) -> None:
-    """Write JSON atomically (a temporary file beside it, then a rename)."""
+def _write_text(path: Path, text: str) -> None:
+    """Write ``text`` atomically: to a temporary file beside ``path``, then renamed onto it."""
     staged = path.with_name(f".{path.name}.tmp")
     try:
-        staged.write_text(json.dumps(data, indent=1))
+        staged.write_text(text)
         os.replace(staged, path)
     finally:
         staged.unlink(missing_ok=True)
@@ -370,18 +370,17 @@ class _Processes:
 
     def __init__(self, capacity: int, env: dict | None, gpus: int = 0) -> None:
         self.capacity, self.env = capacity, env
+        self.gpus = gpus
         self.free_gpus = list(range(gpus))
         self.running: dict[str, tuple] = {}
         self.gpu_of: dict[str, int] = {}
 
     def can_start(self, job: Job) -> bool:
-        return _device_of(job) != "cuda" or bool(self.free_gpus) or not self.gpu_count
+        return _device_of(job) != "cuda" or bool(self.free_gpus) or not self.gpus
 
-    @property
-    def gpu_count(self) -> int:
-        return len(self.free_gpus) + len(self.gpu_of)
-
-    def start(self, job: Job, out: Path, err: Path) -> int:
+    def start(self, job: Job, out: Path, err: Path) -> dict:
+        """Start ``job`` (its output to the files ``out`` and ``err``); returns what its
+        manifest entry records of the run: its ``pid``, and its ``gpu`` where it has one."""
         env = self.env
         if _device_of(job) == "cuda" and self.free_gpus:
             gpu = self.free_gpus.pop(0)
@@ -390,7 +389,7 @@ class _Processes:
         stdout, stderr = open(out, "w"), open(err, "w")
         proc = subprocess.Popen(job.argv(), stdout=stdout, stderr=stderr, env=env)
         self.running[job.id] = (proc, stdout, stderr)
-        return proc.pid
+        return {"pid": proc.pid, **({"gpu": self.gpu_of[job.id]} if job.id in self.gpu_of else {})}
 
     def finished(self) -> list[tuple[str, int]]:
         """``[(job id, exit code)]`` of the jobs that ended since the last call."""
@@ -468,11 +467,12 @@ class _RayTasks:
     def can_start(self, job: Job) -> bool:
         return True
 
-    def start(self, job: Job, out: Path, err: Path) -> None:
+    def start(self, job: Job, out: Path, err: Path) -> dict:
         gpu = _device_of(job).startswith("cuda")
         ref = self.remote.options(num_cpus=1, num_gpus=1 if gpu else 0, max_retries=self.retries,
                                   retry_exceptions=False).remote(job.argv())
         self.running[ref] = (job.id, out, err)
+        return {}
 
     def finished(self) -> list[tuple[str, int]]:
         if not self.running:
@@ -561,7 +561,7 @@ def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None
         queue.append(job)
 
     def save() -> None:
-        _write_json(out / _MANIFEST, {"warpskin": __version__, "jobs": entries})
+        _write_text(out / _MANIFEST, json.dumps({"warpskin": __version__, "jobs": entries}, indent=1))
 
     save()
     started: dict[str, float] = {}
@@ -590,12 +590,8 @@ def run_batch(jobs: list[Job], outdir: str | Path, *, workers: int | None = None
                 e = entries[job.id]
                 e["attempts"] += 1
                 job.output.parent.mkdir(parents=True, exist_ok=True)
-                pid = runner.start(job, logs / f"{_log_name(job.id)}.out", logs / f"{_log_name(job.id)}.err")
-                e["status"] = "running"
-                if pid is not None:
-                    e["pid"] = pid
-                if job.id in getattr(runner, "gpu_of", {}):
-                    e["gpu"] = runner.gpu_of[job.id]
+                e.update(runner.start(job, logs / f"{_log_name(job.id)}.out", logs / f"{_log_name(job.id)}.err"),
+                         status="running")
                 started[job.id] = time.perf_counter()
                 save()
                 status()
@@ -704,13 +700,7 @@ def _write_index(out: Path, jobs: list[Job], entries: dict, result: BatchResult)
                     f"{'' if seconds is None else f'{seconds:.1f} s'} | {_figures(e.get('summary', {}))} | {what} |")
     head = (f"# warpskin batch\n\n{len(jobs)} jobs: {len(jobs) - len(result.failed)} succeeded "
             f"({len(result.skipped)} up to date), {len(result.failed)} failed; {result.seconds:.1f} s.\n\n")
-    text = head + "\n".join(rows) + "\n"
-    staged = out / ".index.md.tmp"
-    try:
-        staged.write_text(text)
-        os.replace(staged, out / "index.md")
-    finally:
-        staged.unlink(missing_ok=True)
+    _write_text(out / "index.md", head + "\n".join(rows) + "\n")
 
 
 # ------------------------------------------------------------------------------ the command

@@ -293,7 +293,8 @@ def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
         biceps = [{shape = "biceps_clenched"}, {shape = "biceps_bent", pose = 1.25}]
 
     A pose is a time [s] of the clip or ``"bind"`` (the default: the skeleton's bind pose, where
-    file shapes are sculpted, placed where the clip's first frame places the body's roots); a normal example's shape may be left out (the bind mesh at that pose).
+    file shapes are sculpted, placed where the clip's first frame places the body's roots); a
+    normal example's shape may be left out (the bind mesh at that pose).
     Shapes add, as in the DCC they were sculpted in: a clenched example is the bind mesh plus
     the normal example's shape at its pose (if any) plus its own shape (and its inbetweens),
     skinned at the pose; a clenched pose without a normal example gets the bind mesh as its
@@ -320,10 +321,19 @@ def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
             raise RigError(f"{where} maps blend shapes of a glTF or USD rig file; this scene's rig is "
                            f"{'generated' if path is None else str(path)}")
         return None
+    clip_name = scene.clip
+    if table is not None:
+        if not isinstance(table, Mapping):
+            raise RigError(f"{where} must be a table with 'normal' and 'clenched'")
+        unknown = sorted(set(table) - {"clip", "normal", "clenched"})
+        if unknown:
+            raise RigError(f"{where}: unknown key(s) {unknown}; known: ['clenched', 'clip', 'normal']")
+        clip_name = table.get("clip", scene.clip)
+        if clip_name is not None and not isinstance(clip_name, str):
+            raise RigError(f"{where}: clip must be a clip name, got {clip_name!r}")
     targets, inbetweens = _read_file_shapes(str(path), scene.rig_spec.get("mesh"))
     rig = rig if rig is not None else scene.rig()
-    clip = rig.clip(table.get("clip", scene.clip) if isinstance(table, Mapping) and isinstance(
-        table.get("clip", scene.clip), (str, type(None))) else scene.clip)
+    clip = rig.clip(clip_name)
     # the bind pose where the clip's first frame places the body (its roots as there)
     bind = rig.skinning_matrices_from_bind(clip, float(clip.start), 0.0)
     if table is None:
@@ -338,14 +348,6 @@ def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
             groups[g] = [(name, bind)]
         normal: list = [(None, bind)]
     else:
-        if not isinstance(table, Mapping):
-            raise RigError(f"{where} must be a table with 'normal' and 'clenched'")
-        unknown = sorted(set(table) - {"clip", "normal", "clenched"})
-        if unknown:
-            raise RigError(f"{where}: unknown key(s) {unknown}; known: ['clenched', 'clip', 'normal']")
-        clip_name = table.get("clip", scene.clip)
-        if clip_name is not None and not isinstance(clip_name, str):
-            raise RigError(f"{where}: clip must be a clip name, got {clip_name!r}")
         span = (float(clip.start), float(clip.end)) if clip.end > clip.start else None
         clenched = table.get("clenched")
         if not isinstance(clenched, Mapping) or not clenched:
@@ -370,10 +372,11 @@ def examples_from_file(scene, rig: Rig | None = None) -> PoppingExamples | None:
             mapped[g] = []
             for shape, pose in items:
                 m = at(pose)
-                base = next((n for n, m2 in normal if _same_pose(m, m2)), False)
-                if base is False:  # the bind mesh partners a clenched pose no normal example has
+                partner = next((k for k, (_, m2) in enumerate(normal) if _same_pose(m, m2)), None)
+                if partner is None:  # the bind mesh partners a clenched pose no normal example has
                     normal.append((None, m))
-                    base = None
+                    partner = len(normal) - 1
+                base = normal[partner][0]
                 if base is not None:  # blend shapes add: the clench on top of the pose's corrective
                     name = f"{base}+{shape}"
                     targets[name] = targets[base] + targets[shape]
