@@ -78,8 +78,12 @@ def test_the_belly_is_the_closed_form_and_the_thinning_keeps_the_volume():
     radial = pts * np.array([1.0, 0.0, 1.0])
     radial /= np.linalg.norm(radial, axis=1)[:, None]
     out = np.einsum("ij,ij->i", f, radial)
-    # nothing but radial motion
-    assert np.allclose(f - out[:, None] * radial, 0.0, atol=1e-12)
+    # along the surface's normal, radial on the tube: to within 0.1 degree (its triangulation)
+    # but near the open end, where the normal leans out of the tube (over the 4 rings that the
+    # direction is eased over)
+    inner = pts[:, 1] > 6 * 1.6 * L / 31
+    side = np.linalg.norm(f - out[:, None] * radial, axis=1)
+    assert np.all(side[inner] <= np.sin(np.radians(0.1)) * np.abs(out[inner]) + 1e-15)
     # the belly (where the profile is 1, no thinning there) is swell * depth, closed form
     on = (t > 0) & (t < 1)
     depth = np.full(len(pts), 0.8 * half)
@@ -436,3 +440,83 @@ def test_the_bulge_is_measured_on_the_surface_of_a_flat_shaded_mesh(tmp_path):
     codes, bulge = bulge_series(path, {"biceps": middle})
     assert codes.tolist() == [0.0, 1.0]
     assert abs(bulge["biceps"][0]) < 1e-7 and bulge["biceps"][1] == pytest.approx(delta, rel=1e-4)
+
+
+def _soup(pts, tris):
+    """The mesh flat-shaded as glTF writes it: every triangle its own three corners."""
+    return pts[tris.ravel()], np.arange(3 * len(tris)).reshape(-1, 3)
+
+
+def test_the_copies_of_a_flat_shaded_corner_are_written_together(device):
+    # a flat-shaded tube (six copies of most corners) whose belly swells against a plate near
+    # one side: the clearance holds part of the belly back, and every copy of one corner
+    # must still be written at one place, or the shading splits into cracks
+    pts, tris, w, bones, parents = _tube(1, segments=11, rings_per_bone=13)
+    _, field = surface_swelling(pts, tris, w, bones, parents, [("biceps", [0])], swell=0.6)
+    soup, faces = _soup(pts, tris)
+    x = R + 0.37 * np.abs(field).max()  # a plate beside the belly, closer than its peak
+    plate = np.array([(x, 0.2 * L, -0.5 * R), (x, 0.8 * L, -0.5 * R), (x, 0.8 * L, 0.5 * R), (x, 0.2 * L, 0.5 * R)])
+    points = np.concatenate([soup, plate])
+    all_tris = np.concatenate([faces, np.array([(0, 1, 2), (0, 2, 3)]) + len(soup)])
+    disparity = np.concatenate([field[:, tris.ravel()], np.zeros((1, 4, 3))], axis=1)
+    weights = np.concatenate([w[tris.ravel()], np.tile(w[:1], (4, 1))])
+    h, steps = 1.0 / 240.0, 48
+    times = (np.arange(steps) + 1) * h
+    eye = np.tile(np.eye(4), (2, 1, 1))
+    pop = SurfacePop(disparity, weights, eye, times, lambda t: np.array([1.0 if t > 0.011 else 0.0]), h=h,
+                     alpha_min=0.1, beta=30.0, triangles=all_tris, margin=1e-4, start=1e-6, points=points,
+                     mesh_of_point=np.r_[np.zeros(len(soup), dtype=int), np.ones(4, dtype=int)], device=device)
+    corner = tris.ravel()  # each soup point's corner on the welded tube
+    gaps, held = [], []
+    for _ in range(steps // 4):
+        pop.advance(4)
+        out = pop.offsets(eye, points)[: len(soup)]
+        spread = np.zeros(len(pts))
+        for axis in range(3):  # per corner, the spread of its copies' offsets (brute force)
+            hi = np.full(len(pts), -np.inf)
+            lo = np.full(len(pts), np.inf)
+            np.maximum.at(hi, corner, out[:, axis])
+            np.minimum.at(lo, corner, out[:, axis])
+            spread = np.maximum(spread, hi - lo)
+        gaps.append(spread.max())
+        free = pop.offsets(eye)[: len(soup)]
+        held.append(np.linalg.norm(free, axis=1).max() - np.linalg.norm(out, axis=1).max())
+    assert max(gaps) < 1e-7  # [m]: the copies move as one corner
+    assert max(held) > 0.2 * np.abs(field).max()  # and the plate did hold the belly back
+
+
+def test_the_written_vibration_never_folds_a_facet_nor_stretches_an_edge_past_one_and_a_half(device):
+    # on a coarse tube, one point pushed out along its normal by most of an edge's length and
+    # one pushed along the tube past its neighbours, ringing with the paper's stiffness: the
+    # offsets as stepped fold facets and stretch edges past 1.5x; the written skin keeps every
+    # facet facing as at rest (at least 0.3 of its area) and every edge within 1.5x
+    pts, tris, w, bones, parents = _tube(1, segments=9, rings_per_bone=7)
+    ring = L / 7
+    spike, slide = 3 * 9 + 2, 4 * 9 + 6  # two points of the middle rings, generic, apart
+    field = np.zeros((1, len(pts), 3))
+    field[0, spike] = 0.9 * ring * pts[spike] * [1, 0, 1] / R
+    field[0, slide, 1] = 1.3 * ring
+    h, steps = 1.0 / 240.0, 40
+    times = (np.arange(steps) + 1) * h
+    eye = np.tile(np.eye(4), (2, 1, 1))
+    pop = SurfacePop(field, w, eye, times, lambda t: np.array([1.0 if t > 0.006 else 0.0]), h=h, alpha_min=0.1,
+                     beta=30.0, triangles=tris, margin=1e-4, start=1e-6, points=pts, device=device)
+    e = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    rest_normal = np.cross(pts[tris[:, 1]] - pts[tris[:, 0]], pts[tris[:, 2]] - pts[tris[:, 0]])
+
+    def measure(out):
+        x = pts + out
+        ratio = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1) / np.linalg.norm(pts[e[:, 0]] - pts[e[:, 1]], axis=1)
+        moved = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
+        kept = np.einsum("ij,ij->i", moved, rest_normal) / np.einsum("ij,ij->i", rest_normal, rest_normal)
+        return np.abs(np.log(ratio)).max(), kept.min()
+
+    free, written = [], []
+    for _ in range(steps):
+        pop.advance(1)
+        free.append(measure(pop.offsets(eye)))
+        written.append(measure(pop.offsets(eye, pts)))
+    free, written = np.array(free), np.array(written)
+    assert free[:, 0].max() > np.log(1.6) and free[:, 1].min() < 0.0  # as stepped: stretched, folded
+    assert written[:, 0].max() < np.log(1.5) + 1e-6 and written[:, 1].min() > 0.3 - 1e-6
+    assert written[:, 0].max() > np.log(1.3)  # and still moved as far as that allows

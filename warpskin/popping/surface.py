@@ -10,9 +10,11 @@ goal, normal plus the activated swelling, with the goal-driven vibration while c
 monotone relaxation afterwards (eqs. 1-4, one Warp kernel per solver step,
 :func:`warpskin.kernels.popping.surface_vibration_kernel`).
 
-The swelling of a group of bones, per written point ``x`` whose dominant joint is one of them,
-radially from the bone's centre line (``f`` the point's foot on that line, ``t`` in [0, 1] its
-place along the bone, :func:`bone_coordinates`):
+The swelling of a group of bones, per written point ``x`` whose dominant joint is one of them
+(``f`` the point's foot on the bone's centre line, ``t`` in [0, 1] its place along the bone,
+:func:`bone_coordinates`), along the surface's normal eased over ``_EASE`` rings where it faces
+away from the bone, turning to the radial direction ``x - f`` where the normal turns along the
+bone or towards it (a cap), by
 
     b(x) = min(swell * depth, cap * length) * belly(t),
     depth = bone * min(|x - f|, thickness / 2)
@@ -21,7 +23,7 @@ place along the bone, :func:`bone_coordinates`):
 
 (``bone``: the model's bone-layer fraction, so ``depth`` is the fat-plus-muscle depth the
 layered model gives that point, but no more than half the part is thick, the shape diameter
-along the inward normal; ``length``: the bone's). Points one mesh holds at one position (seams,
+along the inward normal, eased over the group's skin; ``length``: the bone's). Points one mesh holds at one position (seams,
 flat shading) are one point of its surface. Then, in this order:
 
 * **clearance**: none where another piece is nearer than the belly's height there at
@@ -35,12 +37,15 @@ flat shading) are one point of its surface. Then, in this order:
   :func:`~warpskin.popping.muscles.thinning_reach`), at most a quarter of the belly's peak
   deep (a piece with little skin to thin keeps part of the gain);
 * **stretch**: the swelling is scaled down locally until no edge is stretched or shortened by
-  more than a quarter of its length (a coarse piece is not stretched across one edge), each
-  group's and all groups' together.
+  more than a quarter of its length (a coarse piece is not stretched across one edge) and no
+  triangle keeps less than half its area facing as at rest, each group's and all groups'
+  together.
 
 The skin beyond the groups' bones, their parents and children never moves. While the skin is
-written, each offset also stops at half the gap to any surface it would meet in that frame
-(:meth:`SurfacePop.offsets`).
+written, each offset also stops at half the gap to any surface it would meet in that frame,
+and the offsets, one per point of the surface (a split corner's copies move as one), keep
+every edge within the written-quality band (``STRAIN_LIMIT``) and every facet unfolded
+against the frame without the pop (:meth:`SurfacePop.offsets`).
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ from ..errors import SceneError
 from ..kernels import popping as _k
 from ..preprocess.bone_heat import vertex_areas
 from ..preprocess.fast_summation import vertex_adjacency
+from ..quality import STRAIN_LIMIT
 from .activation import clench_table
 from .muscles import _CAP, Muscle, neighbourhood, thinning_reach
 
@@ -66,7 +72,15 @@ DEFAULT_SURFACE_SWELL = 0.4
 _THIN = 0.25  # the thinning is at most this share of the belly's peak
 _BARE = 0.05  # a bone with less of its surface than this over its middle pops on the surface it carries
 _PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
+_EASE = 4  # passes of the ring mean that ease the depth over a group's skin
+_KEEP = 0.5  # a triangle keeps at least this share of its area along its rest normal
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
+# what is written may ring past the rest-pose limits above (the vibration overshoots its goal),
+# but no edge leaves the band that the written-quality check counts as strained (longer than
+# STRAIN_LIMIT x, shorter than its inverse) and no facet folds
+_WRITE_STRETCH = STRAIN_LIMIT - 1.0
+_WRITE_SHORTEN = 1.0 - 1.0 / STRAIN_LIMIT
+_WRITE_KEEP = 0.3
 
 
 def belly_profile(t: np.ndarray) -> np.ndarray:
@@ -93,27 +107,75 @@ def _smooth(x: np.ndarray) -> np.ndarray:
 
 
 def _stretch_limit(points: np.ndarray, field: np.ndarray, edges: np.ndarray, lengths: np.ndarray,
-                   ring: sp.csr_matrix, passes: int = 8) -> np.ndarray:
+                   ring: sp.csr_matrix, triangles: np.ndarray, passes: int = 8, stretch: float | None = None,
+                   shorten: float | None = None, keep: float | None = None) -> np.ndarray:
     """``[N]`` factors in [0, 1] such that ``points + field * factor`` (``[N, 3]`` [m])
-    stretches or shortens no edge (``edges [E, 2]``, rest ``lengths [E]`` [m]) by more than
-    ``_STRETCH`` of its length: a bulge no steeper than the mesh can carry, so a coarse piece
-    is not stretched across one edge. Each pass takes every point's factor down by what its
-    worst edge asks (the stretch is nearly linear in the factor), eased over its ring
-    (``ring``: adjacency, self included)."""
+    stretches no edge (``edges [E, 2]``, rest ``lengths [E]`` [m]) by more than ``stretch``
+    of its length nor shortens it by more than ``shorten`` (both default ``_STRETCH``; to
+    within what ``passes`` passes reach), and keeps every one of ``triangles [T, 3]`` facing
+    as at rest with at least ``keep`` (default ``_KEEP``) of its area along its rest normal
+    (always): a bulge no steeper than the mesh can carry, so a coarse piece is not stretched
+    across one edge and a sliver does not turn over.
+
+    Each pass takes every point's factor down by what its worst edge asks (the stretch is
+    nearly linear in the factor), eased over its ring (``ring``: adjacency, self included);
+    then a triangle that folds gets one factor on its three points, the largest that keeps it
+    (its kept area is a quadratic in a common factor, solved on a grid). Triangles that still
+    fold after the passes (a corner cut again by a neighbour) are kept by their points not
+    moving."""
+    stretch = _STRETCH if stretch is None else stretch
+    shorten = stretch if shorten is None else shorten
+    keep = _KEEP if keep is None else keep
     n = len(field)
     factor = np.ones(n)
     mean = sp.diags(1.0 / np.asarray(ring.sum(axis=1)).ravel()) @ ring
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    e1, e2 = points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]]
+    normal = np.cross(e1, e2)
+    area2 = np.einsum("ij,ij->i", normal, normal)
+    live = area2 > 0.0
+    tris, e1, e2, normal, area2 = tris[live], e1[live], e2[live], normal[live], area2[live]
+    grid = np.linspace(0.0, 1.0, 17)
+
+    def kept(which: np.ndarray, moves: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """``[K, S]`` the area along its rest normal of each triangle ``which`` (``[K]`` bool
+        or indices), as a share of its rest area, with its points moved by ``moves [K, 3, 3]``
+        times each of ``s [S]``."""
+        a, b, m = e1[which], e2[which], normal[which]
+        f1, f2 = moves[:, 1] - moves[:, 0], moves[:, 2] - moves[:, 0]
+        c1 = np.einsum("ij,ij->i", np.cross(a, f2) + np.cross(f1, b), m) / area2[which]
+        c2 = np.einsum("ij,ij->i", np.cross(f1, f2), m) / area2[which]
+        return 1.0 + c1[:, None] * s + c2[:, None] * s ** 2
+
+    def folding() -> np.ndarray:
+        return kept(slice(None), (field * factor[:, None])[tris], np.ones(1))[:, 0] < keep
+
     for _ in range(passes):
         x = points + field * factor[:, None]
-        change = np.abs(np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / lengths - 1.0)
-        allowed = np.where(change > _STRETCH, _STRETCH / np.maximum(change, 1e-30), np.inf)
-        if allowed.min() >= 1.0 - 1e-9:
+        change = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / lengths - 1.0
+        limit = np.where(change > 0.0, stretch, shorten)
+        change = np.abs(change)
+        allowed = np.where(change > limit, limit / np.maximum(change, 1e-30), np.inf)
+        fold = folding()
+        if allowed.min() >= 1.0 - 1e-9 and not fold.any():
             break
         cut = np.ones(n)
         np.minimum.at(cut, edges[:, 0], allowed)
         np.minimum.at(cut, edges[:, 1], allowed)
         cut = np.minimum(cut, mean @ cut)  # the neighbours of a cut point give a little too
         factor *= np.clip(cut, 0.0, 1.0)
+        fold = folding()
+        if fold.any():  # one common factor on a folding triangle's points
+            t = tris[fold]
+            common = factor[t].min(axis=1)
+            ok = kept(fold, field[t] * common[:, None, None], grid) >= keep  # [F, S]
+            largest = grid[np.where(ok.all(axis=1), len(grid), np.argmin(ok, axis=1)) - 1]
+            for k in range(3):
+                np.minimum.at(factor, t[:, k], common * largest)
+    fold = folding()
+    while fold.any():  # still folding: its points do not move
+        factor[tris[fold].ravel()] = 0.0
+        fold = folding()
     return factor
 
 
@@ -241,14 +303,27 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     ok = r > 1e-9 * max(diagonal, 1e-12)
     direction = np.zeros_like(points)
     direction[ok] = radial[ok] / r[ok, None]
+    normals = point_normals(points, tris)
+    # the skin swells along its own normal where that faces away from the bone (an offset of
+    # the surface: a box-like shell moves off its faces, not diagonally through them), turning
+    # to the radial direction where the normal turns along the bone or towards it (a cap)
+    ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).astype(np.float64)
+    eased = normals
+    for _ in range(_EASE):  # eased over a few rings: a sharp corner's two sides do not part
+        eased = ring @ eased
+    eased /= np.maximum(np.linalg.norm(eased, axis=1), 1e-30)[:, None]
+    facing = np.einsum("ij,ij->i", eased, direction)
+    s = _smooth(np.clip(facing / 0.5, 0.0, 1.0))[:, None]
+    blend = s * eased + (1.0 - s) * direction
+    size = np.linalg.norm(blend, axis=1)
+    direction = np.where((size > 1e-9)[:, None] & ok[:, None], blend / np.maximum(size, 1e-30)[:, None], direction)
     # the tissue is no deeper than half the part is thick (a hand far from its forearm's line,
     # a stylised rig's shell), the shape diameter along the inward normal
-    thick = shape_diameter(points, point_normals(points, tris), points, tris, device=device)
+    thick = shape_diameter(points, normals, points, tris, device=device)
     depth = bone_fraction * np.minimum(r, 0.5 * thick)
     profile = belly_profile(t)
     length = bones.length[dominant]
     flux = np.einsum("ij,ij->i", _area_normals(points, tris), direction)  # per unit radial move [m^2]
-    ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).astype(np.float64)
     # the fade below needs the distance to three belly peaks at most
     clear = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)))
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
@@ -260,7 +335,12 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     bellied = np.isin(dominant, [j for _, group in groups for j in group]) & ok
     for name, group in groups:
         on = np.isin(dominant, group) & ok
-        amount = np.where(on, np.minimum(swell * depth, _CAP * length) * profile, 0.0)
+        # the depth eased over the group's skin: a shape diameter that jumps between
+        # neighbours (a stylised rig's shell over inner parts) would make a jagged belly
+        level = np.where(on, depth, 0.0)
+        for _ in range(_EASE):
+            level = np.where(on, (ring @ level) / np.maximum(ring @ on.astype(np.float64), 1.0), 0.0)
+        amount = np.where(on, np.minimum(swell * level, _CAP * length) * profile, 0.0)
         hood = neighbourhood(group, parents)
         near = thinning_reach(w[:, hood].sum(axis=1), np.isin(dominant, hood), ring) * ok
         shape = near * np.where(bellied, 1.0 - np.clip(profile, 0.0, 1.0), 1.0)  # away from the bellies
@@ -271,7 +351,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
         local = np.maximum(np.abs(amount), 1e-3 * reach)  # the belly by its own height there
         amount = amount * _smooth(np.clip(clear / local - 1.0, 0.0, 2.0) / 2.0)
         shape = shape * _smooth(np.clip(clear / reach - 1.0, 0.0, 2.0) / 2.0)
-        amount = amount * _stretch_limit(points, amount[:, None] * direction, edges, lengths, ring)
+        amount = amount * _stretch_limit(points, amount[:, None] * direction, edges, lengths, ring, tris)
         gain = np.bincount(piece, amount * flux, minlength=piece.max() + 1)
         cost = np.bincount(piece, shape * flux, minlength=piece.max() + 1)
         # per piece, the thinning's depth m that makes the flux zero, at most a quarter of the
@@ -280,7 +360,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
         m = np.where(cost > 1e-12 * diagonal ** 2, gain / np.where(cost > 0.0, cost, 1.0), 0.0)
         m = np.clip(m, 0.0, _THIN * amount.max() if amount.size else 0.0)
         field = (amount - m[piece] * shape)[:, None] * direction
-        field *= _stretch_limit(points, field, edges, lengths, ring)[:, None]
+        field *= _stretch_limit(points, field, edges, lengths, ring, tris)[:, None]
         moved = np.linalg.norm(field, axis=1)
         belly = on & (t > 0.3) & (t < 0.7)  # the depth there: under the belly (belly_of_groups)
         where = belly if belly.any() else on
@@ -290,7 +370,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     # groups that pop together: their sum keeps the same limit (two bones side by side, a
     # palm's metacarpals, swell towards each other)
     together = np.stack(fields)
-    together *= _stretch_limit(points, together.sum(axis=0), edges, lengths, ring)[None, :, None]
+    together *= _stretch_limit(points, together.sum(axis=0), edges, lengths, ring, tris)[None, :, None]
     return muscles, together[:, cls]
 
 
@@ -359,6 +439,15 @@ class SurfacePop:
         h: Step length [s]; ``beta * h <= 1``.
         alpha_min, beta, threshold: The paper's stiffness at the largest disparity (eq. 3),
             relaxation rate [1/s] and snap distance [m] (eq. 4).
+        triangles: ``[T, 3]`` the written surface's triangles: with them :meth:`offsets`
+            keeps the written skin clear of itself and its facets whole.
+        margin, start: The clearance's margin and its rays' start [m] (:meth:`offsets`).
+        points: ``[N, 3]`` the points at rest [m]: their areas (the pressed belly) and,
+            with ``triangles``, the welded surface whose facets the offsets keep.
+        seams: ``[N]`` bool, the points where two pieces of the surface meet
+            (:func:`seam_points`).
+        mesh_of_point: ``[N]`` each point's mesh: one mesh's points at one position are one
+            point of its surface (default: one mesh).
         device: Warp device.
 
     Every array is allocated here; a step launches one kernel with the step's index (its
@@ -369,7 +458,7 @@ class SurfacePop:
                  step_times: Sequence[float], activation: Callable[[float], np.ndarray], *, h: float,
                  alpha_min: float, beta: float, threshold: float = 1e-4, triangles: np.ndarray | None = None,
                  margin: float = 0.0, start: float = 1e-5, points: np.ndarray | None = None,
-                 seams: np.ndarray | None = None, device=None) -> None:
+                 seams: np.ndarray | None = None, mesh_of_point: np.ndarray | None = None, device=None) -> None:
         d = np.asarray(displacements, dtype=np.float64)
         g, n = d.shape[:2]
         self.point_count = n
@@ -412,6 +501,20 @@ class SurfacePop:
                 self._world = wp.zeros(len(self.moved), dtype=wp.vec3)
                 self._scale = wp.zeros(len(self.moved), dtype=wp.float32)
                 ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
+                self._facets = None
+                if points is not None:  # the welded surface: its rings, and the facets the offsets keep
+                    first, cls, wtris, _, _ = _welded_surface(points, tris, mesh_of_point)
+                    on = np.zeros(len(first), dtype=bool)
+                    on[cls[self.moved]] = True
+                    wedges = np.unique(np.sort(np.concatenate([wtris[:, [0, 1]], wtris[:, [1, 2]], wtris[:, [2, 0]]]),
+                                               axis=1), axis=0)
+                    wring = (vertex_adjacency(wtris, len(first)) + sp.identity(len(first), format="csr")).tocsr()
+                    self._facets = (first, cls[self.moved], wedges[on[wedges].any(axis=1)],
+                                    wtris[on[wtris].any(axis=1)], wring.astype(np.float64))
+                    # a point's ring is its surface point's: the copies of a split corner (flat
+                    # shading, seams) ease alike
+                    owner = sp.csr_matrix((np.ones(n), (np.arange(n), cls)), shape=(n, len(first)))
+                    ring = (owner @ wring @ owner.T).tocsr()
                 from ..metrics import PairQuery
 
                 self._triangles = tris
@@ -420,7 +523,7 @@ class SurfacePop:
                 self._pairs = PairQuery(tris)
                 self._slot = np.full(n, -1, dtype=np.int64)
                 self._slot[self.moved] = np.arange(len(self.moved))
-                self._ring = ring[self.moved][:, self.moved].astype(np.float64)  # among the moved points
+                self._ring = (ring[self.moved][:, self.moved] > 0).astype(np.float64)  # among the moved points
                 self._ring_mean = sp.diags(1.0 / np.asarray(self._ring.sum(axis=1)).ravel()) @ self._ring
                 coo = self._ring.tocoo()
                 self._ring_rows, self._ring_cols = coo.row, coo.col
@@ -470,10 +573,35 @@ class SurfacePop:
             eased = np.minimum(scale, self._ring_mean @ self._ring_min(scale))
             eased *= self._pressed(o, world, eased)
             eased *= self._untangle(np.asarray(surface, dtype=np.float64), world * eased[:, None])
+            if self._facets is not None:  # one factor per point of the surface (a split corner's copies)
+                slot = self._facets[1]
+                least = np.full(len(self._facets[0]), np.inf)
+                np.minimum.at(least, slot, eased)
+                eased = least[slot]
+                eased *= self._keep_facets(np.asarray(surface, dtype=np.float64), world * eased[:, None])
             world *= eased[:, None]
             self.held = max(self.held, float(1.0 - eased.min()))
         out[self.moved] = world
         return out
+
+    def _keep_facets(self, surface: np.ndarray, world: np.ndarray) -> np.ndarray:
+        """``[P]`` factors in [0, 1] on the moved points' offsets ``world`` ``[P, 3]`` [m] such
+        that, against the surface without them (``surface`` ``[N, 3]``) in this frame, no edge
+        is longer than ``STRAIN_LIMIT`` times its length nor shorter than its inverse, and
+        every triangle keeps ``_WRITE_KEEP`` of its area facing as before (:func:`_stretch_limit` on the welded
+        surface): the vibration overshoots its goal by up to twice, and points of one triangle
+        ring at their own stiffness (eq. 3), so the rest-pose limits alone do not hold the
+        written skin."""
+        if self._facets is None:
+            return np.ones(len(world))
+        first, slot, edges, tris, ring = self._facets
+        x = surface[first]
+        field = np.zeros_like(x)
+        field[slot] = world
+        lengths = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)
+        keep = lengths > 0.0
+        return _stretch_limit(x, field, edges[keep], lengths[keep], ring, tris, stretch=_WRITE_STRETCH,
+                              shorten=_WRITE_SHORTEN, keep=_WRITE_KEEP)[slot]
 
     def _pressed(self, rest: np.ndarray, world: np.ndarray, kept: np.ndarray) -> np.ndarray:
         """``[P]`` factors >= 1 on the moved points' offsets: a belly held back where it meets

@@ -432,7 +432,7 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
                       alpha_min=settings.alpha_min if vibrate else 1.0, beta=settings.beta,
                       threshold=settings.threshold, triangles=soup.triangles, margin=_CLEAR * diagonal,
                       start=1e-5 * diagonal, points=soup.points,
-                      seams=seam_points(soup.points, soup.triangles, mesh), device=device)
+                      seams=seam_points(soup.points, soup.triangles, mesh), mesh_of_point=mesh, device=device)
 
 
 def _pop_solver_params(scene):
