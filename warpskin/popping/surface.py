@@ -26,10 +26,11 @@ layered model gives that point, but no more than half the part is thick, the sha
 along the inward normal, eased over the group's skin; ``length``: the bone's). Points one mesh holds at one position (seams,
 flat shading) are one point of its surface. Then, in this order:
 
-* **clearance**: none where another piece is nearer than the belly's height there at
-  rest (a limb's end inside a ball joint), all of it beyond three times that height (the
-  thinning: three times the belly's peak); pieces whose open borders meet (a surface cut into
-  pieces along its seams) count as one;
+* **clearance**: none where another piece ahead of the swelling (within 60 degrees of its
+  direction) is nearer than the belly's height there at rest (a limb's end inside a ball
+  joint), all of it beyond three times that height (the thinning: any piece, three times the
+  belly's peak); pieces whose open borders meet (a surface cut into pieces along its seams)
+  count as one;
 * **volume**: a thinning takes back the swelling's flux ``sum_i A_i n_i . d_i`` (area-weighted
   normals: its volume to first order) on every connected piece, lying on the neighbourhood's
   skin away from every group's belly (the ends of the group's bones, their parents' and
@@ -73,6 +74,7 @@ _THIN = 0.25  # the thinning is at most this share of the belly's peak
 _BARE = 0.05  # a bone with less of its surface than this over its middle pops on the surface it carries
 _PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
 _EASE = 4  # passes of the ring mean that ease the depth over a group's skin
+_AHEAD = 0.5  # cosine of the half-angle of the cone ahead of a swelling point that another piece holds back
 _KEEP = 0.5  # a triangle keeps at least this share of its area along its rest normal
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
 # what is written may ring past the rest-pose limits above (the vibration overshoots its goal),
@@ -232,28 +234,57 @@ def seam_points(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.nda
     return seam[cls]
 
 
-def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, reach: float) -> np.ndarray:
+def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, reach: float,
+               directions: np.ndarray | None = None) -> np.ndarray:
     """``[N]`` each point's distance to the nearest other connected piece [m], ``inf`` where
-    none is within ``reach`` [m]: to samples of its triangles (a 4 x 4 barycentric grid on
-    each), which is the distance to its surface to within an eighth of an edge. Each piece is
-    queried against the other pieces' samples in its box grown by ``reach``."""
+    none is within ``reach`` [m]: to samples of its triangles (a barycentric grid on each, of
+    4 to 64 steps a side, fine enough that samples lie at most ``reach / 12`` apart where 64
+    steps allow), the distance to its surface to within half that spacing. Each piece is
+    queried against the other pieces' samples in its box grown by ``reach``.
+
+    With ``directions`` (``[N, 3]`` unit), only the samples ahead of each point count: those
+    within ``acos(_AHEAD)`` of its direction, what the point moving along it could run into
+    (a piece beside it, a sleeve's rim past the belly, does not hold it back)."""
     from scipy.spatial import cKDTree
 
     out = np.full(len(points), np.inf)
     pieces = np.unique(piece)
     if pieces.size < 2 or not reach > 0.0:
         return out
-    grid = 4
-    bary = np.array([(i, j, grid - i - j) for i in range(grid + 1) for j in range(grid + 1 - i)],
-                    dtype=np.float64) / grid
-    samples = np.einsum("sc,tcd->tsd", bary, points[triangles]).reshape(-1, 3)
-    owner = np.repeat(piece[triangles[:, 0]], len(bary))
+    corners = points[triangles]  # [T, 3, 3]
+    longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+    steps = np.clip(np.ceil(longest / (reach / 12.0)), 4, 64).astype(np.int64)
+    samples, owner = [], []
+    for grid in np.unique(steps):
+        which = steps == grid
+        bary = np.array([(i, j, grid - i - j) for i in range(grid + 1) for j in range(grid + 1 - i)],
+                        dtype=np.float64) / grid
+        samples.append(np.einsum("sc,tcd->tsd", bary, corners[which]).reshape(-1, 3))
+        owner.append(np.repeat(piece[triangles[which, 0]], len(bary)))
+    samples, owner = np.concatenate(samples), np.concatenate(owner)
     for k in pieces:
-        mine = piece == k
+        mine = np.flatnonzero(piece == k)
         lo, hi = points[mine].min(axis=0) - reach, points[mine].max(axis=0) + reach
         near = (owner != k) & np.all((samples >= lo) & (samples <= hi), axis=1)
-        if near.any():
-            out[mine] = cKDTree(samples[near]).query(points[mine], distance_upper_bound=reach)[0]
+        if not near.any():
+            continue
+        tree = cKDTree(samples[near])
+        if directions is None:
+            out[mine] = tree.query(points[mine], distance_upper_bound=reach)[0]
+            continue
+        # the nearest sample ahead: the neighbours come nearest first, so a point is done at
+        # its first one ahead, or once its k nearest reach past ``reach``; else k grows
+        others, todo, count = samples[near], mine, 16
+        while todo.size:
+            count = min(count, len(others))
+            d, i = tree.query(points[todo], k=count, distance_upper_bound=reach)
+            d, i = d.reshape(len(todo), -1), i.reshape(len(todo), -1)
+            found = np.isfinite(d)
+            toward = others[np.where(found, i, 0)] - points[todo][:, None]
+            ahead = found & (np.einsum("pkc,pc->pk", toward, directions[todo]) >= _AHEAD * d)
+            out[todo] = np.where(ahead, d, np.inf).min(axis=1)
+            todo = todo[~(ahead.any(axis=1) | ~found[:, -1] | (count >= len(others)))]
+            count *= 4
     return out
 
 
@@ -324,8 +355,10 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     profile = belly_profile(t)
     length = bones.length[dominant]
     flux = np.einsum("ij,ij->i", _area_normals(points, tris), direction)  # per unit radial move [m^2]
-    # the fade below needs the distance to three belly peaks at most
+    # the fades below need the distance to three belly peaks at most: ahead of the swelling
+    # for the belly (outward), any way for the thinning
     clear = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)))
+    ahead = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)), directions=direction)
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
     lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
     edges, lengths = edges[lengths > 0.0], lengths[lengths > 0.0]
@@ -344,12 +377,13 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
         hood = neighbourhood(group, parents)
         near = thinning_reach(w[:, hood].sum(axis=1), np.isin(dominant, hood), ring) * ok
         shape = near * np.where(bellied, 1.0 - np.clip(profile, 0.0, 1.0), 1.0)  # away from the bellies
-        # none where another piece is nearer than the belly's peak at rest (a limb's end in a
-        # ball joint, a sleeve on its arm): moving there would cross that piece's surface; full
-        # beyond three times the peak
+        # none where another piece ahead of the swelling is nearer than the belly's height at
+        # rest (a limb's end in a ball joint, an arm under its sleeve): moving there would cross
+        # that piece's surface; full beyond three times that height. The thinning likewise,
+        # with pieces in any direction
         reach = max(float(np.abs(amount).max()), 1e-12)
         local = np.maximum(np.abs(amount), 1e-3 * reach)  # the belly by its own height there
-        amount = amount * _smooth(np.clip(clear / local - 1.0, 0.0, 2.0) / 2.0)
+        amount = amount * _smooth(np.clip(ahead / local - 1.0, 0.0, 2.0) / 2.0)
         shape = shape * _smooth(np.clip(clear / reach - 1.0, 0.0, 2.0) / 2.0)
         amount = amount * _stretch_limit(points, amount[:, None] * direction, edges, lengths, ring, tris)
         gain = np.bincount(piece, amount * flux, minlength=piece.max() + 1)
