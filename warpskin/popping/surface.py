@@ -23,8 +23,9 @@ bone or towards it (a cap), by
 
 (``bone``: the model's bone-layer fraction, so ``depth`` is the fat-plus-muscle depth the
 layered model gives that point, but no more than half the part is thick, the shape diameter
-along the inward normal, eased over the group's skin; ``length``: the bone's). Points one mesh holds at one position (seams,
-flat shading) are one point of its surface. Then, in this order:
+along the inward normal, eased over the group's skin; ``length``: the bone's). Points one
+mesh holds at one position (seams, flat shading) are one point of its surface. Then, in this
+order:
 
 * **clearance**: none where another piece ahead of the swelling (within 60 degrees of its
   direction) is nearer than the belly's height there at rest (a limb's end inside a ball
@@ -74,7 +75,7 @@ _THIN = 0.25  # the thinning is at most this share of the belly's peak
 _BARE = 0.05  # a bone with less of its surface than this over its middle pops on the surface it carries
 _PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
 _EASE = 4  # passes of the ring mean that ease the depth over a group's skin
-_AHEAD = 0.5  # cosine of the half-angle of the cone ahead of a swelling point that another piece holds back
+_AHEAD = 0.5  # cos of the half-angle of the cone ahead of a swelling point in which another piece holds it
 _KEEP = 0.5  # a triangle keeps at least this share of its area along its rest normal
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
 # what is written may ring past the rest-pose limits above (the vibration overshoots its goal),
@@ -622,10 +623,10 @@ class SurfacePop:
         """``[P]`` factors in [0, 1] on the moved points' offsets ``world`` ``[P, 3]`` [m] such
         that, against the surface without them (``surface`` ``[N, 3]``) in this frame, no edge
         is longer than ``STRAIN_LIMIT`` times its length nor shorter than its inverse, and
-        every triangle keeps ``_WRITE_KEEP`` of its area facing as before (:func:`_stretch_limit` on the welded
-        surface): the vibration overshoots its goal by up to twice, and points of one triangle
-        ring at their own stiffness (eq. 3), so the rest-pose limits alone do not hold the
-        written skin."""
+        every triangle keeps ``_WRITE_KEEP`` of its area facing as before
+        (:func:`_stretch_limit` on the welded surface): the vibration overshoots its goal
+        (about 1.6x at ``alpha_min`` 0.1), and points of one triangle ring at their own
+        stiffness (eq. 3), so the rest-pose limits alone do not hold the written skin."""
         if self._facets is None:
             return np.ones(len(world))
         first, slot, edges, tris, ring = self._facets
