@@ -76,6 +76,7 @@ _BARE = 0.05  # a bone with less of its surface than this over its middle pops o
 _PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
 _EASE = 4  # passes of the ring mean that ease the depth over a group's skin
 _AHEAD = 0.5  # cos of the half-angle of the cone ahead of a swelling point in which another piece holds it
+_AHEAD_K = 256  # the most neighbours searched for one ahead of a point
 _KEEP = 0.5  # a triangle keeps at least this share of its area along its rest normal
 _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this share of its length
 # what is written may ring past the rest-pose limits above (the vibration overshoots its goal),
@@ -274,7 +275,9 @@ def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, rea
             out[mine] = tree.query(points[mine], distance_upper_bound=reach)[0]
             continue
         # the nearest sample ahead: the neighbours come nearest first, so a point is done at
-        # its first one ahead, or once its k nearest reach past ``reach``; else k grows
+        # its first one ahead, or once its k nearest reach past ``reach``; else k grows, up to
+        # _AHEAD_K, past which the k-th neighbour's distance stands in (a lower bound: the
+        # point is held back as if a piece were there)
         others, todo, count = samples[near], mine, 16
         while todo.size:
             count = min(count, len(others))
@@ -284,7 +287,11 @@ def _clearance(points: np.ndarray, triangles: np.ndarray, piece: np.ndarray, rea
             toward = others[np.where(found, i, 0)] - points[todo][:, None]
             ahead = found & (np.einsum("pkc,pc->pk", toward, directions[todo]) >= _AHEAD * d)
             out[todo] = np.where(ahead, d, np.inf).min(axis=1)
-            todo = todo[~(ahead.any(axis=1) | ~found[:, -1] | (count >= len(others)))]
+            left = ~(ahead.any(axis=1) | ~found[:, -1] | (count >= len(others)))
+            if count >= _AHEAD_K:
+                out[todo[left]] = d[left, -1]
+                break
+            todo = todo[left]
             count *= 4
     return out
 
