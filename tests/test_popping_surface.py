@@ -526,5 +526,31 @@ def test_the_written_vibration_never_folds_a_facet_nor_stretches_an_edge_past_on
         written.append(measure(pop.offsets(eye, pts)))
     free, written = np.array(free), np.array(written)
     assert free[:, 0].max() > np.log(1.6) and free[:, 1].min() < 0.0  # as stepped: stretched, folded
+    # the guard puts the ringing edges on the band's edge (to rounding): a 1e-6 band there
     assert written[:, 0].max() < np.log(1.5) + 1e-6 and written[:, 1].min() > 0.3 - 1e-6
     assert written[:, 0].max() > np.log(1.3)  # and still moved as far as that allows
+
+
+def test_a_sliver_that_would_fold_keeps_half_its_area_facing_as_at_rest():
+    # two slivers back to back on one base; the first one's apex pushed across the base turns
+    # it over with no edge changing length, so only the fold rule can hold it: the apex keeps
+    # the largest factor on the rule's grid (sixteenths) under the closed form, where the
+    # sliver's area along its rest normal, 1 - s * 0.1037 / 0.05, is half
+    from scipy import sparse
+
+    from warpskin.popping.surface import _KEEP, _stretch_limit
+    from warpskin.preprocess.fast_summation import vertex_adjacency
+
+    pts = np.array([(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.5, 0.05, 0.0), (0.5, -0.05, 0.0)])
+    tris = np.array([(0, 1, 2), (0, 3, 1)])
+    field = np.zeros((4, 3))
+    field[2, 1] = -0.1037
+    edges = np.array([(0, 1), (0, 2), (1, 2), (0, 3), (1, 3)])
+    lengths = np.linalg.norm(pts[edges[:, 0]] - pts[edges[:, 1]], axis=1)
+    ring = (vertex_adjacency(tris, 4) + sparse.identity(4, format="csr")).astype(np.float64)
+    factor = _stretch_limit(pts, field, edges, lengths, ring, tris)
+    s = (1.0 - _KEEP) * 0.05 / 0.1037
+    assert s - 1.0 / 16 <= factor[2] <= s
+    x = pts + field * factor[:, None]
+    area = lambda p, t: np.cross(p[t[1]] - p[t[0]], p[t[2]] - p[t[0]])[2]  # noqa: E731
+    assert all(area(x, t) >= _KEEP * area(pts, t) for t in tris)

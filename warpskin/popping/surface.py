@@ -542,14 +542,16 @@ class SurfacePop:
                 self._base = wp.zeros(len(self.moved), dtype=wp.vec3)
                 self._world = wp.zeros(len(self.moved), dtype=wp.vec3)
                 self._scale = wp.zeros(len(self.moved), dtype=wp.float32)
-                ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
                 self._facets = None
-                if points is not None:  # the welded surface: its rings, and the facets the offsets keep
+                if points is None:
+                    ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
+                else:  # the welded surface: its rings, and the facets the offsets keep
+                    from ..collision import skin_edges
+
                     first, cls, wtris, _, _ = _welded_surface(points, tris, mesh_of_point)
                     on = np.zeros(len(first), dtype=bool)
                     on[cls[self.moved]] = True
-                    wedges = np.unique(np.sort(np.concatenate([wtris[:, [0, 1]], wtris[:, [1, 2]], wtris[:, [2, 0]]]),
-                                               axis=1), axis=0)
+                    wedges = skin_edges(wtris)[0]
                     wring = (vertex_adjacency(wtris, len(first)) + sp.identity(len(first), format="csr")).tocsr()
                     self._facets = (first, cls[self.moved], wedges[on[wedges].any(axis=1)],
                                     wtris[on[wtris].any(axis=1)], wring.astype(np.float64))
