@@ -88,6 +88,46 @@ def test_limits_name_the_mesh_and_the_files_vertex():
     assert limits.problem(mesh, mesh_measures(mesh, rest, rest)) is None
 
 
+def _widest_split_by_loops(rest: np.ndarray, points: np.ndarray) -> float:
+    """The farthest two written vertices with one rest position lie apart (every pair)."""
+    worst = 0.0
+    for i in range(len(rest)):
+        for j in range(i):
+            if tuple(rest[i]) == tuple(rest[j]):
+                worst = max(worst, float(np.linalg.norm(points[i] - points[j])))
+    return worst
+
+
+def test_copies_written_apart_are_a_crack_the_limits_name():
+    # a sheet with every triangle's corners split (flat shading): LBS moves the copies as one;
+    # the written mesh moves some corners of one rest point apart by a small, uneven amount
+    rng = np.random.default_rng(11)
+    rest, tris = _crumpled_sheet(8)
+    split_ids = tris.ravel()
+    flat = rest[split_ids]
+    lbs = flat + rng.normal(scale=0.01, size=(1, 3))
+    points = lbs.copy()
+    points[::7] += rng.normal(scale=2e-3, size=points[::7].shape)
+    mesh = WrittenMesh("fist_r", np.arange(split_ids.size).reshape(-1, 3), flat, file_ids=np.arange(split_ids.size) + 500)
+    m = mesh_measures(mesh, points, lbs, pairs=False)
+    want = _widest_split_by_loops(flat, points)
+    assert want > 1e-3
+    assert m["split"] == pytest.approx(want, rel=1e-12)
+    assert m["split_lbs"] == pytest.approx(_widest_split_by_loops(flat, lbs), abs=1e-12)
+    a, b = m["split_vertices"]
+    assert flat[a - 500].tolist() == flat[b - 500].tolist() and a != b
+    assert np.linalg.norm(points[a - 500] - points[b - 500]) == pytest.approx(want, rel=1e-12)
+    # the welded measures do not see it (one edge per welded pair, strained by a hair at most)
+    assert m["strained"] == 0.0 and m["flipped"] == 0.0
+    line = QualityLimits().problem(mesh, m)
+    assert line is not None and "mesh 'fist_r'" in line and f"file vertices {a} and {b}" in line and "crack" in line
+    # a split within the band (a tenth of the limit, 1e-4 of the mesh's size) passes
+    tiny = lbs.copy()
+    tiny[::7] += 1e-6 * mesh.size * rng.normal(size=tiny[::7].shape) / np.sqrt(3)
+    assert 0.0 < mesh_measures(mesh, tiny, lbs, pairs=False)["split"] < 1e-5 * mesh.size
+    assert QualityLimits().problem(mesh, mesh_measures(mesh, tiny, lbs, pairs=False)) is None
+
+
 def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
     # the coarse arm: the summary's per-mesh figures are the worst over the frames of the
     # written USD, measured there with the plain-loop reference and the brute-force pair count
@@ -123,6 +163,9 @@ def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
     assert row["max_pairs"] == max(p for p, _ in pairs)
     assert abs(row["max_pairs_lbs"] - max(q for _, q in pairs)) <= 1 + 0.01 * row["max_pairs_lbs"]
     assert len(data["written"][name]["strained"]) == 11
+    splits = [_widest_split_by_loops(rest, np.asarray(skin.GetPointsAttr().Get(tc), dtype=np.float64))
+              for tc in skin.GetPointsAttr().GetTimeSamples()]
+    assert row["max_split"] == pytest.approx(max(splits), abs=1e-7)
     assert len(data["metrics"]["tether_clamped"]) == 11 and "max_capped_share" in data["summary"]
 
 

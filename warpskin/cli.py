@@ -385,6 +385,7 @@ def cmd_simulate(args) -> int:
     for name, r in s["written"].items():
         pairs = f", pairs {r['max_pairs']} (LBS {r['max_pairs_lbs']})" if "max_pairs" in r else ""
         held = f", held by the guard {100 * r['max_held']:.1f} %" if r.get("max_held") else ""
+        held += f", copies of a point apart {1e3 * r['max_split']:.2f} mm" if r.get("max_split") else ""
         print(f"  {name}: edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
               f"flipped {100 * r['max_flipped']:.2f} %{pairs}, offset {r['max_offset']:.3g} m, physics weight "
               f"{s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}{held}")

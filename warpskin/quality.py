@@ -17,10 +17,13 @@ Measures of one frame (``points`` and ``lbs``, both ``[N, 3]`` in the file's ver
 * **pairs**: intersecting triangle pairs of the mesh (the exact test of
   :func:`~warpskin.metrics.self_intersections` on the mesh welded by rest position, so that
   triangles meeting across a UV seam count as neighbours), beside LBS's;
-* **offset**: the largest distance of a vertex from its LBS position [m].
+* **offset**: the largest distance of a vertex from its LBS position [m];
+* **split**: the largest distance between two copies of one rest point (file vertices at one
+  rest position: a UV seam, flat shading, a split normal) [m], beside LBS's: copies written
+  apart open a crack in the surface that the measures above, made on the welded mesh, cannot see.
 
-Seam copies (file vertices at one rest position) are one vertex here: edges and pairs are
-counted once on the welded mesh, and messages name the file's vertex numbers.
+Seam copies are one vertex for the other measures: edges and pairs are counted once on the
+welded mesh. Messages name the file's vertex numbers.
 """
 
 from __future__ import annotations
@@ -84,6 +87,9 @@ class WrittenMesh:
         scale = float(np.median(area2)) if area2.size else 0.0
         self._area_floor = 1e-8 * scale
         self._tri_ok = self.measured_triangles[area2 > self._area_floor]  # not degenerate at rest
+        copy = np.nonzero(first[inverse] != np.arange(n))[0]  # every file vertex that is not its class's first
+        self.copies = np.stack([copy, first[inverse[copy]]], axis=1) if copy.size else np.zeros((0, 2), np.int64)
+        self.size = float(np.linalg.norm(np.ptp(self.rest, axis=0))) if n else 0.0  # rest bounding-box diagonal [m]
 
     @property
     def edge_count(self) -> int:
@@ -119,6 +125,17 @@ class WrittenMesh:
         ok = (la > self._area_floor) & (lb > self._area_floor)
         return self._tri_ok[ok & (np.einsum("ij,ij->i", n, m) < 0.0)]
 
+    def split(self, points: np.ndarray) -> tuple[float, int]:
+        """``(gap [m], k)``: the largest distance between a file vertex and the first copy of its
+        rest point (0 where no two file vertices share one), and the row of :attr:`copies`
+        (``[C, 2]`` written indices ``(copy, first)``) where it is (``-1`` for none)."""
+        if not self.copies.size:
+            return 0.0, -1
+        x = np.asarray(points, dtype=np.float64)
+        gap = np.linalg.norm(x[self.copies[:, 0]] - x[self.copies[:, 1]], axis=1)
+        k = int(np.argmax(gap))
+        return float(gap[k]), k
+
     def pairs(self, points: np.ndarray) -> int:
         """Intersecting triangle pairs of the welded mesh (the exact test)."""
         from .metrics import self_intersections
@@ -140,7 +157,8 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
     file vertex of that edge), ``flipped`` (share of triangles) and ``flipped_vertex``,
     ``pairs``, ``pairs_lbs`` (``None`` without ``pairs``; ``pair_counts`` where the caller
     counted them with the same exact test on the same welded mesh, as the surface guard does),
-    ``offset`` [m] and ``offset_vertex``."""
+    ``offset`` [m] and ``offset_vertex``, ``split`` and ``split_lbs`` [m] and ``split_vertices``
+    (the file vertices of the widest split, ``(-1, -1)`` for none)."""
     points = np.asarray(points, dtype=np.float64)
     lbs = np.asarray(lbs, dtype=np.float64)
     s, s_lbs = mesh.strain(points), mesh.strain(lbs)
@@ -151,6 +169,7 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
     j = int(np.argmax(d)) if d.size else -1
     if pairs and pair_counts is None:
         pair_counts = mesh.pairs_of_two(points, lbs)
+    split, c = mesh.split(points)
     return {
         "strained": float((s > STRAIN_LIMIT).sum() / e),
         "strained_lbs": float((s_lbs > STRAIN_LIMIT).sum() / e),
@@ -162,6 +181,9 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
         "pairs_lbs": pair_counts[1] if pairs else None,
         "offset": float(d[j]) if j >= 0 else 0.0,
         "offset_vertex": int(mesh.file_ids[j]) if j >= 0 else -1,
+        "split": split,
+        "split_lbs": mesh.split(lbs)[0],
+        "split_vertices": tuple(int(v) for v in mesh.file_ids[mesh.copies[c]]) if c >= 0 else (-1, -1),
     }
 
 
@@ -177,6 +199,8 @@ class QualityLimits:
         pairs: At most ``pairs_factor x LBS's pairs + max(pairs x triangles, pairs_floor)``
             intersecting pairs.
         pairs_factor: See ``pairs``.
+        split: Copies of one rest point may be written at most this share of the mesh's rest
+            size (its bounding-box diagonal) farther apart than under LBS: a crack.
     """
 
     strained: float = 0.05
@@ -184,6 +208,7 @@ class QualityLimits:
     pairs: float = 0.005
     pairs_factor: float = 2.0
     pairs_floor: int = 10
+    split: float = 1e-4
 
     def problem(self, mesh: WrittenMesh, m: dict) -> str | None:
         """One line naming what is out of range in the measures ``m`` of ``mesh``, or ``None``."""
@@ -194,8 +219,14 @@ class QualityLimits:
         if m["flipped"] > self.flipped:
             return (f"mesh {mesh.name!r} left its plausible range: {100 * m['flipped']:.1f} % of its triangles are flipped against LBS (the first "
                     f"at file vertex {m['flipped_vertex']})")
+        if m["split"] > m["split_lbs"] + self.split * mesh.size:
+            a, b = m["split_vertices"]
+            return (f"mesh {mesh.name!r} left its plausible range: file vertices {a} and {b}, one rest point, are written "
+                    f"{1e3 * m['split']:.3g} mm apart (LBS {1e3 * m['split_lbs']:.3g} mm): a crack in the surface")
+        if m["pairs"] is None:
+            return None
         allowed = self.pairs_factor * m["pairs_lbs"] + max(self.pairs * mesh.triangle_count, self.pairs_floor)
-        if m["pairs"] is not None and m["pairs"] > allowed:
+        if m["pairs"] > allowed:
             return (f"mesh {mesh.name!r} left its plausible range: {m['pairs']} intersecting triangle pairs (LBS {m['pairs_lbs']}; at most "
                     f"{self.pairs_factor:g}x LBS + {100 * self.pairs:g} % of its {mesh.triangle_count} triangles, "
                     f"at least {self.pairs_floor})")
@@ -212,7 +243,7 @@ class QualityLog:
         pairs: Count intersecting pairs (the costliest measure) every frame.
     """
 
-    KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "offset")
+    KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "offset", "split", "split_lbs")
 
     def __init__(self, meshes: list[WrittenMesh], limits: QualityLimits | None = None, *, pairs: bool = True) -> None:
         self.meshes = list(meshes)
@@ -251,13 +282,14 @@ class QualityLog:
             if not self.frames:
                 continue
             row: dict = {"edges": mesh.edge_count, "triangles": mesh.triangle_count}
-            for k in ("strained", "strained_lbs", "worst_strain", "flipped", "offset"):
+            for k in ("strained", "strained_lbs", "worst_strain", "flipped", "offset", "split"):
                 a = np.asarray(s[k], dtype=np.float64)
                 i = int(np.argmax(a))
                 row[f"max_{k}"] = float(a[i])
                 row[f"max_{k}_frame"] = self.frames[i]
             excess = np.asarray(s["strained"]) - np.asarray(s["strained_lbs"])
             row["max_strained_excess"] = float(excess.max())
+            row["max_split_excess"] = float((np.asarray(s["split"]) - np.asarray(s["split_lbs"])).max())
             if self.count_pairs:
                 p, pl = np.asarray(s["pairs"]), np.asarray(s["pairs_lbs"])
                 row["max_pairs"], row["max_pairs_lbs"] = int(p.max()), int(pl.max())
@@ -280,6 +312,7 @@ class QualityLog:
                 "strained_excess": np.asarray(s["strained"]) - np.asarray(s["strained_lbs"]),
                 "flipped": np.asarray(s["flipped"]),
                 "offset": np.asarray(s["offset"]),
+                "split_excess": np.asarray(s["split"]) - np.asarray(s["split_lbs"]),
             }
             if self.count_pairs:
                 cand["pairs_excess"] = np.asarray(s["pairs"]) - np.asarray(s["pairs_lbs"])
