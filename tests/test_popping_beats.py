@@ -174,3 +174,41 @@ def test_the_layered_drive_rings_while_clenched_and_relaxes_monotonely(alpha):
         assert value == pytest.approx(a, abs=1e-12) or value == 0.0
     with pytest.raises(SceneError, match="beta"):
         vibrating(goal, 0.0, 1.0, h=0.1, alpha=0.1, beta=30.0)
+
+
+def test_onsets_are_where_each_pop_leaves_zero():
+    from warpskin.popping import ActivationTimeline
+
+    tl = ActivationTimeline({
+        "biceps": ActivationTimeline.beats([1.37, 0.41, 2.9], hold=0.3, attack=0.05, release=0.1),
+        "triceps": [(0.0, 0.0), (0.2, 1.0), (0.5, 1.0), (0.6, 0.0), (1.0, 0.0), (1.1, 0.5), (1.3, 0.2), (1.4, 0.0)],
+        "calf": [(0.0, 0.7), (0.4, 0.7), (0.5, 0.0)],  # clenched from its first key
+    })
+    assert tl.onsets("biceps").tolist() == pytest.approx([0.41, 1.37, 2.9], abs=1e-15)
+    assert tl.onsets("triceps").tolist() == pytest.approx([0.0, 1.0], abs=1e-15)
+    assert tl.onsets("calf").tolist() == [0.0]
+    assert tl.onsets("deltoid").size == 0
+
+
+def test_beat_summary_reads_each_pop_from_its_bulge():
+    from warpskin.popping.report import beat_summary
+
+    fps = 24.0
+    codes = np.arange(0.0, 60.0)
+    bulge = np.zeros(codes.size)
+    # beat 1 at 0.31 s (frame 7.44): rises over frames 8-10, rings, its largest at frame 13
+    bulge[8:20] = [3.0, 8.6, 9.2, 8.8, 9.1, 9.7, 9.4, 6.0, 3.0, 1.0, 0.4, 0.2]
+    # beat 2 at 1.2 s (frame 28.8): a plateau cut flat at 5.0 from frame 30, its first frame the peak
+    bulge[29:40] = [4.4, 5.0, 5.0, 5.0, 5.0, 5.0, 2.0, 0.8, 0.3, 0.1, 0.05]
+    rows = beat_summary(codes, bulge, np.array([1.2, 0.31]), fps, depth_mm=25.0)
+    assert len(rows) == 2
+    a, b = rows
+    assert a["beat_frame"] == pytest.approx(7.44) and b["beat_frame"] == pytest.approx(28.8)
+    assert (a["peak_mm"], a["peak_frame"], a["rise_frame"]) == (9.7, 13.0, 10.0)  # frame 9: 8.6 < 0.9 * 9.7 <= 9.2
+    assert a["peak_lag_frames"] == pytest.approx(13.0 - 7.44) and a["rise_lag_frames"] == pytest.approx(10.0 - 7.44)
+    assert a["end_mm"] == 0.0 and a["share_of_depth"] == pytest.approx(9.7 / 25.0)
+    assert (b["peak_mm"], b["peak_frame"], b["rise_frame"]) == (5.0, 30.0, 30.0)  # 4.4 < 4.5
+    assert b["end_mm"] == 0.0
+    # a pop with under two written frames after it is left out; no depth, no share
+    rows = beat_summary(codes, bulge, np.array([0.31, 59.5 / fps]), fps)
+    assert len(rows) == 1 and "share_of_depth" not in rows[0]

@@ -229,7 +229,9 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
 
     out, report = tmp_path / "arm.usdc", tmp_path / "report"
     assert main(["pop", "arm", "-o", str(out), "--bpm", "120", "--offset", "0.2037", "--frames", "0:16", "--quiet",
-                 "--report", str(report), "--pop-on", "layers"]) == 0
+                 "--report", str(report), "--pop-on", "layers", "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    depth = {m["name"]: m["depth_mm"] for m in printed["muscles"]}
     # the normal-only guide is the same simulation without the pop: what simulate writes with the
     # pop's solver settings (the volume constraints along the normals), exactly
     from warpskin.run import simulate
@@ -248,6 +250,7 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
         assert np.array_equal(np.asarray(guide.Get(f)), np.asarray(alone.Get(f)))
     data = json.loads((report / "popping.json").read_text())
     assert (report / "report.json").exists()  # the simulation's own report beside it
+
     pytest.importorskip("matplotlib")
     assert (report / "popping.png").stat().st_size > 10_000
     rig = load_scene("arm").rig()
@@ -268,6 +271,15 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
             assert series["bulge_mm"][f] == pytest.approx(want, rel=0.03, abs=0.05), (group, f)
         # millimetres out while clenched; before the beat: the same run
         assert max(series["bulge_mm"][7:14]) > 2.0 and series["bulge_mm"][3] == 0.0
+        # the pop on the beat at 0.2037 s (the time code 6.111 at 30 fps), read from the series
+        (beat,) = series["beats"]
+        window = series["bulge_mm"][7:]
+        k = int(np.argmax(window))
+        assert beat["beat_frame"] == pytest.approx(0.2037 * 30.0)
+        assert (beat["peak_mm"], beat["peak_frame"]) == (window[k], 7.0 + k)
+        assert beat["rise_frame"] == 7.0 + next(i for i, b in enumerate(window) if b >= 0.9 * window[k])
+        assert beat["share_of_depth"] == pytest.approx(beat["peak_mm"] / depth[group])
+        assert printed["beats"][group] == series["beats"]
     # the farthest out and in over the run (trimesh's normals, every frame), and their map
     far = np.zeros((17, np.asarray(skin.Get(0)).shape[0]))
     for f in range(17):

@@ -476,13 +476,37 @@ def cmd_pop(args) -> int:
         for m in s.get("muscles", []):
             print(f"  {m['name']}: bones {', '.join(m['joints'])}, {m['vertices']} skin vertices, tissue "
                   f"{m['depth_mm']:.0f} mm deep, swelling up to {m['peak_swell_mm']:.1f} mm")
+        _print_beats(s)
         return 0
     print(
         f"wrote {result.path} ({result.frames} frames, {s['substeps']} steps of {s['dt_s'] * 1e3:.2f} ms per frame, "
         f"{s['vertices']} vertices, groups {', '.join(s['groups'])}, {s['ms_per_frame']:.2f} ms per frame on {s['device']}); "
         f"peak overshoot {s['peak_overshoot_m'] * 1e3:.2f} mm (alpha_min {s['alpha_min']:g})"
     )
+    _print_beats(s)
     return 0
+
+
+def _print_beats(s: dict) -> None:
+    """With ``--report``: each group's pops as read back from the written file, one line."""
+    if not s.get("beats"):
+        return
+    print(f"pops read back from the file (the skin over each belly outside its reference; report: {s['popping_report']}):")
+
+    def span(values, fmt):
+        lo, hi = min(values), max(values)
+        return fmt.format(lo) if fmt.format(lo) == fmt.format(hi) else f"{fmt.format(lo)}-{fmt.format(hi)}"
+
+    for g, rows in s["beats"].items():
+        if not rows:
+            print(f"  {g}: no pop within the frames written")
+            continue
+        share = (f" ({span([100 * r['share_of_depth'] for r in rows], '{:.0f}')} % of its depth)"
+                 if "share_of_depth" in rows[0] else "")
+        print(f"  {g}: {len(rows)} pops, peak {span([r['peak_mm'] for r in rows], '{:.1f}')} mm{share}, reached "
+              f"{span([r['rise_lag_frames'] for r in rows], '{:.3g}')} frames after the beat (90 %), largest "
+              f"{span([r['peak_lag_frames'] for r in rows], '{:.3g}')} after, "
+              f"{span([r['end_mm'] for r in rows], '{:.1f}')} mm left before the next")
 
 
 def _group_entries(args) -> list[str] | None:

@@ -149,6 +149,20 @@ class ActivationTimeline:
         u = (t - times[k]) / (times[k + 1] - times[k])
         return float(vals[k] + u * (vals[k + 1] - vals[k]))
 
+    def onsets(self, group: str) -> np.ndarray:
+        """``[K]`` the times [s] at which ``group``'s activation leaves 0 upwards (each pop's
+        start: a key at 0 followed by one above it), ascending; a group clenched from its first
+        key starts a pop there."""
+        times = self.times.get(group)
+        if times is None:
+            return np.zeros(0)
+        v = self.values[group]
+        rise = np.nonzero((v[:-1] == 0.0) & (v[1:] > 0.0))[0]
+        out = times[rise]
+        if v[0] > 0.0:
+            out = np.concatenate([[times[0]], out])
+        return np.unique(out)
+
     def sample(self, t: float, groups: Sequence[str]) -> np.ndarray:
         """Activations of ``groups`` at time ``t`` [s], ``[G]``."""
         return np.array([self.value(g, t) for g in groups])

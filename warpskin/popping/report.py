@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["belly_of_bones", "belly_of_examples", "bulge_series", "write_popping_report"]
+__all__ = ["belly_of_bones", "belly_of_examples", "bulge_series", "beat_summary", "write_popping_report"]
+
+_RISE = 0.9  # a pop has risen at the first frame whose bulge reaches this share of its peak
 
 
 def belly_of_bones(rig, joints: Sequence[str]) -> np.ndarray:
@@ -111,14 +113,52 @@ def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.nda
     return codes, out
 
 
+def beat_summary(codes: np.ndarray, bulge_mm: np.ndarray, onsets: np.ndarray, fps: float,
+                 depth_mm: float | None = None) -> list[dict]:
+    """Each pop of one group, read from its bulge: per onset time ``onsets [K]`` [s] (the
+    pop's beat), over the written frames from the beat to the next onset (``codes [F]``, time
+    codes; ``bulge_mm [F]``): ``beat_s``, ``beat_frame`` (the beat as a time code),
+    ``peak_mm`` and ``peak_frame`` (the largest bulge and its first frame), ``rise_frame``
+    (the first frame reaching 90 % of the peak: where a plateau, which the clearance or the
+    stretch limit may cut the ringing down to, is reached), their lags after the beat
+    ``peak_lag_frames`` and ``rise_lag_frames`` [frames], ``end_mm`` (the bulge in the last
+    frame before the next pop: what is left of it), and with ``depth_mm`` the peak's
+    ``share_of_depth``. Pops with fewer than two written frames are left out."""
+    codes = np.asarray(codes, dtype=np.float64)
+    bulge = np.asarray(bulge_mm, dtype=np.float64)
+    beats = np.sort(np.asarray(onsets, dtype=np.float64)) * fps
+    out = []
+    for k, b in enumerate(beats):
+        stop = beats[k + 1] if k + 1 < beats.size else np.inf
+        sel = np.nonzero((codes >= b - 1e-6) & (codes < stop - 1e-6))[0]
+        if sel.size < 2:
+            continue
+        w = bulge[sel]
+        i = int(np.argmax(w))
+        peak = float(w[i])
+        r = int(np.argmax(w >= _RISE * peak)) if peak > 0.0 else i
+        row = {"beat_s": float(b / fps), "beat_frame": float(b), "peak_mm": peak, "peak_frame": float(codes[sel[i]]),
+               "peak_lag_frames": float(codes[sel[i]] - b), "rise_frame": float(codes[sel[r]]),
+               "rise_lag_frames": float(codes[sel[r]] - b), "end_mm": float(w[-1])}
+        if depth_mm:
+            row["share_of_depth"] = peak / float(depth_mm)
+        out.append(row)
+    return out
+
+
 def write_popping_report(report_dir, path, bellies: dict[str, np.ndarray], fps: float,
-                         activation: Callable[[float, list[str]], np.ndarray]) -> dict:
+                         activation: Callable[[float, list[str]], np.ndarray], *,
+                         onsets: dict[str, np.ndarray] | None = None,
+                         depth_mm: dict[str, float] | None = None) -> dict:
     """Write ``popping.json`` (per group: time codes, activation, bulge [mm]; the farthest any
     skin vertex got outside and inside its reference, ``largest_out_mm`` / ``largest_in_mm``)
     and, with matplotlib, ``popping.png`` (each group's bulge over time, its activation beside
     it) and ``popping_map.png`` (the rest pose, front and side, each vertex coloured by how far
     the pop moved it out or in at most) into ``report_dir``; returns the JSON's content.
-    ``activation(t, groups)``: the activations at clip time ``t`` [s]."""
+    ``activation(t, groups)``: the activations at clip time ``t`` [s]; with ``onsets`` (per
+    group, the times its pops start [s]) each group also gets ``beats``, one
+    :func:`beat_summary` row per pop (``depth_mm``: per group, the tissue depth its share is
+    of)."""
     report = Path(report_dir)
     report.mkdir(parents=True, exist_ok=True)
     moved: dict = {}
@@ -130,6 +170,10 @@ def write_popping_report(report_dir, path, bellies: dict[str, np.ndarray], fps: 
                            "bulge_mm": [1e3 * b for b in bulge[g]]} for k, g in enumerate(names)},
             "largest_out_mm": 1e3 * float(moved["out"].max()) if moved else 0.0,
             "largest_in_mm": 1e3 * float(moved["in"].max()) if moved else 0.0}
+    for g, row in data["groups"].items():
+        if onsets is not None and g in onsets:
+            row["beats"] = beat_summary(codes, np.asarray(row["bulge_mm"]), onsets[g], fps,
+                                        (depth_mm or {}).get(g))
     (report / "popping.json").write_text(json.dumps(data, indent=1))
     try:
         import matplotlib

@@ -252,20 +252,24 @@ def run_popping(
     if report_dir is not None:
         from ..popping.report import belly_of_examples
 
-        summary["popping_report"] = _report(report_dir, writer.path, belly_of_examples(rig, examples), rig, topology,
-                                    plan.fps, settings)
+        rep = _report(report_dir, writer.path, belly_of_examples(rig, examples), rig, topology, plan.fps, settings)
+        summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
     return PoppingRun(path=Path(writer.path), frames=count, summary=summary)
 
 
-def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, settings) -> str:
+def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, settings,
+            depth_mm: dict[str, float] | None = None) -> dict:
     """The popping report (:func:`~warpskin.popping.report.write_popping_report`) of a bake whose
     skin is ``rig``'s (``bellies``: per group a mask per welded skin vertex, or ``{prim name:
-    mask per written point of that mesh}`` as written); returns its folder."""
+    mask per written point of that mesh}`` as written); returns its folder (``dir``) and each
+    group's pops (``beats``: :func:`~warpskin.popping.report.beat_summary`)."""
     from ..popping.report import write_popping_report
 
     masks = {g: (m[rig.weld_map] if topology == "file" and not isinstance(m, dict) else m) for g, m in bellies.items()}
-    write_popping_report(report_dir, path, masks, fps, lambda t, names: settings.activation.sample(t, names))
-    return str(report_dir)
+    tl = settings.activation
+    data = write_popping_report(report_dir, path, masks, fps, lambda t, names: tl.sample(t, names),
+                                onsets={g: tl.onsets(g) for g in masks}, depth_mm=depth_mm)
+    return {"dir": str(report_dir), "beats": {g: row.get("beats", []) for g, row in data["groups"].items()}}
 
 
 def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
@@ -375,8 +379,9 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         else:
             bellies = (belly_of_examples(render, examples) if examples is not None
                        else {m.name: belly_of_bones(render, m.joints) for m in found})
-        summary["popping_report"] = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate,
-                                            settings)
+        rep = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate, settings,
+                      depth_mm={m.name: 1e3 * m.depth_m for m in found})
+        summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
 
 
