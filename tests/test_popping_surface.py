@@ -554,3 +554,52 @@ def test_a_sliver_that_would_fold_keeps_half_its_area_facing_as_at_rest():
     x = pts + field * factor[:, None]
     area = lambda p, t: np.cross(p[t[1]] - p[t[0]], p[t[2]] - p[t[0]])[2]  # noqa: E731
     assert all(area(x, t) >= _KEEP * area(pts, t) for t in tris)
+
+
+def test_the_untangle_holds_back_only_what_would_cross_another_piece(device):
+    # a patch swelling up to 6 mm (+z) under a separate, tilted plate 3-4 mm over its right part
+    # (an arm swinging against the torso): with the untangle's factors no triangle pair crosses
+    # that did not without the pop (brute force over every pair), the skin three rings clear of
+    # the plate keeps its whole offset, and the held skin keeps nearly the largest common share
+    # of every offset that keeps the whole patch clear (found by bisection)
+    from oracles import intersecting_pairs_brute_force
+    from warpskin.metrics import self_intersections
+
+    n = 8
+    g = (np.arange(n) - 3.5) * 0.005 + 0.0003 * np.sin(np.arange(n) * 1.7)
+    patch = np.array([(x, y, 0.0004 * np.sin(97.0 * x) * np.cos(71.0 * y)) for y in g for x in g])  # not flat
+    ptris = np.array([(r * n + c, r * n + c + 1, r * n + c + n + 1) for r in range(n - 1) for c in range(n - 1)]
+                     + [(r * n + c, r * n + c + n + 1, r * n + c + n) for r in range(n - 1) for c in range(n - 1)])
+    x0 = 0.0061
+    plate = np.array([(x0, -0.04, 0.0031), (0.05, -0.04, 0.0031 + 0.1 * (0.05 - x0)),
+                      (0.05, 0.04, 0.0031 + 0.1 * (0.05 - x0)), (x0, 0.04, 0.0031)])
+    points = np.concatenate([patch, plate])
+    tris = np.concatenate([ptris, np.array([(0, 1, 2), (0, 2, 3)]) + n * n])
+    disparity = np.zeros((1, len(points), 3))
+    r = np.maximum(np.abs(patch[:, 0]), np.abs(patch[:, 1])) / 0.0175
+    disparity[0, : n * n, 2] = 0.006 * np.clip(1.3 * (1.0 - r), 0.0, 1.0)  # a bump, its rim held at 0
+    weights = np.ones((len(points), 1))
+    eye = np.eye(4)[None]
+    pop = SurfacePop(disparity, weights, eye, [0.01], lambda t: np.ones(1), h=0.01, alpha_min=1.0, beta=30.0,
+                     triangles=tris, points=points, device=device)
+    pop.advance(1)
+    world = pop.offsets(eye)[pop.moved]
+    assert np.allclose(world, disparity[0, pop.moved])
+    moved = points.copy()
+    moved[pop.moved] += world
+    assert len(self_intersections(moved, tris)) > 0  # the whole pop would cross the plate
+
+    factor = pop._untangle(points, world)
+    kept = points.copy()
+    kept[pop.moved] += world * factor[:, None]
+    assert intersecting_pairs_brute_force(kept, tris) == intersecting_pairs_brute_force(points, tris) == 0
+    x = points[pop.moved, 0]
+    assert np.all(factor[x < x0 - 3.2 * 0.005] > 1.0 - 1e-12)  # three rings clear of the plate: untouched
+    lo, hi = 0.0, 1.0
+    for _ in range(30):  # the largest common share of every offset that crosses nothing
+        mid = 0.5 * (lo + hi)
+        trial = points.copy()
+        trial[pop.moved] += mid * world
+        lo, hi = (mid, hi) if intersecting_pairs_brute_force(trial, tris) == 0 else (lo, mid)
+    assert 0.3 < lo < 0.9
+    assert factor.min() >= lo - 0.15  # 0.6 x 0.8 here: a corner cut by its pairs' share, then by a neighbour's

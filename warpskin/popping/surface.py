@@ -85,6 +85,9 @@ _STRETCH = 0.25  # the swelling stretches or shortens an edge by at most this sh
 _WRITE_STRETCH = STRAIN_LIMIT - 1.0
 _WRITE_SHORTEN = 1.0 - 1.0 / STRAIN_LIMIT
 _WRITE_KEEP = 0.3
+# the shares of a pair's offsets the untangle tries, the largest that keeps it apart kept: a
+# pair may cross at some shares and not at larger ones (two pieces that slide past each other)
+_UNTANGLE_SHARES = np.array([0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95])
 
 
 def belly_profile(t: np.ndarray) -> np.ndarray:
@@ -595,10 +598,10 @@ class SurfacePop:
         surface (:func:`~warpskin.kernels.popping.offset_clearance_kernel`: at most half the
         gap along it, less ``margin``), the shortening eased over the point's ring (its
         neighbours' smallest share, averaged over the ring), so the skin stops short of
-        another part it meets (an arm swinging against the torso) without a crease; a belly
-        held back so swells more where it is free (:meth:`_pressed`); and the offsets are
-        shortened where they still make two triangles intersect that do not without them
-        (:meth:`_untangle`)."""
+        another part it meets (an arm swinging against the torso) without a crease; the
+        offsets are shortened where they still make two triangles intersect that do not
+        without them (:meth:`_untangle`); a belly held back by either swells more where it is
+        free (:meth:`_pressed`), less of that extra where it would cross another piece."""
         out = np.zeros((self.point_count, 3))
         if not len(self.moved):
             return out
@@ -615,8 +618,11 @@ class SurfacePop:
                       outputs=[self._scale], device=self.device)
             scale = self._scale.numpy().astype(np.float64)
             eased = np.minimum(scale, self._ring_mean @ self._ring_min(scale))
-            eased *= self._pressed(o, world, eased)
-            eased *= self._untangle(np.asarray(surface, dtype=np.float64), world * eased[:, None])
+            held = np.asarray(surface, dtype=np.float64)
+            eased *= self._untangle(held, world * eased[:, None])
+            boost = self._pressed(o, world, eased)  # what is held back swells the free side
+            if (boost > 1.0).any():  # where the extra would cross another piece, less of it
+                eased *= 1.0 + (boost - 1.0) * self._untangle(held, world * (eased * boost)[:, None])
             if self._facets is not None:  # one factor per point of the surface (a split corner's copies)
                 slot = self._facets[1]
                 least = np.full(len(self._facets[0]), np.inf)
@@ -672,14 +678,20 @@ class SurfacePop:
         return low
 
     def _untangle(self, surface: np.ndarray, world: np.ndarray, rounds: int = 8) -> np.ndarray:
-        """``[P]`` factors in (0, 1] on the moved points' offsets ``world`` ``[P, 3]`` [m] such
+        """``[P]`` factors in [0, 1] on the moved points' offsets ``world`` ``[P, 3]`` [m] such
         that the surface with them (``surface`` ``[N, 3]`` without them) has no intersecting
         triangle pair that it has not without them (a ray misses where two surfaces meet
-        between its points: fingers side by side): each round shortens the offsets of the new
-        pairs' corners by 30 %, eased over their rings (:func:`~warpskin.metrics.PairQuery`,
-        exact), for at most ``rounds`` rounds. Two triangles that both touch a seam between
-        pieces (a surface cut into pieces) are left: their borders lie on one another by
-        design."""
+        between its points: fingers side by side, an arm swinging against the torso). Each
+        round takes the new pairs (:func:`~warpskin.metrics.PairQuery`, exact) and, per pair,
+        the largest common share of its six corners' offsets, of ``_UNTANGLE_SHARES``, that
+        keeps the two triangles apart (the exact test,
+        :func:`~warpskin.metrics.triangle_pairs_intersect`; none at all does, as they are
+        new); each corner keeps the least of its
+        pairs' shares, eased over its ring so that the held skin does not crease; at most
+        ``rounds`` rounds. Two triangles that both touch a seam between pieces (a surface cut
+        into pieces) are left: their borders lie on one another by design."""
+        from ..metrics import triangle_pairs_intersect
+
         factor = np.ones(len(self.moved))
         x = surface.copy()
         x[self.moved] += world
@@ -687,17 +699,27 @@ class SurfacePop:
         count = np.int64(len(self._triangles))
         with_pop, without = with_pop.astype(np.int64), without.astype(np.int64)
         before = without[:, 0] * count + without[:, 1]  # one key per pair
+        full = np.zeros_like(surface)
         for _ in range(rounds):
             new = with_pop[~np.isin(with_pop[:, 0] * count + with_pop[:, 1], before)
                            & ~(self._seam_triangle[with_pop[:, 0]] & self._seam_triangle[with_pop[:, 1]])]  # seams
             if not len(new):
                 break
-            corners = self._slot[np.unique(self._triangles[new].ravel())]
-            hit = np.zeros(len(self.moved))
-            hit[corners[corners >= 0]] = 1.0
-            if not hit.any():
+            corners = self._triangles[new].reshape(-1, 6)  # [K, 6] the two triangles' points
+            slots = self._slot[corners]
+            if not (slots >= 0).any():
                 break  # the pairs are not the pop's to undo
-            factor *= 1.0 - 0.3 * hit
+            full[self.moved] = world * factor[:, None]
+            base, move = surface[corners], full[corners]  # [K, 6, 3]
+            local = np.arange(len(new) * 6).reshape(-1, 6)
+            lo = np.zeros(len(new))
+            for s in _UNTANGLE_SHARES[::-1]:  # the largest share of the pair's offsets that keeps it apart
+                p = (base + s * move).reshape(-1, 3)
+                lo = np.where((lo == 0.0) & ~triangle_pairs_intersect(p, local[:, :3], local[:, 3:]), s, lo)
+            share = np.ones(len(self.moved))
+            on = slots >= 0
+            np.minimum.at(share, slots[on], np.broadcast_to(lo[:, None], slots.shape)[on])
+            factor *= share
             factor = np.minimum(factor, self._ring_mean @ factor)  # eased over the ring
             x[self.moved] = surface[self.moved] + world * factor[:, None]
             with_pop = self._pairs.pairs(x).astype(np.int64)
