@@ -603,3 +603,40 @@ def test_the_untangle_holds_back_only_what_would_cross_another_piece(device):
         lo, hi = (mid, hi) if intersecting_pairs_brute_force(trial, tris) == 0 else (lo, mid)
     assert 0.3 < lo < 0.9
     assert factor.min() >= lo - 0.15  # 0.6 x 0.8 here: a corner cut by its pairs' share, then by a neighbour's
+
+
+def test_a_mesh_too_coarse_to_show_a_belly_is_refused_in_one_line(tmp_path, capsys, assets):
+    # RiggedFigure: boxes with points only at the joints (130 positions), so no group has three
+    # written points over the middle of its bone: refused before anything is simulated or written
+    rig = assets / "RiggedFigure" / "RiggedFigure.glb"
+    out = tmp_path / "rf.usdc"
+    assert main(["pop", str(rig), "--bpm", "120", "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "too coarse to show a belly" in err[0] and "arm_joint_L_2" in err[0]
+    assert not out.exists() and not list(tmp_path.iterdir())
+    # a group named on the command line that cannot show is named
+    assert main(["pop", str(rig), "--bpm", "120", "-o", str(out), "--quiet", "--groups", "fore=arm_joint_L_2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warpskin: error: --groups: fore:") and "too coarse" in err[0]
+
+
+def test_info_names_the_groups_too_coarse_to_show(capsys, assets):
+    # the Fox's tail bone carries skin, but its written mesh has no three points over its middle
+    # that swell: info lists it as left out, and the others as pop will use them
+    assert main(["info", str(assets / "Fox" / "Fox.glb"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    names = [m["name"] for m in out["muscles"]]
+    assert "b_Tail02_013" not in names and len(names) >= 6
+    (line,) = out["muscles_left_out"]
+    assert "b_Tail02_013" in line and "too coarse" in line
+
+
+def test_info_shows_the_groups_pop_uses_through_the_cage_asked_for(capsys, assets):
+    robot = str(assets / "RobotExpressive" / "RobotExpressive.glb")
+    assert main(["info", robot, "--cage", "always", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["simulation"] == "cage"
+    assert [m["name"] for m in out["muscles"]] == ["UpperArm.L", "LowerArm.L", "UpperArm.R", "LowerArm.R",
+                                                    "UpperLeg.L", "UpperLeg.R"]
+    assert main(["info", robot, "--cage", "nonsense"]) == 2
+    assert "--cage must be auto, always, none or a mesh file" in capsys.readouterr().err

@@ -164,23 +164,25 @@ def cmd_scenes(args) -> int:
 def _muscle_summary(scene, character):
     """The muscle groups ``pop`` (``--pop-on surface``, the default) finds from the skeleton
     of what is simulated (the skin, or the cage), swelling the written meshes, as the pop
-    summary lists them; or the one line why none are found."""
+    summary lists them, or the one line why none are found; and the lines naming those left
+    out (too coarse to show)."""
     from .errors import InputError
     from .model import SkinModelBuilder
     from .popping.examples import has_examples
     from .run.pop import surface_muscles
 
     if has_examples(scene):
-        return "the scene's popping examples"
+        return "the scene's popping examples", []
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             builder = SkinModelBuilder(character.sim_rig, scene.model_params())
             found = surface_muscles(character, builder)[0]
     except InputError as exc:
-        return f"no muscle groups ({exc})"
+        return f"no muscle groups ({exc})", []
+    left = [str(w.message) for w in caught if str(w.message).startswith("muscle groups left out")]
     return [{"name": m.name, "joints": m.joints, "vertices": m.vertices, "depth_mm": 1e3 * m.depth_m,
-             "peak_swell_mm": 1e3 * m.peak_m} for m in found]
+             "peak_swell_mm": 1e3 * m.peak_m} for m in found], left
 
 
 def cmd_info(args) -> int:
@@ -216,10 +218,13 @@ def cmd_info(args) -> int:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        character = Character(rig, weights=scene.physics_weights() or None)
+        character = Character(rig, cage=args.cage, weights=scene.physics_weights() or None)
         character.bind()
     out["physics_weight"] = character.weight_summary()
-    out["muscles"] = _muscle_summary(scene, character)
+    out["simulation"] = "cage" if character.caged else "direct"  # as --cage chose
+    out["muscles"], left_out = _muscle_summary(scene, character)
+    if left_out:
+        out["muscles_left_out"] = left_out
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -242,8 +247,9 @@ def cmd_info(args) -> int:
           f"degenerate triangles: {summary['degenerate_triangles']}")
     if out["other_meshes"]:
         print(f"other meshes following the skeleton ({len(out['other_meshes'])}): {', '.join(out['other_meshes'])}")
+    why = "as --cage asks" if summary["closed"] and summary["manifold"] else "the skin is not one closed manifold"
     how = ("its skin directly (closed, manifold)" if out["simulation"] == "direct"
-           else "an automatic closed cage around it, every mesh captured by it (the skin is not one closed manifold)")
+           else f"a closed cage around it, every mesh captured by it ({why})")
     print(f"simulate would use: {how}")
     if out["rigid_pieces"]:
         print(f"rigid pieces (meshes or parts that LBS moves rigidly, one joint each): {out['rigid_pieces']}; through a "
@@ -257,6 +263,8 @@ def cmd_info(args) -> int:
                   f"{m['depth_mm']:.0f} mm deep, swelling up to {m['peak_swell_mm']:.1f} mm")
     else:
         print(f"pop would use: {muscles}")
+    for line in out.get("muscles_left_out", []):
+        print(f"  ({line})")
     print(f"joints ({summary['joints']}), max {summary['max_influences']} influences per vertex:")
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
@@ -613,6 +621,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("target", metavar="RIG|SCENE")
     s.add_argument("--mesh", help="skinned mesh to inspect (default: the largest)")
     s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
+    s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
+                   help="the physics weights and muscle groups as simulate and pop see them with this --cage")
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=cmd_info)
 

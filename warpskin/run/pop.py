@@ -391,10 +391,20 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
     (:func:`~warpskin.popping.muscles.groups_of_model`, the skin's or its cage's) on the
     character's written points (:func:`~warpskin.popping.surface.surface_swelling`).
 
+    A group shows on the written surface only where its belly (the middle of its bones,
+    :func:`~warpskin.popping.surface.belly_of_groups`) has at least ``_SHOWN_POINTS`` written
+    positions that swell by a quarter of its peak swelling share of the depth there (a coarse
+    mesh, a box limb with points only at its joints, has none): groups found from the skeleton
+    that do not are left out with a warning (a :class:`~warpskin.errors.SceneError` when none
+    is left), and a group named in ``muscles`` that does not is an error.
+
     Returns ``(muscles, displacements [G, N, 3] [m], groups [(name, joints)], bones in the
-    written points' space, mesh of every written point [N])``."""
+    written points' space, mesh of every written point [N], bellies [G, N] bool)``."""
+    import warnings
+
+    from ..errors import RigWarning
     from ..popping.muscles import groups_of_model
-    from ..popping.surface import DEFAULT_SURFACE_SWELL, surface_swelling
+    from ..popping.surface import DEFAULT_SURFACE_SWELL, belly_of_groups, surface_swelling
     from ..preprocess.bones import Bones
     from ..rig import Clip
 
@@ -409,11 +419,38 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
 
     stage = Bones(start=moved(bones.start), end=moved(bones.end), joint_names=list(bones.joint_names))
     mesh = character.mesh_of_point
+    share = DEFAULT_SURFACE_SWELL if swell is None else swell
     found, swelling = surface_swelling(soup.points, soup.triangles, soup.dense_weights, stage,
-                                       character.rig.skeleton.parents, chosen,
-                                       swell=DEFAULT_SURFACE_SWELL if swell is None else swell,
+                                       character.rig.skeleton.parents, chosen, swell=share,
                                        bone_fraction=builder.params.layers.bone, mesh_of_point=mesh, device=device)
-    return found, swelling, chosen, stage, mesh
+    bellies = belly_of_groups(soup.points, soup.triangles, soup.dense_weights, stage, chosen)
+    where = np.concatenate([np.asarray(soup.points, dtype=np.float64),
+                            np.zeros((len(soup.points), 1)) if mesh is None else np.asarray(mesh, dtype=np.float64)[:, None]],
+                           axis=1)  # a written position: its mesh and its point
+    shown = []
+    for g, m in enumerate(found):
+        swells = bellies[g] & (np.linalg.norm(swelling[g], axis=1) >= 0.25 * share * m.depth_m)
+        shown.append(len(np.unique(where[swells], axis=0)) >= _SHOWN_POINTS if m.depth_m > 0.0 else False)
+    hidden = [m.name for m, ok in zip(found, shown) if not ok]
+    if hidden and muscles is not None:
+        raise SceneError(f"--groups: {', '.join(hidden)}: fewer than {_SHOWN_POINTS} written points over the middle of "
+                         "the bone swell by a quarter of the peak (the mesh is too coarse there to show a belly)")
+    if hidden:
+        if len(hidden) == len(found):
+            raise SceneError(f"no muscle group found from the skeleton shows on the written meshes: none has "
+                             f"{_SHOWN_POINTS} written points over the middle of its bone that swell by a quarter of the "
+                             f"peak ({', '.join(hidden)}); the meshes are too coarse to show a belly: subdivide them")
+        warnings.warn(f"muscle groups left out, too coarse to show a belly on the written meshes (fewer than "
+                      f"{_SHOWN_POINTS} written points over the middle of the bone swell by a quarter of the peak): "
+                      f"{', '.join(hidden)}", RigWarning, stacklevel=2)
+        keep = np.array(shown)
+        found = [m for m, ok in zip(found, shown) if ok]
+        chosen = [c for c, ok in zip(chosen, shown) if ok]
+        swelling, bellies = swelling[keep], bellies[keep]
+    return found, swelling, chosen, stage, mesh, bellies
+
+
+_SHOWN_POINTS = 3  # the fewest written positions on a belly that swell visibly for a group to pop
 
 
 def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
@@ -422,14 +459,13 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
     (:class:`~warpskin.popping.surface.SurfacePop`), stepped with the solver's steps of
     ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh: belly mask per
     point}``) and sets the activation ``timeline``."""
-    from ..popping.surface import SurfacePop, belly_of_groups, seam_points
+    from ..popping.surface import SurfacePop, seam_points
     from ..rig import Clip
 
     soup, rig = character.soup, character.rig
-    found[:], swelling, chosen, stage, mesh = surface_muscles(character, builder, muscles, swell, device)
+    found[:], swelling, chosen, stage, mesh, belly = surface_muscles(character, builder, muscles, swell, device)
     names = [m.name for m in found]
-    bellies[:] = [character.split(mask) for mask in belly_of_groups(soup.points, soup.triangles, soup.dense_weights, stage,
-                                                                  chosen)]
+    bellies[:] = [character.split(mask) for mask in belly]
     timeline(names, respond=False)  # the points themselves vibrate
     diagonal = character.rig.size()
     return SurfacePop(swelling, soup.dense_weights, rig.skinning_matrices(Clip("rest"), 0.0), plan.substep_times(),
