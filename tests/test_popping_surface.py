@@ -352,13 +352,13 @@ def test_a_belly_pressed_on_one_side_swells_more_on_the_other(device):
     for k in range(3):
         np.add.at(vertex_area, tris[:, k], area / 3.0)
     size = vertex_area * np.linalg.norm(world, axis=1)
-    extra = min(np.sum(size * (1 - kept)) / np.sum(size * kept), 0.3)
-    assert 0.0 < extra < 0.3  # not at the cap
+    extra = min(np.sum(size * (1 - kept)) / np.sum(size * kept), 0.6)
+    assert 0.0 < extra < 0.6  # not at the cap
     rest = pop.offset.numpy().astype(np.float64)  # the rest-pose offsets (outward: along the swelling)
     np.testing.assert_allclose(pop._pressed(rest, world, kept), 1.0 + extra * kept ** 4, rtol=1e-9)
-    # pressed hard (a fifth kept on most of it), the free side takes at most 30 % more
+    # pressed hard (a fifth kept on most of it), the free side takes at most 60 % more
     hard = np.where(points[:, 0] < 0.01, 0.2, 1.0)
-    np.testing.assert_allclose(pop._pressed(rest, world, hard), 1.0 + 0.3 * hard ** 4, rtol=1e-9)
+    np.testing.assert_allclose(pop._pressed(rest, world, hard), 1.0 + 0.6 * hard ** 4, rtol=1e-9)
 
 
 def test_a_limb_mesh_bunched_at_one_end_pops_where_its_surface_is():

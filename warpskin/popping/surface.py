@@ -73,7 +73,7 @@ DEFAULT_SURFACE_SWELL = 0.4
 (over the middle of the bone; the stretch limit and the clearance may take some of it)."""
 _THIN = 0.25  # the thinning is at most this share of the belly's peak
 _BARE = 0.05  # a bone with less of its surface than this over its middle pops on the surface it carries
-_PRESSED = 0.3  # a belly pressed on one side swells at most this much more on its free side
+_PRESSED = 0.6  # a belly pressed on one side swells at most this much more on its free side
 _EASE = 4  # passes of the ring mean that ease the depth over a group's skin
 _AHEAD = 0.5  # cos of the half-angle of the cone ahead of a swelling point in which another piece holds it
 _AHEAD_K = 256  # the most neighbours searched for one ahead of a point
