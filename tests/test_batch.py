@@ -53,6 +53,7 @@ frames = "0:3"
 rig = "arm"
 frames = "0:2"
 output = "arm/sim.usdc"
+args = ["--lbs"]
 
 [[job]]
 rig = "popping_arm"
@@ -74,7 +75,7 @@ rig = "{bad.name}"
     assert not (out / "broken" / "default.usdc").exists()
     # each bake is what its single command writes, bit for bit
     for rel, argv in (("arm/default.usdc", ["skin", "arm", "--frames", "0:3"]),
-                      ("arm/sim.usdc", ["simulate", "arm", "--frames", "0:2"]),
+                      ("arm/sim.usdc", ["simulate", "arm", "--frames", "0:2", "--lbs"]),
                       ("popping_arm/default.usdc", ["pop", "popping_arm", "--frames", "0:5", "--bpm", "120"])):
         alone = tmp_path / rel.replace("/", "_")
         assert main([*argv, "-o", str(alone), "--quiet"]) == 0
@@ -83,6 +84,23 @@ rig = "{bad.name}"
     assert "| arm/sim.usdc | simulate | ok |" in index and "| broken/default.usdc | simulate | failed |" in index
     sim = next(line for line in index.splitlines() if line.startswith("| arm/sim.usdc"))
     assert "cpu, 3 frames" in sim and "ms/step" in sim and "(LBS " in sim  # its summary's figures
+    # a picture of each bake (the written skin beside its LBS guide) in the index, none for the failure
+    thumb = out / "thumbs" / "arm__sim.usdc.png"
+    assert f"![arm/sim.usdc](thumbs/{thumb.name})" in sim and thumb.is_file()
+    assert "![" not in next(line for line in index.splitlines() if line.startswith("| broken/"))
+    pytest.importorskip("matplotlib")
+    from matplotlib.image import imread
+
+    image = imread(thumb)
+    assert image.shape[:2] == (240, 320)
+    ink = image[:, :, :3].min(axis=2) < 0.9  # not the white background
+    left, right = ink[:, :160], ink[:, 160:]
+    assert 0.01 < left.mean() < 0.6 and 0.01 < right.mean() < 0.6  # the arm, and its LBS beside it
+    # the two drawn at one scale: the same size on the page within two pixels (frame 1: near LBS)
+    for axis in (0, 1):
+        spans = [np.nonzero(half.any(axis=axis))[0] for half in (left, right)]
+        assert abs((spans[0][-1] - spans[0][0]) - (spans[1][-1] - spans[1][0])) <= 2
+    drawn = thumb.stat().st_mtime_ns
     # a rerun does no work: the finished jobs are up to date (their files untouched), the
     # failed one runs again
     stamps = {k: (out / k).stat().st_mtime_ns for k in ("arm/default.usdc", "arm/sim.usdc")}
@@ -90,6 +108,7 @@ rig = "{bad.name}"
     assert main(["batch", str(jobs), "-o", str(out), "--quiet"]) == 3
     assert "0 ran, 3 up to date, 1 failed" in capsys.readouterr().out
     assert {k: (out / k).stat().st_mtime_ns for k in stamps} == stamps
+    assert thumb.stat().st_mtime_ns == drawn  # not drawn again
     again = _manifest(out)
     assert again["arm/sim.usdc"]["attempts"] == 1 and again["broken/default.usdc"]["attempts"] == 1
     # a changed input is not up to date

@@ -682,13 +682,32 @@ def _report_of(job: Job) -> str | None:
     return None
 
 
+def _thumbnail(out: Path, job: Job) -> str:
+    """The index's picture of a finished job (``thumbs/<job>.png``, drawn by
+    :func:`~warpskin.thumbnail.write_thumbnail` unless newer than the bake), as Markdown;
+    empty where it cannot be drawn (no matplotlib, no mesh)."""
+    from .thumbnail import write_thumbnail
+
+    target = out / "thumbs" / f"{_log_name(job.id)}.png"
+    try:
+        if not target.is_file() or target.stat().st_mtime < job.output.stat().st_mtime:
+            write_thumbnail(job.output, target)
+    except (ImportError, ValueError, OSError):
+        return ""
+    return f"![{job.id}]({target.relative_to(out).as_posix()})"
+
+
 def _write_index(out: Path, jobs: list[Job], entries: dict, result: BatchResult) -> None:
     """``index.md``: every job's status, time, figures (device, frames, cost, volume beside
-    LBS), its bake and report, or its message; written atomically."""
-    rows = ["| job | command | status | time | figures | output or message |", "|---|---|---|---|---|---|"]
+    LBS), a picture of its bake at its middle frame beside LBS (:func:`_thumbnail`), its bake
+    and report, or its message; written atomically."""
+    rows = ["| job | command | status | time | figures | output or message | picture |",
+            "|---|---|---|---|---|---|---|"]
     for job in jobs:
         e = entries[job.id]
+        picture = ""
         if e.get("status") == "ok":
+            picture = _thumbnail(out, job)
             what = f"[{job.id}]({job.id})"
             report = _report_of(job)
             if report:
@@ -697,7 +716,8 @@ def _write_index(out: Path, jobs: list[Job], entries: dict, result: BatchResult)
             what = f"exit {e.get('exit_code')}: " + str(e.get("message", "")).replace("|", "/")
         seconds = e.get("seconds")
         rows.append(f"| {job.id} | {job.command} | {e.get('status')} | "
-                    f"{'' if seconds is None else f'{seconds:.1f} s'} | {_figures(e.get('summary', {}))} | {what} |")
+                    f"{'' if seconds is None else f'{seconds:.1f} s'} | {_figures(e.get('summary', {}))} | {what} | "
+                    f"{picture} |")
     head = (f"# warpskin batch\n\n{len(jobs)} jobs: {len(jobs) - len(result.failed)} succeeded "
             f"({len(result.skipped)} up to date), {len(result.failed)} failed; {result.seconds:.1f} s.\n\n")
     _write_text(out / "index.md", head + "\n".join(rows) + "\n")
