@@ -169,7 +169,7 @@ def _muscle_summary(scene, character):
     from .errors import InputError
     from .model import SkinModelBuilder
     from .popping.examples import has_examples
-    from .run.pop import surface_muscles
+    from .run.pop import LEFT_OUT, surface_muscles
 
     if has_examples(scene):
         return "the scene's popping examples", []
@@ -180,7 +180,7 @@ def _muscle_summary(scene, character):
             found = surface_muscles(character, builder)[0]
     except InputError as exc:
         return f"no muscle groups ({exc})", []
-    left = [str(w.message) for w in caught if str(w.message).startswith("muscle groups left out")]
+    left = [str(w.message) for w in caught if str(w.message).startswith(LEFT_OUT)]
     return [{"name": m.name, "joints": m.joints, "vertices": m.vertices, "depth_mm": 1e3 * m.depth_m,
              "peak_swell_mm": 1e3 * m.peak_m} for m in found], left
 

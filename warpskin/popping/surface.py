@@ -699,7 +699,6 @@ class SurfacePop:
         count = np.int64(len(self._triangles))
         with_pop, without = with_pop.astype(np.int64), without.astype(np.int64)
         before = without[:, 0] * count + without[:, 1]  # one key per pair
-        full = np.zeros_like(surface)
         for _ in range(rounds):
             new = with_pop[~np.isin(with_pop[:, 0] * count + with_pop[:, 1], before)
                            & ~(self._seam_triangle[with_pop[:, 0]] & self._seam_triangle[with_pop[:, 1]])]  # seams
@@ -707,17 +706,17 @@ class SurfacePop:
                 break
             corners = self._triangles[new].reshape(-1, 6)  # [K, 6] the two triangles' points
             slots = self._slot[corners]
-            if not (slots >= 0).any():
+            on = slots >= 0
+            if not on.any():
                 break  # the pairs are not the pop's to undo
-            full[self.moved] = world * factor[:, None]
-            base, move = surface[corners], full[corners]  # [K, 6, 3]
+            base = surface[corners]  # [K, 6, 3]
+            move = np.where(on[:, :, None], (world * factor[:, None])[np.maximum(slots, 0)], 0.0)
             local = np.arange(len(new) * 6).reshape(-1, 6)
             lo = np.zeros(len(new))
             for s in _UNTANGLE_SHARES[::-1]:  # the largest share of the pair's offsets that keeps it apart
                 p = (base + s * move).reshape(-1, 3)
                 lo = np.where((lo == 0.0) & ~triangle_pairs_intersect(p, local[:, :3], local[:, 3:]), s, lo)
             share = np.ones(len(self.moved))
-            on = slots >= 0
             np.minimum.at(share, slots[on], np.broadcast_to(lo[:, None], slots.shape)[on])
             factor *= share
             factor = np.minimum(factor, self._ring_mean @ factor)  # eased over the ring

@@ -385,6 +385,10 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
     return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
 
 
+_SHOWN_POINTS = 3  # the fewest written positions on a belly that swell visibly for a group to pop
+LEFT_OUT = "muscle groups left out"  # how the warning naming the groups too coarse to show starts
+
+
 def surface_muscles(character, builder, muscles=None, swell: float | None = None, device=None):
     """The muscle groups of a character's written meshes and their rest-pose swellings, as
     ``warpskin pop`` (``--pop-on surface``) uses them: the groups of ``builder``'s model
@@ -402,6 +406,7 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
     written points' space, mesh of every written point [N], bellies [G, N] bool)``."""
     import warnings
 
+    from ..capture import welded_pieces
     from ..errors import RigWarning
     from ..popping.muscles import groups_of_model
     from ..popping.surface import DEFAULT_SURFACE_SWELL, belly_of_groups, surface_swelling
@@ -424,13 +429,13 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
                                        character.rig.skeleton.parents, chosen, swell=share,
                                        bone_fraction=builder.params.layers.bone, mesh_of_point=mesh, device=device)
     bellies = belly_of_groups(soup.points, soup.triangles, soup.dense_weights, stage, chosen)
-    where = np.concatenate([np.asarray(soup.points, dtype=np.float64),
-                            np.zeros((len(soup.points), 1)) if mesh is None else np.asarray(mesh, dtype=np.float64)[:, None]],
-                           axis=1)  # a written position: its mesh and its point
+    # a written position: one mesh's points at one place (seam and flat-shading copies)
+    position = welded_pieces(soup.points, soup.triangles,
+                             np.zeros(len(soup.points), dtype=np.int64) if mesh is None else mesh)[1]
     shown = []
     for g, m in enumerate(found):
         swells = bellies[g] & (np.linalg.norm(swelling[g], axis=1) >= 0.25 * share * m.depth_m)
-        shown.append(len(np.unique(where[swells], axis=0)) >= _SHOWN_POINTS if m.depth_m > 0.0 else False)
+        shown.append(m.depth_m > 0.0 and np.unique(position[swells]).size >= _SHOWN_POINTS)
     hidden = [m.name for m, ok in zip(found, shown) if not ok]
     if hidden and muscles is not None:
         raise SceneError(f"--groups: {', '.join(hidden)}: fewer than {_SHOWN_POINTS} written points over the middle of "
@@ -440,7 +445,7 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
             raise SceneError(f"no muscle group found from the skeleton shows on the written meshes: none has "
                              f"{_SHOWN_POINTS} written points over the middle of its bone that swell by a quarter of the "
                              f"peak ({', '.join(hidden)}); the meshes are too coarse to show a belly: subdivide them")
-        warnings.warn(f"muscle groups left out, too coarse to show a belly on the written meshes (fewer than "
+        warnings.warn(f"{LEFT_OUT}, too coarse to show a belly on the written meshes (fewer than "
                       f"{_SHOWN_POINTS} written points over the middle of the bone swell by a quarter of the peak): "
                       f"{', '.join(hidden)}", RigWarning, stacklevel=2)
         keep = np.array(shown)
@@ -449,8 +454,6 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
         swelling, bellies = swelling[keep], bellies[keep]
     return found, swelling, chosen, stage, mesh, bellies
 
-
-_SHOWN_POINTS = 3  # the fewest written positions on a belly that swell visibly for a group to pop
 
 
 def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
