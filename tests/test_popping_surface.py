@@ -488,7 +488,10 @@ def test_the_copies_of_a_flat_shaded_corner_are_written_together(device):
             spread = np.maximum(spread, hi - lo)
         gaps.append(spread.max())
         free = pop.offsets(eye)[: len(soup)]
-        held.append(np.linalg.norm(free, axis=1).max() - np.linalg.norm(out, axis=1).max())
+        # under the plate (the belly's side that faces it): the offset it took back there (the
+        # free side may swell more: a belly pressed on one side)
+        under = (soup[:, 0] > 0.5 * R) & (soup[:, 1] > 0.2 * L) & (soup[:, 1] < 0.8 * L)
+        held.append(float((np.linalg.norm(free, axis=1) - np.linalg.norm(out, axis=1))[under].max()))
     assert max(gaps) < 1e-7  # [m]: the copies move as one corner
     assert max(held) > 0.2 * np.abs(field).max()  # and the plate did hold the belly back
 
@@ -556,28 +559,43 @@ def test_a_sliver_that_would_fold_keeps_half_its_area_facing_as_at_rest():
     assert all(area(x, t) >= _KEEP * area(pts, t) for t in tris)
 
 
-def test_the_untangle_holds_back_only_what_would_cross_another_piece(device):
-    # a patch swelling up to 6 mm (+z) under a separate, tilted plate 3-4 mm over its right part
-    # (an arm swinging against the torso): with the untangle's factors no triangle pair crosses
-    # that did not without the pop (brute force over every pair), the skin three rings clear of
-    # the plate keeps its whole offset, and the held skin keeps nearly the largest common share
-    # of every offset that keeps the whole patch clear (found by bisection)
-    from oracles import intersecting_pairs_brute_force
-    from warpskin.metrics import self_intersections
-
+def _patch_under_plates(*, steep_at: float | None = None):
+    """A patch swelling up to 6 mm (+z) in a bump, its rim held at 0, under a separate plate
+    tilted 0.1 that starts 3.1 mm over it at x = 6.1 mm (an arm swinging against the torso);
+    with ``steep_at``, also a steep plate (x = steep_at + 0.6 z) through the patch at rest (a
+    limb already through the piece over it). Returns ``(points, triangles, disparity [1, N, 3],
+    the tilted plate's triangles, the steep plate's)``."""
     n = 8
     g = (np.arange(n) - 3.5) * 0.005 + 0.0003 * np.sin(np.arange(n) * 1.7)
     patch = np.array([(x, y, 0.0004 * np.sin(97.0 * x) * np.cos(71.0 * y)) for y in g for x in g])  # not flat
     ptris = np.array([(r * n + c, r * n + c + 1, r * n + c + n + 1) for r in range(n - 1) for c in range(n - 1)]
                      + [(r * n + c, r * n + c + n + 1, r * n + c + n) for r in range(n - 1) for c in range(n - 1)])
     x0 = 0.0061
-    plate = np.array([(x0, -0.04, 0.0031), (0.05, -0.04, 0.0031 + 0.1 * (0.05 - x0)),
-                      (0.05, 0.04, 0.0031 + 0.1 * (0.05 - x0)), (x0, 0.04, 0.0031)])
-    points = np.concatenate([patch, plate])
-    tris = np.concatenate([ptris, np.array([(0, 1, 2), (0, 2, 3)]) + n * n])
+    plates = [np.array([(x0, -0.04, 0.0031), (0.05, -0.04, 0.0031 + 0.1 * (0.05 - x0)),
+                        (0.05, 0.04, 0.0031 + 0.1 * (0.05 - x0)), (x0, 0.04, 0.0031)])]
+    if steep_at is not None:
+        plates.append(np.array([(steep_at + 0.6 * z, y, z) for y, z in ((-0.04, -0.004), (-0.04, 0.012),
+                                                                          (0.04, 0.012), (0.04, -0.004))]))
+    points = np.concatenate([patch, *plates])
+    quad = np.array([(0, 1, 2), (0, 2, 3)])
+    tris = np.concatenate([ptris] + [quad + n * n + 4 * k for k in range(len(plates))])
     disparity = np.zeros((1, len(points), 3))
     r = np.maximum(np.abs(patch[:, 0]), np.abs(patch[:, 1])) / 0.0175
     disparity[0, : n * n, 2] = 0.006 * np.clip(1.3 * (1.0 - r), 0.0, 1.0)  # a bump, its rim held at 0
+    plate_tris = [len(ptris) + 2 * k + np.arange(2) for k in range(len(plates))]
+    return points, tris, disparity, plate_tris[0], (plate_tris[1] if steep_at is not None else None)
+
+
+def test_the_untangle_holds_back_only_what_would_cross_another_piece(device):
+    # with the untangle's factors no triangle pair crosses that did not without the pop (brute
+    # force over every pair), the skin three rings clear of the plate keeps its whole offset,
+    # and the held skin keeps nearly the largest common share of every offset that keeps the
+    # whole patch clear (found by bisection)
+    from oracles import intersecting_pairs_brute_force
+    from warpskin.metrics import self_intersections
+
+    points, tris, disparity, _, _ = _patch_under_plates()
+    x0 = 0.0061
     weights = np.ones((len(points), 1))
     eye = np.eye(4)[None]
     pop = SurfacePop(disparity, weights, eye, [0.01], lambda t: np.ones(1), h=0.01, alpha_min=1.0, beta=30.0,
@@ -603,6 +621,44 @@ def test_the_untangle_holds_back_only_what_would_cross_another_piece(device):
         lo, hi = (mid, hi) if intersecting_pairs_brute_force(trial, tris) == 0 else (lo, mid)
     assert 0.3 < lo < 0.9
     assert factor.min() >= lo - 0.15  # 0.6 x 0.8 here: a corner cut by its pairs' share, then by a neighbour's
+
+def test_a_crossing_the_source_already_has_is_not_held_when_the_pop_moves_it(device):
+    # a steep plate already through the patch (a limb through the piece over it, the robot's
+    # thigh under its skirt): the bump moves that crossing by less than a ring, which makes new
+    # pairs, each next to a pair of the crossing without the pop; the skin there keeps its whole
+    # offset, while the tilted plate still holds the bump back where the pop alone would cross it
+    from oracles import intersecting_pair_list_brute_force
+
+    xs = -0.0101
+    points, tris, disparity, tilted, steep = _patch_under_plates(steep_at=xs)
+    eye = np.eye(4)[None]
+    pop = SurfacePop(disparity, np.ones((len(points), 1)), eye, [0.01], lambda t: np.ones(1), h=0.01,
+                     alpha_min=1.0, beta=30.0, triangles=tris, points=points, device=device)
+    pop.advance(1)
+    world = pop.offsets(eye)[pop.moved]
+    assert np.allclose(world, disparity[0, pop.moved])
+
+    def pairs(offset):
+        x = points.copy()
+        x[pop.moved] += offset
+        return {tuple(sorted(p)) for p in intersecting_pair_list_brute_force(x, tris).tolist()}
+
+    without = pairs(0.0)
+    assert without and all(set(p) & set(steep.tolist()) for p in without)  # only the steep plate crosses
+    new_whole = pairs(world) - without
+    assert any(set(p) & set(steep.tolist()) for p in new_whole)  # the whole pop moves that crossing
+    assert any(set(p) & set(tilted.tolist()) for p in new_whole)  # and crosses the tilted plate
+
+    factor = pop._untangle(points, world)
+    x = points[pop.moved, 0]
+    assert np.all(factor[x < xs - 0.001] > 1.0 - 1e-12)  # the skin at the steep crossing keeps its offset
+    assert factor.min() < 0.7  # the tilted plate still holds the bump back
+    new_kept = pairs(world * factor[:, None]) - without
+    assert not any(set(p) & set(tilted.tolist()) for p in new_kept)
+    corners = [set(t) for t in tris.tolist()]
+    touches = lambda a, b: bool(corners[a] & corners[b])  # noqa: E731  share a point (or are one)
+    for a, b in new_kept:  # each new pair lies next to a crossing of the source, on both sides
+        assert any((touches(a, c) and touches(b, d)) or (touches(a, d) and touches(b, c)) for c, d in without)
 
 
 def test_a_mesh_too_coarse_to_show_a_belly_is_refused_in_one_line(tmp_path, capsys, assets):

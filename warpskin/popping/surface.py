@@ -45,7 +45,9 @@ order:
 
 The skin beyond the groups' bones, their parents and children never moves. While the skin is
 written, each offset also stops at half the gap to any surface it would meet in that frame,
-and the offsets, one per point of the surface (a split corner's copies move as one), keep
+the offsets make no crossing the frame has not without them (but for one next to a crossing
+it has: a limb through the piece over it in the source, moved by at most one ring), and the
+offsets, one per point of the surface (a split corner's copies move as one), keep
 every edge within the written-quality band (``STRAIN_LIMIT``) and every facet unfolded
 against the frame without the pop (:meth:`SurfacePop.offsets`).
 """
@@ -565,6 +567,13 @@ class SurfacePop:
                 from ..metrics import PairQuery
 
                 self._triangles = tris
+                # triangles that share a point of the surface (a seam's copies are one point):
+                # a crossing the pop moves by one ring of the crossing the frame has without it
+                # is that crossing, not a new one (:meth:`_untangle`)
+                weld = np.arange(n) if points is None else _welded_surface(points, tris, mesh_of_point)[1]
+                incidence = sp.csr_matrix((np.ones(tris.size), (np.repeat(np.arange(len(tris)), 3), weld[tris].ravel())),
+                                          shape=(len(tris), int(weld.max()) + 1 if n else 0))
+                self._touching = ((incidence @ incidence.T) > 0).astype(np.float64).tocsr()
                 on_seam = np.zeros(n, dtype=bool) if seams is None else np.asarray(seams, dtype=bool)
                 self._seam_triangle = on_seam[tris].any(axis=1)
                 self._pairs = PairQuery(tris)
@@ -600,7 +609,8 @@ class SurfacePop:
         neighbours' smallest share, averaged over the ring), so the skin stops short of
         another part it meets (an arm swinging against the torso) without a crease; the
         offsets are shortened where they still make two triangles intersect that do not
-        without them (:meth:`_untangle`); a belly held back by either swells more where it is
+        without them, other than a crossing the frame has without them moved by one ring
+        (:meth:`_untangle`); a belly held back by either swells more where it is
         free (:meth:`_pressed`), less of that extra where it would cross another piece."""
         out = np.zeros((self.point_count, 3))
         if not len(self.moved):
@@ -689,7 +699,13 @@ class SurfacePop:
         new); each corner keeps the least of its
         pairs' shares, eased over its ring so that the held skin does not crease; at most
         ``rounds`` rounds. Two triangles that both touch a seam between pieces (a surface cut
-        into pieces) are left: their borders lie on one another by design."""
+        into pieces) are left: their borders lie on one another by design; so are two triangles
+        that share a point of the surface (the copies of a flat-shaded or seam corner: they
+        touch there; the written-quality check does not count them either, and
+        :meth:`_keep_facets` keeps every facet unfolded). So is a pair whose
+        triangles each share a point with the two triangles of a pair that intersects without
+        the pop: a crossing the source already has (a limb through the piece over it, a
+        stylised mesh through itself) that the pop moves by at most one ring, not a new one."""
         from ..metrics import triangle_pairs_intersect
 
         factor = np.ones(len(self.moved))
@@ -699,9 +715,21 @@ class SurfacePop:
         count = np.int64(len(self._triangles))
         with_pop, without = with_pop.astype(np.int64), without.astype(np.int64)
         before = without[:, 0] * count + without[:, 1]  # one key per pair
+        # the source's crossings: pairs without the pop that share no point of the surface (a
+        # flat-shaded mesh's neighbours touch at their corners' copies: no crossing)
+        apart = without[np.asarray(self._touching[without[:, 0], without[:, 1]]).ravel() == 0.0] if len(without) \
+            else without
+        crossing = sp.csr_matrix((np.ones(2 * len(apart)), (np.r_[apart[:, 0], apart[:, 1]],
+                                                            np.r_[apart[:, 1], apart[:, 0]])),
+                                 shape=(int(count), int(count)))
         for _ in range(rounds):
             new = with_pop[~np.isin(with_pop[:, 0] * count + with_pop[:, 1], before)
                            & ~(self._seam_triangle[with_pop[:, 0]] & self._seam_triangle[with_pop[:, 1]])]  # seams
+            if len(new):  # neighbours on the surface (a flat-shaded corner's copies) touch: no crossing
+                new = new[np.asarray(self._touching[new[:, 0], new[:, 1]]).ravel() == 0.0]
+            if len(new) and len(apart):  # a crossing of the source moved by one ring
+                moved = np.asarray((self._touching[new[:, 0]] @ crossing).multiply(self._touching[new[:, 1]]).sum(axis=1)).ravel()
+                new = new[moved == 0.0]
             if not len(new):
                 break
             corners = self._triangles[new].reshape(-1, 6)  # [K, 6] the two triangles' points
