@@ -474,7 +474,9 @@ def detect_edge_edge_kernel(
 # --------------------------------------------------------------------------------------------
 @wp.kernel
 def detect_kernel(
-    bvh: wp.uint64,
+    trees: wp.array(dtype=wp.uint64),
+    tri_tree: wp.array(dtype=wp.int32),
+    tree_start: wp.array(dtype=wp.int32),
     x_old: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
@@ -508,14 +510,17 @@ def detect_kernel(
     tri_pairs: wp.array2d(dtype=wp.int32),
     pair_count: wp.array(dtype=wp.int32),
 ):
-    """``tri_owns`` bits 0-2: the triangle owns its corner k; bits 3-5: its edge k (corner k to
-    k + 1). With ``list_pairs``, every pair of triangles with no shared vertex whose boxes the
+    """Triangle ``t`` queries the tree ``trees[tri_tree[t]]``, over the triangles from
+    ``tree_start`` of that tree on (one tree per character of a batched model: contacts stay
+    within a character; one tree from 0 otherwise). ``tri_owns`` bits 0-2: the triangle owns
+    its corner k; bits 3-5: its edge k (corner k to k + 1). With ``list_pairs``, every pair of triangles with no shared vertex whose boxes the
     query pairs (the tree's boxes carry the radius, the query box does not) and whose swept
     boxes are within ``list_gap`` of each other goes into ``tri_pairs`` once (lower index
     first), for the fail-safe of the step (see :func:`listed_new_intersections_kernel`); ``pair_count`` counts them all, also those
     beyond ``pair_capacity``, which are not written (the fail-safe then does without the
     list)."""
     t = wp.tid()
+    tree = tri_tree[t]
     owns = tri_owns[t]
     if owns == 0 and list_pairs == 0:
         return
@@ -527,9 +532,11 @@ def detect_kernel(
     hi = wp.matrix_from_rows(wp.max(x_old[i0], x_pred[i0]), wp.max(x_old[i1], x_pred[i1]), wp.max(x_old[i2], x_pred[i2]))
     qlo = wp.min(wp.min(lo[0], lo[1]), lo[2])
     qhi = wp.max(wp.max(hi[0], hi[1]), hi[2])
-    query = wp.bvh_query_aabb(bvh, qlo, qhi)
-    u = int(0)
-    while wp.bvh_query_next(query, u):
+    query = wp.bvh_query_aabb(trees[tree], qlo, qhi)
+    first = tree_start[tree]
+    hit = int(0)
+    while wp.bvh_query_next(query, hit):
+        u = first + hit
         if list_pairs != 0 and u > t and boxes_overlap(qlo - wp.vec3(list_gap), qhi + wp.vec3(list_gap),
                                                        lowers[u] + wp.vec3(radius), uppers[u] - wp.vec3(radius)):
             b0 = tri_indices[u, 0]
@@ -1128,7 +1135,9 @@ def new_intersection(
 @wp.func
 def new_intersections_from(
     t: int,
-    bvh: wp.uint64,
+    trees: wp.array(dtype=wp.uint64),
+    tri_tree: wp.array(dtype=wp.int32),
+    tree_start: wp.array(dtype=wp.int32),
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
@@ -1145,7 +1154,8 @@ def new_intersections_from(
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """Triangle ``t``'s part of :func:`new_intersections_kernel`."""
+    """Triangle ``t``'s part of :func:`new_intersections_kernel` (its tree: ``trees[tri_tree[t]]``
+    over the triangles from ``tree_start`` of that tree on)."""
     if only_escaped != 0 and escaped[t] == 0:
         return
     a0 = tri_indices[t, 0]
@@ -1160,9 +1170,12 @@ def new_intersections_from(
     # positions is far larger where it moved far (the triangles that escaped the pair list), and
     # finds far more
     qlo, qhi = triangle_box(x, tri_indices, t, pad)
-    query = wp.bvh_query_aabb(bvh, qlo, qhi)
-    u = int(0)
-    while wp.bvh_query_next(query, u):
+    tree = tri_tree[t]
+    query = wp.bvh_query_aabb(trees[tree], qlo, qhi)
+    first = tree_start[tree]
+    hit = int(0)
+    while wp.bvh_query_next(query, hit):
+        u = first + hit
         if u == t:
             continue
         b0 = tri_indices[u, 0]
@@ -1187,7 +1200,9 @@ def new_intersections_from(
 
 @wp.kernel
 def new_intersections_kernel(
-    bvh: wp.uint64,
+    trees: wp.array(dtype=wp.uint64),
+    tri_tree: wp.array(dtype=wp.int32),
+    tree_start: wp.array(dtype=wp.int32),
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
@@ -1225,7 +1240,8 @@ def new_intersections_kernel(
             return
     first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
-        new_intersections_from(t, bvh, x_old, x, tri_indices, pad, tol, moved, only_moved, escaped, only_escaped, rest,
+        new_intersections_from(t, trees, tri_tree, tree_start, x_old, x, tri_indices, pad, tol, moved, only_moved,
+                               escaped, only_escaped, rest,
                                joint_indices, joint_weights, skin_matrices, revert, count)
 
 

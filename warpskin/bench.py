@@ -18,7 +18,7 @@ from .device import resolve_device
 from .skinning import Skinner
 from .scene import resolve_scene
 
-__all__ = ["run_skinning_bench", "run_build_bench", "run_solver_bench", "run_popping_bench"]
+__all__ = ["run_skinning_bench", "run_build_bench", "run_solver_bench", "run_popping_bench", "run_batch_bench"]
 
 
 def _best_ms(fn, frames: int, repeat: int, device) -> float:
@@ -346,3 +346,74 @@ def run_popping_bench(device=None, steps: int = 200, repeat: int = 3, *, rings: 
     row["frame_over_lbs"] = row["frame_ms"] / row["lbs_ms"] if row["lbs_ms"] > 0 else None
     row["step_over_lbs_kernel"] = row["step_ms"] / row["lbs_kernel_ms"] if row["lbs_kernel_ms"] > 0 else None
     return row
+
+
+def run_batch_bench(targets: list[str], count: int, *, device: str | None = None, steps: int = 10,
+                    repeat: int = 3) -> dict:
+    """Character-steps per second of ``count`` instances of each scene in one batched model
+    (:func:`~warpskin.batch_model.batch_model`: one launch per kernel steps them all) against
+    the same instances as ``count`` separate models stepped one after another, on one device.
+
+    Per scene: ``characters``, ``particles`` (the batch's); ``batch_step_ms`` (one step of the
+    batch, collisions included, each instance at its own moment of the clip);
+    ``separate_step_ms`` (the same instances as separate models, one step each, one after
+    another: ``count`` separate runs) and ``single_step_ms`` (its mean per instance); ``batch_character_steps_per_s`` and
+    ``separate_character_steps_per_s``; ``speedup`` (separate over batch, measured in the same
+    run). A scene the batch cannot lay out (a refined skin, see the batch's limits) reports
+    its ``error``.
+    """
+    from .batch_model import batch_initial_state, batch_model
+    from .model import SkinModelBuilder
+    from .run.physics import initial_state
+    from .solver import SkinSolver
+
+    if not (isinstance(count, int) and count >= 1):
+        raise ValueError(f"--batch needs a positive number of characters, got {count!r}")
+    if steps < 1 or repeat < 1:
+        raise ValueError("steps and repeat must be >= 1")
+    dev = resolve_device(device)
+    out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
+           "cpu_count": os.cpu_count(), "characters": count, "steps": steps, "repeat": repeat, "scenes": {}}
+    for target in targets:
+        try:
+            scene = resolve_scene(target)
+            rig = scene.rig()
+            params = scene.solver_params()
+            builder = SkinModelBuilder(rig, scene.model_params())
+            builder.params.collision = scene.collision_params()
+            batch = batch_model([builder] * count, dev)
+        except Exception as exc:  # a scene without its assets, a skin the batch does not lay out
+            out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
+            continue
+        clip = rig.clip(scene.clip)
+        times = [clip.start + (0.3 + 0.4 * k / max(count, 1)) * clip.duration for k in range(count)]
+        poses = [rig.skinning_matrices(clip, t) for t in times]
+
+        def stepper(model, mats: list[np.ndarray]):
+            solver = SkinSolver(model, params)
+            a, b, c = model.state(), model.state(), model.control()
+            contacts = model.contacts()
+            if model.characters:
+                batch_initial_state([builder] * len(mats), model, a, mats)
+            else:
+                initial_state(builder, a, mats[0])
+            c.set_pose(np.concatenate(mats))
+            states = [a, b]
+            for k in range(4):  # compile, and grow the contact buffers, outside the timed region
+                solver.step(states[k % 2], states[(k + 1) % 2], c, contacts, params.dt)
+                if contacts is not None and contacts.overflowed():
+                    contacts.grow()
+            return lambda f: solver.step(states[f % 2], states[(f + 1) % 2], c, contacts, params.dt)
+
+        batch_ms = _best_ms(stepper(batch, poses), steps, repeat, dev)
+        alone = builder.finalize(dev)
+        singles = [_best_ms(stepper(alone, [m]), steps, repeat, dev) for m in poses]  # each at its own moment
+        separate_ms = float(sum(singles))
+        out["scenes"][scene.name] = {
+            "characters": count, "particles": batch.particle_count, "batch_step_ms": batch_ms,
+            "single_step_ms": separate_ms / count, "separate_step_ms": separate_ms,
+            "batch_character_steps_per_s": 1e3 * count / batch_ms if batch_ms > 0 else None,
+            "separate_character_steps_per_s": 1e3 * count / separate_ms if separate_ms > 0 else None,
+            "speedup": separate_ms / batch_ms if batch_ms > 0 else None,
+        }
+    return out

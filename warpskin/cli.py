@@ -414,6 +414,14 @@ def cmd_bench(args) -> int:
 
     if args.build:
         result = run_build_bench(args.scenes or ["arm", "cesium_man", "arm35k"])
+    elif args.batch is not None:
+        from .bench import run_batch_bench
+        from .errors import InputError
+
+        if args.batch < 1:
+            raise InputError(f"--batch needs a positive number of characters, got {args.batch}")
+        result = run_batch_bench(args.scenes or ["arm"], args.batch, device=args.device, steps=args.steps,
+                                 repeat=args.repeat)
     else:
         scenes = args.scenes or ["arm", "cesium_man"]
         from .bench import run_popping_bench
@@ -721,6 +729,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", metavar="FILE", help="also write the JSON to FILE")
     s.add_argument("--build", action="store_true",
                    help="time the model build (layers ... sub-volumes) instead; default scenes: arm, cesium_man, arm35k")
+    s.add_argument("--batch", type=int, metavar="N",
+                   help="instead: N instances of each scene (default: arm) in one batched model against N separate "
+                        "models, character-steps per second")
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("pop", help="popping dance (Son & Han 2007): example-based skinning plus skin vibration to USD")

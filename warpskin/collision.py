@@ -263,10 +263,22 @@ class SelfCollision:
         self.data = c = model.collision
         self.device = model.device
         v = model.vertex_count
+        # one tree per character of a batched model (over its own triangles: contacts stay
+        # within a character, found in the order it finds them alone), else one
+        ranges = list(getattr(model, "characters", None) or [])
+        self._ranges = [(r.vertex_start, r.vertex_count, r.triangle_start, r.triangle_count) for r in ranges] \
+            or [(0, v, 0, int(c.triangle_count))]
+        self._diagonals = list(getattr(model, "character_diagonals", None) or [c.diagonal])
         with wp.ScopedDevice(self.device):
             self.lowers = wp.clone(c.rest_lowers)
             self.uppers = wp.clone(c.rest_uppers)
-            self.bvh = wp.Bvh(self.lowers, self.uppers)
+            self.bvhs = [wp.Bvh(self.lowers[t0:t0 + tn], self.uppers[t0:t0 + tn]) for _, _, t0, tn in self._ranges]
+            tri_tree = np.zeros(int(c.triangle_count), dtype=np.int32)
+            for tree, (_, _, t0, tn) in enumerate(self._ranges):
+                tri_tree[t0:t0 + tn] = tree
+            self.tri_tree = wp.array(tri_tree, dtype=wp.int32)
+            self.tree_start = wp.array(np.array([t0 for _, _, t0, _ in self._ranges], dtype=np.int32), dtype=wp.int32)
+            self.trees = wp.array(np.array([b.id for b in self.bvhs], dtype=np.uint64), dtype=wp.uint64)
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
@@ -288,6 +300,8 @@ class SelfCollision:
         # skin written as simulated, its first round takes the detection's pair list
         self._fs_tris = model.tri_indices if c.output_triangles is None else c.output_triangles
         self._listed = c.output_triangles is None
+        if len(self._ranges) > 1 and not self._listed:
+            raise InputError("a batched model's skins are written as simulated (no refined skin)")
         self._reach = ESCAPE_REACH * c.radius
         self.chunk = CPU_CONTACT_CHUNK if wp.get_device(self.device).is_cpu else 1
         with wp.ScopedDevice(self.device):
@@ -297,21 +311,34 @@ class SelfCollision:
             wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
                       inputs=[model.particle_q0, model.particle_q0, self._fs_tris, c.thickness],
                       outputs=[self._fs_lowers, self._fs_uppers])
-            self._fs_bvh = wp.Bvh(self._fs_lowers, self._fs_uppers)
+            if len(self._ranges) > 1:  # the written triangles are the simulated ones: one tree per character
+                self._fs_bvhs = [wp.Bvh(self._fs_lowers[t0:t0 + tn], self._fs_uppers[t0:t0 + tn])
+                                 for _, _, t0, tn in self._ranges]
+                self._fs_trees = wp.array(np.array([b.id for b in self._fs_bvhs], dtype=np.uint64), dtype=wp.uint64)
+                self._fs_tri_tree, self._fs_tree_start = self.tri_tree, self.tree_start
+            else:
+                self._fs_bvhs = [wp.Bvh(self._fs_lowers, self._fs_uppers)]
+                self._fs_trees = wp.array(np.array([self._fs_bvhs[0].id], dtype=np.uint64), dtype=wp.uint64)
+                self._fs_tri_tree = wp.zeros(c.output_triangle_count, dtype=wp.int32)
+                self._fs_tree_start = wp.zeros(1, dtype=wp.int32)
 
     def maybe_rebuild(self, skin: np.ndarray) -> bool:
         """Host check between frames (never inside a captured graph): rebuild the BVH in place
         when the skin positions ``skin`` ``[V, 3]`` have deformed by more than
         ``rebuild_spread`` x the rest diagonal since the last build. Returns whether it did."""
-        d = np.asarray(skin, dtype=np.float64) - self._built_at
-        spread = float(np.linalg.norm(d - d.mean(axis=0), axis=1).max())
-        if spread <= self.data.rebuild_spread * self.data.diagonal:
-            return False
-        self.bvh.rebuild()  # in place: graphs captured with these trees stay valid
-        self._fs_bvh.rebuild()
-        self._built_at = np.array(skin, dtype=np.float64)
-        self.rebuilds += 1
-        return True
+        skin = np.asarray(skin, dtype=np.float64)
+        rebuilt = False
+        for tree, (v0, vn, _, _) in enumerate(self._ranges):  # each character by its own size
+            d = skin[v0:v0 + vn] - self._built_at[v0:v0 + vn]
+            spread = float(np.linalg.norm(d - d.mean(axis=0), axis=1).max())
+            if spread <= self.data.rebuild_spread * self._diagonals[tree]:
+                continue
+            self.bvhs[tree].rebuild()  # in place: graphs captured with these trees stay valid
+            self._fs_bvhs[tree if len(self._fs_bvhs) > 1 else 0].rebuild()
+            self._built_at[v0:v0 + vn] = skin[v0:v0 + vn]
+            self.rebuilds += 1
+            rebuilt = True
+        return rebuilt
 
     # ------------------------------------------------------------------ per step
     def detect(self, x_old: wp.array, x_pred: wp.array, contacts) -> None:
@@ -323,14 +350,15 @@ class SelfCollision:
         wp.launch(k.reset_collision_kernel, dim=contacts.colliding.shape[0], outputs=[contacts.colliding], device=dev)
         wp.launch(k.triangle_bounds_kernel, dim=c.triangle_count,
                   inputs=[x_old, x_pred, m.tri_indices, c.radius], outputs=[self.lowers, self.uppers], device=dev)
-        self.bvh.refit()
+        for tree in self.bvhs:
+            tree.refit()
         self.vertex_normals.zero_()
         wp.launch(k.vertex_normals_kernel, dim=c.triangle_count, inputs=[x_pred, m.tri_indices],
                   outputs=[self.vertex_normals], device=dev)
         # zero the two counters, keep the overflow flag (cleared by the caller after checking)
         wp.launch(k.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
         wp.launch(k.detect_kernel, dim=c.triangle_count,
-                  inputs=[self.bvh.id, x_old, x_pred, m.tri_indices, c.tri_owns, c.edge_indices, c.tri_edges,
+                  inputs=[self.trees, self.tri_tree, self.tree_start, x_old, x_pred, m.tri_indices, c.tri_owns, c.edge_indices, c.tri_edges,
                           c.edge_owner, self.lowers, self.uppers, c.rigid_bone, m.particle_q0, c.rest_gap,
                           self.vertex_normals, c.fold_cos, c.thickness, c.radius, contacts.capacity],
                   outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.ee_count, contacts.ee_a,
@@ -393,8 +421,7 @@ class SelfCollision:
             return
         dev = self.device
         m = self.model
-        bvh, tris, lowers, uppers, count = self._fs_bvh, self._fs_tris, self._fs_lowers, self._fs_uppers, \
-            c.output_triangle_count
+        tris, lowers, uppers, count = self._fs_tris, self._fs_lowers, self._fs_uppers, c.output_triangle_count
         listed = contacts is not None and self._listed
         self.carried.zero_()
         self.reverted.zero_()
@@ -405,7 +432,8 @@ class SelfCollision:
         tri_threads = self._threads(count)
         wp.launch(k.fail_safe_bounds_kernel, dim=tri_threads, inputs=[x_old, x, tris, carry_offset, pad, self.chunk],
                   outputs=[lowers, uppers], device=dev)
-        bvh.refit()
+        for tree in self._fs_bvhs:
+            tree.refit()
         if listed:
             wp.launch(k.escaped_kernel, dim=tri_threads,
                       inputs=[x, tris, pad, self.lowers, self.uppers, c.radius - self._reach, contacts.pair_count,
@@ -424,7 +452,7 @@ class SelfCollision:
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
             wp.launch(k.new_intersections_kernel, dim=tri_threads,
-                      inputs=[bvh.id, x_old, x, tris, pad, 1.0e-4, self.moved, only_moved, self.escaped,
+                      inputs=[self._fs_trees, self._fs_tri_tree, self._fs_tree_start, x_old, x, tris, pad, 1.0e-4, self.moved, only_moved, self.escaped,
                               only_escaped, *lbs, self.reverted, r - 1, self.chunk],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],

@@ -29,7 +29,7 @@ from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
 from .rig import Rig
 
-__all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts"]
+__all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts", "model_host_arrays"]
 
 
 @dataclass
@@ -342,6 +342,65 @@ def _i32(a) -> np.ndarray:
     return a.astype(np.int32)
 
 
+def model_host_arrays(b: SkinModelBuilder) -> dict:
+    """The host arrays :class:`SkinModel` uploads for one built character (NumPy; the keys are
+    the model's attribute names, see there), and the sizes and scalars beside them:
+    ``vertex_count``, ``joint_count``, ``coupling_stiffness``, ``vertex_diagonal`` ``[V]``
+    (the body's diagonal [m] at every vertex), ``output_count``, ``rest_drive`` (``[G, M, 3]``
+    or ``None``), ``subvolume_count``, ``volume_layout`` and ``volume_centres`` (the
+    :class:`~warpskin.preprocess.sub_volumes.SubVolumes`, or ``None``)."""
+    rig = b.rig
+    reg = b.regions
+    lay = b.solver_layout
+    c = b.coupling
+    v = rig.vertex_count
+    joints = rig.joint_count
+    # the volume constraints' weights along the normals (SolverParams.volume_along_normals):
+    # a skin particle lighter than the median (thin tissue, near its bone) takes no larger
+    # share of a sub-volume's correction
+    skin_mass = b.masses[:v]
+    return {
+        "vertex_count": v,
+        "joint_count": joints,
+        "tri_indices": np.asarray(rig.triangles),
+        "particle_q0": np.asarray(b.layers.flat(), dtype=np.float32),
+        "particle_mass": np.asarray(b.masses),
+        "volume_inv_mass": 1.0 / np.maximum(b.masses, np.median(skin_mass)),
+        "particle_stiffness": np.asarray(b.stiffness),
+        "particle_moment": lay["particle_moment"],
+        "region_offsets": reg.region_offsets,
+        "region_members": reg.region_members,
+        "region_sibling_count": reg.sibling_count,
+        "region_rest_offsets": np.asarray(reg.rest_offsets, dtype=np.float32).reshape(-1, 3),
+        "region_rest_com": lay["region_rest_com"],
+        "region_mass": np.asarray(reg.region_mass),
+        "particle_region_offsets": reg.particle_offsets,
+        "particle_regions": reg.particle_regions,
+        "particle_region_slots": reg.particle_slots,
+        "path_order": b.paths.order,
+        "path_offsets": b.paths.path_offsets,
+        "position_is_path_start": lay["position_is_path_start"],
+        "run_offsets": b.runs.run_offsets,
+        "run_start": b.runs.run_start,
+        "run_end": b.runs.run_end,
+        "coupling_rest": np.asarray(c.rest, dtype=np.float32).reshape(-1, 3),
+        "coupling_joint_indices": np.clip(c.joint_indices, 0, joints - 1),
+        "coupling_joint_weights": np.asarray(c.joint_weights),
+        "coupling_stiffness": float(c.stiffness),
+        "joint_rest": np.asarray(b.joint_constraints.joint_rest, dtype=np.float32).reshape(-1, 3),
+        "vertex_tissue_depth": np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1),
+        "vertex_diagonal": np.full(v, rig.size(), dtype=np.float64),
+        "joint_offsets": lay["joint_offsets"],
+        "joint_ids": lay["joint_ids"],
+        "joint_rest_distance": lay["joint_rest_distance"],
+        "rest_drive": b.rest_drive,
+        "subvolume_count": len(b.subvolumes.names) if b.subvolumes is not None else 0,
+        "volume_layout": b.volume_layout if b.subvolumes is not None else None,
+        "volume_centres": b.subvolumes,
+        "output_count": int(rig.output_count),
+    }
+
+
 class SkinModel:
     """Static simulation data on one device: ``wp.array``s, sizes and scalars, no host arrays.
 
@@ -353,78 +412,88 @@ class SkinModel:
     Built only by :meth:`SkinModelBuilder.finalize`; the builder stays the host view.
     """
 
-    def __init__(self, builder: SkinModelBuilder, device) -> None:
+    def __init__(self, builder: SkinModelBuilder | None, device, *, host: dict | None = None) -> None:
+        """Upload ``builder``'s model to ``device``; with ``host`` (and no builder), upload those
+        host arrays instead (:func:`model_host_arrays`' layout; a batch of characters,
+        :func:`warpskin.batch_model.batch_model`), without a refined skin's written volume or
+        collision data."""
         b = builder
-        rig = b.rig
+        h = model_host_arrays(b) if host is None else host
         self.device = device
-        self.vertex_count = rig.vertex_count
+        self.vertex_count = int(h["vertex_count"])
         self.particle_count = 4 * self.vertex_count
-        self.joint_count = rig.joint_count
-        self.triangle_count = int(rig.triangles.shape[0])
-        reg = b.regions
-        lay = b.solver_layout
+        self.joint_count = int(h["joint_count"])
+        self.triangle_count = int(h["tri_indices"].shape[0])
         v3 = lambda a: wp.array(np.asarray(a, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=device)
         f32 = lambda a: wp.array(np.asarray(a, dtype=np.float32), dtype=wp.float32, device=device)
         i32 = lambda a: wp.array(_i32(a), dtype=wp.int32, device=device)
         with wp.ScopedDevice(device):
-            self.tri_indices = wp.array(_i32(rig.triangles), dtype=wp.int32, device=device)
-            self.particle_q0 = v3(b.layers.flat())
-            self.particle_mass = f32(b.masses)
-            self.particle_inv_mass = f32(1.0 / b.masses)
-            # the volume constraints' weights along the normals (SolverParams.volume_along_normals):
-            # a skin particle lighter than the median (thin tissue, near its bone) takes no larger
-            # share of a sub-volume's correction
-            skin_mass = b.masses[: rig.vertex_count]
-            self.volume_inv_mass = f32(1.0 / np.maximum(b.masses, np.median(skin_mass)))
-            self.particle_stiffness = f32(b.stiffness)
-            self.particle_moment = f32(lay["particle_moment"])
-            self.region_offsets = i32(reg.region_offsets)
-            self.region_members = i32(reg.region_members)
-            self.region_entry_count = int(reg.region_members.shape[0])
-            self.region_sibling_count = i32(reg.sibling_count)
-            self.region_rest_offsets = v3(reg.rest_offsets)
-            self.region_rest_com = wp.array(lay["region_rest_com"], dtype=wp.vec3d, device=device)
-            self.region_mass = f32(reg.region_mass)
-            self.particle_region_offsets = i32(reg.particle_offsets)
-            self.particle_regions = i32(reg.particle_regions)
-            self.particle_region_slots = i32(reg.particle_slots)
-            self.path_order = i32(b.paths.order)
-            self.path_offsets = i32(b.paths.path_offsets)
-            self.path_count = int(b.paths.path_count)
-            self.position_is_path_start = i32(lay["position_is_path_start"])
-            self.run_offsets = i32(b.runs.run_offsets)
-            self.run_start = i32(b.runs.run_start)
-            self.run_end = i32(b.runs.run_end)
-            c = b.coupling
-            self.coupling_rest = v3(c.rest)
-            self.coupling_joint_indices = i32(np.clip(c.joint_indices, 0, self.joint_count - 1))
-            self.coupling_joint_weights = f32(c.joint_weights)
-            self.coupling_stiffness = float(c.stiffness)
-            jc = b.joint_constraints
-            self.joint_rest = v3(jc.joint_rest)
+            self.tri_indices = wp.array(_i32(h["tri_indices"]), dtype=wp.int32, device=device)
+            self.particle_q0 = v3(h["particle_q0"])
+            self.particle_mass = f32(h["particle_mass"])
+            self.particle_inv_mass = f32(1.0 / h["particle_mass"])
+            self.volume_inv_mass = f32(h["volume_inv_mass"])
+            self.particle_stiffness = f32(h["particle_stiffness"])
+            self.particle_moment = f32(h["particle_moment"])
+            self.region_offsets = i32(h["region_offsets"])
+            self.region_members = i32(h["region_members"])
+            self.region_entry_count = int(h["region_members"].shape[0])
+            self.region_sibling_count = i32(h["region_sibling_count"])
+            self.region_rest_offsets = v3(h["region_rest_offsets"])
+            self.region_rest_com = wp.array(h["region_rest_com"], dtype=wp.vec3d, device=device)
+            self.region_mass = f32(h["region_mass"])
+            self.particle_region_offsets = i32(h["particle_region_offsets"])
+            self.particle_regions = i32(h["particle_regions"])
+            self.particle_region_slots = i32(h["particle_region_slots"])
+            self.path_order = i32(h["path_order"])
+            self.path_offsets = i32(h["path_offsets"])
+            self.path_count = int(h["path_offsets"].shape[0] - 1)
+            self.position_is_path_start = i32(h["position_is_path_start"])
+            self.run_offsets = i32(h["run_offsets"])
+            self.run_start = i32(h["run_start"])
+            self.run_end = i32(h["run_end"])
+            self.coupling_rest = v3(h["coupling_rest"])
+            self.coupling_joint_indices = i32(h["coupling_joint_indices"])
+            self.coupling_joint_weights = f32(h["coupling_joint_weights"])
+            self.coupling_stiffness = float(h["coupling_stiffness"])
+            self.joint_rest = v3(h["joint_rest"])
             # tissue depth of every vertex at rest (skin to bone layer) [m], and the body's size
-            self.vertex_tissue_depth = f32(np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1))
-            self.diagonal = rig.size()
-            self.joint_offsets = i32(lay["joint_offsets"])
-            self.joint_ids = i32(lay["joint_ids"])
-            self.joint_rest_distance = f32(lay["joint_rest_distance"])
+            self.vertex_tissue_depth = f32(h["vertex_tissue_depth"])
+            self.diagonal = float(np.max(h["vertex_diagonal"], initial=0.0))
+            #: ``[V]`` float64: each vertex's body diagonal [m] (one value per character)
+            self.vertex_diagonal = wp.array(np.asarray(h["vertex_diagonal"], dtype=np.float64), dtype=wp.float64,
+                                            device=device)
+            self.joint_offsets = i32(h["joint_offsets"])
+            self.joint_ids = i32(h["joint_ids"])
+            self.joint_rest_distance = f32(h["joint_rest_distance"])
             # muscle-driven rest shape (layered popping)
-            self.rest_drive_group_count = 0 if b.rest_drive is None else int(b.rest_drive.shape[0])
-            self.rest_drive_offsets = wp.array(b.rest_drive, dtype=wp.vec3) if b.rest_drive is not None else None
+            drive = h["rest_drive"]
+            self.rest_drive_group_count = 0 if drive is None else int(drive.shape[0])
+            self.rest_drive_offsets = wp.array(drive, dtype=wp.vec3) if drive is not None else None
         from .volume import upload_volume_layout
 
-        self.subvolume_count = len(b.subvolumes.names) if b.subvolumes is not None else 0
-        self.volume = upload_volume_layout(b.volume_layout, b.subvolumes, device) if b.subvolumes is not None else None
+        self.subvolume_count = int(h["subvolume_count"])
+        self.volume = upload_volume_layout(h["volume_layout"], h["volume_centres"], device) \
+            if self.subvolume_count else None
         # a refined skin is written with the loaded mesh's triangles, chords of the simulated
         # surface: its volume is one more constraint, on the loaded vertices (host form, see
         # SkinSolver), and output_count says which vertices those are
-        self.output_count = int(rig.output_count)
-        self.written_surface = written_surface(rig) if (rig.refined_skin and b.subvolumes is not None) else None
-        from .collision import upload_collision
+        self.output_count = int(h["output_count"])
+        self.written_surface = None
+        self.collision_params = CollisionParams(enabled=False)
+        self.collision = None
+        if b is not None:
+            rig = b.rig
+            self.written_surface = written_surface(rig) if (rig.refined_skin and b.subvolumes is not None) else None
+            from .collision import upload_collision
 
-        self.collision_params = b.params.collision
-        self.collision = upload_collision(b.collision_topology, rig, b.params.collision, device) \
-            if b.params.collision.enabled else None
+            self.collision_params = b.params.collision
+            self.collision = upload_collision(b.collision_topology, rig, b.params.collision, device) \
+                if b.params.collision.enabled else None
+        #: the characters of a batch (:func:`warpskin.batch_model.batch_model`) and their body
+        #: diagonals [m]; empty for one
+        self.characters = list(h.get("characters", []))
+        self.character_diagonals: list[float] = []
 
     def state(self) -> State:
         """A rest state: positions at rest, zero velocities, identity orientations."""

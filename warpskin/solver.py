@@ -172,10 +172,11 @@ class SkinSolver:
             self.tether_radius = None
             if p.tether > 0:
                 depth = model.vertex_tissue_depth.numpy().astype(np.float64)
-                radius = np.minimum(p.tether * depth + p.tether_floor * model.diagonal, p.tether_max * model.diagonal)
+                diagonal = model.vertex_diagonal.numpy()  # [V]: each character's own
+                radius = np.minimum(p.tether * depth + p.tether_floor * diagonal, p.tether_max * diagonal)
                 self.tether_radius = wp.array(radius.astype(np.float32), dtype=wp.float32)
                 # the hard bound after the volume loop: the cap alone (see tether_max)
-                self.tether_cap = wp.full(v, float(p.tether_max * model.diagonal), dtype=wp.float32)
+                self.tether_cap = wp.array((p.tether_max * diagonal).astype(np.float32), dtype=wp.float32)
             self.tether_clamped = wp.zeros(1, dtype=wp.int32)
             # the skin's LBS targets of the step (written by the tether, read by the volume loop's caps)
             self.tether_targets = wp.zeros(v, dtype=wp.vec3)

@@ -40,6 +40,17 @@ def initial_state(builder, state, skin_matrices: np.ndarray) -> None:
     """Put ``state`` at the pose ``skin_matrices`` ``[J, 4, 4]``: every particle skinned with
     its vertex's weights (LBS, on the host in float64 from the builder's layers), at rest (zero
     velocities), oriented like its dominant bone."""
+    x, q = linear_blend_skin_layers(builder, skin_matrices)
+    state.x.assign(x)
+    state.q.assign(q)
+    state.v.zero_()
+    state.omega.zero_()
+
+
+def linear_blend_skin_layers(builder, skin_matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(x [4V, 3], q [4V, 4])`` float32: every particle of ``builder``'s layers skinned with
+    its vertex's weights at ``skin_matrices`` ``[J, 4, 4]`` (LBS in float64 on the host), and
+    oriented like its dominant bone (:func:`initial_state`)."""
     b = builder
     rig = b.rig
     ji = np.tile(rig.joint_indices, (4, 1))
@@ -47,10 +58,7 @@ def initial_state(builder, state, skin_matrices: np.ndarray) -> None:
     x = linear_blend_skin(b.layers.flat(), ji, jw, skin_matrices)
     q_joint, _, _ = dual_quaternions(skin_matrices)  # rotation part of every joint
     q = np.tile(q_joint[b.layers.bone], (4, 1))
-    state.x.assign(x.astype(np.float32))
-    state.q.assign(q.astype(np.float32))
-    state.v.zero_()
-    state.omega.zero_()
+    return x.astype(np.float32), q.astype(np.float32)
 
 
 class PhysicsStepper:

@@ -1,0 +1,138 @@
+"""Several characters in one model (:func:`warpskin.batch_model.batch_model`): one launch per
+kernel steps them all, and on the CPU each character's particles are bit for bit what it gets
+simulated alone (the reference: the same builder's model, stepped by itself)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from oracles import coarse_arm
+from warpskin.batch_model import batch_model
+from warpskin.collision import CollisionParams
+from warpskin.errors import InputError
+from warpskin.model import ModelParams, SkinModelBuilder
+from warpskin.solver import SkinSolver, SolverParams
+
+STEPS = 12
+DT = 1.0 / 200.0
+
+
+def _builders(collision: CollisionParams | None = None):
+    """Three characters nobody made alike: the coarse arm, a thicker and longer arm of other
+    resolution with other stiffnesses and tissue density, and the first again (an instance)."""
+    col = collision or CollisionParams(enabled=False)
+    a = SkinModelBuilder(coarse_arm(), ModelParams(collision=col, refine=False))
+    b = SkinModelBuilder(coarse_arm(rings=23, segments=13, biceps_radius=0.061, upper_length=0.337),
+                         ModelParams(collision=col, refine=False, stiffness=(0.7, 0.5, 0.6, 0.9), density=1070.0))
+    c = SkinModelBuilder(coarse_arm(), ModelParams(collision=col, refine=False))
+    return [a, b, c]
+
+
+def _clip_poses(rig, steps: int, phase: float) -> list[np.ndarray]:
+    clip = next(iter(rig.clips.values()))
+    return [rig.skinning_matrices(clip, phase + (s + 1) * DT * 20.0) for s in range(steps)]
+
+
+def _run(model, poses: list[np.ndarray], contacted: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, v)`` after stepping ``model`` from rest through ``poses``, one step each; with
+    ``contacted``, each step's point-triangle contact count is appended to it."""
+    solver = SkinSolver(model, SolverParams(iterations=6))
+    a, b, control = model.state(), model.state(), model.control()
+    contacts = model.contacts(capacity=1 << 15)  # the same buffers alone and batched, none overflows
+    for m in poses:
+        control.set_pose(m)
+        solver.step(a, b, control, contacts, DT)
+        if contacts is not None:
+            assert not contacts.overflowed()
+            if contacted is not None:
+                contacted.append(int(contacts.counts.numpy()[0]))
+        a, b = b, a
+    return a.x.numpy(), a.v.numpy()
+
+
+def test_each_character_of_a_batch_steps_bit_for_bit_as_alone(device):
+    # on the CPU bit for bit; on CUDA the atomic sums' order is free: to float rounding
+    builders = _builders()
+    phases = [0.4, 0.9, 1.7]  # each its own moment of its clip
+    poses = [_clip_poses(b.build().rig, STEPS, ph) for b, ph in zip(builders, phases)]
+    batch = batch_model(builders, device)
+    assert [r.vertex_count for r in batch.characters] == [b.rig.vertex_count for b in builders]
+    assert batch.vertex_count == sum(b.rig.vertex_count for b in builders)
+    x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(STEPS)])
+    for b, p, r in zip(builders, poses, batch.characters):
+        alone_x, alone_v = _run(b.finalize(device), p)
+        mine = r.particles(batch.vertex_count)
+        assert np.abs(alone_x - b.layers.flat()).max() > 0.05  # it moved [m]
+        if str(device) == "cpu":
+            assert np.array_equal(x[mine], alone_x)
+            assert np.array_equal(v[mine], alone_v)
+        else:
+            assert np.allclose(x[mine], alone_x, atol=1e-5)
+
+
+def test_contacts_stay_within_each_character_and_each_steps_as_alone(device):
+    # the arms flexed past 100 degrees press the forearm on the biceps (point-triangle contacts
+    # every step); two of them overlap in space (instances at one place), so a contact between
+    # characters would be found if the trees were shared: each character's particles are still
+    # bit for bit its own run's (CPU)
+    col = CollisionParams(thickness=0.0031)
+    builders = _builders(col)
+    phases = [1.45, 1.6, 1.52]  # near the peak flexion (1.5 s)
+    poses = [_clip_poses(b.build().rig, STEPS, ph) for b, ph in zip(builders, phases)]
+    batch = batch_model(builders, device)
+    assert batch.collision is not None
+    contacted: list = []
+    x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(STEPS)], contacted)
+    assert np.count_nonzero(contacted) >= STEPS - 1  # contacts in (nearly) every step
+    for b, p, r in zip(builders, poses, batch.characters):
+        alone: list = []
+        alone_x, alone_v = _run(b.finalize(device), p, alone)
+        assert np.count_nonzero(alone) >= STEPS - 1
+        mine = r.particles(batch.vertex_count)
+        if str(device) == "cpu":
+            assert np.array_equal(x[mine], alone_x)
+            assert np.array_equal(v[mine], alone_v)
+        else:
+            assert np.allclose(x[mine], alone_x, atol=1e-5)
+
+
+def test_a_batch_refuses_what_it_does_not_lay_out_in_one_line():
+    mixed = [SkinModelBuilder(coarse_arm(), ModelParams(refine=False)),
+             SkinModelBuilder(coarse_arm(rings=23), ModelParams(refine=False))]
+    with pytest.raises(InputError, match=r"one \[collision\] thickness: character 0 \(.*\) has .*, character 1"):
+        batch_model(mixed, "cpu")
+    off = CollisionParams(enabled=False)
+    mixed = [SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False)),
+             SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False, volume=False))]
+    with pytest.raises(InputError, match="all need sub-volumes or none; character 1"):
+        batch_model(mixed, "cpu")
+    with pytest.raises(InputError, match="one coupling stiffness"):
+        batch_model([SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False)),
+                     SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False, coupling_stiffness=0.5))],
+                    "cpu")
+    with pytest.raises(InputError, match="at least one character"):
+        batch_model([], "cpu")
+
+
+def test_bench_batch_reports_character_steps_per_second(tmp_path, capsys, device):
+    # the JSON record (no timing is asserted: the figures are the performance page's): N
+    # instances in one model against N separate models, on the device asked for
+    import json
+
+    from warpskin.cli import main
+
+    out = tmp_path / "batch.json"
+    assert main(["bench", "arm", "--batch", "2", "--steps", "1", "--repeat", "1", "--device", str(device),
+                 "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["device"] == str(device) and report["characters"] == 2
+    row = report["scenes"]["arm"]
+    from warpskin.scene import resolve_scene
+
+    assert row["characters"] == 2 and row["particles"] == 2 * 4 * resolve_scene("arm").rig().vertex_count
+    assert row["separate_step_ms"] > 0 and row["batch_step_ms"] > 0
+    assert row["speedup"] == pytest.approx(row["separate_step_ms"] / row["batch_step_ms"])
+    assert row["batch_character_steps_per_s"] == pytest.approx(2e3 / row["batch_step_ms"])
+    assert main(["bench", "--batch", "0"]) == 2
+    assert "--batch needs a positive number of characters, got 0" in capsys.readouterr().err

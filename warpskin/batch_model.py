@@ -1,0 +1,338 @@
+"""Several characters in one :class:`~warpskin.model.SkinModel`: one launch per kernel steps
+them all (the throughput path on a GPU), and on the CPU each character's particles come out
+bit for bit as when it is simulated alone.
+
+Each character is built alone (:class:`~warpskin.model.SkinModelBuilder`, its own rig and
+parameters); :func:`batch_model` then lays their host arrays side by side
+(:func:`~warpskin.model.model_host_arrays`) with every index offset, so that the solver's
+kernels, unchanged, see one model of ``V`` skin vertices, ``V`` the characters' sum:
+
+* vertices, triangles, joints, sub-volumes and fan centres are numbered character after
+  character (:class:`CharacterRange` gives each one's range);
+* particles stay layer-major over the whole batch, ``k * V + vertex`` (layer ``k`` of every
+  character, then the next layer), so every kernel's layer arithmetic holds; the CSR over
+  particles (regions, the regions of each particle, the joint constraints) is re-laid in that
+  order, each row's entries in their own order;
+* a character's paths, runs and sub-volumes only reach its own vertices, and every sum a
+  kernel makes (a region's, a path's prefix, a sub-volume's) runs over the same terms in the
+  same order as alone: on Warp's CPU backend, which runs a launch's threads one after another,
+  the results are the same floats;
+* per-character scalars go per vertex where the solver reads them (the body's diagonal for the
+  tether) or must agree (the coupling stiffness); influences are padded with zero weights,
+  which the skinning skips.
+
+Self-collision stays within a character: each has its own detection and fail-safe trees
+(:class:`~warpskin.collision.SelfCollision`), queried in the order it queries them alone, and
+its own tree rebuilds. The characters must agree on the collision scalars (one thickness: set
+``[collision] thickness`` where their meshes differ) and all have volume or none; a rest-shape
+drive (layered popping) and a refined skin are not batched. :func:`batch_model` refuses each
+in one line naming the character.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["CharacterRange", "batch_host_arrays", "batch_model"]
+
+
+@dataclass(frozen=True)
+class CharacterRange:
+    """Where one character of a batch lies in the batched model.
+
+    Attributes:
+        name: The character's rig name (or its place in the batch).
+        vertex_start, vertex_count: Its skin vertices ``[vertex_start, vertex_start +
+            vertex_count)``; its particle of layer ``k`` and vertex ``i`` is
+            ``k * V + vertex_start + i`` (``V`` the batch's vertices).
+        joint_start, joint_count: Its joints (its part of ``Control.skin_matrices``).
+        triangle_start, triangle_count: Its skin triangles.
+    """
+
+    name: str
+    vertex_start: int
+    vertex_count: int
+    joint_start: int
+    joint_count: int
+    triangle_start: int
+    triangle_count: int
+
+    def particles(self, total_vertices: int) -> np.ndarray:
+        """``[4 * vertex_count]`` its particles in the batch, in its own (layer-major) order."""
+        i = np.arange(self.vertex_count, dtype=np.int64)
+        return np.concatenate([k * total_vertices + self.vertex_start + i for k in range(4)])
+
+
+def _csr_by_particle(parts: list, offsets_key: str, value_keys: Sequence[str], total: int, value_maps) -> dict:
+    """Re-lay a CSR over particles (``[4 V_c + 1]`` offsets per character) in the batch's
+    layer-major order: rows of layer 0 of every character, then layer 1, ... Values under
+    ``value_keys`` are mapped per character by ``value_maps[key](c, values)``. Returns the new
+    offsets, values, and per character ``entry_map`` ``[E_c]`` (old entry -> new entry)."""
+    rows, values = [], {k: [] for k in value_keys}
+    entry_maps = [np.empty(int(p[offsets_key][-1]), dtype=np.int64) for p in parts]
+    at = 0
+    for k in range(4):
+        for c, p in enumerate(parts):
+            v = p["vertex_count"]
+            off = p[offsets_key]
+            lo, hi = int(off[k * v]), int(off[(k + 1) * v])
+            rows.append(np.diff(off[k * v:(k + 1) * v + 1]))
+            entry_maps[c][lo:hi] = at + np.arange(hi - lo)
+            at += hi - lo
+            for key in value_keys:
+                values[key].append(value_maps[key](c, p[key][lo:hi]))
+    offsets = np.zeros(4 * total + 1, dtype=np.int64)
+    np.cumsum(np.concatenate(rows), out=offsets[1:])
+    return {"offsets": offsets, "entry_maps": entry_maps,
+            **{k: np.concatenate(values[k]) if values[k] else np.zeros(0) for k in value_keys}}
+
+
+def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None) -> dict:
+    """One model's host arrays (:func:`~warpskin.model.model_host_arrays`' layout) from the
+    host arrays of several characters, each index offset (module docstring); ``characters``
+    holds their :class:`CharacterRange` s.
+
+    Raises:
+        InputError: no characters, different coupling stiffnesses, a rest-shape drive, or
+            some characters with sub-volumes and some without.
+    """
+    parts = list(parts)
+    if not parts:
+        raise InputError("a batch needs at least one character")
+    names = list(names) if names is not None else [f"character {c}" for c in range(len(parts))]
+    stiff = {float(p["coupling_stiffness"]) for p in parts}
+    if len(stiff) > 1:
+        raise InputError(f"the characters of a batch need one coupling stiffness, got {sorted(stiff)}")
+    for name, p in zip(names, parts):
+        if p["rest_drive"] is not None:
+            raise InputError(f"{name}: a rest-shape drive (layered popping) is not batched")
+    with_volume = [p["subvolume_count"] > 0 for p in parts]
+    if any(with_volume) and not all(with_volume):
+        lacking = [n for n, w in zip(names, with_volume) if not w]
+        raise InputError(f"the characters of a batch all need sub-volumes or none; {', '.join(lacking)} has none")
+    vs = np.array([p["vertex_count"] for p in parts], dtype=np.int64)
+    js = np.array([p["joint_count"] for p in parts], dtype=np.int64)
+    ts = np.array([len(p["tri_indices"]) for p in parts], dtype=np.int64)
+    v0, j0, t0 = (np.concatenate([[0], np.cumsum(a)[:-1]]) for a in (vs, js, ts))
+    total = int(vs.sum())
+
+    def particle_map(c: int, local: np.ndarray) -> np.ndarray:  # local particle -> batch particle
+        local = np.asarray(local, dtype=np.int64)
+        layer, i = np.divmod(local, vs[c])
+        return layer * total + v0[c] + i
+
+    def layer_major(key: str) -> np.ndarray:  # [4 V_c, ...] per character -> [4 V, ...]
+        return np.concatenate([p[key][k * p["vertex_count"]:(k + 1) * p["vertex_count"]]
+                               for k in range(4) for p in parts])
+
+    out: dict = {"vertex_count": total, "joint_count": int(js.sum()),
+                 "coupling_stiffness": stiff.pop(), "rest_drive": None}
+    out["characters"] = [CharacterRange(n, int(v0[c]), int(vs[c]), int(j0[c]), int(js[c]), int(t0[c]), int(ts[c]))
+                         for c, n in enumerate(names)]
+    for key in ("particle_q0", "particle_mass", "volume_inv_mass", "particle_stiffness", "particle_moment",
+                "region_sibling_count", "region_rest_com", "region_mass"):
+        out[key] = layer_major(key)
+    for key in ("coupling_rest", "vertex_tissue_depth", "vertex_diagonal", "position_is_path_start"):
+        out[key] = np.concatenate([p[key] for p in parts])
+    out["tri_indices"] = np.concatenate([np.asarray(p["tri_indices"], dtype=np.int64) + v0[c] for c, p in enumerate(parts)])
+    out["joint_rest"] = np.concatenate([p["joint_rest"] for p in parts])
+    # regions: a CSR over regions (region r is particle r) of member particles; entries follow
+    regions = _csr_by_particle(parts, "region_offsets", ["region_members", "region_rest_offsets"], total,
+                               {"region_members": particle_map, "region_rest_offsets": lambda c, x: x})
+    out["region_offsets"], out["region_members"] = regions["offsets"], regions["region_members"]
+    out["region_rest_offsets"] = regions["region_rest_offsets"].reshape(-1, 3)
+    # the regions of each particle and each one's entry (slot) in its region
+    mine = _csr_by_particle(parts, "particle_region_offsets", ["particle_regions", "particle_region_slots"], total,
+                            {"particle_regions": particle_map,
+                             "particle_region_slots": lambda c, x: regions["entry_maps"][c][np.asarray(x, dtype=np.int64)]})
+    out["particle_region_offsets"] = mine["offsets"]
+    out["particle_regions"], out["particle_region_slots"] = mine["particle_regions"], mine["particle_region_slots"]
+    # joint constraints: a CSR over particles of joints
+    jc = _csr_by_particle(parts, "joint_offsets", ["joint_ids", "joint_rest_distance"], total,
+                          {"joint_ids": lambda c, x: np.asarray(x, dtype=np.int64) + j0[c],
+                           "joint_rest_distance": lambda c, x: x})
+    out["joint_offsets"], out["joint_ids"], out["joint_rest_distance"] = jc["offsets"], jc["joint_ids"], jc["joint_rest_distance"]
+    # fast summation: positions are vertices' places along the paths, character after character
+    out["path_order"] = np.concatenate([np.asarray(p["path_order"], dtype=np.int64) + v0[c] for c, p in enumerate(parts)])
+    out["path_offsets"] = np.concatenate([[0]] + [np.asarray(p["path_offsets"][1:], dtype=np.int64) + v0[c]
+                                                  for c, p in enumerate(parts)])
+    runs = np.array([len(p["run_start"]) for p in parts], dtype=np.int64)
+    r0 = np.concatenate([[0], np.cumsum(runs)[:-1]])
+    out["run_offsets"] = np.concatenate([[0]] + [np.asarray(p["run_offsets"][1:], dtype=np.int64) + r0[c]
+                                                 for c, p in enumerate(parts)])
+    out["run_start"] = np.concatenate([np.asarray(p["run_start"], dtype=np.int64) + v0[c] for c, p in enumerate(parts)])
+    out["run_end"] = np.concatenate([np.asarray(p["run_end"], dtype=np.int64) + v0[c] for c, p in enumerate(parts)])
+    # influences: as many columns as the most any character has, the others padded with weight 0
+    width = max(np.asarray(p["coupling_joint_weights"]).reshape(p["vertex_count"], -1).shape[1] for p in parts)
+    idx, wts = [], []
+    for c, p in enumerate(parts):
+        ji = np.asarray(p["coupling_joint_indices"], dtype=np.int64).reshape(p["vertex_count"], -1)
+        jw = np.asarray(p["coupling_joint_weights"]).reshape(p["vertex_count"], -1)
+        pad = width - ji.shape[1]
+        idx.append(np.pad(ji + j0[c], ((0, 0), (0, pad)), constant_values=j0[c]))
+        wts.append(np.pad(jw, ((0, 0), (0, pad))))
+    out["coupling_joint_indices"], out["coupling_joint_weights"] = np.concatenate(idx), np.concatenate(wts)
+    out["output_count"] = total  # every vertex is written (no refined skin: see batch_model)
+    out["subvolume_count"] = int(sum(p["subvolume_count"] for p in parts))
+    out["volume_layout"], out["volume_centres"] = _batch_volume(parts, v0, j0, total) if out["subvolume_count"] else (None, None)
+    return out
+
+
+@dataclass
+class _Centres:
+    """The sub-volumes' kinematic centres :func:`~warpskin.volume.upload_volume_layout` reads."""
+
+    center_rest: np.ndarray
+    center_joint: np.ndarray
+    rest_volume: np.ndarray
+
+
+def _batch_volume(parts, v0, j0, total: int):
+    """The volume layouts of ``parts`` side by side, encoded points re-encoded for the batch
+    (``k < V``: skin vertex, else fan centre ``k - V``)."""
+    from .volume import VolumeLayout
+
+    lays = [p["volume_layout"] for p in parts]
+    cs = np.array([lay.center_count for lay in lays], dtype=np.int64)
+    c0 = np.concatenate([[0], np.cumsum(cs)[:-1]])
+    s0 = np.concatenate([[0], np.cumsum([lay.subvolume_count for lay in lays])[:-1]])
+    p0 = np.concatenate([[0], np.cumsum([lay.pair_count for lay in lays])[:-1]])
+    e0 = np.concatenate([[0], np.cumsum([lay.entry_count for lay in lays])[:-1]])
+    t0 = np.concatenate([[0], np.cumsum([len(lay.closed_triangles) for lay in lays])[:-1]])
+
+    def point(c: int, k) -> np.ndarray:
+        k = np.asarray(k, dtype=np.int64)
+        v = lays[c].vertex_count
+        return np.where(k < v, k + v0[c], total + c0[c] + (k - v))
+
+    def cat(key, shift=None, first=False):
+        arrays = [np.asarray(getattr(lay, key), dtype=np.int64) for lay in lays]
+        if first:  # CSR offsets: drop each leading 0 but the first
+            return np.concatenate([[0]] + [a[1:] + shift[c] for c, a in enumerate(arrays)])
+        return np.concatenate([a + (shift[c] if shift is not None else 0) for c, a in enumerate(arrays)])
+
+    layout = VolumeLayout(
+        vertex_count=total, center_count=int(cs.sum()),
+        closed_offsets=cat("closed_offsets", t0, first=True),
+        closed_triangles=np.concatenate([point(c, lay.closed_triangles) for c, lay in enumerate(lays)]),
+        subvolume_origin=np.concatenate([point(c, lay.subvolume_origin) for c, lay in enumerate(lays)]),
+        pair_vertex=cat("pair_vertex", v0), pair_subvolume=cat("pair_subvolume", s0),
+        subvolume_pair_offsets=cat("subvolume_pair_offsets", p0, first=True),
+        pair_entry_offsets=cat("pair_entry_offsets", e0, first=True),
+        entry_points=np.concatenate([point(c, lay.entry_points) for c, lay in enumerate(lays)]),
+        vertex_pair_offsets=cat("vertex_pair_offsets", p0, first=True),
+        vertex_pairs=cat("vertex_pairs", p0))
+    for name in ("closed_offsets", "closed_triangles", "subvolume_origin", "pair_vertex", "pair_subvolume",
+                 "subvolume_pair_offsets", "pair_entry_offsets", "entry_points", "vertex_pair_offsets", "vertex_pairs"):
+        setattr(layout, name, getattr(layout, name).astype(np.int32))
+    subs = [p["volume_centres"] for p in parts]
+    centres = _Centres(
+        center_rest=np.concatenate([np.asarray(s.center_rest, dtype=np.float64).reshape(-1, 3) for s in subs]),
+        center_joint=np.concatenate([np.asarray(s.center_joint, dtype=np.int64) + j0[c] for c, s in enumerate(subs)]),
+        rest_volume=np.concatenate([np.asarray(s.rest_volume, dtype=np.float64) for s in subs]))
+    return layout, centres
+
+
+def batch_model(builders: Sequence, device=None):
+    """One :class:`~warpskin.model.SkinModel` of several characters, each built by its own
+    :class:`~warpskin.model.SkinModelBuilder` (instances of one rig or different rigs); its
+    ``characters`` are their :class:`CharacterRange` s, in order. Drive it with the
+    characters' skinning matrices concatenated (``Control.set_pose``, ``[sum J_c, 4, 4]``).
+
+    Raises:
+        InputError: a character with self-collision, a rest-shape drive or a refined skin
+            with volume (not batched: module docstring), or one of
+            :func:`batch_host_arrays`' reasons; each names the character.
+    """
+    from .device import resolve_device
+    from .model import SkinModel, model_host_arrays
+
+    builders = list(builders)
+    names = []
+    for c, b in enumerate(builders):
+        b.build()
+        name = f"character {c} ({b.rig.name})"
+        if b.rig.refined_skin:
+            raise InputError(f"{name}: a refined skin is not batched (its written mesh is not the simulated one); "
+                             "set refine = false")
+        names.append(name)
+    host = batch_host_arrays([model_host_arrays(b) for b in builders], names)
+    device = resolve_device(device)
+    model = SkinModel(None, device, host=host)
+    model.character_diagonals = [float(b.rig.size()) for b in builders]
+    if builders and any(b.params.collision.enabled for b in builders):
+        model.collision_params, model.collision = _batch_collision(builders, names, host["characters"], device)
+    return model
+
+
+def _collision_scalars(b) -> dict:
+    """The self-collision scalars a character's model gets (:func:`~warpskin.collision.upload_collision`)."""
+    p = b.params.collision
+    thickness = float(p.thickness) if p.thickness is not None else 0.15 * b.collision_topology.mean_edge
+    return {"enabled": bool(p.enabled), "thickness": thickness, "detection_margin": float(p.detection_margin),
+            "rest_gap_margin": float(p.rest_gap_margin), "fold_cos": float(p.fold_cos), "friction": float(p.friction),
+            "restitution": float(p.restitution), "passes": int(p.passes), "volume_weight": float(p.volume_weight),
+            "rebuild_spread": float(p.rebuild_spread), "fail_safe_rounds": int(p.fail_safe_rounds),
+            "capacity": int(p.capacity)}
+
+
+def _batch_collision(builders, names, ranges, device):
+    """One :class:`~warpskin.collision.CollisionData` for the batch: the characters' topologies
+    side by side (vertices, edges, triangles and bones offset), their scalars, which must agree
+    (one thickness, one set of margins: the kernels read one of each)."""
+    from types import SimpleNamespace
+
+    from .collision import CollisionTopology, upload_collision
+
+    scalars = [_collision_scalars(b) for b in builders]
+    for key in scalars[0]:
+        values = [s[key] for s in scalars]
+        if any(v != values[0] for v in values):
+            odd = next(n for n, v in zip(names, values) if v != values[0])
+            what = "self-collision on or off" if key == "enabled" else f"[collision] {key}"
+            raise InputError(f"the characters of a batch need one {what}: {names[0]} has {values[0]!r}, {odd} "
+                             f"{next(v for v in values if v != values[0])!r}" + (
+                                 " (set [collision] thickness to one value for all)" if key == "thickness" else ""))
+    topos = [b.collision_topology for b in builders]
+    e0 = np.concatenate([[0], np.cumsum([len(t.edges) for t in topos])[:-1]])
+    topo = CollisionTopology(
+        edges=np.concatenate([t.edges + r.vertex_start for t, r in zip(topos, ranges)]),
+        tri_edges=np.concatenate([t.tri_edges + e0[c] for c, t in enumerate(topos)]),
+        edge_owner=np.concatenate([t.edge_owner + r.triangle_start for t, r in zip(topos, ranges)]),
+        dominant_joint=np.concatenate([t.dominant_joint + r.joint_start for t, r in zip(topos, ranges)]),
+        dominant_weight=np.concatenate([t.dominant_weight for t in topos]),
+        mean_edge=topos[0].mean_edge, diagonal=max(t.diagonal for t in topos))
+    tris = np.concatenate([np.asarray(b.rig.triangles, dtype=np.int64) + r.vertex_start for b, r in zip(builders, ranges)])
+    rig = SimpleNamespace(vertices=np.concatenate([b.rig.vertices for b in builders]), triangles=tris,
+                          output_triangles=tris)
+    from dataclasses import replace
+
+    params = replace(builders[0].params.collision, thickness=scalars[0]["thickness"])
+    return params, upload_collision(topo, rig, params, device)
+
+
+def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.ndarray]) -> None:
+    """Put a batched ``model``'s ``state`` at each character's pose (``poses[c]``
+    ``[J_c, 4, 4]``), every character as :func:`~warpskin.run.physics.initial_state` puts it
+    alone (LBS of its layers in float64 on the host, at rest, oriented like its bones)."""
+    from .run.physics import linear_blend_skin_layers
+
+    if len(builders) != len(model.characters) or len(poses) != len(model.characters):
+        raise InputError(f"a batch of {len(model.characters)} characters needs as many builders and poses, "
+                         f"got {len(builders)} and {len(poses)}")
+    total = model.vertex_count
+    x = np.zeros((4 * total, 3), dtype=np.float32)
+    q = np.zeros((4 * total, 4), dtype=np.float32)
+    for b, pose, r in zip(builders, poses, model.characters):
+        xc, qc = linear_blend_skin_layers(b, pose)
+        x[r.particles(total)] = xc
+        q[r.particles(total)] = qc
+    state.x.assign(x)
+    state.q.assign(q)
+    state.v.zero_()
+    state.omega.zero_()
