@@ -25,16 +25,40 @@ INSIDE_TOLERANCE = wp.constant(1.0e-5)
 # Bounds of every skin triangle over the step (old and predicted positions), inflated by the
 # thickness h: a contact can only involve triangles whose swept boxes overlap.
 # --------------------------------------------------------------------------------------------
+@wp.struct
+class CollisionScalars:
+    """One character's contact scalars (a model's, or each of a batch's; kernels find a
+    vertex's by ``params[vertex_tree[vertex]]``): ``thickness`` h, the search ``radius``,
+    ``rest_gap`` [m]; ``fold_cos``; ``friction`` and ``restitution``; ``volume_weight`` (a
+    colliding particle's weight in the volume loop); the pair list's ``list_gap``, the escape
+    test's ``escape_margin`` and the fail-safe boxes' ``fail_safe_pad`` [m]
+    (:class:`warpskin.collision.SelfCollision`)."""
+
+    thickness: float
+    radius: float
+    rest_gap: float
+    fold_cos: float
+    friction: float
+    restitution: float
+    volume_weight: float
+    list_gap: float
+    escape_margin: float
+    fail_safe_pad: float
+
+
 @wp.kernel
 def triangle_bounds_kernel(
     x_old: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
-    thickness: float,
+    pads: wp.array(dtype=wp.float32),
+    vertex_tree: wp.array(dtype=wp.int32),
     # outputs
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
 ):
+    """Each triangle's box over ``x_old`` and ``x_pred``, padded by its character's pad
+    (``pads[vertex_tree[its first vertex]]``) [m]."""
     t = wp.tid()
     lo = wp.vec3(1.0e30)
     hi = wp.vec3(-1.0e30)
@@ -42,7 +66,7 @@ def triangle_bounds_kernel(
         i = tri_indices[t, k]
         lo = wp.min(lo, wp.min(x_old[i], x_pred[i]))
         hi = wp.max(hi, wp.max(x_old[i], x_pred[i]))
-    pad = wp.vec3(thickness)
+    pad = wp.vec3(pads[vertex_tree[tri_indices[t, 0]]])
     lowers[t] = lo - pad
     uppers[t] = hi + pad
 
@@ -488,11 +512,8 @@ def detect_kernel(
     uppers: wp.array(dtype=wp.vec3),
     rigid_bone: wp.array(dtype=wp.int32),
     rest: wp.array(dtype=wp.vec3),
-    rest_gap: float,
     vertex_normals: wp.array(dtype=wp.vec3),
-    fold_cos: float,
-    thickness: float,
-    radius: float,
+    params: wp.array(dtype=CollisionScalars),
     capacity: int,
     # outputs
     pt_count: wp.array(dtype=wp.int32),
@@ -505,7 +526,6 @@ def detect_kernel(
     overflow: wp.array(dtype=wp.int32),
     colliding: wp.array(dtype=wp.int32),
     list_pairs: int,
-    list_gap: float,
     pair_capacity: int,
     tri_pairs: wp.array2d(dtype=wp.int32),
     pair_count: wp.array(dtype=wp.int32),
@@ -515,12 +535,17 @@ def detect_kernel(
     within a character; one tree from 0 otherwise). ``tri_owns`` bits 0-2: the triangle owns
     its corner k; bits 3-5: its edge k (corner k to k + 1). With ``list_pairs``, every pair of triangles with no shared vertex whose boxes the
     query pairs (the tree's boxes carry the radius, the query box does not) and whose swept
-    boxes are within ``list_gap`` of each other goes into ``tri_pairs`` once (lower index
+    boxes are within the character's ``list_gap`` of each other goes into ``tri_pairs`` once (lower index
     first), for the fail-safe of the step (see :func:`listed_new_intersections_kernel`); ``pair_count`` counts them all, also those
     beyond ``pair_capacity``, which are not written (the fail-safe then does without the
     list)."""
     t = wp.tid()
     tree = tri_tree[t]
+    rest_gap = params[tree].rest_gap
+    fold_cos = params[tree].fold_cos
+    thickness = params[tree].thickness
+    radius = params[tree].radius
+    list_gap = params[tree].list_gap
     owns = tri_owns[t]
     if owns == 0 and list_pairs == 0:
         return
@@ -641,7 +666,8 @@ def project_point_triangle_kernel(
     pt_count: wp.array(dtype=wp.int32),
     pt_vertex: wp.array(dtype=wp.int32),
     pt_triangle: wp.array(dtype=wp.int32),
-    thickness: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
     chunk: int,
     # outputs
     delta: wp.array(dtype=wp.vec3),
@@ -649,9 +675,10 @@ def project_point_triangle_kernel(
     active: wp.array(dtype=wp.int32),
 ):
     """The point-triangle contacts ``chunk`` x thread ... (thread + 1) x ``chunk`` that exist
-    (``pt_count``): see :func:`contact_range`."""
+    (``pt_count``): see :func:`contact_range`; each at its character's thickness."""
     first, last = contact_range(wp.tid(), chunk, pt_count[0], pt_vertex.shape[0])
     for k in range(first, last):
+        thickness = params[vertex_tree[pt_vertex[k]]].thickness
         project_point_triangle(k, x, inv_mass, tri_indices, pt_vertex, pt_triangle, thickness, delta, delta_count,
                                active)
 
@@ -780,16 +807,19 @@ def project_edge_edge_kernel(
     ee_a: wp.array(dtype=wp.int32),
     ee_b: wp.array(dtype=wp.int32),
     ee_sign: wp.array(dtype=wp.float32),
-    thickness: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
     chunk: int,
     # outputs
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
 ):
-    """The edge-edge contacts of this thread's chunk (see :func:`contact_range`)."""
+    """The edge-edge contacts of this thread's chunk (see :func:`contact_range`); each at its
+    character's thickness."""
     first, last = contact_range(wp.tid(), chunk, ee_count[0], ee_a.shape[0])
     for k in range(first, last):
+        thickness = params[vertex_tree[edge_indices[ee_a[k], 0]]].thickness
         project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count, active)
 
 
@@ -876,17 +906,19 @@ def friction_restitution_kernel(
     pt_count: wp.array(dtype=wp.int32),
     pt_vertex: wp.array(dtype=wp.int32),
     pt_triangle: wp.array(dtype=wp.int32),
-    friction: float,
-    restitution: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
     chunk: int,
     # outputs
     dv: wp.array(dtype=wp.vec3),
     dv_count: wp.array(dtype=wp.int32),
 ):
-    """The point-triangle contacts of this thread's chunk (see :func:`contact_range`)."""
+    """The point-triangle contacts of this thread's chunk (see :func:`contact_range`), each
+    with its character's friction and restitution."""
     first, last = contact_range(wp.tid(), chunk, pt_count[0], pt_vertex.shape[0])
     for k in range(first, last):
-        friction_restitution(k, x, v, inv_mass, tri_indices, pt_vertex, pt_triangle, friction, restitution, dv,
+        s = params[vertex_tree[pt_vertex[k]]]
+        friction_restitution(k, x, v, inv_mass, tri_indices, pt_vertex, pt_triangle, s.friction, s.restitution, dv,
                              dv_count)
 
 
@@ -902,15 +934,18 @@ def reset_collision_kernel(
 @wp.kernel
 def volume_weights_kernel(
     colliding: wp.array(dtype=wp.int32),
-    colliding_weight: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
+    vertex_count: int,
     # outputs
     weight_scale: wp.array(dtype=wp.float32),
 ):
-    """Colliding particles get ``colliding_weight`` on their inverse mass in the volume loop
-    (Diziol et al. 2011 use 0: they stay put)."""
+    """Colliding particles (layer-major, ``vertex_count`` per layer) get their character's
+    ``volume_weight`` on their inverse mass in the volume loop (Diziol et al. 2011 use 0: they
+    stay put)."""
     i = wp.tid()
     if colliding[i] != 0:
-        weight_scale[i] = colliding_weight
+        weight_scale[i] = params[vertex_tree[i % vertex_count]].volume_weight
     else:
         weight_scale[i] = 1.0
 
@@ -919,12 +954,15 @@ def volume_weights_kernel(
 def moved_farther_kernel(
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
-    distance: float,
+    distances: wp.array(dtype=wp.float32),
+    vertex_tree: wp.array(dtype=wp.int32),
     # outputs
     moved: wp.array(dtype=wp.int32),
 ):
-    """``moved``: 1 where a skin vertex is farther than ``distance`` from ``x_old``."""
+    """``moved``: 1 where a skin vertex is farther than its character's distance
+    (``distances[vertex_tree[i]]``) from ``x_old``."""
     i = wp.tid()
+    distance = distances[vertex_tree[i]]
     moved[i] = wp.where(wp.length_sq(x[i] - x_old[i]) > distance * distance, 1, 0)
 
 
@@ -975,7 +1013,8 @@ def fail_safe_bounds_kernel(
     x: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
     carry_offset: int,
-    pad: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
     chunk: int,
     # outputs
     lowers: wp.array(dtype=wp.vec3),
@@ -983,7 +1022,7 @@ def fail_safe_bounds_kernel(
 ):
     """Boxes of the triangles over every position the fail-safe can give a vertex: the step's,
     the start, and the start carried by the bone-layer particle (``carry_offset`` > 0), padded
-    by ``pad``; one refit serves all rounds. ``chunk`` triangles per thread (:func:`contact_range`)."""
+    by their character's ``fail_safe_pad``; one refit serves all rounds. ``chunk`` triangles per thread (:func:`contact_range`)."""
     first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
         lo = wp.vec3(1.0e30)
@@ -996,6 +1035,7 @@ def fail_safe_bounds_kernel(
                 c = x_old[i] + (x[i + carry_offset] - x_old[i + carry_offset])
                 lo = wp.min(lo, c)
                 hi = wp.max(hi, c)
+        pad = params[vertex_tree[tri_indices[t, 0]]].fail_safe_pad
         lowers[t] = lo - wp.vec3(pad)
         uppers[t] = hi + wp.vec3(pad)
 
@@ -1004,19 +1044,20 @@ def fail_safe_bounds_kernel(
 def escaped_kernel(
     x: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
-    pad: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
     det_lowers: wp.array(dtype=wp.vec3),
     det_uppers: wp.array(dtype=wp.vec3),
-    margin: float,
     pair_count: wp.array(dtype=wp.int32),
     pair_capacity: int,
     chunk: int,
     # outputs
     escaped: wp.array(dtype=wp.int32),
 ):
-    """The triangles whose box where they are now (``x``, padded by ``pad`` as the fail-safe's
-    boxes are) reaches past their detection box (``det_lowers``/``det_uppers``: the swept box
-    plus the search radius) shrunk by ``margin`` (the radius less the reach,
+    """The triangles whose box where they are now (``x``, padded by their character's
+    ``fail_safe_pad`` as the fail-safe's boxes are) reaches past their detection box
+    (``det_lowers``/``det_uppers``: the swept box plus the search radius) shrunk by its
+    ``escape_margin`` (the radius less the reach,
     ``warpskin.collision.ESCAPE_REACH``): two triangles that did not escape and intersect now
     have swept boxes within twice the reach, and are in the detection's pair list. (Only the
     first round, which tests the pairs as they are now, reads this; the later rounds look from
@@ -1025,11 +1066,12 @@ def escaped_kernel(
     escaped in the pass after the volume loop in its unflexing frames, 28 now.) Where that list
     did not fit (``pair_count`` above ``pair_capacity``), every triangle escapes. ``chunk``
     triangles per thread (:func:`contact_range`)."""
-    m = wp.vec3(margin)
     fits = pair_count[0] <= pair_capacity
     first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
-        lo, hi = triangle_box(x, tri_indices, t, pad)
+        s = params[vertex_tree[tri_indices[t, 0]]]
+        m = wp.vec3(s.escape_margin)
+        lo, hi = triangle_box(x, tri_indices, t, s.fail_safe_pad)
         inside = boxes_contain(det_lowers[t] + m, det_uppers[t] - m, lo, hi)
         escaped[t] = wp.where(inside and fits, 0, 1)
 
@@ -1206,7 +1248,8 @@ def new_intersections_kernel(
     x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
-    pad: float,
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
     tol: float,
     moved: wp.array(dtype=wp.int32),
     only_moved: int,
@@ -1225,7 +1268,8 @@ def new_intersections_kernel(
 ):
     """``chunk`` triangles per thread (one on a GPU; see :func:`contact_range`), each: the
     pairs with another triangle (no shared vertex) whose box in the tree (over every position
-    the fail-safe can give it) overlaps the box of where this one is now (padded by ``pad``),
+    the fail-safe can give it) overlaps the box of where this one is now (padded by its
+    character's ``fail_safe_pad``),
     tested by :func:`new_intersection`, each pair once. With ``only_moved``
     (the rounds after the first) only triangles with a vertex the last round ``moved`` look, at
     every other triangle (a pair of two such, from the lower-numbered one): no other pair can
@@ -1240,6 +1284,7 @@ def new_intersections_kernel(
             return
     first, last = contact_range(wp.tid(), chunk, tri_indices.shape[0], tri_indices.shape[0])
     for t in range(first, last):
+        pad = params[vertex_tree[tri_indices[t, 0]]].fail_safe_pad
         new_intersections_from(t, trees, tri_tree, tree_start, x_old, x, tri_indices, pad, tol, moved, only_moved,
                                escaped, only_escaped, rest,
                                joint_indices, joint_weights, skin_matrices, revert, count)

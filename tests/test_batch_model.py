@@ -8,23 +8,25 @@ import numpy as np
 import pytest
 
 from oracles import coarse_arm
-from warpskin.batch_model import batch_model
+from warpskin.batch_model import batch_initial_state, batch_model
 from warpskin.collision import CollisionParams
 from warpskin.errors import InputError
 from warpskin.model import ModelParams, SkinModelBuilder
+from warpskin.run.physics import initial_state
 from warpskin.solver import SkinSolver, SolverParams
 
 STEPS = 12
 DT = 1.0 / 200.0
 
 
-def _builders(collision: CollisionParams | None = None):
+def _builders(collision: CollisionParams | None = None, other: CollisionParams | None = None):
     """Three characters nobody made alike: the coarse arm, a thicker and longer arm of other
-    resolution with other stiffnesses and tissue density, and the first again (an instance)."""
+    resolution with other stiffnesses and tissue density (and collision ``other``), and the
+    first again (an instance)."""
     col = collision or CollisionParams(enabled=False)
     a = SkinModelBuilder(coarse_arm(), ModelParams(collision=col, refine=False))
     b = SkinModelBuilder(coarse_arm(rings=23, segments=13, biceps_radius=0.061, upper_length=0.337),
-                         ModelParams(collision=col, refine=False, stiffness=(0.7, 0.5, 0.6, 0.9), density=1070.0))
+                         ModelParams(collision=other or col, refine=False, stiffness=(0.7, 0.5, 0.6, 0.9), density=1070.0))
     c = SkinModelBuilder(coarse_arm(), ModelParams(collision=col, refine=False))
     return [a, b, c]
 
@@ -34,11 +36,14 @@ def _clip_poses(rig, steps: int, phase: float) -> list[np.ndarray]:
     return [rig.skinning_matrices(clip, phase + (s + 1) * DT * 20.0) for s in range(steps)]
 
 
-def _run(model, poses: list[np.ndarray], contacted: list | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``(x, v)`` after stepping ``model`` from rest through ``poses``, one step each; with
-    ``contacted``, each step's point-triangle contact count is appended to it."""
+def _run(model, poses: list[np.ndarray], contacted: list | None = None, start=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, v)`` after stepping ``model`` from rest (or from ``start(state)``) through
+    ``poses``, one step each; with ``contacted``, each step's point-triangle contact count is
+    appended to it."""
     solver = SkinSolver(model, SolverParams(iterations=6))
     a, b, control = model.state(), model.state(), model.control()
+    if start is not None:
+        start(a)
     contacts = model.contacts(capacity=1 << 15)  # the same buffers alone and batched, none overflows
     for m in poses:
         control.set_pose(m)
@@ -74,14 +79,17 @@ def test_each_character_of_a_batch_steps_bit_for_bit_as_alone(device):
 def test_contacts_stay_within_each_character_and_each_steps_as_alone(device):
     # the arms flexed past 100 degrees press the forearm on the biceps (point-triangle contacts
     # every step); two of them overlap in space (instances at one place), so a contact between
-    # characters would be found if the trees were shared: each character's particles are still
-    # bit for bit its own run's (CPU)
+    # characters would be found if the trees were shared; the second arm has its own contact
+    # thickness (its mesh's: 0.15 x its mean edge), friction and restitution: each character's
+    # particles are still bit for bit its own run's (CPU)
     col = CollisionParams(thickness=0.0031)
-    builders = _builders(col)
+    builders = _builders(col, CollisionParams(friction=0.37, restitution=0.21))
     phases = [1.45, 1.6, 1.52]  # near the peak flexion (1.5 s)
     poses = [_clip_poses(b.build().rig, STEPS, ph) for b, ph in zip(builders, phases)]
     batch = batch_model(builders, device)
     assert batch.collision is not None
+    thick = [c["thickness"] for c in batch.collision.characters]
+    assert thick[0] == thick[2] == 0.0031 and abs(thick[1] - 0.0031) > 1e-4
     contacted: list = []
     x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(STEPS)], contacted)
     assert np.count_nonzero(contacted) >= STEPS - 1  # contacts in (nearly) every step
@@ -99,8 +107,8 @@ def test_contacts_stay_within_each_character_and_each_steps_as_alone(device):
 
 def test_a_batch_refuses_what_it_does_not_lay_out_in_one_line():
     mixed = [SkinModelBuilder(coarse_arm(), ModelParams(refine=False)),
-             SkinModelBuilder(coarse_arm(rings=23), ModelParams(refine=False))]
-    with pytest.raises(InputError, match=r"one \[collision\] thickness: character 0 \(.*\) has .*, character 1"):
+             SkinModelBuilder(coarse_arm(rings=23), ModelParams(refine=False, collision=CollisionParams(passes=2)))]
+    with pytest.raises(InputError, match=r"one \[collision\] passes: character 0 \(.*\) has 4, character 1 \(.*\) 2"):
         batch_model(mixed, "cpu")
     off = CollisionParams(enabled=False)
     mixed = [SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False)),
@@ -136,3 +144,25 @@ def test_bench_batch_reports_character_steps_per_second(tmp_path, capsys, device
     assert row["batch_character_steps_per_s"] == pytest.approx(2e3 / row["batch_step_ms"])
     assert main(["bench", "--batch", "0"]) == 2
     assert "--batch needs a positive number of characters, got 0" in capsys.readouterr().err
+
+
+def test_eight_cesium_men_step_bit_for_bit_as_each_alone(assets):
+    # eight instances of one real rig, each at its own moment of the walk, contacts on: each
+    # one's particles after the steps are its own run's (CPU)
+    from warpskin.scene import resolve_scene
+
+    scene = resolve_scene("cesium_man")
+    rig = scene.rig()
+    builder = SkinModelBuilder(rig, scene.model_params())
+    builder.params.collision = scene.collision_params()
+    batch = batch_model([builder] * 8, "cpu")
+    clip = rig.clip(scene.clip)
+    steps = 4
+    poses = [[rig.skinning_matrices(clip, clip.start + 0.09 * c + s * DT) for s in range(steps + 1)] for c in range(8)]
+    x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(1, steps + 1)],
+                start=lambda st: batch_initial_state([builder] * 8, batch, st, [p[0] for p in poses]))
+    alone = builder.finalize("cpu")
+    for p, r in zip(poses, batch.characters):
+        ax, av = _run(alone, p[1:], start=lambda st: initial_state(builder, st, p[0]))
+        mine = r.particles(batch.vertex_count)
+        assert np.array_equal(x[mine], ax) and np.array_equal(v[mine], av)

@@ -149,6 +149,14 @@ def test_edge_edge_violated_only_skips_only_the_gradients_of_satisfied_pairs(dev
     assert seen == {True, False}
 
 
+def _contact_scalars(device, n: int, *, thickness=0.0, radius=0.0, friction=0.0, restitution=0.0):
+    """One character's :class:`CollisionScalars` (the rest zero) and a vertex-to-character map
+    of ``n`` zeros: what the contact kernels read in place of scalars."""
+    s = k.CollisionScalars()
+    s.thickness, s.radius, s.friction, s.restitution = thickness, radius, friction, restitution
+    return wp.array([s], dtype=k.CollisionScalars, device=device), wp.zeros(n, dtype=wp.int32, device=device)
+
+
 def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h=0.01, chunk=1, counted=None):
     """One Jacobi pass over the given contacts (``counted`` of them counted, default all), a
     thread per ``chunk`` contacts."""
@@ -160,11 +168,12 @@ def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h
     count = wp.zeros(n, dtype=wp.int32, device=device)
     active = wp.zeros(1, dtype=wp.int32, device=device)
     threads = -(-max(len(pt or ()), len(ee or ())) // chunk)
+    params, tree = _contact_scalars(device, n, thickness=h)
     if pt is not None:
         cnt = wp.array([len(pt) if counted is None else counted], dtype=wp.int32, device=device)
         wp.launch(k.project_point_triangle_kernel, dim=threads,
                   inputs=[x, w, tris, cnt, wp.array([v for v, _ in pt], dtype=wp.int32, device=device),
-                          wp.array([t for _, t in pt], dtype=wp.int32, device=device), h, chunk],
+                          wp.array([t for _, t in pt], dtype=wp.int32, device=device), params, tree, chunk],
                   outputs=[delta, count, active], device=device)
     if ee is not None:
         cnt = wp.array([len(ee) if counted is None else counted], dtype=wp.int32, device=device)
@@ -172,7 +181,7 @@ def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h
         wp.launch(k.project_edge_edge_kernel, dim=threads,
                   inputs=[x, w, e, cnt, wp.array([a for a, _, _ in ee], dtype=wp.int32, device=device),
                           wp.array([b for _, b, _ in ee], dtype=wp.int32, device=device),
-                          wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), h, chunk],
+                          wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), params, tree, chunk],
                   outputs=[delta, count, active], device=device)
     wp.launch(k.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
     return x.numpy().astype(np.float64), int(active.numpy()[0])
@@ -250,7 +259,8 @@ def test_contact_kernels_take_the_counted_contacts_in_chunks(device):
         wp.launch(k.friction_restitution_kernel, dim=-(-len(pt) // chunk),
                   inputs=[arr(points.astype(np.float32), wp.vec3), v, arr(inv_mass.astype(np.float32), wp.float32),
                           arr(np.asarray(tri, dtype=np.int32), wp.int32), arr([counted], wp.int32),
-                          arr([p for p, _ in pt], wp.int32), arr([t for _, t in pt], wp.int32), 0.4, 0.3, chunk],
+                          arr([p for p, _ in pt], wp.int32), arr([t for _, t in pt], wp.int32),
+                          *_contact_scalars(device, n, friction=0.4, restitution=0.3), chunk],
                   outputs=[dv, dv_count], device=device)
         wp.launch(k.apply_deltas_kernel, dim=n, inputs=[dv, dv_count], outputs=[v], device=device)
         return v.numpy()
@@ -707,7 +717,8 @@ def _detect_pt(x, tris, fold_cos, h, radius, device):
         tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
         lo = wp.zeros(len(tris), dtype=wp.vec3)
         hi = wp.zeros(len(tris), dtype=wp.vec3)
-        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, radius], outputs=[lo, hi])
+        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
+                                                                  wp.zeros(n, dtype=wp.int32)], outputs=[lo, hi])
         bvh = wp.Bvh(lo, hi)
         vn = wp.zeros(n, dtype=wp.vec3)
         wp.launch(k.vertex_normals_kernel, dim=len(tris), inputs=[xw, tw], outputs=[vn])
@@ -765,7 +776,8 @@ def _edge_pairs_detected(points, tris, x_tri, device, h=0.1, radius=0.3):
         xw = wp.array(x, dtype=wp.vec3)
         tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
         lo, hi = wp.zeros(len(tris), dtype=wp.vec3), wp.zeros(len(tris), dtype=wp.vec3)
-        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, radius], outputs=[lo, hi])
+        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
+                                                                  wp.zeros(n, dtype=wp.int32)], outputs=[lo, hi])
         bvh = wp.Bvh(lo, hi)
         cap = 4 * len(points) * len(tris)
         count, pv, pt = wp.zeros(1, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32)

@@ -22,11 +22,12 @@ kernels, unchanged, see one model of ``V`` skin vertices, ``V`` the characters' 
   which the skinning skips.
 
 Self-collision stays within a character: each has its own detection and fail-safe trees
-(:class:`~warpskin.collision.SelfCollision`), queried in the order it queries them alone, and
-its own tree rebuilds. The characters must agree on the collision scalars (one thickness: set
-``[collision] thickness`` where their meshes differ) and all have volume or none; a rest-shape
-drive (layered popping) and a refined skin are not batched. :func:`batch_model` refuses each
-in one line naming the character.
+(:class:`~warpskin.collision.SelfCollision`), queried in the order it queries them alone, its
+own tree rebuilds and its own contact scalars (thickness, radius, margins, friction, ...). The
+characters must agree on what the host loops over (collision on or off, its passes and
+fail-safe rounds) and all have volume or none; a rest-shape drive (layered popping) and a
+refined skin are not batched. :func:`batch_model` refuses each in one line naming the
+character.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
 from .errors import InputError
 
@@ -270,35 +272,26 @@ def batch_model(builders: Sequence, device=None):
     return model
 
 
-def _collision_scalars(b) -> dict:
-    """The self-collision scalars a character's model gets (:func:`~warpskin.collision.upload_collision`)."""
-    p = b.params.collision
-    thickness = float(p.thickness) if p.thickness is not None else 0.15 * b.collision_topology.mean_edge
-    return {"enabled": bool(p.enabled), "thickness": thickness, "detection_margin": float(p.detection_margin),
-            "rest_gap_margin": float(p.rest_gap_margin), "fold_cos": float(p.fold_cos), "friction": float(p.friction),
-            "restitution": float(p.restitution), "passes": int(p.passes), "volume_weight": float(p.volume_weight),
-            "rebuild_spread": float(p.rebuild_spread), "fail_safe_rounds": int(p.fail_safe_rounds),
-            "capacity": int(p.capacity)}
-
-
 def _batch_collision(builders, names, ranges, device):
     """One :class:`~warpskin.collision.CollisionData` for the batch: the characters' topologies
-    side by side (vertices, edges, triangles and bones offset), their scalars, which must agree
-    (one thickness, one set of margins: the kernels read one of each)."""
+    side by side (vertices, edges, triangles and bones offset), each character's own scalars
+    (``characters``: its thickness, radius, margins, friction, ...; the kernels read each
+    vertex's), and the host's loop counts, which must agree (``passes``,
+    ``fail_safe_rounds``: the solver runs them for all)."""
     from types import SimpleNamespace
 
-    from .collision import CollisionTopology, upload_collision
+    from .collision import CollisionTopology, contact_scalars, upload_collision
 
-    scalars = [_collision_scalars(b) for b in builders]
-    for key in scalars[0]:
-        values = [s[key] for s in scalars]
-        if any(v != values[0] for v in values):
-            odd = next(n for n, v in zip(names, values) if v != values[0])
-            what = "self-collision on or off" if key == "enabled" else f"[collision] {key}"
-            raise InputError(f"the characters of a batch need one {what}: {names[0]} has {values[0]!r}, {odd} "
-                             f"{next(v for v in values if v != values[0])!r}" + (
-                                 " (set [collision] thickness to one value for all)" if key == "thickness" else ""))
+    for key, what in (("enabled", "self-collision on or off"), ("passes", "[collision] passes"),
+                      ("fail_safe_rounds", "[collision] fail_safe_rounds")):
+        values = [getattr(b.params.collision, key) for b in builders]
+        odd = [c for c, v in enumerate(values) if v != values[0]]
+        if odd:
+            raise InputError(f"the characters of a batch need one {what}: {names[0]} has {values[0]!r}, "
+                             f"{names[odd[0]]} {values[odd[0]]!r}")
     topos = [b.collision_topology for b in builders]
+    # each character's scalars as its own model gets them
+    chars = [contact_scalars(t, b.params.collision) for t, b in zip(topos, builders)]
     e0 = np.concatenate([[0], np.cumsum([len(t.edges) for t in topos])[:-1]])
     topo = CollisionTopology(
         edges=np.concatenate([t.edges + r.vertex_start for t, r in zip(topos, ranges)]),
@@ -310,10 +303,13 @@ def _batch_collision(builders, names, ranges, device):
     tris = np.concatenate([np.asarray(b.rig.triangles, dtype=np.int64) + r.vertex_start for b, r in zip(builders, ranges)])
     rig = SimpleNamespace(vertices=np.concatenate([b.rig.vertices for b in builders]), triangles=tris,
                           output_triangles=tris)
-    from dataclasses import replace
-
-    params = replace(builders[0].params.collision, thickness=scalars[0]["thickness"])
-    return params, upload_collision(topo, rig, params, device)
+    # the rigid bones by each character's own rigid_weight: one set of parameters uploads them all
+    rigid = [np.where(t.dominant_weight >= b.params.collision.rigid_weight, t.dominant_joint + r.joint_start, -1)
+             for t, b, r in zip(topos, builders, ranges)]
+    data = upload_collision(topo, rig, builders[0].params.collision, device)
+    data.rigid_bone = wp.array(np.concatenate(rigid).astype(np.int32), dtype=wp.int32, device=device)
+    data.characters = chars
+    return builders[0].params.collision, data
 
 
 def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.ndarray]) -> None:

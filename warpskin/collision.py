@@ -198,8 +198,22 @@ class CollisionData:
         (the bone a vertex moves rigidly with, else -1), rest_lowers/rest_uppers ``[T]`` (rest
         triangle boxes); thickness [m], radius [m] (search radius), rest_gap [m], fold_cos,
         friction, restitution, passes, rebuild_spread, fail_safe_rounds;
-        edge_count, triangle_count; diagonal [m].
+        edge_count, triangle_count; diagonal [m]; characters: each character's contact
+        scalars (:func:`contact_scalars`; one for a model, one each for a batched model's).
     """
+
+
+def contact_scalars(topo: CollisionTopology, params: CollisionParams) -> dict:
+    """One character's contact scalars: ``thickness`` (``params.thickness``, else 0.15 x its
+    mean edge), the search ``radius`` and ``rest_gap`` [m], ``fold_cos``, ``friction``,
+    ``restitution``, ``volume_weight``, ``rebuild_spread``: what :class:`SelfCollision` gives
+    that character's vertices."""
+    thickness = float(params.thickness) if params.thickness is not None else 0.15 * topo.mean_edge
+    radius = thickness * float(params.detection_margin)
+    return {"thickness": thickness, "radius": radius, "rest_gap": radius * float(params.rest_gap_margin),
+            "fold_cos": float(params.fold_cos), "friction": float(params.friction),
+            "restitution": float(params.restitution), "volume_weight": float(params.volume_weight),
+            "rebuild_spread": float(params.rebuild_spread)}
 
 
 def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, device) -> CollisionData:
@@ -208,17 +222,15 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
     params.check()
     d = CollisionData()
     tris = rig.triangles
-    d.thickness = float(params.thickness) if params.thickness is not None else 0.15 * topo.mean_edge
-    d.radius = d.thickness * float(params.detection_margin)
-    d.rest_gap = d.radius * float(params.rest_gap_margin)
-    d.fold_cos = float(params.fold_cos)
-    d.friction = float(params.friction)
-    d.restitution = float(params.restitution)
+    one = contact_scalars(topo, params)
+    d.thickness, d.radius, d.rest_gap = one["thickness"], one["radius"], one["rest_gap"]
+    d.fold_cos, d.friction, d.restitution = one["fold_cos"], one["friction"], one["restitution"]
     d.passes = int(params.passes)
-    d.volume_weight = float(params.volume_weight)
-    d.rebuild_spread = float(params.rebuild_spread)
+    d.volume_weight, d.rebuild_spread = one["volume_weight"], one["rebuild_spread"]
     d.fail_safe_rounds = int(params.fail_safe_rounds)
     d.diagonal = topo.diagonal
+    # the scalars per character (one here; a batched model's, one each: warpskin.batch_model)
+    d.characters = [one]
     d.edge_count = int(topo.edges.shape[0])
     d.triangle_count = int(tris.shape[0])
     rigid = np.where(topo.dominant_weight >= params.rigid_weight, topo.dominant_joint, -1)
@@ -239,6 +251,10 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
         d.output_triangle_count = int(out.shape[0])
     return d
 
+
+#: The pass after the volume loop looks for new intersections only from triangles with a vertex
+#: that moved farther than this share of the contact thickness (see :meth:`SelfCollision.fail_safe`).
+MIN_MOVE_SHARE = 1.0e-2
 
 #: A triangle escapes the detection's pair list when its fail-safe box reaches farther than this
 #: many search radii beyond its swept box; the list holds the pairs whose swept boxes are within
@@ -279,6 +295,29 @@ class SelfCollision:
             self.tri_tree = wp.array(tri_tree, dtype=wp.int32)
             self.tree_start = wp.array(np.array([t0 for _, _, t0, _ in self._ranges], dtype=np.int32), dtype=wp.int32)
             self.trees = wp.array(np.array([b.id for b in self.bvhs], dtype=np.uint64), dtype=wp.uint64)
+            vertex_tree = np.zeros(v, dtype=np.int32)
+            for tree, (v0, vn, _, _) in enumerate(self._ranges):
+                vertex_tree[v0:v0 + vn] = tree
+            self.vertex_tree = wp.array(vertex_tree, dtype=wp.int32)
+            # each character's scalars, and what the kernels derive from them (as one would)
+            chars = self._chars = list(c.characters)
+            if len(chars) != len(self._ranges):
+                raise InputError(f"collision data for {len(chars)} characters on a model of {len(self._ranges)}")
+            structs = []
+            for ch in chars:
+                reach = ESCAPE_REACH * ch["radius"]
+                s = k.CollisionScalars()
+                s.thickness, s.radius, s.rest_gap, s.fold_cos = ch["thickness"], ch["radius"], ch["rest_gap"], ch["fold_cos"]
+                s.friction, s.restitution, s.volume_weight = ch["friction"], ch["restitution"], ch["volume_weight"]
+                s.list_gap, s.escape_margin, s.fail_safe_pad = 2.0 * reach, ch["radius"] - reach, 1.0e-3 * ch["thickness"]
+                structs.append(s)
+            self.params = wp.array(structs, dtype=k.CollisionScalars)
+            self._radius_pads = wp.array(np.array([ch["radius"] for ch in chars], dtype=np.float32), dtype=wp.float32)
+            thickness_pads = wp.array(np.array([ch["thickness"] for ch in chars], dtype=np.float32), dtype=wp.float32)
+            #: the fail-safe's ``min_move`` the solver uses: a hundredth of each character's thickness
+            self.default_min_move = tuple(MIN_MOVE_SHARE * ch["thickness"] for ch in chars)
+            self._min_move_host = self.default_min_move
+            self._min_move = wp.array(np.array(self._min_move_host, dtype=np.float32), dtype=wp.float32)
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
@@ -302,14 +341,13 @@ class SelfCollision:
         self._listed = c.output_triangles is None
         if len(self._ranges) > 1 and not self._listed:
             raise InputError("a batched model's skins are written as simulated (no refined skin)")
-        self._reach = ESCAPE_REACH * c.radius
         self.chunk = CPU_CONTACT_CHUNK if wp.get_device(self.device).is_cpu else 1
         with wp.ScopedDevice(self.device):
             self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
             self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
             self.escaped = wp.zeros(c.output_triangle_count, dtype=wp.int32)
             wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
-                      inputs=[model.particle_q0, model.particle_q0, self._fs_tris, c.thickness],
+                      inputs=[model.particle_q0, model.particle_q0, self._fs_tris, thickness_pads, self.vertex_tree],
                       outputs=[self._fs_lowers, self._fs_uppers])
             if len(self._ranges) > 1:  # the written triangles are the simulated ones: one tree per character
                 self._fs_bvhs = [wp.Bvh(self._fs_lowers[t0:t0 + tn], self._fs_uppers[t0:t0 + tn])
@@ -331,7 +369,7 @@ class SelfCollision:
         for tree, (v0, vn, _, _) in enumerate(self._ranges):  # each character by its own size
             d = skin[v0:v0 + vn] - self._built_at[v0:v0 + vn]
             spread = float(np.linalg.norm(d - d.mean(axis=0), axis=1).max())
-            if spread <= self.data.rebuild_spread * self._diagonals[tree]:
+            if spread <= self._chars[tree]["rebuild_spread"] * self._diagonals[tree]:
                 continue
             self.bvhs[tree].rebuild()  # in place: graphs captured with these trees stay valid
             self._fs_bvhs[tree if len(self._fs_bvhs) > 1 else 0].rebuild()
@@ -349,7 +387,8 @@ class SelfCollision:
         m = self.model
         wp.launch(k.reset_collision_kernel, dim=contacts.colliding.shape[0], outputs=[contacts.colliding], device=dev)
         wp.launch(k.triangle_bounds_kernel, dim=c.triangle_count,
-                  inputs=[x_old, x_pred, m.tri_indices, c.radius], outputs=[self.lowers, self.uppers], device=dev)
+                  inputs=[x_old, x_pred, m.tri_indices, self._radius_pads, self.vertex_tree],
+                  outputs=[self.lowers, self.uppers], device=dev)
         for tree in self.bvhs:
             tree.refit()
         self.vertex_normals.zero_()
@@ -359,11 +398,11 @@ class SelfCollision:
         wp.launch(k.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
         wp.launch(k.detect_kernel, dim=c.triangle_count,
                   inputs=[self.trees, self.tri_tree, self.tree_start, x_old, x_pred, m.tri_indices, c.tri_owns, c.edge_indices, c.tri_edges,
-                          c.edge_owner, self.lowers, self.uppers, c.rigid_bone, m.particle_q0, c.rest_gap,
-                          self.vertex_normals, c.fold_cos, c.thickness, c.radius, contacts.capacity],
+                          c.edge_owner, self.lowers, self.uppers, c.rigid_bone, m.particle_q0,
+                          self.vertex_normals, self.params, contacts.capacity],
                   outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.ee_count, contacts.ee_a,
                            contacts.ee_b, contacts.ee_sign, contacts.overflow_flag, contacts.colliding,
-                           int(self._listed and c.fail_safe_rounds > 0), 2.0 * self._reach,
+                           int(self._listed and c.fail_safe_rounds > 0),
                            contacts.pair_capacity, contacts.tri_pairs,
                            contacts.pair_count], device=dev)
 
@@ -385,16 +424,16 @@ class SelfCollision:
         dim = self._threads(contacts.capacity)
         wp.launch(k.project_point_triangle_kernel, dim=dim,
                   inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
-                          c.thickness, self.chunk],
+                          self.params, self.vertex_tree, self.chunk],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(k.project_edge_edge_kernel, dim=dim,
                   inputs=[x, inv_mass, c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
-                          c.thickness, self.chunk],
+                          self.params, self.vertex_tree, self.chunk],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
     def fail_safe(self, x_old: wp.array, x: wp.array, skin_matrices: wp.array, carry: bool = True,
-                  min_move: float | None = None, contacts=None) -> None:
+                  min_move=None, contacts=None) -> None:
         """Put back the vertices of every pair of the written skin triangles that intersects at
         ``x``, did not at ``x_old`` and does not under LBS (``skin_matrices``, this step's
         pose): to ``x_old`` plus the step's motion of their bone-layer particles, and where
@@ -403,7 +442,8 @@ class SelfCollision:
         :attr:`fail_safe_pairs`. Pairs that already intersected at ``x_old``, or under LBS,
         are left to the constraints. Without ``carry`` the vertices are held at ``x_old``
         (the pass after the volume loop, whose ``x_old`` is this step's positions before it:
-        the bone layer has not moved since). With ``min_move`` [m] the first round, too, looks
+        the bone layer has not moved since). With ``min_move`` [m] (one value, or one per
+        character of a batched model; the solver's: :attr:`default_min_move`) the first round, too, looks
         only from the triangles with a vertex that moved farther than that from ``x_old``: a
         pair of two others was closer than twice it at ``x_old`` if it intersects now (the
         pass after the volume loop, which moves most of the skin by far less than the
@@ -428,18 +468,19 @@ class SelfCollision:
         carry_offset = self._carry if carry else 0
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
-        pad = 1.0e-3 * c.thickness
         tri_threads = self._threads(count)
-        wp.launch(k.fail_safe_bounds_kernel, dim=tri_threads, inputs=[x_old, x, tris, carry_offset, pad, self.chunk],
+        wp.launch(k.fail_safe_bounds_kernel, dim=tri_threads,
+                  inputs=[x_old, x, tris, carry_offset, self.params, self.vertex_tree, self.chunk],
                   outputs=[lowers, uppers], device=dev)
         for tree in self._fs_bvhs:
             tree.refit()
         if listed:
             wp.launch(k.escaped_kernel, dim=tri_threads,
-                      inputs=[x, tris, pad, self.lowers, self.uppers, c.radius - self._reach, contacts.pair_count,
+                      inputs=[x, tris, self.params, self.vertex_tree, self.lowers, self.uppers, contacts.pair_count,
                               contacts.pair_capacity, self.chunk], outputs=[self.escaped], device=dev)
         if min_move is not None:
-            wp.launch(k.moved_farther_kernel, dim=m.vertex_count, inputs=[x_old, x, float(min_move)], outputs=[self.moved],
+            wp.launch(k.moved_farther_kernel, dim=m.vertex_count,
+                      inputs=[x_old, x, self._min_move_array(min_move), self.vertex_tree], outputs=[self.moved],
                       device=dev)
         lbs = [m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, skin_matrices]
         for r in range(c.fail_safe_rounds):
@@ -452,11 +493,22 @@ class SelfCollision:
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
             wp.launch(k.new_intersections_kernel, dim=tri_threads,
-                      inputs=[self._fs_trees, self._fs_tri_tree, self._fs_tree_start, x_old, x, tris, pad, 1.0e-4, self.moved, only_moved, self.escaped,
+                      inputs=[self._fs_trees, self._fs_tri_tree, self._fs_tree_start, x_old, x, tris, self.params,
+                              self.vertex_tree, 1.0e-4, self.moved, only_moved, self.escaped,
                               only_escaped, *lbs, self.reverted, r - 1, self.chunk],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
                       outputs=[self.revert, self.carried, self.moved, x, self.reverted], device=dev)
+
+    def _min_move_array(self, min_move) -> wp.array:
+        """``[K]`` the fail-safe's ``min_move`` per character [m] (one value for all, or one
+        each): the array made at construction for the solver's :attr:`default_min_move`, filled
+        anew (outside a captured graph) only for another value."""
+        values = tuple(float(v) for v in np.broadcast_to(np.asarray(min_move, dtype=np.float64), (len(self._ranges),)))
+        if values != self._min_move_host:
+            self._min_move.assign(np.array(values, dtype=np.float32))
+            self._min_move_host = values
+        return self._min_move
 
     def pin_reverted(self, weight_scale: wp.array) -> None:
         """Pin (``weight_scale`` 0) the vertices the last :meth:`fail_safe` put back."""
@@ -464,7 +516,8 @@ class SelfCollision:
                   device=self.device)
 
     def volume_weights(self, contacts, weight_scale: wp.array) -> None:
-        wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0], inputs=[contacts.colliding, self.data.volume_weight],
+        wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0],
+                  inputs=[contacts.colliding, self.params, self.vertex_tree, self.model.vertex_count],
                   outputs=[weight_scale],
                   device=self.device)
 
@@ -474,6 +527,6 @@ class SelfCollision:
         m = self.model
         wp.launch(k.friction_restitution_kernel, dim=self._threads(contacts.capacity),
                   inputs=[x, v, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
-                          c.friction, c.restitution, self.chunk],
+                          self.params, self.vertex_tree, self.chunk],
                   outputs=[self.delta, self.delta_count], device=dev)
         wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[v], device=dev)

@@ -333,7 +333,7 @@ class SkinSolver:
             # what the projection pushed through goes back (without this, RiggedFigure had 4
             # pairs where LBS has none); the added vertices do not change the written mesh
             col.fail_safe(self.x_before_volume, x, control.skin_matrices, carry=False,
-                          min_move=1.0e-2 * col.data.thickness)
+                          min_move=col.default_min_move)
         wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 1],
                   outputs=[self.split_weight_scale], device=dev)
         self._volume_loop(x, self.split_weight_scale)
@@ -425,7 +425,7 @@ class SkinSolver:
             # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %)
             if fail_safe:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
-                              min_move=1.0e-2 * col.data.thickness, contacts=contacts)
+                              min_move=col.default_min_move, contacts=contacts)
                 col.pin_reverted(self.volume_weight_scale)
                 self._volume_loop(state_out.x)
         if self.written_volume is not None:
