@@ -68,14 +68,14 @@ def tether_kernel(
 @wp.kernel
 def split_weights_kernel(
     weight_scale: wp.array(dtype=wp.float32),
-    output_count: int,
+    loaded: wp.array(dtype=wp.int32),
     added: int,
     # outputs
     split: wp.array(dtype=wp.float32),
 ):
-    """``weight_scale`` on the loaded skin vertices (``< output_count``; ``added`` 0) or on the
-    vertices a refinement added (``>= output_count``; ``added`` 1), 0 on the others; one
-    thread per skin vertex."""
+    """``weight_scale`` on the loaded skin vertices (``loaded`` 1; ``added`` 0) or on the
+    vertices a refinement added (``loaded`` 0; ``added`` 1), 0 on the others; one thread per
+    skin vertex."""
     i = wp.tid()
-    keep = (i >= output_count) == (added != 0)
+    keep = (loaded[i] == 0) == (added != 0)
     split[i] = wp.where(keep, weight_scale[i], 0.0)

@@ -19,14 +19,16 @@ STEPS = 12
 DT = 1.0 / 200.0
 
 
-def _builders(collision: CollisionParams | None = None, other: CollisionParams | None = None):
+def _builders(collision: CollisionParams | None = None, other: CollisionParams | None = None, refine: bool = False):
     """Three characters nobody made alike: the coarse arm, a thicker and longer arm of other
-    resolution with other stiffnesses and tissue density (and collision ``other``), and the
-    first again (an instance)."""
+    resolution with other stiffnesses and tissue density (and collision ``other``; with
+    ``refine``, simulated on a refined copy of its coarse mesh), and the first again (an
+    instance)."""
     col = collision or CollisionParams(enabled=False)
     a = SkinModelBuilder(coarse_arm(), ModelParams(collision=col, refine=False))
     b = SkinModelBuilder(coarse_arm(rings=23, segments=13, biceps_radius=0.061, upper_length=0.337),
-                         ModelParams(collision=other or col, refine=False, stiffness=(0.7, 0.5, 0.6, 0.9), density=1070.0))
+                         ModelParams(collision=other or col, refine=refine, stiffness=(0.7, 0.5, 0.6, 0.9),
+                                     density=1070.0))
     c = SkinModelBuilder(coarse_arm(), ModelParams(collision=col, refine=False))
     return [a, b, c]
 
@@ -80,10 +82,12 @@ def test_contacts_stay_within_each_character_and_each_steps_as_alone(device):
     # the arms flexed past 100 degrees press the forearm on the biceps (point-triangle contacts
     # every step); two of them overlap in space (instances at one place), so a contact between
     # characters would be found if the trees were shared; the second arm has its own contact
-    # thickness (its mesh's: 0.15 x its mean edge), friction and restitution: each character's
-    # particles are still bit for bit its own run's (CPU)
+    # thickness (its mesh's: 0.15 x its mean edge), friction and restitution, and is simulated
+    # on a refined copy of its coarse mesh (the written mesh's volume and fail-safe are its
+    # own): each character's particles are still bit for bit its own run's (CPU)
     col = CollisionParams(thickness=0.0031)
-    builders = _builders(col, CollisionParams(friction=0.37, restitution=0.21))
+    builders = _builders(col, CollisionParams(friction=0.37, restitution=0.21), refine=True)
+    assert builders[1].build().rig.refined_skin  # its written mesh is the coarse one: its own fail-safe and volume
     phases = [1.45, 1.6, 1.52]  # near the peak flexion (1.5 s)
     poses = [_clip_poses(b.build().rig, STEPS, ph) for b, ph in zip(builders, phases)]
     batch = batch_model(builders, device)
@@ -166,3 +170,32 @@ def test_eight_cesium_men_step_bit_for_bit_as_each_alone(assets):
         ax, av = _run(alone, p[1:], start=lambda st: initial_state(builder, st, p[0]))
         mine = r.particles(batch.vertex_count)
         assert np.array_equal(x[mine], ax) and np.array_equal(v[mine], av)
+
+
+def test_a_mixed_batch_of_real_rigs_steps_bit_for_bit_as_each_alone(assets):
+    # CesiumMan (closed), the Fox (a coarse mesh simulated on a refined copy, in centimetres)
+    # and the procedural arm, each with its own parameters, contacts on: each one's particles
+    # after the steps are its own run's (CPU)
+    from warpskin.io import load_rig
+    from warpskin.scene import resolve_scene
+
+    builders, clips = [], []
+    for scene in (resolve_scene("cesium_man"), resolve_scene("arm")):
+        rig = scene.rig()
+        b = SkinModelBuilder(rig, scene.model_params())
+        b.params.collision = scene.collision_params()
+        builders.append(b)
+        clips.append((rig, rig.clip(scene.clip), 0.3))
+    fox = load_rig(assets / "Fox" / "Fox.glb")
+    builders.insert(1, SkinModelBuilder(fox))
+    clips.insert(1, (fox, fox.clip("Walk"), 0.2))
+    batch = batch_model(builders, "cpu")
+    assert builders[1].rig.refined_skin and batch.written_surface is not None
+    steps = 4
+    poses = [[rig.skinning_matrices(clip, clip.start + t0 + s * DT) for s in range(steps + 1)] for rig, clip, t0 in clips]
+    x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(1, steps + 1)],
+                start=lambda st: batch_initial_state(builders, batch, st, [p[0] for p in poses]))
+    for b, p, r in zip(builders, poses, batch.characters):
+        ax, av = _run(b.finalize("cpu"), p[1:], start=lambda st: initial_state(b, st, p[0]))
+        mine = r.particles(batch.vertex_count)
+        assert np.array_equal(x[mine], ax) and np.array_equal(v[mine], av), r.name

@@ -25,9 +25,10 @@ Self-collision stays within a character: each has its own detection and fail-saf
 (:class:`~warpskin.collision.SelfCollision`), queried in the order it queries them alone, its
 own tree rebuilds and its own contact scalars (thickness, radius, margins, friction, ...). The
 characters must agree on what the host loops over (collision on or off, its passes and
-fail-safe rounds) and all have volume or none; a rest-shape drive (layered popping) and a
-refined skin are not batched. :func:`batch_model` refuses each in one line naming the
-character.
+fail-safe rounds) and all have volume or none; a rest-shape drive (layered popping) is not
+batched. :func:`batch_model` refuses each in one line naming the character. A refined skin
+(a coarse mesh simulated on a refined copy) keeps its written mesh's volume constraint and its
+fail-safe on the written triangles, each character its own.
 """
 
 from __future__ import annotations
@@ -53,7 +54,9 @@ class CharacterRange:
             vertex_count)``; its particle of layer ``k`` and vertex ``i`` is
             ``k * V + vertex_start + i`` (``V`` the batch's vertices).
         joint_start, joint_count: Its joints (its part of ``Control.skin_matrices``).
-        triangle_start, triangle_count: Its skin triangles.
+        triangle_start, triangle_count: Its simulated skin triangles.
+        written_start, written_count: Its written triangles (the loaded mesh's, where its skin
+            was refined; else its simulated ones), in the batch's written triangles.
     """
 
     name: str
@@ -63,6 +66,8 @@ class CharacterRange:
     joint_count: int
     triangle_start: int
     triangle_count: int
+    written_start: int = 0
+    written_count: int = 0
 
     def particles(self, total_vertices: int) -> np.ndarray:
         """``[4 * vertex_count]`` its particles in the batch, in its own (layer-major) order."""
@@ -134,8 +139,14 @@ def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None)
 
     out: dict = {"vertex_count": total, "joint_count": int(js.sum()),
                  "coupling_stiffness": stiff.pop(), "rest_drive": None}
-    out["characters"] = [CharacterRange(n, int(v0[c]), int(vs[c]), int(j0[c]), int(js[c]), int(t0[c]), int(ts[c]))
-                         for c, n in enumerate(names)]
+    for p in parts:  # a skin written as simulated: its own triangles
+        p.setdefault("written_triangles", p["tri_indices"])
+    ws = np.array([len(p["written_triangles"]) for p in parts], dtype=np.int64)
+    w0 = np.concatenate([[0], np.cumsum(ws)[:-1]])
+    out["characters"] = [CharacterRange(n, int(v0[c]), int(vs[c]), int(j0[c]), int(js[c]), int(t0[c]), int(ts[c]),
+                                        int(w0[c]), int(ws[c])) for c, n in enumerate(names)]
+    out["written_triangles"] = np.concatenate([np.asarray(p["written_triangles"], dtype=np.int64) + v0[c]
+                                               for c, p in enumerate(parts)])
     for key in ("particle_q0", "particle_mass", "volume_inv_mass", "particle_stiffness", "particle_moment",
                 "region_sibling_count", "region_rest_com", "region_mass"):
         out[key] = layer_major(key)
@@ -179,7 +190,10 @@ def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None)
         idx.append(np.pad(ji + j0[c], ((0, 0), (0, pad)), constant_values=j0[c]))
         wts.append(np.pad(jw, ((0, 0), (0, pad))))
     out["coupling_joint_indices"], out["coupling_joint_weights"] = np.concatenate(idx), np.concatenate(wts)
-    out["output_count"] = total  # every vertex is written (no refined skin: see batch_model)
+    out["output_count"] = total  # (one model's loaded vertices come first; a batch's are vertex_loaded)
+    out["vertex_loaded"] = np.concatenate([p["vertex_loaded"] for p in parts])
+    out["vertex_written_volume"] = np.concatenate([p["vertex_written_volume"] for p in parts])
+    out["written_surface"] = _batch_written_surface(parts, v0, total)
     out["subvolume_count"] = int(sum(p["subvolume_count"] for p in parts))
     out["volume_layout"], out["volume_centres"] = _batch_volume(parts, v0, j0, total) if out["subvolume_count"] else (None, None)
     return out
@@ -258,12 +272,13 @@ def batch_model(builders: Sequence, device=None):
     names = []
     for c, b in enumerate(builders):
         b.build()
-        name = f"character {c} ({b.rig.name})"
-        if b.rig.refined_skin:
-            raise InputError(f"{name}: a refined skin is not batched (its written mesh is not the simulated one); "
-                             "set refine = false")
-        names.append(name)
-    host = batch_host_arrays([model_host_arrays(b) for b in builders], names)
+        names.append(f"character {c} ({b.rig.name})")
+    parts = []
+    for b in builders:
+        part = model_host_arrays(b)
+        part["written_triangles"] = np.asarray(b.rig.output_triangles)
+        parts.append(part)
+    host = batch_host_arrays(parts, names)
     device = resolve_device(device)
     model = SkinModel(None, device, host=host)
     model.character_diagonals = [float(b.rig.size()) for b in builders]
@@ -301,8 +316,10 @@ def _batch_collision(builders, names, ranges, device):
         dominant_weight=np.concatenate([t.dominant_weight for t in topos]),
         mean_edge=topos[0].mean_edge, diagonal=max(t.diagonal for t in topos))
     tris = np.concatenate([np.asarray(b.rig.triangles, dtype=np.int64) + r.vertex_start for b, r in zip(builders, ranges)])
+    written = np.concatenate([np.asarray(b.rig.output_triangles, dtype=np.int64) + r.vertex_start
+                              for b, r in zip(builders, ranges)])
     rig = SimpleNamespace(vertices=np.concatenate([b.rig.vertices for b in builders]), triangles=tris,
-                          output_triangles=tris)
+                          output_triangles=written)
     # the rigid bones by each character's own rigid_weight: one set of parameters uploads them all
     rigid = [np.where(t.dominant_weight >= b.params.collision.rigid_weight, t.dominant_joint + r.joint_start, -1)
              for t, b, r in zip(topos, builders, ranges)]
@@ -310,6 +327,27 @@ def _batch_collision(builders, names, ranges, device):
     data.rigid_bone = wp.array(np.concatenate(rigid).astype(np.int32), dtype=wp.int32, device=device)
     data.characters = chars
     return builders[0].params.collision, data
+
+
+def _batch_written_surface(parts, v0, total: int):
+    """The refined characters' written surfaces (each one closed "sub-volume" without fans,
+    :func:`~warpskin.model.written_surface`) as one :class:`SubVolumes` over the batch's
+    vertices, in character order; ``None`` where no character has one."""
+    from .preprocess.sub_volumes import SubVolumes
+
+    have = [(c, p["written_surface"]) for c, p in enumerate(parts) if p.get("written_surface") is not None]
+    if not have:
+        return None
+    tris = [np.asarray(w.triangles, dtype=np.int64) + v0[c] for c, w in have]
+    counts = np.array([len(t) for t in tris], dtype=np.int64)
+    return SubVolumes(
+        names=[f"written mesh {c}" for c, _ in have], triangles=np.concatenate(tris),
+        tri_offsets=np.concatenate([[0], np.cumsum(counts)]), tri_indices=np.arange(int(counts.sum())),
+        fan_offsets=np.zeros(len(have) + 1, dtype=np.int64), fan_triangles=np.zeros((0, 3), dtype=np.int64),
+        center_rest=np.zeros((0, 3)), center_joint=np.zeros(0, dtype=np.int64), loops=[],
+        rest_volume=np.concatenate([np.asarray(w.rest_volume, dtype=np.float64) for _, w in have]),
+        plane_joint=np.zeros(0, dtype=np.int64), plane_t=np.zeros(0), plane_normal=np.zeros((0, 3)),
+        plane_sides=np.zeros((0, 2), dtype=np.int64), vertex_count=total)
 
 
 def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.ndarray]) -> None:

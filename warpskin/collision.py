@@ -284,6 +284,8 @@ class SelfCollision:
         ranges = list(getattr(model, "characters", None) or [])
         self._ranges = [(r.vertex_start, r.vertex_count, r.triangle_start, r.triangle_count) for r in ranges] \
             or [(0, v, 0, int(c.triangle_count))]
+        # the written triangles of each (the fail-safe's; a refined skin's are the loaded mesh's)
+        self._written = [(r.written_start, r.written_count) for r in ranges] or [(0, int(c.output_triangle_count))]
         self._diagonals = list(getattr(model, "character_diagonals", None) or [c.diagonal])
         with wp.ScopedDevice(self.device):
             self.lowers = wp.clone(c.rest_lowers)
@@ -339,8 +341,6 @@ class SelfCollision:
         # skin written as simulated, its first round takes the detection's pair list
         self._fs_tris = model.tri_indices if c.output_triangles is None else c.output_triangles
         self._listed = c.output_triangles is None
-        if len(self._ranges) > 1 and not self._listed:
-            raise InputError("a batched model's skins are written as simulated (no refined skin)")
         self.chunk = CPU_CONTACT_CHUNK if wp.get_device(self.device).is_cpu else 1
         with wp.ScopedDevice(self.device):
             self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
@@ -349,11 +349,16 @@ class SelfCollision:
             wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
                       inputs=[model.particle_q0, model.particle_q0, self._fs_tris, thickness_pads, self.vertex_tree],
                       outputs=[self._fs_lowers, self._fs_uppers])
-            if len(self._ranges) > 1:  # the written triangles are the simulated ones: one tree per character
-                self._fs_bvhs = [wp.Bvh(self._fs_lowers[t0:t0 + tn], self._fs_uppers[t0:t0 + tn])
-                                 for _, _, t0, tn in self._ranges]
+            if len(self._ranges) > 1:  # one tree per character over its written triangles
+                self._fs_bvhs = [wp.Bvh(self._fs_lowers[w0:w0 + wn], self._fs_uppers[w0:w0 + wn])
+                                 for w0, wn in self._written]
                 self._fs_trees = wp.array(np.array([b.id for b in self._fs_bvhs], dtype=np.uint64), dtype=wp.uint64)
-                self._fs_tri_tree, self._fs_tree_start = self.tri_tree, self.tree_start
+                fs_tree = np.zeros(c.output_triangle_count, dtype=np.int32)
+                for tree, (w0, wn) in enumerate(self._written):
+                    fs_tree[w0:w0 + wn] = tree
+                self._fs_tri_tree = wp.array(fs_tree, dtype=wp.int32)
+                self._fs_tree_start = wp.array(np.array([w0 for w0, _ in self._written], dtype=np.int32),
+                                               dtype=wp.int32)
             else:
                 self._fs_bvhs = [wp.Bvh(self._fs_lowers, self._fs_uppers)]
                 self._fs_trees = wp.array(np.array([self._fs_bvhs[0].id], dtype=np.uint64), dtype=wp.uint64)

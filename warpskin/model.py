@@ -346,7 +346,10 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
     """The host arrays :class:`SkinModel` uploads for one built character (NumPy; the keys are
     the model's attribute names, see there), and the sizes and scalars beside them:
     ``vertex_count``, ``joint_count``, ``coupling_stiffness``, ``vertex_diagonal`` ``[V]``
-    (the body's diagonal [m] at every vertex), ``output_count``, ``rest_drive`` (``[G, M, 3]``
+    (the body's diagonal [m] at every vertex), ``output_count`` and ``vertex_loaded`` ``[V]``
+    (1 on the loaded mesh's vertices, 0 on those a refinement added), ``written_surface`` (the
+    loaded mesh of a refined skin with volume, else ``None``) and ``vertex_written_volume``
+    ``[V]`` (1 where it applies), ``rest_drive`` (``[G, M, 3]``
     or ``None``), ``subvolume_count``, ``volume_layout`` and ``volume_centres`` (the
     :class:`~warpskin.preprocess.sub_volumes.SubVolumes`, or ``None``)."""
     rig = b.rig
@@ -398,6 +401,9 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
         "volume_layout": b.volume_layout if b.subvolumes is not None else None,
         "volume_centres": b.subvolumes,
         "output_count": int(rig.output_count),
+        "vertex_loaded": (np.arange(v) < rig.output_count).astype(np.int32),
+        "written_surface": written_surface(rig) if (rig.refined_skin and b.subvolumes is not None) else None,
+        "vertex_written_volume": np.full(v, int(rig.refined_skin and b.subvolumes is not None), dtype=np.int32),
     }
 
 
@@ -477,14 +483,17 @@ class SkinModel:
             if self.subvolume_count else None
         # a refined skin is written with the loaded mesh's triangles, chords of the simulated
         # surface: its volume is one more constraint, on the loaded vertices (host form, see
-        # SkinSolver), and output_count says which vertices those are
+        # SkinSolver); vertex_loaded says which vertices those are (1: loaded, 0: added)
         self.output_count = int(h["output_count"])
-        self.written_surface = None
+        self.vertex_loaded = wp.array(np.asarray(h["vertex_loaded"], dtype=np.int32), dtype=wp.int32, device=device)
+        self.written_surface = h.get("written_surface")
+        #: ``[V]`` 1 where the vertex's character has the written mesh's volume constraint
+        self.vertex_written_volume = wp.array(np.asarray(h["vertex_written_volume"], dtype=np.int32), dtype=wp.int32,
+                                              device=device)
         self.collision_params = CollisionParams(enabled=False)
         self.collision = None
         if b is not None:
             rig = b.rig
-            self.written_surface = written_surface(rig) if (rig.refined_skin and b.subvolumes is not None) else None
             from .collision import upload_collision
 
             self.collision_params = b.params.collision

@@ -207,6 +207,13 @@ class SkinSolver:
                 self.written_volume = VolumeConstraints(model.written_surface, device=dev,
                                                         along_normals=self.params.volume_along_normals)
                 self.split_weight_scale = wp.zeros(v, dtype=wp.float32)
+                # the cap of the pass on the added vertices: only on the characters that have a
+                # written mesh's volume (a batch's others are not capped again: they are not moved)
+                self.split_cap = None
+                if self.tether_radius is not None:
+                    mine = model.vertex_written_volume.numpy() != 0
+                    self.split_cap = self.tether_cap if mine.all() else wp.array(
+                        np.where(mine, self.tether_cap.numpy(), np.inf).astype(np.float32), dtype=wp.float32)
             self.collision = None
             if model.collision is not None:
                 from .collision import SelfCollision
@@ -299,15 +306,17 @@ class SkinSolver:
         if self.volume is not None:
             self.volume.center_positions(control.skin_matrices, self.volume_centres)
 
-    def _volume_loop(self, x: wp.array, weight_scale: wp.array | None = None) -> None:
+    def _volume_loop(self, x: wp.array, weight_scale: wp.array | None = None, cap_radius: wp.array | None = None) -> None:
         """``volume_iterations`` of the sub-volume constraints on ``x`` (weights
         :attr:`volume_weight_scale` unless given), each followed by the tether's cap where
-        there is a tether (against the targets :meth:`_tether` wrote earlier in the step)."""
+        there is a tether (against the targets :meth:`_tether` wrote earlier in the step; radii
+        ``cap_radius`` ``[V]`` [m] where given, else :attr:`tether_cap`)."""
         p = self.params
         w = self.volume_weight_scale if weight_scale is None else weight_scale
         # the cap is fused into each iteration's correction launch, against the targets the
         # step's tether wrote (the skinning matrices do not change within a step)
-        cap = None if self.tether_radius is None else (self.tether_targets, self.tether_cap, self.tether_clamped)
+        cap = None if self.tether_radius is None else (
+            self.tether_targets, self.tether_cap if cap_radius is None else cap_radius, self.tether_clamped)
         self.volume.project(x, self.volume_inv_mass, w, self.volume_centres, p.volume_iterations,
                             p.volume_stiffness, cap=cap)
 
@@ -322,7 +331,7 @@ class SkinSolver:
         apply in both; with ``collide``, the fail-safe holds what the projection pushes through."""
         m = self.model
         dev = self.device
-        wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 0],
+        wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.vertex_loaded, 0],
                   outputs=[self.split_weight_scale], device=dev)
         col = self.collision if collide and self.collision.data.fail_safe_rounds > 0 else None
         if col is not None:
@@ -334,9 +343,9 @@ class SkinSolver:
             # pairs where LBS has none); the added vertices do not change the written mesh
             col.fail_safe(self.x_before_volume, x, control.skin_matrices, carry=False,
                           min_move=col.default_min_move)
-        wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.output_count, 1],
+        wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.vertex_loaded, 1],
                   outputs=[self.split_weight_scale], device=dev)
-        self._volume_loop(x, self.split_weight_scale)
+        self._volume_loop(x, self.split_weight_scale, self.split_cap)
 
     def _tether(self, x: wp.array, control: Control, cap_only: bool = False) -> None:
         """The tether on every particle, or with ``cap_only`` its cap (``tether_max`` x the
