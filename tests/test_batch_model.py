@@ -125,6 +125,12 @@ def test_a_batch_refuses_what_it_does_not_lay_out_in_one_line():
                     "cpu")
     with pytest.raises(InputError, match="at least one character"):
         batch_model([], "cpu")
+    with pytest.raises(InputError, match="character 1: expected a SkinModelBuilder .*, got Rig"):
+        batch_model([SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False)), coarse_arm()], "cpu")
+    driven = SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False))
+    driven.set_rest_drive(np.zeros((1, driven.build().regions.region_members.shape[0], 3)))
+    with pytest.raises(InputError, match=r"character 0 \(.*\): a rest-shape drive \(layered popping\) is not batched"):
+        batch_model([driven], "cpu")
 
 
 def test_bench_batch_reports_character_steps_per_second(tmp_path, capsys, device):

@@ -69,6 +69,11 @@ class CharacterRange:
     written_start: int = 0
     written_count: int = 0
 
+    def skin(self, positions: np.ndarray) -> np.ndarray:
+        """``[vertex_count, 3]`` its skin (the first layer) out of a batch's particle positions
+        ``positions`` ``[4 V, 3]`` (``state.x.numpy()``): a view, in its own vertex order."""
+        return np.asarray(positions)[self.vertex_start:self.vertex_start + self.vertex_count]
+
     def particles(self, total_vertices: int) -> np.ndarray:
         """``[4 * vertex_count]`` its particles in the batch, in its own (layer-major) order."""
         i = np.arange(self.vertex_count, dtype=np.int64)
@@ -261,16 +266,21 @@ def batch_model(builders: Sequence, device=None):
     characters' skinning matrices concatenated (``Control.set_pose``, ``[sum J_c, 4, 4]``).
 
     Raises:
-        InputError: a character with self-collision, a rest-shape drive or a refined skin
-            with volume (not batched: module docstring), or one of
-            :func:`batch_host_arrays`' reasons; each names the character.
+        InputError: not a builder, a rest-shape drive, characters that disagree on
+            self-collision on or off, its passes or fail-safe rounds, or on having volume
+            (module docstring); each names the character.
     """
     from .device import resolve_device
     from .model import SkinModel, model_host_arrays
 
+    from .model import SkinModelBuilder
+
     builders = list(builders)
     names = []
     for c, b in enumerate(builders):
+        if not isinstance(b, SkinModelBuilder):
+            raise InputError(f"character {c}: expected a SkinModelBuilder (SkinModelBuilder(rig, params)), "
+                             f"got {type(b).__name__}")
         b.build()
         names.append(f"character {c} ({b.rig.name})")
     parts = []
