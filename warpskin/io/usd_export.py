@@ -193,6 +193,9 @@ class UsdSkinWriter:
         self._animated_primvars: dict[str, dict] = {}
         if comment:
             st.GetRootLayer().comment = comment
+        from .. import __version__
+
+        st.GetRootLayer().customLayerData = {"warpskin:version": __version__}  # what wrote it
         self._meshes: dict[str, tuple] = {}
         self._children: dict[str, str] = {}  # mesh key -> its prim's name under the root
         #: Faces left out per mesh (degenerate or repeated in the source), for the run's notes.
