@@ -594,9 +594,8 @@ def contact_range(thread: int, chunk: int, count: int, capacity: int):
     ``thread x chunk``, of the ``count`` there are (at most the buffer's ``capacity``; a
     per-triangle kernel passes the triangle count as both). With ``chunk`` 1 (CUDA) a thread per
     item; on the CPU, where the threads run one after another, a thread per ``chunk`` items
-    (the same items in the same order) saves the per-thread cost of the empty slots, most of the
-    buffer (the arm: 85 point-triangle contacts in 4096 slots, 80 launches a step), or of the
-    triangles a fail-safe round skips (most of them)."""
+    (the same items in the same order) saves the per-thread cost of the empty slots (most of a
+    contact buffer is empty) and of the triangles a fail-safe round skips."""
     first = thread * chunk
     last = wp.min(wp.min(count, capacity), first + chunk)
     return first, wp.max(first, last)
@@ -1002,9 +1001,9 @@ def zero_counts_kernel(
 # so the patch keeps up with the animation instead of freezing in place), and where that still
 # intersects, held there. Later rounds look only at triangles with a vertex the last one moved
 # (a put-back vertex can expose a pair with a neighbour that moved on). Pairs whose LBS
-# intersects (the animation drives the two surfaces into each other: the Fox's paws through
-# its legs) are left to the contacts: putting them back follows the animation in, and on the
-# Fox's Run doubled the pairs. Bridson et al. 2002 and Harmon et al. 2008 use fail-safes of
+# intersects (the animation drives the two surfaces into each other: paws through legs) are
+# left to the contacts: putting them back would follow the animation in and add pairs.
+# Bridson et al. 2002 and Harmon et al. 2008 use fail-safes of
 # this kind (impact zones moved rigidly); here a zone moves with its bones.
 # --------------------------------------------------------------------------------------------
 @wp.kernel
@@ -1061,9 +1060,9 @@ def escaped_kernel(
     ``warpskin.collision.ESCAPE_REACH``): two triangles that did not escape and intersect now
     have swept boxes within twice the reach, and are in the detection's pair list. (Only the
     first round, which tests the pairs as they are now, reads this; the later rounds look from
-    the triangles that moved, over all their positions. Judged on the box over every position
-    the fail-safe can give a vertex, the step's start included, 605 of the arm's 5832 triangles
-    escaped in the pass after the volume loop in its unflexing frames, 28 now.) Where that list
+    the triangles that moved, over all their positions. The box is where the triangle is now,
+    not over every position the fail-safe can give it: that one would escape far more often.)
+    Where that list
     did not fit (``pair_count`` above ``pair_capacity``), every triangle escapes. ``chunk``
     triangles per thread (:func:`contact_range`)."""
     fits = pair_count[0] <= pair_capacity

@@ -243,9 +243,8 @@ def blend_and_constrain_kernel(
     # the particle's squared position correction in this iteration [m^2], row ``iteration`` of
     # the flat ``[iterations x particles]`` buffer (a plain store: the iteration's residual, the
     # largest, is reduced only when read; all particles would contend for one address with an
-    # atomic maximum on a GPU). The buffer is one-dimensional because one two-dimensional array
-    # argument costs every thread of a CPU kernel Warp's contiguous fast path: 85 more
-    # instructions per particle here, 8 % of the kernel (callgrind, the arm)
+    # atomic maximum on a GPU). The buffer is one-dimensional: a two-dimensional array argument
+    # takes every thread of a CPU kernel off Warp's contiguous fast path
     correction[iteration * x.shape[0] + i] = wp.length_sq(xi - x_before)
 
 

@@ -4,9 +4,9 @@ flexes the elbow from 0 to 150 degrees and back, so that the forearm presses int
 
 The default resolution (81 rings of 36 vertices plus two poles, 2918 vertices) matches the
 2916-vertex arm of Deul & Bender 2013, Table 1. The triangles are close to isotropic (about 9 mm
-along the arm, 7 mm around the elbow): with long thin triangles (an earlier 54 x 54 layout,
-14 mm by 4 mm) the elbow crease folds within one triangle's width, and triangles one edge apart
-cross each other before any contact can separate them (measured: up to 55 intersecting pairs).
+along the arm, 7 mm around the elbow): with long thin triangles the elbow crease folds within
+one triangle's width, and triangles one edge apart cross each other before any contact can
+separate them.
 
 Coordinates: the arm lies along +x (shoulder at the origin), the elbow flexes about +z so the
 forearm folds toward +y (the biceps side). Y is up in the exported stage; the arm is horizontal.

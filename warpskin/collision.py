@@ -64,22 +64,19 @@ class CollisionParams:
             converge slowly where a particle is in several contacts).
         volume_weight: Factor on a colliding particle's inverse mass in the volume loop, in
             [0, 1]. Diziol et al. 2011 use 0 (colliding particles stay put); then a part whose
-            skin is all in contact (the Fox's front paw in its walk, where LBS passes the paw
-            through the other leg) cannot keep its volume at all and turns inside out. 0.05
-            keeps it (the paw within 1e-4) and the arm's crease free of intersections (at 0.1
-            the coarse test arm's pre-roll keeps 2 pairs, at 0.3 the arm has 200).
+            skin is all in contact (a paw that LBS passes through the other leg) cannot keep its
+            volume at all and turns inside out. A small weight keeps both that volume and a
+            bent joint's crease free of intersections; larger ones let the volume loop push
+            contacts through.
         fail_safe_rounds: After the elasticity loop of every step, pairs of the skin's
             triangles as written that intersect, did not at the start of the step and do not
             under LBS are found exactly and their vertices put back where they started (carried
             along by their bones, held where that still intersects), in up to this many rounds
             (:meth:`SelfCollision.fail_safe`); 0 turns it off. The constraints alone miss a
             vertex that slides into a neighbouring triangle from behind its plane or runs past
-            the search radius in the constraint loop (CesiumMan's walk kept 8 pairs at the back
-            of its knees for six frames; now none). A second pass after the volume loop holds
-            what that loop pushed through where the loop found it, and the loop runs again with
-            those vertices pinned (the Fox's Run: never more pairs than LBS, instead of 42 in
-            12 frames worse at the time; CesiumMan's automatic cage: 0 pairs where its LBS
-            has 339, against 42 without the fail-safe and 95 with the first pass alone).
+            the search radius in the constraint loop (pairs that then stay, at the back of a
+            bent knee). A second pass after the volume loop holds what that loop pushed through
+            where the loop found it, and the loop runs again with those vertices pinned.
     """
 
     enabled: bool = True

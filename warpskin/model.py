@@ -95,9 +95,8 @@ class ModelParams:
 
 
 #: A skin is coarse (refined by default) when its mean edge is longer than this share of
-#: :func:`~warpskin.preprocess.refine.default_max_edge`: RiggedSimple 5.3, RecursiveSkeletons 2.7,
-#: RiggedFigure 1.5 and the Fox 1.1 are; the 600-vertex test arm 0.71, the WebXR hand 0.48 and
-#: CesiumMan 0.33 are not.
+#: :func:`~warpskin.preprocess.refine.default_max_edge` (about 1000 vertices over its area): a
+#: game mesh of a few hundred vertices is, a skin of a few thousand is not.
 COARSE_EDGE = 0.9
 
 
@@ -193,8 +192,8 @@ class SkinModelBuilder:
         from .preprocess.fast_summation import build_path_layout, region_runs
 
         # paths of at most 32 vertices: the scan runs one thread per path and layer, and the
-        # unbounded layout is one path per layer on a tube (4 threads; 36 ms on an H100 against
-        # 1.6 ms for the direct gather). Runs per region rise only slightly.
+        # unbounded layout can be one path per layer on a tube (four threads for the whole
+        # scan, far slower than the direct gather on a GPU); runs per region rise only slightly
         self.paths = self._stage(
             "paths",
             lambda: build_path_layout(rig.triangles, rig.vertex_count, vertices=rig.vertices, max_path_length=32),

@@ -59,11 +59,10 @@ class SolverParams:
         tether_floor: See ``tether``; a fraction of the rest bounding-box diagonal.
         tether_max: No tether radius exceeds this fraction of the diagonal, so that a run the
             tether holds is not stopped by the ``max_offset`` check (deep tissue of a
-            low-poly body, such as the Fox's 12 m head, would otherwise get a radius above it);
-            no particle is farther than this from its LBS target at the end of a step. The
-            default, 5 %, holds every shipped asset within it with its volume and pairs no
-            worse than LBS's; a flex as deep as the procedural arm's 150 degrees, whose crease
-            skin lies up to 7 % from its collapsed LBS, needs more (the arm scene: 8 %).
+            low-poly body would otherwise get a radius above it); no particle is farther than
+            this from its LBS target at the end of a step. A flex as deep as the procedural
+            arm's 150 degrees, whose crease skin lies far from its collapsed LBS, needs more
+            than the default (the arm scene sets its own).
         max_offset: A run stops (SimulationError) at the first frame whose skin is farther
             than this fraction of the body's diagonal from LBS.
         max_volume_error: A run stops at the first frame whose volume (whole or any
@@ -322,12 +321,12 @@ class SkinSolver:
 
     def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
         """A refined skin is written with the loaded mesh's triangles, chords of the simulated
-        surface, which lose volume where the added vertices bulge between them (the Fox's Run:
-        1.9 % while the refined surface held 2e-6). One projection of the written mesh's
-        volume on the loaded vertices, then the sub-volume iterations on the added ones alone
-        (the loaded ones pinned), which restore the sub-volumes without changing what is
-        written. (One more constraint in the volume loop itself took 1-6 % from the Fox's
-        paws' sub-volumes.) The volume loop's own weights (contacts, the fail-safe's pins)
+        surface, which lose volume where the added vertices bulge between them while the
+        refined surface keeps its own. One projection of the written mesh's volume on the
+        loaded vertices, then the sub-volume iterations on the added ones alone (the loaded
+        ones pinned), which restore the sub-volumes without changing what is written. (One
+        more constraint in the volume loop itself would take volume from small sub-volumes
+        such as paws.) The volume loop's own weights (contacts, the fail-safe's pins)
         apply in both; with ``collide``, the fail-safe holds what the projection pushes through."""
         m = self.model
         dev = self.device
@@ -339,8 +338,8 @@ class SkinSolver:
         self.written_volume.project(x, self.volume_inv_mass, self.split_weight_scale, self.written_volume.centers, 1,
                                     self.params.volume_stiffness)
         if col is not None:
-            # what the projection pushed through goes back (without this, RiggedFigure had 4
-            # pairs where LBS has none); the added vertices do not change the written mesh
+            # what the projection pushed through goes back (it can make pairs where LBS has
+            # none); the added vertices do not change the written mesh
             col.fail_safe(self.x_before_volume, x, control.skin_matrices, carry=False,
                           min_move=col.default_min_move)
         wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.vertex_loaded, 1],
@@ -412,15 +411,15 @@ class SkinSolver:
             self._tether(state_out.x, control)
         # the fail-safe: a skin triangle pair the constraints let through is put back where the
         # step's start was free of it (before the volume loop, which restores the volume around
-        # what it put back: after it, the held paws of the Fox's Run lost up to 45 % of their
-        # volume; what the volume loop pushes through is the second pass's, below)
+        # what it put back: after it, held parts would lose their volume; what the volume loop
+        # pushes through is the second pass's, below)
         if col is not None:
             col.fail_safe(state_in.x, state_out.x, control.skin_matrices, contacts=contacts)
         # 11-13: volume loop; with the tether, each volume iteration is followed by the cap
         # (the volume loop moves skin particles only): a sub-volume squeezed by contacts
-        # corrects through its few free particles and can throw one past it (the Fox's Walk at
-        # its own 24 fps: a front-paw vertex at 10.1 % of the diagonal, exit 3); interleaved,
-        # what the cap takes back is restored by the particles that still have room
+        # corrects through its few free particles and can throw one past it (a paw's vertex far
+        # beyond the cap); interleaved, what the cap takes back is restored by the particles
+        # that still have room
         if self.volume is not None:
             fail_safe = col is not None and col.data.fail_safe_rounds > 0
             if col is not None:
@@ -428,10 +427,9 @@ class SkinSolver:
             if fail_safe:
                 wp.copy(self.x_before_volume, state_out.x, count=m.vertex_count)
             self._volume_loop(state_out.x)
-            # the volume loop can push a pair through (the Fox's Run: 2-16 new pairs in a step,
-            # which then stay): a second fail-safe pass puts those vertices back where the loop
-            # found them, pinned, and the loop runs again so that the others restore what they
-            # gave up (without it, the Run's forearm lost 19 % where LBS loses 13 %)
+            # the volume loop can push a pair through (which then stays): a second fail-safe
+            # pass puts those vertices back where the loop found them, pinned, and the loop runs
+            # again so that the others restore what they gave up
             if fail_safe:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
                               min_move=col.default_min_move, contacts=contacts)

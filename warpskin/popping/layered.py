@@ -27,7 +27,7 @@ def muscle_rest_offset_deltas(builder, examples: PoppingExamples, skin_matrices:
     By default the swelling muscle carries the tissue above it (muscle, fat and skin rest shapes
     move together; the bone layer stays): shape matching only sees shapes relative to each
     region's centre, so moving the muscle layer alone just thins the fat above it and the skin
-    does not move (measured: 0.0 mm against 4.4 mm on the popping arm's biceps). The pinned bone
+    does not move at all. The pinned bone
     layer's regions then push the whole column out; the volume constraints keep each
     sub-volume's volume by letting the rest of it give.
 

@@ -456,8 +456,8 @@ def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup
     Laplacian) with the matched ones fixed. Then ``smooth_passes`` passes of averaging with the
     neighbours (half the vertex, half its neighbours' mean): a character of rigid parts (each
     on one joint with weight 1) would otherwise give its cage LBS weights that jump at every
-    joint, so the cage's own LBS tears there (edges 5x their rest length on RobotExpressive's
-    walk) and its physics fights the tear. Then the largest ``influences`` per vertex,
+    joint, so the cage's own LBS tears there (edges several times their rest length) and its
+    physics fights the tear. Then the largest ``influences`` per vertex,
     normalised. Returns ``(joint_indices [V, K], joint_weights [V, K], matched [V] bool)``."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
@@ -519,8 +519,8 @@ def cage_rig(rig, cage: Cage, *, device=None, smooth_passes: int = 8) -> tuple:
     skeleton and clips, the cage's triangles and rest points (stage space) as its bind pose, so
     its inverse binds are the inverses of the joints' rest world transforms; weights transferred
     from the character (:func:`transfer_weights`, matched within two cage edges). (Taking the
-    cage into the file's bind space instead folds it where that differs from the rest pose:
-    RobotExpressive's, 119 intersecting pairs.) Returns ``(rig, soup, matched)``."""
+    cage into the file's bind space instead folds it where that differs from the rest pose.)
+    Returns ``(rig, soup, matched)``."""
     from ..rig import Clip, Rig
 
     soup = character_soup(rig)

@@ -33,20 +33,11 @@ adjacent and joining paths afterwards gains nothing.
   (cosine), ties to fewest unvisited neighbours; a new path inherits the direction of the path
   beside its start. Needs positions.
 
-Mean runs per region, omega-rings from a breadth-first search (``tests/test_paths.py``); for
-parallel rows the ideal is ``2 omega + 1`` (3 and 5)::
-
-                                   omega=1 (size 7.0)   omega=2 (size)
-    arm (2918 v)      warnsdorff   2.997                4.920 (20.6)
-                      straight     2.999                4.957
-    CesiumMan (2338)  warnsdorff   3.003                5.105 (19.4)
-                      straight     3.048                5.187
-    random Delaunay   warnsdorff   3.000                5.730 (20.7)
-    (3000 v, planar)  straight     3.399                6.973
-
-Warnsdorff makes very long paths (the whole arm is one path). ``max_path_length`` cuts them into
-equal pieces for a one-thread-per-path scan at a small cost (arm, 64: 3.06 and 5.14 runs).
-Building takes about 0.05 s for 3k vertices and 0.8 s for 36k.
+The cost of a region sum is its number of runs: for parallel rows of vertices the ideal is
+``2 omega + 1`` per region; both heuristics come close to it on skin meshes and Warnsdorff
+stays closer on irregular ones (``tests/test_paths.py`` measures the mean against that bound).
+Warnsdorff makes very long paths (a whole tube can be one path). ``max_path_length`` cuts them
+into equal pieces for a one-thread-per-path scan at a small cost in runs.
 
 Float32 accuracy. A prefix difference ``P[end] - P[start-1]`` carries an absolute error of about
 ``eps * |P|``, and ``|P|`` grows with the path length, so plain float32 prefix sums lose digits on
