@@ -205,3 +205,27 @@ def test_a_mixed_batch_of_real_rigs_steps_bit_for_bit_as_each_alone(assets):
         ax, av = _run(b.finalize("cpu"), p[1:], start=lambda st: initial_state(b, st, p[0]))
         mine = r.particles(batch.vertex_count)
         assert np.array_equal(x[mine], ax) and np.array_equal(v[mine], av), r.name
+
+
+def test_each_characters_control_sets_its_own_matrices():
+    # a character's control writes its part of the batch's matrices and nothing else; a wrong
+    # shape names the character
+    builders = _builders()
+    batch = batch_model(builders, "cpu")
+    from warpskin.batch_model import character_controls
+
+    control = batch.control()
+    controls = character_controls(batch, control)
+    poses = [b.rig.skinning_matrices(next(iter(b.rig.clips.values())), 0.37 * (k + 1)) for k, b in enumerate(builders)]
+    controls[1].set_pose(poses[1])
+    got = control.skin_matrices.numpy()
+    r = batch.characters[1]
+    assert np.allclose(got[r.joint_start:r.joint_start + r.joint_count], poses[1], atol=0)
+    eye = np.eye(4, dtype=np.float32)
+    others = np.r_[0:r.joint_start, r.joint_start + r.joint_count:len(got)]
+    assert np.array_equal(got[others], np.broadcast_to(eye, (len(others), 4, 4)))
+    j0 = batch.characters[0].joint_count
+    with pytest.raises(InputError, match=rf"character 0 \(.*\): expected skinning matrices of shape \({j0}, 4, 4\)"):
+        controls[0].set_pose(np.zeros((j0 + 1, 4, 4)))
+    with pytest.raises(InputError, match="not a batched model"):
+        character_controls(builders[0].finalize("cpu"), control)

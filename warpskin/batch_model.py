@@ -41,7 +41,7 @@ import warp as wp
 
 from .errors import InputError
 
-__all__ = ["CharacterRange", "batch_host_arrays", "batch_model"]
+__all__ = ["CharacterRange", "CharacterControl", "batch_host_arrays", "batch_initial_state", "batch_model", "character_controls"]
 
 
 @dataclass(frozen=True)
@@ -380,3 +380,39 @@ def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.nda
     state.q.assign(q)
     state.v.zero_()
     state.omega.zero_()
+
+
+class CharacterControl:
+    """One character's part of a batched model's :class:`~warpskin.model.Control`: its own
+    skinning matrices, a view of the batch's (no copy, no allocation per frame).
+
+    Args:
+        control: The batch's ``model.control()``.
+        character: Its :class:`CharacterRange`.
+    """
+
+    def __init__(self, control, character: CharacterRange) -> None:
+        self.character = character
+        r = character
+        self.skin_matrices = control.skin_matrices[r.joint_start:r.joint_start + r.joint_count]
+        self._host = np.zeros((r.joint_count, 4, 4), dtype=np.float32)
+
+    def set_pose(self, skin_matrices: np.ndarray) -> None:
+        """Upload its skinning matrices ``[J_c, 4, 4]`` (``rig.skinning_matrices(clip, t)`` of
+        its own rig) into its part of the batch's control."""
+        m = np.asarray(skin_matrices)
+        if m.shape != self._host.shape:
+            raise InputError(f"{self.character.name}: expected skinning matrices of shape {self._host.shape}, "
+                             f"got {m.shape}")
+        if not np.all(np.isfinite(m)):
+            raise InputError(f"{self.character.name}: skinning matrices hold NaN or inf")
+        self._host[:] = m
+        self.skin_matrices.assign(self._host)
+
+
+def character_controls(model, control) -> list[CharacterControl]:
+    """Each character's own control (:class:`CharacterControl`) over the batch's ``control``
+    (``model.control()``), in the order of ``model.characters``."""
+    if not model.characters:
+        raise InputError("not a batched model: it has no characters (batch_model makes one)")
+    return [CharacterControl(control, r) for r in model.characters]
