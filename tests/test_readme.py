@@ -1,5 +1,7 @@
-"""The README's Python snippets run as written (in a scratch folder; the CesiumMan one reads the
-shared asset through a link named as in the snippet)."""
+"""The README and the docs pages: every Python snippet runs as written (in a scratch folder; a
+CesiumMan one reads the shared asset through a link named as in the snippet), the README is short
+and starts with its two set-up commands, the scene examples are valid scenes, and the docs build
+with Sphinx, warnings as errors."""
 
 from __future__ import annotations
 
@@ -8,29 +10,51 @@ from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parent.parent / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
+# every Python block of the README and the docs pages: (page, number on the page, code)
+BLOCKS = [(page, k + 1, code) for page in PAGES
+          for k, code in enumerate(re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S))]
 
 
-def test_the_readme_has_snippets():
-    assert len(BLOCKS) >= 4
+def _docs_block(lang: str, where: str) -> str:
+    """The first ``lang`` block of the docs pages that holds ``where``."""
+    return next(b for page in PAGES for b in re.findall(rf"```{lang}\n(.*?)```", page.read_text(), flags=re.S)
+                if where in b)
 
 
-@pytest.mark.parametrize("index", range(len(BLOCKS)))
-def test_readme_snippet_runs(index, tmp_path, monkeypatch, request):
-    code = BLOCKS[index]
+def test_the_readme_and_docs_have_snippets():
+    assert sum(1 for page, _, _ in BLOCKS if page == README) >= 1
+    assert len(BLOCKS) >= 5
+
+
+def test_the_readme_is_short_and_starts_with_the_two_set_up_commands():
+    text = README.read_text()
+    assert len(text.splitlines()) <= 200
+    first = re.search(r"```bash\n(.*?)```", text, flags=re.S)
+    assert text.index("```bash") < text.index("\n## ")  # before any section
+    commands = first.group(1).strip().splitlines()
+    assert len(commands) == 2
+    assert "warpskin simulate" in commands[0] and commands[1].endswith("pytest -q")
+    for link in re.findall(r"\]\(((?:docs/)?[\w./-]+\.(?:md|png))\)", text):  # every page it links exists
+        assert (ROOT / link).exists(), link
+
+
+@pytest.mark.parametrize("page,number,code", BLOCKS, ids=[f"{p.name}-{n}" for p, n, _ in BLOCKS])
+def test_snippet_runs(page, number, code, tmp_path, monkeypatch, request):
     monkeypatch.chdir(tmp_path)
     if "CesiumMan.glb" in code:
         assets = request.getfixturevalue("assets")  # skips with the reason where the folder is absent
         (tmp_path / "CesiumMan.glb").symlink_to(assets / "CesiumMan" / "CesiumMan.glb")
-    exec(compile(code, f"README.md python block {index + 1}", "exec"), {"__name__": "__readme__"})
+    exec(compile(code, f"{page.name} python block {number}", "exec"), {"__name__": "__readme__"})
 
 
 def test_the_readme_scene_file_is_a_valid_scene(tmp_path):
     # the TOML example of "Scenes" parses, and every section it shows is read with its values
     from warpskin.scene import load_scene
 
-    text = re.findall(r"```toml\n(.*?)```", README.read_text().split("\n## Scenes\n", 1)[1], flags=re.S)[0]
+    text = re.findall(r"```toml\n(.*?)```", (ROOT / "docs" / "scenes.md").read_text(), flags=re.S)[0]
     p = tmp_path / "scene.toml"
     p.write_text(text)
     scene = load_scene(p)
@@ -48,7 +72,7 @@ def test_the_readme_example_table_maps_a_files_shapes(tmp_path):
     from warpskin.popping.examples import examples_from_file
     from warpskin.scene import load_scene
 
-    block = next(b for b in re.findall(r"```toml\n(.*?)```", README.read_text(), flags=re.S) if "[popping.examples]" in b)
+    block = _docs_block("toml", "[popping.examples]")
     path = _shaped_box(tmp_path, {"elbow_fix": (_MID, _FULL, {}), "biceps_clenched": (_TOP, _FULL, {}),
                                   "biceps_bent": (_TOP, _FULL[::-1], {})}, with_anim=True)
     scene_path = tmp_path / "pop.toml"
@@ -56,3 +80,22 @@ def test_the_readme_example_table_maps_a_files_shapes(tmp_path):
     examples = examples_from_file(load_scene(scene_path))
     assert examples.group_names == ["biceps"] and examples.normal_count == 2
     assert examples.clenched_matrices[0].shape[0] == 2
+
+
+def test_the_docs_build_with_warnings_as_errors(tmp_path):
+    # the Sphinx site (MyST pages, the CLI reference made from the parser, the API from the
+    # docstrings) builds clean, and its CLI page lists every command the parser has
+    import argparse
+    import subprocess
+    import sys
+
+    from warpskin.cli import build_parser
+
+    out = tmp_path / "html"
+    done = subprocess.run([sys.executable, "-m", "sphinx", "-W", "-q", "-b", "html", str(ROOT / "docs"), str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    cli = (out / "cli.html").read_text()
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name in commands:
+        assert f"warpskin {name}" in cli, name

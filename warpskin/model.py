@@ -407,7 +407,7 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
 
 
 class SkinModel:
-    """Static simulation data on one device: ``wp.array``s, sizes and scalars, no host arrays.
+    """Static simulation data on one device: ``wp.array`` objects, sizes and scalars, no host arrays.
 
     Array names follow the entity they index: ``particle_*`` ``[4V]``, ``region_*`` (CSR over
     regions, ``[4V+1]`` offsets), ``path_*``, ``run_*``, ``coupling_*`` ``[V]``, ``joint_*``
