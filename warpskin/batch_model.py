@@ -21,9 +21,16 @@ kernels, unchanged, see one model of ``V`` skin vertices, ``V`` the characters' 
   tether) or must agree (the coupling stiffness); influences are padded with zero weights,
   which the skinning skips.
 
+The batched model's scalars that one model has once (``diagonal``: the largest; ``output_count``:
+every vertex; ``collision_params`` and ``collision.thickness``, ``radius``, ...: the first
+character's) stand for the batch only where they agree; the solver reads each character's from
+per-vertex arrays (``vertex_diagonal``, ``vertex_loaded``, ``collision.characters``).
+
 Self-collision stays within a character: each has its own detection and fail-safe trees
 (:class:`~warpskin.collision.SelfCollision`), queried in the order it queries them alone, its
-own tree rebuilds and its own contact scalars (thickness, radius, margins, friction, ...). The
+own tree rebuilds and its own contact scalars (thickness, radius, margins, friction, ...). (In a
+batch with a refined character, every character's fail-safe queries its tree from every
+triangle rather than taking the detection's pair list: the same pairs, at more cost.) The
 characters must agree on what the host loops over (collision on or off, its passes and
 fail-safe rounds) and all have volume or none; a rest-shape drive (layered popping) is not
 batched. :func:`batch_model` refuses each in one line naming the character. A refined skin
@@ -113,10 +120,12 @@ def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None)
         InputError: no characters, different coupling stiffnesses, a rest-shape drive, or
             some characters with sub-volumes and some without.
     """
-    parts = list(parts)
+    parts = [dict(p) for p in parts]  # (the caller's dicts stay as they are)
     if not parts:
         raise InputError("a batch needs at least one character")
     names = list(names) if names is not None else [f"character {c}" for c in range(len(parts))]
+    if len(names) != len(parts):
+        raise InputError(f"{len(names)} names for {len(parts)} characters")
     stiff = {float(p["coupling_stiffness"]) for p in parts}
     if len(stiff) > 1:
         raise InputError(f"the characters of a batch need one coupling stiffness, got {sorted(stiff)}")
@@ -144,7 +153,9 @@ def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None)
 
     out: dict = {"vertex_count": total, "joint_count": int(js.sum()),
                  "coupling_stiffness": stiff.pop(), "rest_drive": None}
-    for p in parts:  # a skin written as simulated: its own triangles
+    for name, p in zip(names, parts):  # a skin written as simulated: its own triangles
+        if "written_triangles" not in p and p.get("written_surface") is not None:
+            raise InputError(f"{name}: a refined skin needs its written triangles (written_triangles)")
         p.setdefault("written_triangles", p["tri_indices"])
     ws = np.array([len(p["written_triangles"]) for p in parts], dtype=np.int64)
     w0 = np.concatenate([[0], np.cumsum(ws)[:-1]])
@@ -307,6 +318,8 @@ def _batch_collision(builders, names, ranges, device):
 
     from .collision import CollisionTopology, contact_scalars, upload_collision
 
+    for name, b in zip(names, builders):
+        b.params.collision.check(name)
     for key, what in (("enabled", "self-collision on or off"), ("passes", "[collision] passes"),
                       ("fail_safe_rounds", "[collision] fail_safe_rounds")):
         values = [getattr(b.params.collision, key) for b in builders]

@@ -359,10 +359,11 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
     ``separate_step_ms`` (the same instances as separate models, one step each, one after
     another: ``count`` separate runs) and ``single_step_ms`` (its mean per instance); ``batch_character_steps_per_s`` and
     ``separate_character_steps_per_s``; ``speedup`` (separate over batch, measured in the same
-    run). A scene the batch cannot lay out (a refined skin, see the batch's limits) reports
-    its ``error``.
+    run). A scene that cannot be loaded or batched (its assets absent, a rest-shape drive)
+    reports its ``error``.
     """
     from .batch_model import batch_initial_state, batch_model
+    from .errors import WarpskinError
     from .model import SkinModelBuilder
     from .run.physics import initial_state
     from .solver import SkinSolver
@@ -382,7 +383,7 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
             builder = SkinModelBuilder(rig, scene.model_params())
             builder.params.collision = scene.collision_params()
             batch = batch_model([builder] * count, dev)
-        except Exception as exc:  # a scene without its assets, a skin the batch does not lay out
+        except (WarpskinError, OSError) as exc:  # a scene without its assets, a model the batch refuses
             out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
         clip = rig.clip(scene.clip)

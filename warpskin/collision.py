@@ -315,8 +315,10 @@ class SelfCollision:
             thickness_pads = wp.array(np.array([ch["thickness"] for ch in chars], dtype=np.float32), dtype=wp.float32)
             #: the fail-safe's ``min_move`` the solver uses: a hundredth of each character's thickness
             self.default_min_move = tuple(MIN_MOVE_SHARE * ch["thickness"] for ch in chars)
-            self._min_move_host = self.default_min_move
-            self._min_move = wp.array(np.array(self._min_move_host, dtype=np.float32), dtype=wp.float32)
+            self._min_move = wp.array(np.array(self.default_min_move, dtype=np.float32), dtype=wp.float32)
+            # another min_move (a caller's own, outside a captured graph): an array of its own, so
+            # that graphs captured with the solver's keep reading the solver's
+            self._other_min_move = wp.zeros(len(chars), dtype=wp.float32)
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
@@ -504,13 +506,13 @@ class SelfCollision:
 
     def _min_move_array(self, min_move) -> wp.array:
         """``[K]`` the fail-safe's ``min_move`` per character [m] (one value for all, or one
-        each): the array made at construction for the solver's :attr:`default_min_move`, filled
-        anew (outside a captured graph) only for another value."""
+        each): the array made at construction for the solver's :attr:`default_min_move`, else
+        another array filled with these values (not inside a captured graph)."""
         values = tuple(float(v) for v in np.broadcast_to(np.asarray(min_move, dtype=np.float64), (len(self._ranges),)))
-        if values != self._min_move_host:
-            self._min_move.assign(np.array(values, dtype=np.float32))
-            self._min_move_host = values
-        return self._min_move
+        if values == self.default_min_move:
+            return self._min_move
+        self._other_min_move.assign(np.array(values, dtype=np.float32))
+        return self._other_min_move
 
     def pin_reverted(self, weight_scale: wp.array) -> None:
         """Pin (``weight_scale`` 0) the vertices the last :meth:`fail_safe` put back."""

@@ -414,14 +414,14 @@ class SkinModel:
     (per-particle CSR of the joint constraints), ``subvolume_*``/``volume_*`` (the volume
     projection's layout, see :class:`~warpskin.volume.VolumeLayout`), ``edge_*``/``tri_*``
     (collision topology); ``rest_drive_offsets`` ``[G, M]`` for a muscle-driven rest shape.
-    Built only by :meth:`SkinModelBuilder.finalize`; the builder stays the host view.
+    Built by :meth:`SkinModelBuilder.finalize` (the builder stays the host view) or, for
+    several characters, by :func:`warpskin.batch_model.batch_model`.
     """
 
     def __init__(self, builder: SkinModelBuilder | None, device, *, host: dict | None = None) -> None:
         """Upload ``builder``'s model to ``device``; with ``host`` (and no builder), upload those
         host arrays instead (:func:`model_host_arrays`' layout; a batch of characters,
-        :func:`warpskin.batch_model.batch_model`), without a refined skin's written volume or
-        collision data."""
+        :func:`warpskin.batch_model.batch_model`, which adds its collision data after)."""
         b = builder
         h = model_host_arrays(b) if host is None else host
         self.device = device

@@ -570,7 +570,7 @@ class SurfacePop:
                 # triangles that share a point of the surface (a seam's copies are one point):
                 # a crossing the pop moves by one ring of the crossing the frame has without it
                 # is that crossing, not a new one (:meth:`_untangle`)
-                weld = np.arange(n) if points is None else _welded_surface(points, tris, mesh_of_point)[1]
+                weld = np.arange(n) if points is None else cls  # each point's surface point
                 incidence = sp.csr_matrix((np.ones(tris.size), (np.repeat(np.arange(len(tris)), 3), weld[tris].ravel())),
                                           shape=(len(tris), int(weld.max()) + 1 if n else 0))
                 self._touching = ((incidence @ incidence.T) > 0).astype(np.float64).tocsr()
