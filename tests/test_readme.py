@@ -92,8 +92,10 @@ def test_the_docs_build_with_warnings_as_errors(tmp_path):
     from warpskin.cli import build_parser
 
     out = tmp_path / "html"
+    # (run from a scratch folder: ``python -m`` puts its working folder first on the path, and
+    # the checkout's root is not an importable warpskin: the installed one is)
     done = subprocess.run([sys.executable, "-m", "sphinx", "-W", "-q", "-b", "html", str(ROOT / "docs"), str(out)],
-                          capture_output=True, text=True, timeout=600)
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     cli = (out / "cli.html").read_text()
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
