@@ -35,12 +35,20 @@ def _cli_reference() -> str:
     return "\n".join(out)
 
 
+def _settings_reference() -> str:
+    """The scene sections whose keys are declared settings (warpskin.settings), one table each."""
+    from warpskin.collision import CollisionParams
+    from warpskin.settings import reference_markdown
+
+    return reference_markdown(CollisionParams, "collision")
+
+
 def setup(app):
     from pathlib import Path
 
     generated = Path(__file__).parent / "_generated"
     generated.mkdir(exist_ok=True)
-    text = _cli_reference()
-    target = generated / "cli.md"
-    if not target.exists() or target.read_text() != text:  # unchanged: no rebuild
-        target.write_text(text)
+    for name, text in (("cli.md", _cli_reference()), ("settings.md", _settings_reference())):
+        target = generated / name
+        if not target.exists() or target.read_text() != text:  # unchanged: no rebuild
+            target.write_text(text)

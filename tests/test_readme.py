@@ -101,3 +101,44 @@ def test_the_docs_build_with_warnings_as_errors(tmp_path):
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     for name in commands:
         assert f"warpskin {name}" in cli, name
+    # every declared setting is in the scene-file reference, with its range
+    from warpskin.collision import CollisionParams
+    from warpskin.settings import settings_of
+
+    scenes = (out / "scenes.html").read_text()
+    for s in settings_of(CollisionParams):
+        assert f"<code class=\"docutils literal notranslate\"><span class=\"pre\">{s.name}</span></code>" in scenes, s.name
+
+
+def test_a_scene_section_takes_exactly_its_declared_settings(tmp_path):
+    # the [collision] keys a scene file may hold are CollisionParams' declared settings: each
+    # declared key is read with its value, an undeclared one is refused naming the known ones,
+    # and a value out of its declared range is refused with the declared range
+    from warpskin.collision import CollisionParams
+    from warpskin.errors import SceneError
+    from warpskin.scene import load_scene
+    from warpskin.settings import settings_of
+
+    declared = settings_of(CollisionParams)
+    values = {"bool": "false", "number": None, "integer": None}
+    lines = []
+    for s in declared:
+        if s.kind == "bool":
+            lines.append(f"{s.name} = {values['bool']}")
+        else:  # a generic value inside the declared range
+            lo = s.low if s.low is not None else 0.0
+            hi = s.high if s.high is not None else lo + 10.0
+            v = lo + 0.37 * (hi - lo) if s.kind == "number" else int(lo) + 3
+            lines.append(f"{s.name} = {v!r}")
+    base = '[scene]\nname = "t"\n[rig]\ngenerator = "arm"\n'
+    path = tmp_path / "t.toml"
+    path.write_text(base + "[collision]\n" + "\n".join(lines) + "\n")
+    got = load_scene(path).collision_params()
+    for s, line in zip(declared, lines):
+        assert repr(getattr(got, s.name)).lower() == line.split(" = ")[1].lower(), line
+    path.write_text(base + "[collision]\nthickness_m = 0.01\n")
+    with pytest.raises(SceneError, match=r"unknown key\(s\) \['thickness_m'\] in \[collision\]; known: \['capacity'"):
+        load_scene(path)
+    path.write_text(base + "[collision]\nrestitution = 1.7\n")
+    with pytest.raises(SceneError, match=r"t.toml: restitution must be in \[0, 1\], got 1.7"):
+        load_scene(path).collision_params()

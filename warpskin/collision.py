@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from .errors import InputError, SceneError
+from .settings import check_settings, setting
 from .kernels import collision as k
 
 __all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges",
@@ -37,84 +38,64 @@ __all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload
 
 @dataclass
 class CollisionParams:
-    """Self-collision settings.
+    """Self-collision settings (a scene's ``[collision]``). Each field's kind, default, range,
+    unit and help are declared with it (:mod:`warpskin.settings`): the checks, the scene keys and
+    the docs' reference are made from that. Notes beyond the one-line help:
 
-    Attributes:
-        enabled: Detect and resolve skin self-collisions.
-        thickness: Contact thickness [m]; ``None``: 0.15 x the mean skin edge length.
-        friction: Coulomb friction coefficient (>= 0).
-        restitution: Restitution coefficient in [0, 1].
-        capacity: Initial candidate buffer size per kind (grows on overflow).
-        rigid_weight: A vertex whose largest weight is at least this moves rigidly with that bone;
-            two such vertices of one bone never collide (their pairs are skipped).
-        detection_margin: Candidates are searched within this many thicknesses (detection runs
-            once per step; pairs that close in during the constraint loop must already be listed).
-        rest_gap_margin: Vertices closer than this many search radii at rest belong to one
-            surface patch: their pairs become contacts only when they cross during a step (a
-            fold), never by proximity (side by side on a smooth surface they are closer than
-            the thickness).
-        fold_cos: Pairs of one surface patch whose normals are more than ``acos(fold_cos)``
-            apart face each other across a fold (a crease or wrinkle) and collide by proximity
-            like any other pair; default 0 (90 degrees).
-        rebuild_spread: The BVH is refit every step and rebuilt (in place, between frames) once
-            the skin has deformed by more than this fraction of its rest bounding-box diagonal
-            since the last build (vertex displacements minus their mean); a refit keeps the
-            tree's rest-pose topology, whose boxes overlap more and more as limbs swing.
-        passes: Jacobi passes over the contacts per elasticity iteration (averaged corrections
-            converge slowly where a particle is in several contacts).
-        volume_weight: Factor on a colliding particle's inverse mass in the volume loop, in
-            [0, 1]. Diziol et al. 2011 use 0 (colliding particles stay put); then a part whose
-            skin is all in contact (a paw that LBS passes through the other leg) cannot keep its
-            volume at all and turns inside out. A small weight keeps both that volume and a
-            bent joint's crease free of intersections; larger ones let the volume loop push
-            contacts through.
-        fail_safe_rounds: After the elasticity loop of every step, pairs of the skin's
-            triangles as written that intersect, did not at the start of the step and do not
-            under LBS are found exactly and their vertices put back where they started (carried
-            along by their bones, held where that still intersects), in up to this many rounds
-            (:meth:`SelfCollision.fail_safe`); 0 turns it off. The constraints alone miss a
-            vertex that slides into a neighbouring triangle from behind its plane or runs past
-            the search radius in the constraint loop (pairs that then stay, at the back of a
-            bent knee). A second pass after the volume loop holds what that loop pushed through
-            where the loop found it, and the loop runs again with those vertices pinned.
+    * ``detection_margin``: detection runs once per step; pairs that close in during the
+      constraint loop must already be listed.
+    * ``rest_gap_margin``: side by side on a smooth surface, vertices of one patch are closer than
+      the thickness; their pairs become contacts only when they cross during a step (a fold).
+    * ``rebuild_spread``: the tree is refit every step; a refit keeps the rest pose's topology,
+      whose boxes overlap more and more as limbs swing, so it is rebuilt (in place, between
+      frames) past this deformation (vertex displacements less their mean).
+    * ``volume_weight``: Diziol et al. 2011 use 0 (colliding particles stay put); then a part
+      whose skin is all in contact (a paw that LBS passes through the other leg) cannot keep its
+      volume at all and turns inside out. A small weight keeps both that volume and a bent
+      joint's crease free of intersections; larger ones let the volume loop push contacts through.
+    * ``fail_safe_rounds``: after the elasticity loop of every step, pairs of the skin's
+      triangles as written that intersect, did not at the start of the step and do not under LBS
+      are found exactly and their vertices put back where they started (carried along by their
+      bones, held where that still intersects; :meth:`SelfCollision.fail_safe`). The constraints
+      alone miss a vertex that slides into a neighbouring triangle from behind its plane or runs
+      past the search radius in the constraint loop. A second pass after the volume loop holds
+      what that loop pushed through where the loop found it, and the loop runs again with those
+      vertices pinned.
     """
 
-    enabled: bool = True
-    thickness: float | None = None
-    friction: float = 0.3
-    restitution: float = 0.0
-    capacity: int = 4096
-    rigid_weight: float = 0.999
-    detection_margin: float = 3.0
-    rest_gap_margin: float = 2.0
-    fold_cos: float = 0.0
-    rebuild_spread: float = 0.1
-    passes: int = 4
-    volume_weight: float = 0.05
-    fail_safe_rounds: int = 4
+    enabled: bool = setting(True, "bool", "detect and resolve skin self-collisions")
+    thickness: float | None = setting(None, "number", "contact thickness; automatic: 0.15 x the mean skin edge",
+                                      unit="m", low=0.0, open_low=True, optional=True, must="a positive length [m]")
+    friction: float = setting(0.3, "number", "Coulomb friction coefficient of the contacts", low=0.0, must=">= 0")
+    restitution: float = setting(0.0, "number", "restitution coefficient of the contacts", low=0.0, high=1.0,
+                                 must="in [0, 1]")
+    capacity: int = setting(4096, "integer", "initial contact candidates per kind (the buffers grow on overflow)",
+                            low=1, must="a positive integer")
+    rigid_weight: float = setting(0.999, "number", "a vertex with at least this weight on one bone moves rigidly with "
+                                  "it; two such vertices of one bone never collide", low=0.0, high=1.0, open_low=True,
+                                  must="in (0, 1]")
+    detection_margin: float = setting(3.0, "number", "candidates are searched within this many thicknesses", low=1.0,
+                                      must=">= 1 (times the thickness)")
+    rest_gap_margin: float = setting(2.0, "number", "vertices closer than this many search radii at rest are one "
+                                     "surface patch (they collide only across a fold)", low=0.0, must=">= 0")
+    fold_cos: float = setting(0.0, "number", "pairs of one patch whose normals are more than acos(fold_cos) apart "
+                              "face each other across a fold", low=-1.0, high=1.0, must="in [-1, 1]")
+    rebuild_spread: float = setting(0.1, "number", "the tree is rebuilt once the skin has deformed by more than this "
+                                    "share of its rest diagonal", low=0.0, open_low=True, must="> 0")
+    passes: int = setting(4, "integer", "Jacobi passes over the contacts per elasticity iteration", low=1,
+                          must="an integer >= 1")
+    volume_weight: float = setting(0.05, "number", "factor on a colliding particle's inverse mass in the volume loop",
+                                   low=0.0, high=1.0, must="in [0, 1]")
+    fail_safe_rounds: int = setting(4, "integer", "rounds of the fail-safe that puts back pairs the constraints let "
+                                    "through (0: off)", low=0, must="an integer >= 0")
 
     def check(self, where: str = "collision") -> None:
-        if self.thickness is not None and not (math.isfinite(self.thickness) and self.thickness > 0):
-            raise SceneError(f"{where}: thickness must be a positive length [m], got {self.thickness!r}")
-        if not (math.isfinite(self.friction) and self.friction >= 0):
-            raise SceneError(f"{where}: friction must be >= 0, got {self.friction!r}")
-        if not (0.0 <= self.restitution <= 1.0):
-            raise SceneError(f"{where}: restitution must be in [0, 1], got {self.restitution!r}")
-        if not (math.isfinite(self.detection_margin) and self.detection_margin >= 1.0):
-            raise SceneError(f"{where}: detection_margin must be >= 1 (times the thickness), got {self.detection_margin!r}")
-        if not (math.isfinite(self.rebuild_spread) and self.rebuild_spread > 0):
-            raise SceneError(f"{where}: rebuild_spread must be > 0, got {self.rebuild_spread!r}")
-        if not (math.isfinite(self.fold_cos) and -1.0 <= self.fold_cos <= 1.0):
-            raise SceneError(f"{where}: fold_cos must be in [-1, 1], got {self.fold_cos!r}")
-        if not (isinstance(self.volume_weight, (int, float)) and not isinstance(self.volume_weight, bool)
-                and 0.0 <= self.volume_weight <= 1.0):
-            raise SceneError(f"{where}: volume_weight must be in [0, 1], got {self.volume_weight!r}")
-        if isinstance(self.passes, bool) or int(self.passes) != self.passes or self.passes < 1:
-            raise SceneError(f"{where}: passes must be an integer >= 1, got {self.passes!r}")
-        if isinstance(self.fail_safe_rounds, bool) or not isinstance(self.fail_safe_rounds, int) or self.fail_safe_rounds < 0:
-            raise SceneError(f"{where}: fail_safe_rounds must be an integer >= 0, got {self.fail_safe_rounds!r}")
-        if isinstance(self.capacity, bool) or int(self.capacity) != self.capacity or self.capacity < 1:
-            raise SceneError(f"{where}: capacity must be a positive integer, got {self.capacity!r}")
+        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
+
+        Raises:
+            SceneError: ``"<where>: <key> must be <range>, got <value>"``.
+        """
+        check_settings(self, where)
 
 
 def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -75,9 +75,8 @@ _SCHEMA: dict[str, set[str]] = {
     "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
                "fast_summation", "volume_along_normals", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
                "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"},
-    # skin self-collision (section 4.5)
-    "collision": {"enabled", "thickness", "friction", "restitution", "capacity", "detection_margin", "passes",
-                  "fold_cos", "rebuild_spread", "volume_weight", "fail_safe_rounds"},
+    # skin self-collision (section 4.5): its keys are CollisionParams' declared settings
+    "collision": None,
     # what is written: the physics weight (0 LBS, 1 physical) by joint-name pattern
     "physics": {"weights"},
     # what is written: the surface guard (warpskin.guard)
@@ -221,18 +220,9 @@ class Scene:
         """The :class:`~warpskin.collision.CollisionParams` of the ``[collision]`` section
         (self-collision is on by default)."""
         from .collision import CollisionParams
+        from .settings import from_section
 
-        table = dict(self.extra.get("collision", {}))
-        where = _where(self.source)
-        if "enabled" in table and not isinstance(table["enabled"], bool):
-            raise SceneError(f"{where}: [collision] enabled must be true or false")
-        for key in ("thickness", "friction", "restitution", "detection_margin", "fold_cos", "rebuild_spread",
-                    "volume_weight"):
-            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
-                raise SceneError(f"{where}: [collision] {key} must be a number, got {table[key]!r}")
-        params = CollisionParams(**table)
-        params.check(where)
-        return params
+        return from_section(CollisionParams, dict(self.extra.get("collision", {})), _where(self.source), "collision")
 
     def guard_params(self):
         """The :class:`~warpskin.guard.GuardParams` of the ``[guard]`` section (the surface guard
@@ -362,6 +352,17 @@ def _load_rig_of(scene: Scene) -> Rig:
     return load_rig(path, mesh=spec.get("mesh"), unit_scale=unit_scale)
 
 
+def _section_keys(section: str) -> set[str]:
+    """The keys a scene's ``[section]`` may hold: the declared settings of its parameter class
+    (:mod:`warpskin.settings`) where it has one, else the schema's list."""
+    if section == "collision":
+        from .collision import CollisionParams
+        from .settings import settings_of
+
+        return {s.name for s in settings_of(CollisionParams)}
+    return _SCHEMA[section]
+
+
 def _scenes_dir():
     return resources.files("warpskin.scenes")
 
@@ -441,9 +442,10 @@ def load_scene(name_or_path: str | Path) -> Scene:
             raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")
         if not isinstance(table, dict):
             raise SceneError(f"{where}: {section} must be a table")
-        unknown = sorted(set(table) - _SCHEMA[section])
+        keys = _section_keys(section)
+        unknown = sorted(set(table) - keys)
         if unknown:
-            raise SceneError(f"{where}: unknown key(s) {unknown} in [{section}]; known: {sorted(_SCHEMA[section])}")
+            raise SceneError(f"{where}: unknown key(s) {unknown} in [{section}]; known: {sorted(keys)}")
     meta = data.get("scene", {})
     anim = data.get("animation", {})
     if "rig" not in data:
