@@ -37,10 +37,10 @@ def _cli_reference() -> str:
 
 def _settings_reference() -> str:
     """The scene sections whose keys are declared settings (warpskin.settings), one table each."""
-    from warpskin.collision import CollisionParams
+    from warpskin.scene import _declared_sections
     from warpskin.settings import reference_markdown
 
-    return reference_markdown(CollisionParams, "collision")
+    return "\n".join(reference_markdown(cls, section) for section, cls in _declared_sections().items())
 
 
 def setup(app):

@@ -101,25 +101,31 @@ def test_the_docs_build_with_warnings_as_errors(tmp_path):
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     for name in commands:
         assert f"warpskin {name}" in cli, name
-    # every declared setting is in the scene-file reference, with its range
-    from warpskin.collision import CollisionParams
+    # every declared setting is in the scene-file reference, under its section
+    from warpskin.scene import _declared_sections
     from warpskin.settings import settings_of
 
     scenes = (out / "scenes.html").read_text()
-    for s in settings_of(CollisionParams):
-        assert f"<code class=\"docutils literal notranslate\"><span class=\"pre\">{s.name}</span></code>" in scenes, s.name
+    for section, cls in _declared_sections().items():
+        table = scenes.split(f"[{section}]", 1)[1]
+        for s in settings_of(cls):
+            assert f"<code class=\"docutils literal notranslate\"><span class=\"pre\">{s.name}</span></code>" in table, s.name
 
 
-def test_a_scene_section_takes_exactly_its_declared_settings(tmp_path):
-    # the [collision] keys a scene file may hold are CollisionParams' declared settings: each
-    # declared key is read with its value, an undeclared one is refused naming the known ones,
-    # and a value out of its declared range is refused with the declared range
-    from warpskin.collision import CollisionParams
+@pytest.mark.parametrize("section,bad_key,bad_value,message", [
+    ("collision", "restitution", 1.7, r"t.toml: \[collision\] restitution must be in \[0, 1\], got 1.7"),
+    ("guard", "strain", 1.7, r"t.toml: \[guard\] strain must be in \(1, 1.5\], got 1.7"),
+])
+def test_a_scene_section_takes_exactly_its_declared_settings(section, bad_key, bad_value, message, tmp_path):
+    # the keys a declared section of a scene file may hold are its parameter class's declared
+    # settings: each declared key is read with its value, an undeclared one is refused naming the
+    # known ones, and a value out of its declared range is refused with the declared range
     from warpskin.errors import SceneError
-    from warpskin.scene import load_scene
+    from warpskin.scene import _declared_sections, load_scene
     from warpskin.settings import settings_of
 
-    declared = settings_of(CollisionParams)
+    cls = _declared_sections()[section]
+    declared = settings_of(cls)
     values = {"bool": "false", "number": None, "integer": None}
     lines = []
     for s in declared:
@@ -132,13 +138,15 @@ def test_a_scene_section_takes_exactly_its_declared_settings(tmp_path):
             lines.append(f"{s.name} = {v!r}")
     base = '[scene]\nname = "t"\n[rig]\ngenerator = "arm"\n'
     path = tmp_path / "t.toml"
-    path.write_text(base + "[collision]\n" + "\n".join(lines) + "\n")
-    got = load_scene(path).collision_params()
+    read = (lambda sc: sc.collision_params()) if section == "collision" else (lambda sc: sc.guard_params())
+    path.write_text(base + f"[{section}]\n" + "\n".join(lines) + "\n")
+    got = read(load_scene(path))
     for s, line in zip(declared, lines):
         assert repr(getattr(got, s.name)).lower() == line.split(" = ")[1].lower(), line
-    path.write_text(base + "[collision]\nthickness_m = 0.01\n")
-    with pytest.raises(SceneError, match=r"unknown key\(s\) \['thickness_m'\] in \[collision\]; known: \['capacity'"):
+    path.write_text(base + f"[{section}]\nnot_a_key = 0.01\n")
+    with pytest.raises(SceneError, match=rf"unknown key\(s\) \['not_a_key'\] in \[{section}\]; known: "
+                       + re.escape(str(sorted(s.name for s in declared)))):
         load_scene(path)
-    path.write_text(base + "[collision]\nrestitution = 1.7\n")
-    with pytest.raises(SceneError, match=r"t.toml: restitution must be in \[0, 1\], got 1.7"):
-        load_scene(path).collision_params()
+    path.write_text(base + f"[{section}]\n{bad_key} = {bad_value}\n")
+    with pytest.raises(SceneError, match=message):
+        read(load_scene(path))

@@ -89,13 +89,13 @@ class CollisionParams:
     fail_safe_rounds: int = setting(4, "integer", "rounds of the fail-safe that puts back pairs the constraints let "
                                     "through (0: off)", low=0, must="an integer >= 0")
 
-    def check(self, where: str = "collision") -> None:
+    def check(self, where: str = "model") -> None:
         """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
 
         Raises:
-            SceneError: ``"<where>: <key> must be <range>, got <value>"``.
+            SceneError: ``"<where>: [collision] <key> must be <range>, got <value>"``.
         """
-        check_settings(self, where)
+        check_settings(self, where, "collision")
 
 
 def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -56,79 +56,54 @@ import scipy.sparse as sp
 
 from .metrics import PairQuery
 from .quality import STRAIN_LIMIT, WrittenMesh
+from .settings import check_settings, setting
 
 __all__ = ["GuardParams", "SurfaceGuard"]
 
 
 @dataclass
 class GuardParams:
-    """Settings of :class:`SurfaceGuard`.
+    """Settings of :class:`SurfaceGuard` (a scene's ``[guard]``). Each field's kind, default,
+    range, unit and help are declared with it (:mod:`warpskin.settings`). Notes beyond the help:
 
-    Attributes:
-        enabled: Guard the written meshes (off: they are written as the physics gives them).
-        strain: Edge strain (ratio to rest, either way) from which an edge is flagged, below
-            :data:`~warpskin.quality.STRAIN_LIMIT` so the guard acts before the measure counts it.
-        flip_degrees: A triangle is flagged when its normal turns by more than this against LBS.
-        pairs: Flag intersecting triangle pairs that LBS does not have.
-        match: A new intersecting pair within this many median edges of a pair the result lost
-            is a crossing that slid, not a new one (matched one to one).
-        rounds: Back-off rounds per frame before what is still flagged is set to its LBS.
-        back_off: Share of a flagged point's weight taken away per round.
-        recover: Rise of the weight per frame where it is safe.
-        spread: The weight changes over ``spread`` x the displacement it takes back (along the
-            surface, from the flagged points), so that its ramp strains little.
-        trust_flipped: A skin simulated directly is written as simulated until a frame's physical
-            result turns more than this share of its triangles over against LBS (1.5 x the 1 %
-            the quality checks ask: a margin for a crease at the bound, as the shipped arm's at
-            150 degrees); from then on it is guarded.
-        trust_strained: The same for the share of edges strained past
-            :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's (just under the 0.5 % the
-            quality checks ask, so that a written skin stays within it: a pop's swelling
-            strains edges on purpose).
+    * ``strain`` stays below :data:`~warpskin.quality.STRAIN_LIMIT`, so the guard acts before
+      the quality measure counts an edge.
+    * ``trust_flipped``: a skin simulated directly is written as simulated until a frame's
+      physical result turns more than this share of its triangles over against LBS (1.5 x the
+      1 % the quality checks ask: a margin for a crease at the bound); from then on it is guarded.
+    * ``trust_strained``: the same for the share of edges strained past the limit beyond LBS's
+      (just under the 0.5 % the quality checks ask: a pop's swelling strains edges on purpose).
     """
 
-    enabled: bool = True
-    strain: float = 1.45
-    flip_degrees: float = 80.0
-    pairs: bool = True
-    match: float = 3.0
-    rounds: int = 12
-    back_off: float = 0.25
-    recover: float = 0.1
-    spread: float = 4.0
-    trust_flipped: float = 0.015
-    trust_strained: float = 0.0045
+    enabled: bool = setting(True, "bool", "guard the written meshes (off: written as the physics gives them)")
+    strain: float = setting(1.45, "number", "edge strain (ratio to rest, either way) from which an edge is flagged",
+                            low=1.0, open_low=True, high=STRAIN_LIMIT, must=f"in (1, {STRAIN_LIMIT:g}]")
+    flip_degrees: float = setting(80.0, "number", "a triangle is flagged when its normal turns by more than this "
+                                  "against LBS", unit="degrees", low=0.0, open_low=True, high=90.0, must="in (0, 90]")
+    pairs: bool = setting(True, "bool", "flag intersecting triangle pairs that LBS does not have")
+    match: float = setting(3.0, "number", "a new intersecting pair within this many median edges of a pair the "
+                           "result lost is a crossing that slid", unit="median edges", low=0.0, high=100.0,
+                           must="in [0, 100]")
+    rounds: int = setting(12, "integer", "back-off rounds per frame before what is still flagged is set to its LBS",
+                          low=0, high=64, must="an integer in [0, 64]")
+    back_off: float = setting(0.25, "number", "share of a flagged point's weight taken away per round", low=0.0,
+                              open_low=True, high=1.0, must="in (0, 1]")
+    recover: float = setting(0.1, "number", "rise of the weight per frame where it is safe", low=0.0, high=1.0,
+                             must="in [0, 1]")
+    spread: float = setting(4.0, "number", "the weight changes over this many times the displacement it takes back "
+                            "(along the surface)", low=0.0, open_low=True, high=100.0, must="in (0, 100]")
+    trust_flipped: float = setting(0.015, "number", "a directly simulated skin is written as simulated until this "
+                                   "share of its triangles turns over", low=0.0, high=1.0, must="in [0, 1]")
+    trust_strained: float = setting(0.0045, "number", "... or this share of its edges strains past the limit "
+                                    "beyond LBS's", low=0.0, high=1.0, must="in [0, 1]")
 
-    def check(self, where: str = "[guard]") -> None:
-        """Raise :class:`~warpskin.errors.SceneError` (one line naming the key) where a setting
-        is out of its range."""
-        from .errors import SceneError
+    def check(self, where: str = "guard") -> None:
+        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
 
-        def bad(key, allowed):
-            return SceneError(f"{where} {key} must be {allowed}, got {getattr(self, key)!r}")
-
-        if not isinstance(self.enabled, bool):
-            raise bad("enabled", "true or false")
-        if not isinstance(self.pairs, bool):
-            raise bad("pairs", "true or false")
-        if not 1.0 < self.strain <= STRAIN_LIMIT:
-            raise bad("strain", f"in (1, {STRAIN_LIMIT:g}]")
-        if not 0.0 < self.flip_degrees <= 90.0:
-            raise bad("flip_degrees", "in (0, 90]")
-        if not 0.0 <= self.match <= 100.0:
-            raise bad("match", "in [0, 100]")
-        if isinstance(self.rounds, bool) or not isinstance(self.rounds, int) or not 0 <= self.rounds <= 64:
-            raise bad("rounds", "an integer in [0, 64]")
-        if not 0.0 < self.back_off <= 1.0:
-            raise bad("back_off", "in (0, 1]")
-        if not 0.0 <= self.recover <= 1.0:
-            raise bad("recover", "in [0, 1]")
-        if not 0.0 < self.spread <= 100.0:
-            raise bad("spread", "in (0, 100]")
-        if not 0.0 <= self.trust_flipped <= 1.0:
-            raise bad("trust_flipped", "in [0, 1]")
-        if not 0.0 <= self.trust_strained <= 1.0:
-            raise bad("trust_strained", "in [0, 1]")
+        Raises:
+            SceneError: ``"<where>: [guard] <key> must be <range>, got <value>"``.
+        """
+        check_settings(self, where, "guard")
 
 
 def _as_written(x: np.ndarray) -> np.ndarray:

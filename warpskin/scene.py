@@ -79,9 +79,8 @@ _SCHEMA: dict[str, set[str]] = {
     "collision": None,
     # what is written: the physics weight (0 LBS, 1 physical) by joint-name pattern
     "physics": {"weights"},
-    # what is written: the surface guard (warpskin.guard)
-    "guard": {"enabled", "strain", "flip_degrees", "pairs", "match", "rounds", "back_off", "recover", "spread",
-              "trust_flipped", "trust_strained"},
+    # what is written: the surface guard (warpskin.guard): GuardParams' declared settings
+    "guard": None,
     # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
     "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation", "examples"},
 }
@@ -228,16 +227,9 @@ class Scene:
         """The :class:`~warpskin.guard.GuardParams` of the ``[guard]`` section (the surface guard
         of the written meshes; on by default)."""
         from .guard import GuardParams
+        from .settings import from_section
 
-        table = dict(self.extra.get("guard", {}))
-        where = _where(self.source)
-        for key in ("strain", "flip_degrees", "match", "back_off", "recover", "spread", "trust_flipped",
-                    "trust_strained"):
-            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
-                raise SceneError(f"{where}: [guard] {key} must be a number, got {table[key]!r}")
-        params = GuardParams(**table)
-        params.check(f"{where}: [guard]")
-        return params
+        return from_section(GuardParams, dict(self.extra.get("guard", {})), _where(self.source), "guard")
 
     def physics_weights(self) -> dict[str, float]:
         """``[physics.weights]``: joint-name patterns (shell-style, case-insensitive: ``"*hand*"``)
@@ -355,12 +347,20 @@ def _load_rig_of(scene: Scene) -> Rig:
 def _section_keys(section: str) -> set[str]:
     """The keys a scene's ``[section]`` may hold: the declared settings of its parameter class
     (:mod:`warpskin.settings`) where it has one, else the schema's list."""
-    if section == "collision":
-        from .collision import CollisionParams
+    declared = _declared_sections()
+    if section in declared:
         from .settings import settings_of
 
-        return {s.name for s in settings_of(CollisionParams)}
+        return {s.name for s in settings_of(declared[section])}
     return _SCHEMA[section]
+
+
+def _declared_sections() -> dict:
+    """``{section: parameter class}`` of the scene sections made from declared settings."""
+    from .collision import CollisionParams
+    from .guard import GuardParams
+
+    return {"collision": CollisionParams, "guard": GuardParams}
 
 
 def _scenes_dir():

@@ -37,7 +37,8 @@ class Setting:
 
     Attributes:
         name: The field's name, which is also its scene key.
-        kind: ``"bool"``, ``"number"`` (a finite float; an int is taken) or ``"integer"``.
+        kind: ``"bool"``, ``"number"`` (a finite float; an int is taken) or ``"integer"`` (an
+            int, not a float of integer value).
         default: Its default (``None`` where ``optional``).
         help: One line: what it does.
         unit: Its unit (``"m"``, ``"1/s"``, ...; empty for a plain number).
@@ -66,7 +67,7 @@ class Setting:
             return isinstance(value, bool)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return False
-        if self.kind == "integer" and int(value) != value:
+        if self.kind == "integer" and not isinstance(value, int):
             return False
         if not math.isfinite(value):
             return False
@@ -105,16 +106,18 @@ def settings_of(cls) -> list[Setting]:
     return out
 
 
-def check_settings(obj, where: str) -> None:
+def check_settings(obj, where: str, section: str | None = None) -> None:
     """Every declared setting of ``obj`` allowed (:meth:`Setting.allows`).
 
     Raises:
-        SceneError: ``"<where>: <name> must be <range>, got <value>"`` for the first that is not.
+        SceneError: ``"<where>: [<section>] <name> must be <range>, got <value>"`` (without
+            the section where none is given) for the first that is not.
     """
+    prefix = f"{where}: [{section}] " if section else f"{where}: "
     for s in settings_of(obj):
         value = getattr(obj, s.name)
         if not s.allows(value):
-            raise SceneError(f"{where}: {s.name} must be {s.range_text()}, got {value!r}")
+            raise SceneError(f"{prefix}{s.name} must be {s.range_text()}, got {value!r}")
 
 
 def from_section(cls, table: dict, where: str, section: str):
@@ -135,7 +138,7 @@ def from_section(cls, table: dict, where: str, section: str):
         if s.kind != "bool" and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise SceneError(f"{where}: [{section}] {key} must be a number, got {value!r}")
     obj = cls(**table)
-    check_settings(obj, where)
+    check_settings(obj, where, section)
     return obj
 
 
