@@ -22,13 +22,12 @@ the frame runner grows them and repeats the frame, so no contact is ever dropped
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from .errors import InputError, SceneError
+from .errors import InputError
 from .settings import check_settings, setting
 from .kernels import collision as k
 
@@ -245,6 +244,19 @@ ESCAPE_REACH = 0.25
 CPU_CONTACT_CHUNK = 64
 
 
+def _trees(lowers: wp.array, uppers: wp.array, ranges: list[tuple[int, int]]) -> tuple:
+    """One BVH per ``(first, count)`` range of the triangle boxes ``lowers``/``uppers`` (over
+    views of them, so a refit after the boxes change sees the new ones), and the kernels' view
+    of them: ``(bvhs, tree ids [K] uint64, each triangle's tree [T] int32, each tree's first
+    triangle [K] int32)``."""
+    bvhs = [wp.Bvh(lowers[t0:t0 + tn], uppers[t0:t0 + tn]) for t0, tn in ranges]
+    tri_tree = np.zeros(lowers.shape[0], dtype=np.int32)
+    for tree, (t0, tn) in enumerate(ranges):
+        tri_tree[t0:t0 + tn] = tree
+    return (bvhs, wp.array(np.array([b.id for b in bvhs], dtype=np.uint64), dtype=wp.uint64),
+            wp.array(tri_tree, dtype=wp.int32), wp.array(np.array([t0 for t0, _ in ranges], dtype=np.int32), dtype=wp.int32))
+
+
 class SelfCollision:
     """Skin self-collision of one model: the BVH and the scratch buffers (allocated here), the
     launches of detection, projection, volume weights and friction; the pairs go into a
@@ -268,13 +280,8 @@ class SelfCollision:
         with wp.ScopedDevice(self.device):
             self.lowers = wp.clone(c.rest_lowers)
             self.uppers = wp.clone(c.rest_uppers)
-            self.bvhs = [wp.Bvh(self.lowers[t0:t0 + tn], self.uppers[t0:t0 + tn]) for _, _, t0, tn in self._ranges]
-            tri_tree = np.zeros(int(c.triangle_count), dtype=np.int32)
-            for tree, (_, _, t0, tn) in enumerate(self._ranges):
-                tri_tree[t0:t0 + tn] = tree
-            self.tri_tree = wp.array(tri_tree, dtype=wp.int32)
-            self.tree_start = wp.array(np.array([t0 for _, _, t0, _ in self._ranges], dtype=np.int32), dtype=wp.int32)
-            self.trees = wp.array(np.array([b.id for b in self.bvhs], dtype=np.uint64), dtype=wp.uint64)
+            self.bvhs, self.trees, self.tri_tree, self.tree_start = _trees(
+                self.lowers, self.uppers, [(t0, tn) for _, _, t0, tn in self._ranges])
             vertex_tree = np.zeros(v, dtype=np.int32)
             for tree, (v0, vn, _, _) in enumerate(self._ranges):
                 vertex_tree[v0:v0 + vn] = tree
@@ -329,21 +336,9 @@ class SelfCollision:
             wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
                       inputs=[model.particle_q0, model.particle_q0, self._fs_tris, thickness_pads, self.vertex_tree],
                       outputs=[self._fs_lowers, self._fs_uppers])
-            if len(self._ranges) > 1:  # one tree per character over its written triangles
-                self._fs_bvhs = [wp.Bvh(self._fs_lowers[w0:w0 + wn], self._fs_uppers[w0:w0 + wn])
-                                 for w0, wn in self._written]
-                self._fs_trees = wp.array(np.array([b.id for b in self._fs_bvhs], dtype=np.uint64), dtype=wp.uint64)
-                fs_tree = np.zeros(c.output_triangle_count, dtype=np.int32)
-                for tree, (w0, wn) in enumerate(self._written):
-                    fs_tree[w0:w0 + wn] = tree
-                self._fs_tri_tree = wp.array(fs_tree, dtype=wp.int32)
-                self._fs_tree_start = wp.array(np.array([w0 for w0, _ in self._written], dtype=np.int32),
-                                               dtype=wp.int32)
-            else:
-                self._fs_bvhs = [wp.Bvh(self._fs_lowers, self._fs_uppers)]
-                self._fs_trees = wp.array(np.array([self._fs_bvhs[0].id], dtype=np.uint64), dtype=wp.uint64)
-                self._fs_tri_tree = wp.zeros(c.output_triangle_count, dtype=wp.int32)
-                self._fs_tree_start = wp.zeros(1, dtype=wp.int32)
+            # one tree per character over its written triangles
+            self._fs_bvhs, self._fs_trees, self._fs_tri_tree, self._fs_tree_start = _trees(
+                self._fs_lowers, self._fs_uppers, self._written)
 
     def maybe_rebuild(self, skin: np.ndarray) -> bool:
         """Host check between frames (never inside a captured graph): rebuild the BVH in place
@@ -357,7 +352,7 @@ class SelfCollision:
             if spread <= self._chars[tree]["rebuild_spread"] * self._diagonals[tree]:
                 continue
             self.bvhs[tree].rebuild()  # in place: graphs captured with these trees stay valid
-            self._fs_bvhs[tree if len(self._fs_bvhs) > 1 else 0].rebuild()
+            self._fs_bvhs[tree].rebuild()
             self._built_at[v0:v0 + vn] = skin[v0:v0 + vn]
             self.rebuilds += 1
             rebuilt = True
