@@ -101,52 +101,53 @@ def test_the_docs_build_with_warnings_as_errors(tmp_path):
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
     for name in commands:
         assert f"warpskin {name}" in cli, name
-    # every declared setting is in the scene-file reference, under its section
-    from warpskin.scene import _declared_sections
-    from warpskin.settings import settings_of
+    # every declared scene setting is in the scene-file reference, under its section, and every
+    # option of every command on the command-line page
+    from warpskin.scene import scene_sections
 
     scenes = (out / "scenes.html").read_text()
-    for section, cls in _declared_sections().items():
-        table = scenes.split(f"[{section}]", 1)[1]
-        for s in settings_of(cls):
-            assert f"<code class=\"docutils literal notranslate\"><span class=\"pre\">{s.name}</span></code>" in table, s.name
+    for section, declared in scene_sections().items():
+        table = scenes.split(f'<span class="pre">[{section}]</span></code>', 1)[1].split("</table>", 1)[0]
+        for s in declared:
+            assert f"<code class=\"docutils literal notranslate\"><span class=\"pre\">{s.scene_key}</span></code>" in table, s.name
+    for action in _every_action(build_parser()):
+        for option in action.option_strings:
+            assert option in cli, option
 
 
-@pytest.mark.parametrize("section,bad_key,bad_value,message", [
-    ("collision", "restitution", 1.7, r"t.toml: \[collision\] restitution must be in \[0, 1\], got 1.7"),
-    ("guard", "strain", 1.7, r"t.toml: \[guard\] strain must be in \(1, 1.5\], got 1.7"),
-])
-def test_a_scene_section_takes_exactly_its_declared_settings(section, bad_key, bad_value, message, tmp_path):
-    # the keys a declared section of a scene file may hold are its parameter class's declared
-    # settings: each declared key is read with its value, an undeclared one is refused naming the
-    # known ones, and a value out of its declared range is refused with the declared range
-    from warpskin.errors import SceneError
-    from warpskin.scene import _declared_sections, load_scene
-    from warpskin.settings import settings_of
+def _every_action(parser):
+    import argparse
 
-    cls = _declared_sections()[section]
-    declared = settings_of(cls)
-    values = {"bool": "false", "number": None, "integer": None}
-    lines = []
-    for s in declared:
-        if s.kind == "bool":
-            lines.append(f"{s.name} = {values['bool']}")
-        else:  # a generic value inside the declared range
-            lo = s.low if s.low is not None else 0.0
-            hi = s.high if s.high is not None else lo + 10.0
-            v = lo + 0.37 * (hi - lo) if s.kind == "number" else int(lo) + 3
-            lines.append(f"{s.name} = {v!r}")
-    base = '[scene]\nname = "t"\n[rig]\ngenerator = "arm"\n'
-    path = tmp_path / "t.toml"
-    read = (lambda sc: sc.collision_params()) if section == "collision" else (lambda sc: sc.guard_params())
-    path.write_text(base + f"[{section}]\n" + "\n".join(lines) + "\n")
-    got = read(load_scene(path))
-    for s, line in zip(declared, lines):
-        assert repr(getattr(got, s.name)).lower() == line.split(" = ")[1].lower(), line
-    path.write_text(base + f"[{section}]\nnot_a_key = 0.01\n")
-    with pytest.raises(SceneError, match=rf"unknown key\(s\) \['not_a_key'\] in \[{section}\]; known: "
-                       + re.escape(str(sorted(s.name for s in declared)))):
-        load_scene(path)
-    path.write_text(base + f"[{section}]\n{bad_key} = {bad_value}\n")
-    with pytest.raises(SceneError, match=message):
-        read(load_scene(path))
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return [a for p in [parser, *sub.choices.values()] for a in p._actions]
+
+
+
+
+# every ``warpskin`` command line of the README's and the docs' bash blocks: (page, line)
+COMMAND_LINES = [(page, line.split("  #")[0].strip()) for page in PAGES
+                 for block in re.findall(r"```bash\n(.*?)```", page.read_text(), flags=re.S)
+                 for line in block.splitlines() if re.match(r"(\.venv/bin/)?warpskin ", line.strip())]
+
+
+def test_the_docs_show_command_lines():
+    assert len(COMMAND_LINES) >= 25
+
+
+@pytest.mark.parametrize("page,line", COMMAND_LINES, ids=[f"{p.name}-{k}" for k, (p, _) in enumerate(COMMAND_LINES)])
+def test_every_command_line_of_the_docs_parses(page, line, tmp_path, monkeypatch, capsys):
+    # each command line shown parses with the real parser (its options exist, its values are in
+    # their declared ranges); those that need no file (a shipped procedural scene, quick commands)
+    # run, and exit 0
+    import shlex
+
+    from warpskin.cli import build_parser, main
+
+    argv = shlex.split(line)[1:]
+    monkeypatch.chdir(tmp_path)
+    try:
+        build_parser().parse_args(argv)
+    except SystemExit as exc:
+        pytest.fail(f"{page.name}: {line!r} does not parse: {capsys.readouterr().err.strip()} (exit {exc.code})")
+    if argv[0] in ("scenes", "skin", "layers") and (len(argv) == 1 or argv[1] == "arm"):
+        assert main(argv) == 0, capsys.readouterr().err

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
 from .errors import InputError
+from .settings import add_option, setting
 
 try:
     import tomllib
@@ -724,23 +725,40 @@ def _write_index(out: Path, jobs: list[Job], entries: dict, result: BatchResult)
 
 
 # ------------------------------------------------------------------------------ the command
+@dataclass
+class BatchOptions:
+    """``warpskin batch`` (declared settings, :mod:`warpskin.settings`)."""
+
+    jobs: list = setting([], "strings", "a JOBS file (TOML, [[job]] tables), or rig files / glob patterns / shipped "
+                         "scenes", cli="jobs", metavar="JOBS")
+    output: str = setting("", "string", "where the bakes, manifest.json and index.md go", cli=("-o", "--output"),
+                          metavar="OUTDIR")
+    workers: int | None = setting(None, "integer", "jobs at a time on this machine (default: one per core)", low=1,
+                                  optional=True, cli="--workers")
+    ray: str | None = setting(None, "string", "run each job as a task of the Ray cluster at ADDRESS, or 'auto' (the "
+                              "cluster `ray start` made, else a local one); pip install 'warpskin[farm]'",
+                              optional=True, cli="--ray", metavar="ADDRESS")
+    retries: int = setting(1, "integer", "runs again a job whose process died, this many times (default 1)", low=0,
+                           cli="--retries")
+    command: str = setting("simulate", "string", "with rig files: what each job runs", choices=COMMANDS,
+                           cli="--command")
+    clips: str | None = setting(None, "string", "with rig files: a clip, or all of them (one job each)",
+                                optional=True, cli="--clips", metavar="NAME|all")
+    frames: str | None = setting(None, "string", "with rig files: the frames of every job", optional=True,
+                                 cli="--frames", metavar="A:B")
+    args: str = setting("", "string", "with rig files: the command's own options, as --args='--bpm 120 --lbs'",
+                        cli="--args", metavar="'OPTIONS'")
+    quiet: bool = setting(False, "bool", "no progress line", cli="--quiet")
+    json: bool = setting(False, "bool", "print the manifest's entries as JSON", cli="--json")
+
+
 def add_parser(sub) -> None:
+    """Add ``warpskin batch`` to the command parser ``sub`` (options from :class:`BatchOptions`)."""
     s = sub.add_parser("batch", help="bake many rigs x clips, each job in its own process; resumable (JSON manifest)")
-    s.add_argument("jobs", nargs="+", metavar="JOBS",
-                   help="a JOBS file (TOML, [[job]] tables), or rig files / glob patterns / shipped scenes")
-    s.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="where the bakes, manifest.json and index.md go")
-    s.add_argument("--workers", type=int, default=None, help="jobs at a time on this machine (default: one per core)")
-    s.add_argument("--ray", metavar="ADDRESS", default=None,
-                   help="run each job as a task of the Ray cluster at ADDRESS, or 'auto' (the cluster `ray start` "
-                        "made, else a local one); pip install 'warpskin[farm]'")
-    s.add_argument("--retries", type=int, default=1, help="runs again a job whose process died, this many times (default 1)")
-    s.add_argument("--command", choices=COMMANDS, default="simulate", help="with rig files: what each job runs")
-    s.add_argument("--clips", metavar="NAME|all", default=None, help="with rig files: a clip, or all of them (one job each)")
-    s.add_argument("--frames", metavar="A:B", default=None, help="with rig files: the frames of every job")
-    s.add_argument("--args", default="", metavar="'OPTIONS'",
-                   help="with rig files: the command's own options, as --args='--bpm 120 --lbs'")
-    s.add_argument("--quiet", action="store_true", help="no progress line")
-    s.add_argument("--json", action="store_true", help="print the manifest's entries as JSON")
+    add_option(s, BatchOptions, "jobs", nargs="+")
+    add_option(s, BatchOptions, "output", required=True)
+    for name in ("workers", "ray", "retries", "command", "clips", "frames", "args", "quiet", "json"):
+        add_option(s, BatchOptions, name)
 
 
 def cmd_batch(args: argparse.Namespace) -> int:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import warnings
 
@@ -48,16 +47,6 @@ def _scene_of(args):
     return _with_projection(scene, args)
 
 
-def _parse_projection(text: str) -> tuple[float, float, float]:
-    try:
-        fat, muscle, bone = (float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--projection must be FAT,MUSCLE,BONE (three numbers), got {text!r}") from None
-    if not (0.0 < fat < muscle < bone < 1.0):
-        raise argparse.ArgumentTypeError(f"--projection {text}: need 0 < FAT < MUSCLE < BONE < 1")
-    return fat, muscle, bone
-
-
 def _with_projection(scene, args):
     """``--projection F,M,B``: the layers' projection parameters (scene: [layers] fat, muscle, bone)."""
     p = getattr(args, "projection", None)
@@ -65,91 +54,6 @@ def _with_projection(scene, args):
         layers = scene.extra.setdefault("layers", {})
         layers["fat"], layers["muscle"], layers["bone"] = p
     return scene
-
-
-def _parse_frames(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        a, b = text.split(":")
-        first, last = int(a), int(b)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--frames must be FIRST:LAST (inclusive integers), got {text!r}") from None
-    if first < 0 or last < first:
-        raise argparse.ArgumentTypeError(f"--frames {text}: need 0 <= FIRST <= LAST")
-    return first, last
-
-
-def _number(flag: str, *, positive: bool | None):
-    """An argparse type: a finite number > 0 (``positive``), >= 0 (``False``) or any
-    (``None``), or one line naming ``flag``."""
-    test, what = {True: (lambda v: v > 0, "a positive number"), False: (lambda v: v >= 0, "a number >= 0"),
-                  None: (lambda v: True, "a number")}[positive]
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and test(value)):
-            raise argparse.ArgumentTypeError(f"{flag} must be {what}, got {text!r}")
-        return value
-
-    return parse
-
-
-def _finite(flag: str):
-    return _number(flag, positive=None)
-
-
-def _positive(flag: str):
-    return _number(flag, positive=True)
-
-
-def _non_negative(flag: str):
-    return _number(flag, positive=False)
-
-
-def _count(flag: str, lowest: int):
-    """An argparse type: an integer >= ``lowest``."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = lowest - 1
-        if value < lowest:
-            raise argparse.ArgumentTypeError(f"{flag} must be an integer >= {lowest}, got {text!r}")
-        return value
-
-    return parse
-
-
-def _weight_arg(text: str) -> tuple[str, float]:
-    """An argparse type: ``PATTERN=W`` with ``W`` in [0, 1]."""
-    pattern, eq, value = text.rpartition("=")
-    try:
-        w = float(value)
-    except ValueError:
-        w = math.nan
-    if not eq or not pattern or not (0.0 <= w <= 1.0):
-        raise argparse.ArgumentTypeError(f"--physics-weight must be PATTERN=W with W in [0, 1], got {text!r}")
-    return pattern, w
-
-
-def _cage_arg(text: str):
-    """An argparse type: ``auto``, ``always``, ``none``, or an existing cage mesh file."""
-    from .io.cage_file import CAGE_EXTENSIONS
-
-    if text in ("auto", "always", "none"):
-        return text
-    path = Path(text)
-    if path.suffix.lower() not in CAGE_EXTENSIONS:
-        raise argparse.ArgumentTypeError(f"--cage must be auto, always, none or a mesh file "
-                                         f"({', '.join(CAGE_EXTENSIONS)}), got {text!r}")
-    if not path.is_file():
-        raise argparse.ArgumentTypeError(f"--cage {text}: no such file")
-    return path
 
 
 # ------------------------------------------------------------------------------------ commands
@@ -429,7 +333,7 @@ def cmd_bench(args) -> int:
         result = {
             "solver": run_solver_bench(scenes, device=args.device, steps=args.steps, repeat=args.repeat),
             "skinning": run_skinning_bench([s for s in scenes if not _missing_asset(s)], device=args.device,
-                                           frames=args.bench_frames, repeat=args.repeat),
+                                           frames=args.frames, repeat=args.repeat),
             "popping": run_popping_bench(args.device, steps=max(args.steps, 50), repeat=args.repeat),
         }
     return _emit_json(result, args.json)
@@ -556,27 +460,6 @@ def _beat_spec(args):
                     in_turn=args.in_turn)
 
 
-def _frame_list(text: str) -> list[float]:
-    try:
-        out = [float(x) for x in text.split(",")]
-    except ValueError:
-        out = []
-    if not out or not all(math.isfinite(x) for x in out):
-        raise argparse.ArgumentTypeError(f"--frames must be comma-separated time codes, got {text!r}")
-    return out
-
-
-def _resolution(text: str) -> tuple[int, int]:
-    w, _, h = text.lower().partition("x")
-    try:
-        size = (int(w), int(h))
-    except ValueError:
-        size = (0, 0)
-    if min(size) < 16 or max(size) > 8192:
-        raise argparse.ArgumentTypeError(f"--resolution must be WxH in pixels (16..8192), got {text!r}")
-    return size
-
-
 def cmd_render(args) -> int:
     from .render import render_bake
 
@@ -605,15 +488,27 @@ def cmd_warmup(args) -> int:
 
 # ------------------------------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of every command. Each option is made from its declaration
+    (:func:`warpskin.settings.add_option`): a scene setting's field (``SolverParams.iterations``
+    is ``--iterations``) or a command's own (:mod:`warpskin.options`)."""
     from . import __version__
+    from .collision import CollisionParams
+    from .guard import GuardParams
+    from .options import (BenchOptions, CommonOptions, GlobalOptions, InfoOptions, LayersOptions, PopOptions,
+                          RenderOptions, SimulateOptions, SkinOptions)
+    from .popping.activation import PoppingSettings
+    from .scene import AnimationSpec, RigSpec
+    from .settings import add_option as opt
+    from .solver import SolverParams
 
+    C = CommonOptions
     p = argparse.ArgumentParser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")
     p.add_argument("--version", action="version", version=f"warpskin {__version__}")
-    p.add_argument("--debug", action="store_true", help="print tracebacks on errors")
+    opt(p, GlobalOptions, "debug")
     # global flags are accepted after the command too (SUPPRESS: not given there, the value
     # before the command stands)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="print tracebacks on errors")
+    opt(common, GlobalOptions, "debug", default=argparse.SUPPRESS)
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     add_parser = sub.add_parser
 
@@ -622,192 +517,103 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser = with_common
 
+    def rig_input(s, *names):
+        for name in names:
+            opt(s, RigSpec if name in ("mesh", "unit_scale", "weights") else AnimationSpec, name)
+
     s = sub.add_parser("scenes", help="list the shipped scenes")
     s.set_defaults(func=cmd_scenes)
 
     s = sub.add_parser("info", help="describe a rig file or scene")
-    s.add_argument("target", metavar="RIG|SCENE")
-    s.add_argument("--mesh", help="skinned mesh to inspect (default: the largest)")
-    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
-    s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
-                   help="the physics weights and muscle groups as simulate and pop see them with this --cage")
-    s.add_argument("--json", action="store_true", help="print JSON")
+    opt(s, C, "target")
+    rig_input(s, "mesh", "unit_scale")
+    opt(s, InfoOptions, "cage")
+    opt(s, InfoOptions, "json")
     s.set_defaults(func=cmd_info)
 
     s = sub.add_parser("skin", help="skin a rig or scene with LBS or DQS and write USD")
-    s.add_argument("target", metavar="RIG|SCENE", help="a .glb/.gltf/.usd/.usda/.usdc/.usdz file, a scene name or a .toml file")
-    s.add_argument("-o", "--output", required=True, help="output .usdc (default format), .usda or .usd")
-    s.add_argument("--method", choices=["lbs", "dqs"], default="lbs")
-    s.add_argument("--clip", help="clip name (default: the scene's, or the first)")
-    s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
-    s.add_argument("--fps", type=_positive("--fps"), help="output frame rate, resampling the clip (default: the scene's, else the source's: a USD stage's "
-                        "timeCodesPerSecond, a glTF clip's key spacing, else 30)")
-    s.add_argument("--start-frame", type=int, metavar="N",
-                   help="write the first frame at time code N (default: the source's own frame numbers)")
-    s.add_argument("--device", help="cpu, cuda or cuda:N (default: Warp's default)")
-    s.add_argument("--mesh", help="skinned mesh to use when the file has several")
-    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
-    s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
-    s.add_argument("--with-rest", action="store_true", help="also write the rest mesh as a sibling prim")
-    s.add_argument("--with-lbs", action="store_true", help="with --method dqs, also write the LBS result")
-    s.add_argument("--json", action="store_true", help="print the run's summary as JSON instead of the text line")
-    s.add_argument("--topology", choices=["file", "welded"], default="file",
-                   help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    opt(s, C, "target")
+    opt(s, C, "output", required=True)
+    opt(s, SkinOptions, "method")
+    rig_input(s, "clip", "frames", "fps")
+    opt(s, C, "start_frame")
+    opt(s, C, "device")
+    rig_input(s, "mesh", "unit_scale", "weights")
+    for name in ("with_rest", "with_lbs"):
+        opt(s, SkinOptions, name)
+    opt(s, C, "json")
+    opt(s, C, "topology")
+    opt(s, C, "quiet")
     s.set_defaults(func=cmd_skin)
 
     s = sub.add_parser("simulate", help="simulate the physical skin and write it to USD")
-    s.add_argument("target", metavar="RIG|SCENE")
-    s.add_argument("--projection", type=_parse_projection, metavar="FAT,MUSCLE,BONE",
-                   help="layer projection parameters, upper bounds (scene: [layers] fat, muscle, bone; default 0.15,0.45,0.8)")
-    s.add_argument("-o", "--output", required=True, help="output .usdc (default format), .usda or .usd")
-    s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
-    s.add_argument("--fps", type=_positive("--fps"), help="output frame rate, resampling the clip (default: the source's)")
-    s.add_argument("--start-frame", type=int, metavar="N",
-                   help="write the first frame at time code N (default: the source's own frame numbers)")
-    s.add_argument("--clip", help="clip name")
-    s.add_argument("--device", help="cpu, cuda or cuda:N")
-    s.add_argument("--mesh", help="skinned mesh to use when the file has several")
-    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this")
-    s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
-    s.add_argument("--lbs", action="store_true", help="also write the LBS result as a sibling prim")
-    s.add_argument("--topology", choices=["file", "welded"], default="file",
-                   help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
-    s.add_argument("--layers", action="store_true", help="also write the fat, muscle and bone layers")
-    s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
-                   help="simulate an automatic closed cage and write every mesh as its LBS plus the cage's physical "
-                        "deformation captured near it: where the skin is not "
-                        "one closed manifold (auto, the default), always (its other meshes too), or never; or FILE, "
-                        "your own closed cage (.obj, .glb, .gltf, .usd, .usda, .usdc, .usdz) around the character's "
-                        "rest pose, in the character file's units")
-    s.add_argument("--rigid-pieces", choices=["cage", "joint"], default="cage",
-                   help="through a cage, the pieces LBS moves rigidly (eyes or teeth skinned to one joint, rigidly "
-                        "parented parts): moved by one translation with the cage around them (cage, the default) "
-                        "or following their joints exactly (joint)")
-    s.add_argument("--physics-weight", type=_weight_arg, action="append", metavar="PATTERN=W",
-                   help="the physics weight (0: LBS, 1: physical) of the skin the joints matching PATTERN drive, e.g. "
-                        "'*hand*=0' (repeatable; scene: [physics.weights])")
-    s.add_argument("--report", metavar="DIR", help="write report.json and PNG plots (volume, energy) to DIR")
-    s.add_argument("--iterations", type=_count("--iterations", 1), help="elasticity iterations per step (scene: [solver] iterations)")
-    s.add_argument("--volume-iterations", type=_count("--volume-iterations", 0), help="volume iterations per step")
-    s.add_argument("--dt", type=_positive("--dt"), help="largest substep [s]")
-    s.add_argument("--damping", type=_non_negative("--damping"), help="velocity damping rate [1/s]")
-    s.add_argument("--fast-summation", action="store_true", help="region sums by prefix scans along paths")
-    s.add_argument("--no-gravity", action="store_true", help="switch gravity off")
-    s.add_argument("--no-collisions", action="store_true", help="switch skin self-collision off")
-    s.add_argument("--no-guard", action="store_true",
-                   help="write the meshes as the physics gives them, without the surface guard that takes back, "
-                        "smoothly, what would leave a mesh worse than its LBS (strained edges, flipped triangles, "
-                        "intersecting pairs) (scene: [guard] enabled)")
-    s.add_argument("--allow-unstable", action="store_true",
-                   help="go on (with one warning) when the skin leaves its plausible range instead of stopping "
-                        "with exit 3 ([solver] max_offset, max_volume_error)")
-    s.add_argument("--preroll", type=_non_negative("--preroll"), default=None, metavar="SECONDS",
-                   help="simulate this long from the bind pose into the first frame's pose before writing "
-                        "(scene: [animation] preroll; default 0)")
-    s.add_argument("--json", action="store_true", help="print the run's summary as JSON instead of the text line")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    opt(s, C, "target")
+    opt(s, C, "projection")
+    opt(s, C, "output", required=True)
+    rig_input(s, "frames", "fps")
+    opt(s, C, "start_frame")
+    rig_input(s, "clip")
+    opt(s, C, "device")
+    rig_input(s, "mesh", "unit_scale", "weights")
+    opt(s, SimulateOptions, "lbs")
+    opt(s, C, "topology")
+    for name in ("layers", "cage", "rigid_pieces"):
+        opt(s, SimulateOptions, name)
+    opt(s, SimulateOptions, "physics_weight", action="append")
+    opt(s, SimulateOptions, "report")
+    for name in ("iterations", "volume_iterations", "dt", "damping", "fast_summation"):
+        opt(s, SolverParams, name)
+    opt(s, SimulateOptions, "no_gravity")
+    opt(s, CollisionParams, "enabled")
+    opt(s, GuardParams, "enabled")
+    opt(s, SimulateOptions, "allow_unstable")
+    rig_input(s, "preroll")
+    opt(s, C, "json")
+    opt(s, C, "quiet")
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("layers", help="build the multi-layer model and write it to USD for inspection")
-    s.add_argument("target", metavar="RIG|SCENE")
-    s.add_argument("-o", "--output", required=True, help="output .usdc/.usda/.usd")
-    s.add_argument("--mesh", help="skinned mesh to use when the file has several")
-    s.add_argument("--unit-scale", type=_positive("--unit-scale"), help="multiply lengths by this (e.g. 0.01 for centimetres)")
-    s.add_argument("--weights", choices=["file", "bone_heat"], help="skin weights: the file's (default) or bone heat")
-    s.add_argument("--projection", type=_parse_projection, metavar="FAT,MUSCLE,BONE",
-                   help="layer projection parameters, upper bounds (scene: [layers] fat, muscle, bone; default 0.15,0.45,0.8)")
-    s.add_argument("--json", action="store_true", help="print the model summary as JSON")
+    opt(s, C, "target")
+    opt(s, C, "output", required=True)
+    rig_input(s, "mesh", "unit_scale", "weights")
+    opt(s, C, "projection")
+    opt(s, LayersOptions, "json")
     s.set_defaults(func=cmd_layers)
 
     s = sub.add_parser("bench", help="time skinning per frame (or the model build with --build); JSON out")
-    s.add_argument("scenes", nargs="*", metavar="SCENE", help="scenes or rig files (default: arm, cesium_man)")
-    s.add_argument("--device", help="cpu, cuda or cuda:N")
-    s.add_argument("--frames", dest="bench_frames", type=int, default=60, help="skinning frames per measurement")
-    s.add_argument("--steps", type=int, default=10, help="solver steps per measurement")
-    s.add_argument("--repeat", type=int, default=3, help="measurements; the best is reported")
-    s.add_argument("--json", metavar="FILE", help="also write the JSON to FILE")
-    s.add_argument("--build", action="store_true",
-                   help="time the model build (layers ... sub-volumes) instead; default scenes: arm, cesium_man, arm35k")
-    s.add_argument("--batch", type=int, metavar="N",
-                   help="instead: N instances of each scene (default: arm) in one batched model against N separate "
-                        "models, character-steps per second")
+    opt(s, BenchOptions, "scenes", nargs="*")
+    opt(s, C, "device")
+    for name in ("frames", "steps", "repeat", "json", "build", "batch"):
+        opt(s, BenchOptions, name)
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("pop", help="popping dance (Son & Han 2007): example-based skinning plus skin vibration to USD")
-    s.add_argument("target", metavar="SCENE", nargs="?",
-                   help="a closed rig file (.glb, .gltf, .usd*: muscles found from its skeleton, layered mode), a "
-                        "scene with popping examples (popping_arm) or a .toml scene")
-    s.add_argument("--clip", help="the rig file's animation to play underneath (default: its first)")
-    s.add_argument("--no-vibrate", action="store_true",
-                   help="layered mode: the muscles follow the activation as it is, without the paper's ringing "
-                        "while clenched")
-    s.add_argument("--no-normal-guide", action="store_true",
-                   help="layered mode: do not also simulate the frames without the pop for the <skin>_normal guide "
-                        "(half the cost)")
-    s.add_argument("--report", metavar="DIR",
-                   help="write each muscle group's bulge against its activation over time (popping.json, popping.png; "
-                        "in layered mode beside the simulation's report)")
-    s.add_argument("--cage", type=_cage_arg, default="auto", metavar="auto|always|none|FILE",
-                   help="muscles found from the skeleton: simulate (and pop) an automatic closed cage where the skin "
-                        "is not one closed manifold (auto), always, never, or your own cage FILE, as simulate does")
-    s.add_argument("--swell", type=_positive("--swell"),
-                   help="muscles found from the skeleton: peak swelling as a share of the fat-plus-muscle depth "
-                        "(default 0.4; 0.3 with --pop-on layers)")  # DEFAULT_SWELL, DEFAULT_SURFACE_SWELL,
-    # which a test compares: the parser imports no kernels
-    s.add_argument("--pop-on", choices=("surface", "layers"), default="surface",
-                   help="muscles found from the skeleton: swell the written meshes over the physical skin (surface, "
-                        "the default: the paper's goal-driven skin, one simulation) or the multi-layer model's rest "
-                        "shape (layers: the physical skin, or its cage, makes the pop)")
-    s.add_argument("-o", "--output", help="output .usdc (default format), .usda or .usd")
-    s.add_argument("--frames", type=_parse_frames, help="inclusive frame range FIRST:LAST")
-    s.add_argument("--fps", type=_positive("--fps"), help="output frame rate (default: the scene's)")
-    s.add_argument("--start-frame", type=int, metavar="N",
-                   help="write the first frame at time code N (default: the source's own frame numbers)")
-    s.add_argument("--device", help="cpu, cuda or cuda:N")
-    s.add_argument("--alpha-min", type=float, help="stiffness at the largest disparity, in (0, 1] (scene: [popping] alpha_min)")
-    s.add_argument("--beta", type=float, help="relaxation rate [1/s] (scene: [popping] beta)")
-    s.add_argument("--dt", type=_positive("--dt"), help="step length [s] (scene: [popping] dt)")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
-    s.add_argument("--topology", choices=["file", "welded"], default="file",
-                   help="the file's own vertices, faces, UVs and materials (default) or the welded closed surface")
-    s.add_argument("--mode", choices=["goal", "layered"],
-                   help="goal: the paper's goal-driven skin; layered: the activation drives the multi-layer model's muscle layer")
+    opt(s, PopOptions, "target", nargs="?")
+    rig_input(s, "clip")
+    for name in ("no_vibrate", "no_normal_guide", "report", "cage", "swell", "pop_on"):
+        opt(s, PopOptions, name)
+    opt(s, C, "output")
+    rig_input(s, "frames", "fps")
+    opt(s, C, "start_frame")
+    opt(s, C, "device")
+    for name in ("alpha_min", "beta", "dt"):
+        opt(s, PoppingSettings, name)
+    opt(s, C, "quiet")
+    opt(s, C, "topology")
+    opt(s, PoppingSettings, "mode")
     beat = s.add_argument_group("pops on the beat (in place of the scene's [popping.activation])")
-    beat.add_argument("--bpm", type=_positive("--bpm"), help="pop on every beat at this tempo [beats per minute]")
-    beat.add_argument("--offset", type=_finite("--offset"), default=0.0,
-                      metavar="SECONDS", help="with --bpm: clip time of the first beat (default 0)")
-    beat.add_argument("--every", type=_count("--every", 1), default=1, metavar="K",
-                      help="with --bpm: pop on every K-th beat (default 1)")
-    beat.add_argument("--beats", metavar="FILE",
-                      help="pop at the times in FILE: one time in seconds a line, or time,group[,activation] (CSV)")
-    beat.add_argument("--hold", type=_positive("--hold"), metavar="SECONDS",
-                      help="how long each pop stays clenched (default: half the time to the group's next pop, at most 0.25 s)")
-    beat.add_argument("--groups", metavar="A,B,...",
-                      help="the muscle groups that pop, in this order (default: every group); on a rig file also "
-                           "NAME=JOINT_PATTERN (glob) to make one, e.g. biceps_l=*arm*L*")
-    beat.add_argument("--in-turn", action="store_true",
-                      help="give each beat to the next group in --groups order instead of popping them together")
-    s.add_argument("--bench", action="store_true",
-                   help="instead: time example-based skinning and the popping step per frame at 4322 vertices vs LBS (JSON)")
-    s.add_argument("--steps", type=int, default=200, help="with --bench: frames per measurement")
-    s.add_argument("--repeat", type=int, default=3, help="with --bench: measurements; the best is reported")
-    s.add_argument("--json", nargs="?", const="-", metavar="FILE",
-                   help="print the run's summary as JSON (with --bench: also write the JSON to FILE)")
+    for name in ("bpm", "offset", "every", "beats", "hold", "groups", "in_turn"):
+        opt(beat, PopOptions, name)
+    for name in ("bench", "steps", "repeat"):
+        opt(s, PopOptions, name)
+    opt(s, PopOptions, "json", nargs="?", const="-")
     s.set_defaults(func=cmd_pop)
 
     s = sub.add_parser("render", help="pictures of a bake in Blender: the physical result beside LBS, at its worst frame")
-    s.add_argument("bake", metavar="BAKE", help="a USD file written with --lbs")
-    s.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the PNG pictures")
-    s.add_argument("--frames", type=_frame_list, help="comma-separated time codes to render (default: the worst "
-                                                      "frame and --extra others)")
-    s.add_argument("--extra", type=_count("--extra", 0), default=2, help="frames besides the worst one (default 2)")
-    s.add_argument("--no-close-up", action="store_true", help="leave out the close-up of the worst mesh")
-    s.add_argument("--resolution", type=_resolution, default=(800, 900), metavar="WxH",
-                   help="size of each panel in pixels (default 800x900)")
-    s.add_argument("--python", metavar="EXE", help="a Python with Blender's bpy (default: $WARPSKIN_BPY_PYTHON or "
-                                                   ".venv-bpy/bin/python)")
-    s.add_argument("--quiet", action="store_true", help="do not list the pictures written")
+    opt(s, RenderOptions, "bake")
+    opt(s, RenderOptions, "output", required=True)
+    for name in ("frames", "extra", "no_close_up", "resolution", "python", "quiet"):
+        opt(s, RenderOptions, name)
     s.set_defaults(func=cmd_render)
 
     from .batch import add_parser as add_batch, cmd_batch
@@ -816,7 +622,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.choices["batch"].set_defaults(func=cmd_batch)
 
     s = sub.add_parser("warmup", help="compile and cache the Warp kernels")
-    s.add_argument("--device", help="cpu, cuda or cuda:N")
+    opt(s, C, "device")
     s.set_defaults(func=cmd_warmup)
     return p
 

@@ -62,7 +62,10 @@ class CollisionParams:
       vertices pinned.
     """
 
-    enabled: bool = setting(True, "bool", "detect and resolve skin self-collisions")
+    _section = "collision"
+
+    enabled: bool = setting(True, "bool", "detect and resolve skin self-collisions", cli="--no-collisions",
+                            cli_help="switch skin self-collision off")
     thickness: float | None = setting(None, "number", "contact thickness; automatic: 0.15 x the mean skin edge",
                                       unit="m", low=0.0, open_low=True, optional=True, must="a positive length [m]")
     friction: float = setting(0.3, "number", "Coulomb friction coefficient of the contacts", low=0.0, must=">= 0")

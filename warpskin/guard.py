@@ -75,7 +75,13 @@ class GuardParams:
       (just under the 0.5 % the quality checks ask: a pop's swelling strains edges on purpose).
     """
 
-    enabled: bool = setting(True, "bool", "guard the written meshes (off: written as the physics gives them)")
+    _section = "guard"
+
+    enabled: bool = setting(True, "bool", "guard the written meshes (off: written as the physics gives them)",
+                            cli="--no-guard",
+                            cli_help="write the meshes as the physics gives them, without the surface guard that takes "
+                                     "back, smoothly, what would leave a mesh worse than its LBS (strained edges, "
+                                     "flipped triangles, intersecting pairs)")
     strain: float = setting(1.45, "number", "edge strain (ratio to rest, either way) from which an edge is flagged",
                             low=1.0, open_low=True, high=STRAIN_LIMIT, must=f"in (1, {STRAIN_LIMIT:g}]")
     flip_degrees: float = setting(80.0, "number", "a triangle is flagged when its normal turns by more than this "

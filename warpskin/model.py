@@ -27,6 +27,7 @@ from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, c
 from .preprocess.masses import particle_masses
 from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
+from .settings import check_settings, setting
 from .rig import Rig
 
 __all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts", "model_host_arrays"]
@@ -61,37 +62,44 @@ class ModelParams:
         max_edge: Longest simulated edge [m]; ``None`` for the default (coarse skins only).
     """
 
+    _section = "layers"
+
     layers: LayerParams = field(default_factory=LayerParams)
-    stiffness: tuple[float, float, float, float] = (0.8, 0.6, 0.7, 0.8)
+    stiffness: tuple[float, float, float, float] = setting(
+        (0.8, 0.6, 0.7, 0.8), "numbers", "shape-matching stiffness per layer: skin, fat, muscle, bone", length=4,
+        low=0.0, high=1.0, must="four numbers in [0, 1] (skin, fat, muscle, bone)")
     stiffness_per_bone: dict[str, tuple[float, float, float, float]] = field(default_factory=dict)
-    density: float = 1000.0
-    omega: int = 1
-    coupling_stiffness: float = 1.0
+    density: float = setting(1000.0, "number", "tissue density", unit="kg/m^3", low=0.0, open_low=True,
+                             must="a positive number")
+    omega: int = setting(1, "integer", "region size: the omega-ring of a particle", low=1)
+    coupling_stiffness: float = setting(1.0, "number", "stiffness of the bone layer's coupling to LBS", low=0.0,
+                                        high=1.0, must="in [0, 1]")
     joints: JointParams = field(default_factory=JointParams)
     subvolumes: object | None = None
-    volume: bool = True
+    volume: bool = setting(True, "bool", "per-joint sub-volume volume constraints (false: none)", section="subvolumes",
+                           key="enabled")
     collision: CollisionParams = field(default_factory=CollisionParams)
-    refine: bool = True
-    max_edge: float | None = None
+    refine: bool = setting(True, "bool", "simulate a coarse skin on a refined copy (the file's vertices are what is "
+                           "written)")
+    max_edge: float | None = setting(None, "number", "refine any skin to edges of at most this (default: coarse "
+                                     "skins only, to about 1000 vertices over its area)", unit="m", low=0.0,
+                                     open_low=True, optional=True, must="a positive length [m]")
 
     def check(self, where: str = "model") -> None:
+        """Every setting in its declared range, the projection parameters ordered, the per-bone
+        stiffness four numbers in [0, 1] each.
+
+        Raises:
+            SceneError: one line naming the setting, the value and what is allowed.
+        """
         self.layers.check(where)
         for name, s in [("default", self.stiffness)] + list(self.stiffness_per_bone.items()):
             s = tuple(s)
             if len(s) != 4 or not all(0.0 <= float(x) <= 1.0 for x in s):
                 raise SceneError(f"{where}: stiffness of {name!r} must be four numbers in [0, 1] (skin, fat, muscle, bone), got {s}")
-        if not (np.isfinite(self.density) and self.density > 0):
-            raise SceneError(f"{where}: density must be a positive number [kg/m^3], got {self.density}")
-        if int(self.omega) != self.omega or self.omega < 1:
-            raise SceneError(f"{where}: omega must be an integer >= 1, got {self.omega}")
-        if not (0.0 <= self.coupling_stiffness <= 1.0):
-            raise SceneError(f"{where}: coupling stiffness must be in [0, 1], got {self.coupling_stiffness}")
+        check_settings(self, where, "layers")
+        check_settings(self, where, "subvolumes")
         self.collision.check(where)
-        if not isinstance(self.refine, bool):
-            raise SceneError(f"{where}: refine must be true or false, got {self.refine!r}")
-        if self.max_edge is not None and (isinstance(self.max_edge, bool) or not isinstance(self.max_edge, (int, float))
-                                          or not (np.isfinite(self.max_edge) and self.max_edge > 0)):
-            raise SceneError(f"{where}: max_edge must be a positive length [m], got {self.max_edge!r}")
 
 
 #: A skin is coarse (refined by default) when its mean edge is longer than this share of

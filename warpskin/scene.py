@@ -36,6 +36,7 @@ from pathlib import Path
 
 from .errors import SceneError
 from .rig import Rig, RigError
+from .settings import setting
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -43,7 +44,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 __all__ = ["Scene", "SceneError", "load_scene", "resolve_scene", "is_rig_file", "list_scenes", "find_assets_dir",
-           "GENERATORS"]
+           "GENERATORS", "SceneInfo", "RigSpec", "AnimationSpec", "PhysicsSettings", "scene_sections"]
 
 
 #: Output frame rate where neither the scene nor the clip gives one [frames/s].
@@ -62,28 +63,122 @@ GENERATORS = {
     "mannequin": "warpskin.scenes.mannequin:make_mannequin",
 }
 
-_SCHEMA: dict[str, set[str]] = {
-    "scene": {"name", "description"},
-    "rig": {"generator", "file", "asset", "mesh", "unit_scale", "params", "weights", "parents"},
-    "animation": {"clip", "fps", "frames", "preroll", "keys", "interpolation"},
-    # the multi-layer model (Deul & Bender 2013, Table 1 columns and the preprocessing)
-    "layers": {"fat", "muscle", "bone", "adaptive", "stiffness", "density", "omega", "coupling_stiffness", "per_bone",
-               "refine", "max_edge"},
-    "joints": {"radius_factor", "layers", "joints"},
-    "subvolumes": {"enabled", "planes"},
-    # Algorithm 1 settings
-    "solver": {"iterations", "volume_iterations", "rotation_iterations", "dt", "gravity", "damping",
-               "fast_summation", "volume_along_normals", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
-               "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"},
-    # skin self-collision (section 4.5): its keys are CollisionParams' declared settings
-    "collision": None,
-    # what is written: the physics weight (0 LBS, 1 physical) by joint-name pattern
-    "physics": {"weights"},
-    # what is written: the surface guard (warpskin.guard): GuardParams' declared settings
-    "guard": None,
-    # popping dance (Son & Han 2007), read by warpskin.popping.popping_settings
-    "popping": {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation", "examples"},
-}
+def _frames_arg(text: str) -> tuple[int, int]:
+    """``--frames FIRST:LAST`` (inclusive integers, ``0 <= FIRST <= LAST``)."""
+    import argparse
+
+    try:
+        a, b = text.split(":")
+        first, last = int(a), int(b)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--frames must be FIRST:LAST (inclusive integers), got {text!r}") from None
+    if first < 0 or last < first:
+        raise argparse.ArgumentTypeError(f"--frames {text}: need 0 <= FIRST <= LAST")
+    return first, last
+
+
+@dataclass
+class SceneInfo:
+    """A scene's ``[scene]`` section (declared settings, :mod:`warpskin.settings`)."""
+
+    _section = "scene"
+
+    name: str | None = setting(None, "string", "the scene's name (default: the file's stem)", optional=True)
+    description: str = setting("", "string", "free text, listed by warpskin scenes")
+
+
+@dataclass
+class RigSpec:
+    """A scene's ``[rig]`` section: which rig, and how it is read."""
+
+    _section = "rig"
+
+    generator: str | None = setting(None, "string", "a procedural rig: " + ", ".join(sorted(GENERATORS)),
+                                    optional=True)
+    file: str | None = setting(None, "string", "a rig file (.glb, .gltf, .usd, .usda, .usdc, .usdz), relative to "
+                               "the scene file", optional=True)
+    asset: str | None = setting(None, "string", "a rig file in the shared assets folder ($WARPSKIN_ASSETS)",
+                                optional=True)
+    mesh: str | None = setting(None, "string", "the skinned mesh to use when the file has several (default: the "
+                               "largest)", optional=True, cli="--mesh")
+    unit_scale: float | None = setting(None, "number", "multiply lengths by this (0.01 for a file in centimetres)",
+                                       low=0.0, open_low=True, optional=True, must="a positive number",
+                                       cli="--unit-scale")
+    params: dict = setting({}, "table", "a generator's parameters (see its module, warpskin.scenes.GENERATOR)")
+    weights: str = setting("file", "string", "skin weights: the file's or bone heat (Baran & Popovic 2007)",
+                           choices=("file", "bone_heat"), cli="--weights")
+    parents: dict = setting({}, "table", "joint = \"parent joint\" (\"\" for a root): a hierarchy for a file whose "
+                            "joints are all roots")
+
+
+@dataclass
+class AnimationSpec:
+    """A scene's ``[animation]`` section: what to play of the rig, and at which rate."""
+
+    _section = "animation"
+
+    clip: str | None = setting(None, "string", "clip name (default: the first)", optional=True, cli="--clip")
+    fps: float | None = setting(None, "number", "output frame rate, resampling the clip (default: the source's: a "
+                                "USD stage's timeCodesPerSecond, a glTF clip's key spacing, else 30)", unit="frames/s",
+                                low=0.0, open_low=True, optional=True, must="a positive number", cli="--fps")
+    frames: list | None = setting(None, "integers", "inclusive frame range, the source's time codes (frame f is at f "
+                                  "/ fps s; default: the whole clip)", length=2, optional=True,
+                                  valid=lambda v: 0 <= v[0] <= v[1],
+                                  must="[first, last] integers with 0 <= first <= last", cli="--frames",
+                                  metavar="FIRST:LAST", parse=_frames_arg)
+    preroll: float | None = setting(None, "number", "simulated from the bind pose into the first frame's pose before "
+                                    "writing (default: 0.5 for a rig file, 0 for a generator)", unit="s", low=0.0,
+                                    optional=True, must="a number of seconds >= 0", cli="--preroll", metavar="SECONDS")
+    keys: dict = setting({}, "table", "keys authored here for a rig without clips (clip \"scene\"): "
+                         "[animation.keys.JOINT] rotation = [[t, x, y, z], ...] (s, degrees about the joint's axes)")
+    interpolation: str = setting("LINEAR", "string", "interpolation of [animation.keys]", choices=("LINEAR", "STEP"))
+
+
+@dataclass
+class PhysicsSettings:
+    """A scene's ``[physics]`` section: what is written, per joint."""
+
+    _section = "physics"
+
+    weights: dict = setting({}, "table", "joint-name pattern (shell-style, case-insensitive) = physics weight of the "
+                            "skin its joints drive, in [0, 1] (0: LBS, 1: physical)")
+
+
+def scene_sections() -> dict[str, list]:
+    """``{section: [Setting, ...]}``: every section a scene file may hold and its declared keys
+    (:mod:`warpskin.settings`), in the order of the docs' reference."""
+    from .collision import CollisionParams
+    from .guard import GuardParams
+    from .model import ModelParams
+    from .popping.activation import PoppingSettings
+    from .preprocess.joint_constraints import JointParams
+    from .preprocess.layers import LayerParams
+    from .preprocess.sub_volumes import SubVolumeParams
+    from .settings import settings_of
+    from .solver import SolverParams
+
+    return {
+        "scene": settings_of(SceneInfo),
+        "rig": settings_of(RigSpec),
+        "animation": settings_of(AnimationSpec),
+        "layers": settings_of(LayerParams) + settings_of(ModelParams, "layers"),
+        "joints": settings_of(JointParams),
+        "subvolumes": settings_of(ModelParams, "subvolumes") + settings_of(SubVolumeParams),
+        "solver": settings_of(SolverParams),
+        "collision": settings_of(CollisionParams),
+        "physics": settings_of(PhysicsSettings),
+        "guard": settings_of(GuardParams),
+        "popping": settings_of(PoppingSettings),
+    }
+
+
+def _read(scene_or_extra, section: str, where: str) -> dict:
+    """A section's table read against its declared keys (:func:`~warpskin.settings.read_section`):
+    ``{field name: value}`` of the keys given."""
+    from .settings import read_section
+
+    table = scene_or_extra.get(section, {})
+    return read_section(scene_sections()[section], table, where, section)
 
 
 def find_assets_dir() -> Path | None:
@@ -197,20 +292,10 @@ class Scene:
         """The :class:`~warpskin.solver.SolverParams` of the ``[solver]`` section."""
         from .solver import SolverParams
 
-        table = dict(self.extra.get("solver", {}))
         where = _where(self.source)
-        for key in ("iterations", "volume_iterations", "rotation_iterations"):
-            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], int)):
-                raise SceneError(f"{where}: [solver] {key} must be an integer, got {table[key]!r}")
-        for key in ("dt", "damping", "volume_stiffness", "tether", "tether_floor", "tether_max", "max_offset",
-                    "max_volume_error", "max_speed", "max_strained", "max_flipped", "max_capped"):
-            if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
-                raise SceneError(f"{where}: [solver] {key} must be a number, got {table[key]!r}")
-        for key in ("fast_summation", "volume_along_normals"):
-            if key in table and not isinstance(table[key], bool):
-                raise SceneError(f"{where}: [solver] {key} must be true or false")
+        table = _read(self.extra, "solver", where)
         if "gravity" in table:
-            table["gravity"] = _numbers(where, "[solver] gravity", table["gravity"], 3)
+            table["gravity"] = tuple(float(g) for g in table["gravity"])
         params = SolverParams(**table)
         params.check(where)
         return params
@@ -219,26 +304,29 @@ class Scene:
         """The :class:`~warpskin.collision.CollisionParams` of the ``[collision]`` section
         (self-collision is on by default)."""
         from .collision import CollisionParams
-        from .settings import from_section
 
-        return from_section(CollisionParams, dict(self.extra.get("collision", {})), _where(self.source), "collision")
+        params = CollisionParams(**_read(self.extra, "collision", _where(self.source)))
+        params.check(_where(self.source))
+        return params
 
     def guard_params(self):
         """The :class:`~warpskin.guard.GuardParams` of the ``[guard]`` section (the surface guard
         of the written meshes; on by default)."""
         from .guard import GuardParams
-        from .settings import from_section
 
-        return from_section(GuardParams, dict(self.extra.get("guard", {})), _where(self.source), "guard")
+        params = GuardParams(**_read(self.extra, "guard", _where(self.source)))
+        params.check(_where(self.source))
+        return params
 
     def physics_weights(self) -> dict[str, float]:
         """``[physics.weights]``: joint-name patterns (shell-style, case-insensitive: ``"*hand*"``)
         and the physics weight in [0, 1] of the skin their joints drive
         (:class:`~warpskin.character.Character`), in the file's order."""
-        table = self.extra.get("physics", {}).get("weights", {})
         where = _where(self.source)
-        if not isinstance(table, dict):
+        physics = self.extra.get("physics", {})
+        if isinstance(physics, dict) and "weights" in physics and not isinstance(physics["weights"], dict):
             raise SceneError(f"{where}: [physics.weights] must be a table of joint-name patterns and weights")
+        table = _read(self.extra, "physics", where).get("weights", {})
         for key, value in table.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0.0 <= value <= 1.0):
                 raise SceneError(f"{where}: [physics.weights] {key!r} must be a weight in [0, 1] (0: LBS, 1: physical), "
@@ -293,12 +381,13 @@ def _build_rig(scene: Scene) -> Rig:
         except RigError as exc:
             raise SceneError(f"{where}: [animation.keys] {exc}") from None
     weights = scene.rig_spec.get("weights", "file")
+    from .settings import check_value, setting_named
+
+    check_value(setting_named(RigSpec, "weights"), weights, f"{where}: [rig] ")
     if weights == "bone_heat":
         from .preprocess.bone_heat import with_bone_heat_weights
 
         rig = with_bone_heat_weights(rig)
-    elif weights != "file":
-        raise SceneError(f"{_where(scene.source)}: [rig] weights must be 'file' or 'bone_heat', got {weights!r}")
     return rig
 
 
@@ -344,25 +433,6 @@ def _load_rig_of(scene: Scene) -> Rig:
     return load_rig(path, mesh=spec.get("mesh"), unit_scale=unit_scale)
 
 
-def _section_keys(section: str) -> set[str]:
-    """The keys a scene's ``[section]`` may hold: the declared settings of its parameter class
-    (:mod:`warpskin.settings`) where it has one, else the schema's list."""
-    declared = _declared_sections()
-    if section in declared:
-        from .settings import settings_of
-
-        return {s.name for s in settings_of(declared[section])}
-    return _SCHEMA[section]
-
-
-def _declared_sections() -> dict:
-    """``{section: parameter class}`` of the scene sections made from declared settings."""
-    from .collision import CollisionParams
-    from .guard import GuardParams
-
-    return {"collision": CollisionParams, "guard": GuardParams}
-
-
 def _scenes_dir():
     return resources.files("warpskin.scenes")
 
@@ -379,12 +449,6 @@ def list_scenes() -> list[dict]:
                 {"name": entry.name[:-5], "description": data.get("scene", {}).get("description", ""), "rig": kind}
             )
     return out
-
-
-def _positive(where: str, key: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise SceneError(f"{where}: {key} must be a positive number, got {value!r}")
-    return float(value)
 
 
 def is_rig_file(target: str | Path) -> bool:
@@ -437,37 +501,29 @@ def load_scene(name_or_path: str | Path) -> Scene:
 
     extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver", "collision", "physics", "guard", "popping")
              if k in data}
+    sections = scene_sections()
     for section, table in data.items():
-        if section not in _SCHEMA:
-            raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(_SCHEMA)}")
+        if section not in sections:
+            raise SceneError(f"{where}: unknown section [{section}]; known: {sorted(sections)}")
         if not isinstance(table, dict):
             raise SceneError(f"{where}: {section} must be a table")
-        keys = _section_keys(section)
+        keys = {s.scene_key for s in sections[section]}
         unknown = sorted(set(table) - keys)
         if unknown:
             raise SceneError(f"{where}: unknown key(s) {unknown} in [{section}]; known: {sorted(keys)}")
-    meta = data.get("scene", {})
-    anim = data.get("animation", {})
+    # the sections read here; the others are read, with their values checked, by their readers
+    # (Scene.model_params, solver_params, ...)
+    meta = _read(data, "scene", where)
+    _read(data, "rig", where)
+    anim = _read(data, "animation", where)
     if "rig" not in data:
         raise SceneError(f"{where}: missing [rig] section")
-    fps = _positive(where, "[animation] fps", anim["fps"]) if "fps" in anim else None
-    frames = anim.get("frames")
-    if frames is not None:
-        if (
-            not isinstance(frames, list)
-            or len(frames) != 2
-            or not all(isinstance(f, int) and not isinstance(f, bool) for f in frames)
-            or frames[0] < 0
-            or frames[1] < frames[0]
-        ):
-            raise SceneError(f"{where}: [animation] frames must be [first, last] integers with 0 <= first <= last, got {frames!r}")
-        frames = (frames[0], frames[1])
+    fps = float(anim["fps"]) if anim.get("fps") is not None else None
+    frames = tuple(anim["frames"]) if anim.get("frames") is not None else None
     clip = anim.get("clip")
-    if clip is not None and not isinstance(clip, str):
-        raise SceneError(f"{where}: [animation] clip must be a string")
     keys = anim.get("keys")
     if keys is not None:
-        if not isinstance(keys, dict) or not all(isinstance(v, dict) and set(v) == {"rotation"} for v in keys.values()):
+        if not all(isinstance(v, dict) and set(v) == {"rotation"} for v in keys.values()):
             raise SceneError(f"{where}: [animation.keys.JOINT] takes rotation = [[t, x_deg, y_deg, z_deg], ...]")
         extra["keys"] = {j: v["rotation"] for j, v in keys.items()}
         extra["interpolation"] = anim.get("interpolation", "LINEAR")
@@ -475,11 +531,11 @@ def load_scene(name_or_path: str | Path) -> Scene:
     elif "interpolation" in anim:
         raise SceneError(f"{where}: [animation] interpolation applies to [animation.keys] only")
     is_file_rig = "file" in data["rig"] or "asset" in data["rig"]
-    preroll = anim.get("preroll", FILE_RIG_PREROLL if is_file_rig else 0.0)
-    if isinstance(preroll, bool) or not isinstance(preroll, (int, float)) or not math.isfinite(preroll) or preroll < 0:
-        raise SceneError(f"{where}: [animation] preroll must be a number of seconds >= 0, got {preroll!r}")
+    preroll = anim.get("preroll")
+    if preroll is None:
+        preroll = FILE_RIG_PREROLL if is_file_rig else 0.0
     return Scene(
-        name=str(meta.get("name", name)),
+        name=str(meta.get("name") or name),
         source=text_path,
         rig_spec=dict(data["rig"]),
         clip=clip,
@@ -502,44 +558,32 @@ def _numbers(where: str, key: str, value, count: int) -> tuple[float, ...]:
 
 
 def _model_params(extra: dict, where: str):
+    """The :class:`~warpskin.model.ModelParams` of ``[layers]``, ``[joints]`` and ``[subvolumes]``
+    (each key's kind and range from its declaration; the per-bone and per-plane tables here)."""
     from .preprocess.joint_constraints import JointParams
     from .preprocess.layers import LayerParams
     from .model import ModelParams
+    from .settings import settings_of
 
-    lay = extra.get("layers", {})
-    defaults = LayerParams()
+    lay = _read(extra, "layers", where)
     per_bone_proj, per_bone_stiff = {}, {}
-    for bone, table in lay.get("per_bone", {}).items():
+    for bone, table in lay.pop("per_bone", {}).items():
         if not isinstance(table, dict) or set(table) - {"projection", "stiffness"}:
             raise SceneError(f"{where}: [layers.per_bone.{bone}] takes 'projection' and/or 'stiffness'")
         if "projection" in table:
             per_bone_proj[bone] = _numbers(where, f"[layers.per_bone.{bone}] projection", table["projection"], 3)
         if "stiffness" in table:
             per_bone_stiff[bone] = _numbers(where, f"[layers.per_bone.{bone}] stiffness", table["stiffness"], 4)
-    for key in ("fat", "muscle", "bone", "density", "coupling_stiffness"):
-        if key in lay and (isinstance(lay[key], bool) or not isinstance(lay[key], (int, float))):
-            raise SceneError(f"{where}: [layers] {key} must be a number, got {lay[key]!r}")
-    omega = lay.get("omega", 1)
-    if isinstance(omega, bool) or not isinstance(omega, int):
-        raise SceneError(f"{where}: [layers] omega must be an integer, got {omega!r}")
-    adaptive = lay.get("adaptive", defaults.adaptive)
-    if not isinstance(adaptive, bool):
-        raise SceneError(f"{where}: [layers] adaptive must be true or false, got {adaptive!r}")
-    layer_params = LayerParams(
-        fat=float(lay.get("fat", defaults.fat)),
-        muscle=float(lay.get("muscle", defaults.muscle)),
-        bone=float(lay.get("bone", defaults.bone)),
-        per_bone=per_bone_proj,
-        adaptive=adaptive,
-    )
-    jt = extra.get("joints", {})
-    jp = JointParams()
-    joint_params = JointParams(
-        radius_factor=float(jt.get("radius_factor", jp.radius_factor)),
-        layers=tuple(jt.get("layers", jp.layers)),
-        joints=list(jt["joints"]) if "joints" in jt else None,
-    )
-    sv = extra.get("subvolumes", {})
+    layer_keys = {s.name for s in settings_of(LayerParams)}
+    layer_params = LayerParams(per_bone=per_bone_proj, **{k: v for k, v in lay.items() if k in layer_keys})
+    model = {k: v for k, v in lay.items() if k not in layer_keys}
+    if "stiffness" in model:
+        model["stiffness"] = tuple(float(x) for x in model["stiffness"])
+    jt = _read(extra, "joints", where)
+    if "layers" in jt:
+        jt["layers"] = tuple(jt["layers"])
+    joint_params = JointParams(**jt)
+    sv = _read(extra, "subvolumes", where)
     sub_params = None
     if "planes" in sv:
         from .preprocess.sub_volumes import SubVolumeParams
@@ -553,27 +597,13 @@ def _model_params(extra: dict, where: str):
             else:
                 raise SceneError(f"{where}: [subvolumes] planes.{joint} must be a number in [0, 1] or false, got {value!r}")
         sub_params = SubVolumeParams(planes=planes)
-    refine = lay.get("refine", True)
-    if not isinstance(refine, bool):
-        raise SceneError(f"{where}: [layers] refine must be true or false, got {refine!r}")
-    max_edge = lay.get("max_edge")
-    if max_edge is not None and (isinstance(max_edge, bool) or not isinstance(max_edge, (int, float))):
-        raise SceneError(f"{where}: [layers] max_edge must be a length [m], got {max_edge!r}")
-    enabled = sv.get("enabled", True)
-    if not isinstance(enabled, bool):
-        raise SceneError(f"{where}: [subvolumes] enabled must be true or false")
     params = ModelParams(
         layers=layer_params,
-        stiffness=_numbers(where, "[layers] stiffness", lay["stiffness"], 4) if "stiffness" in lay else ModelParams().stiffness,
         stiffness_per_bone=per_bone_stiff,
-        density=float(lay.get("density", 1000.0)),
-        omega=omega,
-        coupling_stiffness=float(lay.get("coupling_stiffness", 1.0)),
         joints=joint_params,
         subvolumes=sub_params,
-        volume=enabled,
-        refine=refine,
-        max_edge=None if max_edge is None else float(max_edge),
+        **{k: v for k, v in sv.items() if k != "planes"},
+        **model,
     )
     params.check(where)
     return params

@@ -18,6 +18,7 @@ import numpy as np
 import warp as wp
 
 from .errors import InputError, SceneError, SimulationError
+from .settings import check_settings, setting
 from .kernels import constraints as k_con
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
@@ -79,47 +80,49 @@ class SolverParams:
             skin is held at the tether's cap (``tether_max``): the cap would hide an explosion.
     """
 
-    iterations: int = 20
-    volume_iterations: int = 4
-    rotation_iterations: int = 1
-    dt: float = 0.005
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-    damping: float = 2.0
-    fast_summation: bool = False
-    volume_along_normals: bool = False
-    volume_stiffness: float = 1.0
-    tether: float = 1.5
-    tether_floor: float = 0.01
-    tether_max: float = 0.05
-    max_offset: float = 0.1
-    max_volume_error: float = 0.1
-    max_speed: float = 2.0
-    max_strained: float = 0.05
-    max_flipped: float = 0.05
-    max_capped: float = 0.1
+    _section = "solver"
+
+    iterations: int = setting(20, "integer", "elasticity iterations per step", low=1, cli="--iterations")
+    volume_iterations: int = setting(4, "integer", "volume iterations per step", low=0, cli="--volume-iterations")
+    rotation_iterations: int = setting(1, "integer", "warm-started rotation-extraction iterations per region fit",
+                                       low=1)
+    dt: float = setting(0.005, "number", "largest substep", unit="s", low=0.0, open_low=True, must="a positive number",
+                        cli="--dt")
+    gravity: tuple[float, float, float] = setting((0.0, -9.81, 0.0), "numbers", "external acceleration", unit="m/s^2",
+                                                  length=3, must="three finite numbers")
+    damping: float = setting(2.0, "number", "velocity damping rate", unit="1/s", low=0.0, must="a rate >= 0",
+                             cli="--damping")
+    fast_summation: bool = setting(False, "bool", "region sums by prefix scans along paths (false: direct gather)",
+                                   cli="--fast-summation")
+    volume_along_normals: bool = setting(False, "bool", "volume corrections along the surface normals, inverse "
+                                         "masses floored at the median")
+    volume_stiffness: float = setting(1.0, "number", "stiffness of the volume constraints", low=0.0, high=1.0,
+                                      must="in [0, 1]")
+    tether: float = setting(1.5, "number", "the farthest a particle may be from its LBS target, x its tissue depth "
+                            "(0: off)", low=0.0)
+    tether_floor: float = setting(0.01, "number", "added to the tether radius, x the body's diagonal", low=0.0)
+    tether_max: float = setting(0.05, "number", "no tether radius is longer than this, x the body's diagonal",
+                                low=0.0)
+    max_offset: float = setting(0.1, "number", "a frame farther than this from LBS (x the diagonal) stops the run",
+                                low=0.0)
+    max_volume_error: float = setting(0.1, "number", "a frame whose volume or a sub-volume's is off by more than this "
+                                      "share stops the run", low=0.0)
+    max_speed: float = setting(2.0, "number", "skin motion relative to LBS faster than this, and growing, stops the "
+                               "run", unit="diagonals/s", low=0.0)
+    max_strained: float = setting(0.05, "number", "a written mesh with this share more strained edges than its LBS "
+                                  "stops the run", low=0.0)
+    max_flipped: float = setting(0.05, "number", "a written mesh with more than this share of its triangles turned "
+                                 "over against LBS stops the run", low=0.0)
+    max_capped: float = setting(0.1, "number", "more than this share of the skin held at the tether's cap stops the "
+                                "run", low=0.0)
 
     def check(self, where: str = "solver") -> None:
-        def integer(name, lo):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < lo:
-                raise SceneError(f"{where}: {name} must be an integer >= {lo}, got {v!r}")
+        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
 
-        integer("iterations", 1)
-        integer("volume_iterations", 0)
-        integer("rotation_iterations", 1)
-        if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
-            raise SceneError(f"{where}: dt must be a positive number of seconds, got {self.dt!r}")
-        if len(self.gravity) != 3 or not all(math.isfinite(float(g)) for g in self.gravity):
-            raise SceneError(f"{where}: gravity must be three finite numbers, got {self.gravity!r}")
-        if not (math.isfinite(self.damping) and self.damping >= 0):
-            raise SceneError(f"{where}: damping must be a rate >= 0 [1/s], got {self.damping!r}")
-        if not (0.0 <= self.volume_stiffness <= 1.0):
-            raise SceneError(f"{where}: volume_stiffness must be in [0, 1], got {self.volume_stiffness!r}")
-        for name in ("tether", "tether_floor", "tether_max", "max_offset", "max_volume_error", "max_speed", "max_strained",
-                     "max_flipped", "max_capped"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
-                raise SceneError(f"{where}: {name} must be a number >= 0, got {value!r}")
+        Raises:
+            SceneError: ``"<where>: [solver] <key> must be <range>, got <value>"``.
+        """
+        check_settings(self, where, "solver")
 
 
 class SkinSolver:

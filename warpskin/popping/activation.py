@@ -6,13 +6,13 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SceneError
-from .dynamics import _check_dynamics
+from ..settings import check_settings, setting
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -379,30 +379,39 @@ class PoppingSettings:
         activation: Activation per muscle group over clip time.
     """
 
-    mode: str | None = None
-    alpha_min: float = 0.1
-    beta: float = 30.0
-    threshold: float = 1e-4
-    dt: float | None = None
-    rbf_width: float | None = None
-    joints: list[str] | None = None
-    activation: ActivationTimeline = field(default_factory=ActivationTimeline)
+    _section = "popping"
 
-    def check(self, where: str = "[popping]") -> None:
-        if self.mode not in (None, "goal", "layered"):
-            raise SceneError(f"{where}: mode must be 'goal' (the paper's goal-driven skin) or 'layered' (the activation "
-                           f"drives the muscle layer of the multi-layer model), got {self.mode!r}")
-        _check_dynamics(self.alpha_min, self.beta, self.threshold, where)
-        if self.dt is not None and not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
-            raise SceneError(f"{where}: dt must be a positive step length [s], got {self.dt!r}")
+    mode: str | None = setting(None, "string", "goal: the paper's goal-driven skin; layered: the activation drives "
+                               "the multi-layer model's muscle layer (default: goal where the scene has examples, "
+                               "else layered)", choices=("goal", "layered"), optional=True, cli="--mode")
+    alpha_min: float = setting(0.1, "number", "stiffness at the largest disparity (eq. 3)", low=0.0, high=1.0,
+                               open_low=True, must="in (0, 1]", cli="--alpha-min")
+    beta: float = setting(30.0, "number", "relaxation rate (eq. 4)", unit="1/s", low=0.0, open_low=True,
+                          must="a positive relaxation rate", cli="--beta")
+    threshold: float = setting(1e-4, "number", "snap distance of relaxing vertices", unit="m", low=0.0,
+                               must="a distance >= 0")
+    dt: float | None = setting(None, "number", "step length (default: one step per frame)", unit="s", low=0.0,
+                               open_low=True, optional=True, must="a positive step length", cli="--dt")
+    rbf_width: float | None = setting(None, "number", "Gaussian width in pose space (default: automatic)", unit="rad",
+                                      low=0.0, open_low=True, optional=True, must="a positive angle")
+    joints: list[str] | None = setting(None, "strings", "the joints spanning pose space (default: those the examples "
+                                       "vary)", optional=True)
+    activation: ActivationTimeline = setting(
+        ActivationTimeline, "table", "activation per muscle group over clip time: [popping.activation.GROUP] keys = "
+        "[[t, a], ...] or beats = [t, ...] with hold (attack, release) [s]")
+    examples: dict | None = setting(None, "table", "the rig file's blend shapes as examples: clip, normal = [...], "
+                                    "clenched = {GROUP = [...]}", optional=True)
+
+    def check(self, where: str = "scene") -> None:
+        """Every setting in its declared range, and ``beta * dt <= 1``.
+
+        Raises:
+            SceneError: ``"<where>: [popping] <key> must be <range>, got <value>"``.
+        """
+        check_settings(self, where, "popping")
         if self.dt is not None and self.beta * self.dt > 1.0 + 1e-12:
-            raise SceneError(f"{where}: beta * dt = {self.beta * self.dt:.4g} must be <= 1 (no overshoot on relax); "
-                           f"lower beta or dt")
-        if self.rbf_width is not None and not (isinstance(self.rbf_width, (int, float)) and self.rbf_width > 0):
-            raise SceneError(f"{where}: rbf_width must be a positive angle [rad], got {self.rbf_width!r}")
-
-
-_SETTING_KEYS = {"mode", "alpha_min", "beta", "threshold", "dt", "rbf_width", "joints", "activation", "examples"}
+            raise SceneError(f"{where}: [popping] beta * dt = {self.beta * self.dt:.4g} must be <= 1 (no overshoot on "
+                             f"relax); lower beta or dt")
 
 
 def popping_settings(scene) -> PoppingSettings:
@@ -418,27 +427,12 @@ def popping_settings(scene) -> PoppingSettings:
             table = tomllib.loads(Path(scene.source).read_text()).get("popping")
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise SceneError(f"{where}: cannot read the [popping] section: {exc}") from None
-    table = dict(table or {})
-    unknown = sorted(set(table) - _SETTING_KEYS)
-    if unknown:
-        raise SceneError(f"{where}: unknown key(s) {unknown} in [popping]; known: {sorted(_SETTING_KEYS)}")
-    for key in ("alpha_min", "beta", "threshold", "dt", "rbf_width"):
-        if key in table and (isinstance(table[key], bool) or not isinstance(table[key], (int, float))):
-            raise SceneError(f"{where}: [popping] {key} must be a number, got {table[key]!r}")
-    if "mode" in table and not isinstance(table["mode"], str):
-        raise SceneError(f"{where}: [popping] mode must be a string")
-    joints = table.get("joints")
-    if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
-        raise SceneError(f"{where}: [popping] joints must be a list of joint names")
-    settings = PoppingSettings(
-        mode=table.get("mode"),
-        alpha_min=table.get("alpha_min", PoppingSettings.alpha_min),
-        beta=table.get("beta", PoppingSettings.beta),
-        threshold=table.get("threshold", PoppingSettings.threshold),
-        dt=table.get("dt"),
-        rbf_width=table.get("rbf_width"),
-        joints=joints,
-        activation=ActivationTimeline.from_table(table.get("activation", {}), where=f"{where}: [popping.activation]"),
-    )
-    settings.check(f"{where}: [popping]")
+    from ..scene import scene_sections
+    from ..settings import read_section
+
+    values = read_section(scene_sections()["popping"], dict(table or {}), where, "popping")
+    values["activation"] = ActivationTimeline.from_table(values.get("activation", {}),
+                                                         where=f"{where}: [popping.activation]")
+    settings = PoppingSettings(**values)
+    settings.check(where)
     return settings

@@ -3,7 +3,6 @@ disparity, the goal-driven step while clenching and the monotone relaxation afte
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
@@ -22,12 +21,13 @@ if TYPE_CHECKING:
 # Dynamics
 # --------------------------------------------------------------------------------------------
 def _check_dynamics(alpha_min: float, beta: float, threshold: float, where: str = "popping") -> None:
-    if isinstance(alpha_min, bool) or not isinstance(alpha_min, (int, float)) or not (0.0 < alpha_min <= 1.0):
-        raise SceneError(f"{where}: alpha_min must be in (0, 1] (the stiffness at the largest disparity), got {alpha_min!r}")
-    if isinstance(beta, bool) or not isinstance(beta, (int, float)) or not (math.isfinite(beta) and beta > 0.0):
-        raise SceneError(f"{where}: beta must be a positive relaxation rate [1/s], got {beta!r}")
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (math.isfinite(threshold) and threshold >= 0.0):
-        raise SceneError(f"{where}: threshold must be a distance >= 0 [m], got {threshold!r}")
+    """``alpha_min``, ``beta`` and ``threshold`` in their ranges as ``[popping]`` declares them
+    (:class:`~warpskin.popping.activation.PoppingSettings`), else a one-line SceneError."""
+    from ..settings import check_value, setting_named
+    from .activation import PoppingSettings
+
+    for name, value in (("alpha_min", alpha_min), ("beta", beta), ("threshold", threshold)):
+        check_value(setting_named(PoppingSettings, name), value, f"{where}: ")
 
 
 class PoppingDynamics:

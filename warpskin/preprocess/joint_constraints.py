@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..rig import Rig, RigError
+from ..settings import setting
 from .layers import LAYER_NAMES, Layers
 
 __all__ = ["JointParams", "JointConstraints", "build_joint_constraints"]
@@ -31,9 +32,14 @@ class JointParams:
         joints: Joint names to constrain; ``None``: every joint between two bones.
     """
 
-    radius_factor: float = 1.0
-    layers: tuple[str, ...] = ("fat", "muscle", "bone")
-    joints: list[str] | None = None
+    _section = "joints"
+
+    radius_factor: float = setting(1.0, "number", "a particle is constrained to a joint within this many times the "
+                                   "joint's radius", low=0.0, open_low=True, must="a positive number")
+    layers: tuple[str, ...] = setting(("fat", "muscle", "bone"), "strings", "the layers whose particles may be "
+                                      "constrained (of skin, fat, muscle, bone)")
+    joints: list[str] | None = setting(None, "strings", "the joints to constrain (default: every joint between two "
+                                       "bones)", optional=True)
 
 
 @dataclass

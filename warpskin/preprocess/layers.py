@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import SceneError
+from ..settings import check_settings, setting
 from ..rig import Rig, RigError
 from .bones import Bones, bone_segments, closest_point_on_segments, dominant_bone
 
@@ -39,11 +40,20 @@ class LayerParams:
             a layer folds.
     """
 
-    fat: float = 0.15
-    muscle: float = 0.45
-    bone: float = 0.8
-    adaptive: bool = True
-    per_bone: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    _section = "layers"
+
+    fat: float = setting(0.15, "number", "fat layer: position along the projection segment (0 skin, 1 bone centre "
+                         "line), an upper bound with adaptive", low=0.0, high=1.0, open_low=True, open_high=True,
+                         must="in (0, 1), below muscle")
+    muscle: float = setting(0.45, "number", "muscle layer: as fat", low=0.0, high=1.0, open_low=True, open_high=True,
+                            must="in (0, 1), between fat and bone")
+    bone: float = setting(0.8, "number", "bone layer: as fat", low=0.0, high=1.0, open_low=True, open_high=True,
+                          must="in (0, 1), above muscle")
+    adaptive: bool = setting(True, "bool", "the projection parameters are upper bounds, reduced locally where the "
+                             "full depth would fold a layer (false: as given, a fold is an error)")
+    per_bone: dict[str, tuple[float, float, float]] = setting(
+        {}, "table", "overrides by joint name: [layers.per_bone.JOINT] projection = [fat, muscle, bone], stiffness = "
+        "[skin, fat, muscle, bone]")
 
     def check(self, where: str = "layers") -> None:
         for name, p in [("default", (self.fat, self.muscle, self.bone))] + list(self.per_bone.items()):
@@ -55,6 +65,7 @@ class LayerParams:
                     f"{where}: projection parameters of {name!r} must satisfy 0 < fat < muscle < bone < 1, "
                     f"got fat={p[0]}, muscle={p[1]}, bone={p[2]}"
                 )
+        check_settings(self, where, "layers")
 
 
 @dataclass

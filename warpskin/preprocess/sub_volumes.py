@@ -98,6 +98,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ..rig import Rig, RigError
+from ..settings import setting
 from .bones import Bones, bone_segments, dominant_bone
 
 __all__ = [
@@ -125,7 +126,10 @@ class SubVolumeParams:
             puts a plane at every non-root joint (``t = 1``).
     """
 
-    planes: dict[str, float | None] = field(default_factory=dict)
+    _section = "subvolumes"
+
+    planes: dict[str, float | None] = setting({}, "table", "cutting planes by joint name: the plane's position t "
+                                              "along the parent bone (1: at the joint), or false to drop it")
     merge: bool = True
 
 

@@ -201,7 +201,7 @@ def run_popping(
             setattr(settings, key, value)
     if mode is not None:
         settings.mode = mode
-    settings.check(f"{where}: [popping]")
+    settings.check(where)
     if pop_on not in POP_ON:
         raise SceneError(f"pop_on must be one of {', '.join(POP_ON)}, got {pop_on!r}")
     mapped = "examples" in (scene.extra.get("popping") or {})
