@@ -36,11 +36,11 @@ def _cli_reference() -> str:
 
 
 def _settings_reference() -> str:
-    """The scene sections whose keys are declared settings (warpskin.settings), one table each."""
-    from warpskin.scene import _declared_sections
+    """Every scene section's declared settings (warpskin.settings), one table each."""
+    from warpskin.scene import scene_sections
     from warpskin.settings import reference_markdown
 
-    return "\n".join(reference_markdown(cls, section) for section, cls in _declared_sections().items())
+    return "\n".join(reference_markdown(settings, section) for section, settings in scene_sections().items())
 
 
 def setup(app):
