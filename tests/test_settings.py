@@ -169,8 +169,8 @@ def test_a_value_outside_its_declared_range_is_refused_naming_the_key(section, t
 @pytest.mark.parametrize("section,text,message", [
     ("collision", "restitution = 1.7", r"t.toml: \[collision\] restitution must be in \[0, 1\], got 1.7$"),
     ("guard", "strain = 1.7", r"t.toml: \[guard\] strain must be in \(1, 1.5\], got 1.7$"),
-    ("solver", "dt = 0", r"t.toml: \[solver\] dt must be a positive number, got 0$"),
-    ("layers", "density = -3", r"t.toml: \[layers\] density must be a positive number, got -3$"),
+    ("solver", "dt = 0", r"t.toml: \[solver\] dt must be a positive number \[s\], got 0$"),
+    ("layers", "density = -3", r"t.toml: \[layers\] density must be a positive number \[kg/m\^3\], got -3$"),
     ("popping", 'mode = "dance"', r"t.toml: \[popping\] mode must be 'goal' or 'layered', got 'dance'$"),
     ("animation", "frames = [5, 2]", r"t.toml: \[animation\] frames must be \[first, last\] integers with 0 <= first "
                                      r"<= last, got \[5, 2\]$"),
@@ -187,7 +187,7 @@ def test_a_value_of_the_wrong_kind_is_refused():
     with pytest.raises(SceneError, match=r"^f.toml: \[animation\] fps must be a number, got 'fast'$"):
         read_section([s], {"fps": "fast"}, "f.toml", "animation")
     b = Setting(name="enabled", kind="bool", default=True, help="", section="guard")
-    with pytest.raises(SceneError, match=r"^f.toml: \[guard\] enabled must be true or false$"):
+    with pytest.raises(SceneError, match=r"^f.toml: \[guard\] enabled must be true or false, got 1$"):
         read_section([b], {"enabled": 1}, "f.toml", "guard")
     n = Setting(name="gravity", kind="numbers", default=(0, 0, 0), help="", length=3, section="solver")
     with pytest.raises(SceneError, match=r"gravity must be a list of 3 numbers, got \[0, 1\]"):
@@ -204,6 +204,32 @@ def test_bounds_allow_inside_and_refuse_outside_by_a_margin(low, open_low, insid
     assert s.allows(inside) and not s.allows(outside)
     assert not s.allows(math.nan) and not s.allows(True) and not s.allows("1")
     assert s.range_text() == f"a number {'>' if open_low else '>='} {low:g} and <= {low + 1:g}"
+
+
+def test_numpy_values_are_numbers_and_lists():
+    # the Python API takes NumPy scalars and arrays where the declaration asks for numbers and
+    # lists; a float of integer value is not an integer; an int too large for a float is refused
+    import numpy as np
+
+    from warpskin.solver import SolverParams
+
+    SolverParams(iterations=np.int64(20), dt=np.float32(0.005), gravity=np.array([0.0, -9.81, 0.0])).check()
+    with pytest.raises(SceneError, match=r"\[solver\] dt must be a positive number \[s\], got 0.0$"):
+        SolverParams(dt=np.float32(0.0)).check()
+    with pytest.raises(SceneError, match=r"\[solver\] iterations must be an integer >= 1, got 20.0$"):
+        SolverParams(iterations=20.0).check()
+    with pytest.raises(SceneError, match=r"gravity must be three finite numbers \[m/s\^2\], got \[0.0, 1.0\]$"):
+        SolverParams(gravity=np.array([0.0, 1.0])).check()
+    big = 10 ** 400
+    assert not Setting(name="n", kind="integer", default=1, help="", low=1).allows(big)
+
+
+def test_a_list_of_choices_takes_only_them(tmp_path):
+    path = tmp_path / "t.toml"
+    path.write_text('[rig]\ngenerator = "arm"\n[joints]\nlayers = ["muscle", "marrow"]\n')
+    with pytest.raises(SceneError, match=r"\[joints\] layers must be a list of 'skin', 'fat', 'muscle', 'bone', got "
+                                         r"\['muscle', 'marrow'\]$"):
+        load_scene(path).model_params()
 
 
 def test_a_declared_field_copies_its_list_default():
@@ -265,8 +291,7 @@ def test_command_line_numbers_refuse_what_the_declaration_does_not_allow():
             continue
         bad = _outside(s)
         with pytest.raises(argparse.ArgumentTypeError, match=rf"^{a.option_strings[-1]} must be "
-                           + s.range_text().replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
-                           .replace("]", r"\]") + ", got "):
+                           + re.escape(s.range_text()) + ", got "):
             a.type(str(int(bad) if s.kind == "integer" else bad))
         good = _number_inside(s)
         assert a.type(str(good)) == pytest.approx(good)

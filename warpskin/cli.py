@@ -492,14 +492,12 @@ def build_parser() -> argparse.ArgumentParser:
     (:func:`warpskin.settings.add_option`): a scene setting's field (``SolverParams.iterations``
     is ``--iterations``) or a command's own (:mod:`warpskin.options`)."""
     from . import __version__
-    from .collision import CollisionParams
     from .guard import GuardParams
     from .options import (BenchOptions, CommonOptions, GlobalOptions, InfoOptions, LayersOptions, PopOptions,
                           RenderOptions, SimulateOptions, SkinOptions)
-    from .popping.activation import PoppingSettings
+    from .params import CollisionParams, PoppingSettings, SolverParams
     from .scene import AnimationSpec, RigSpec
     from .settings import add_option as opt
-    from .solver import SolverParams
 
     C = CommonOptions
     p = argparse.ArgumentParser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")

@@ -28,76 +28,11 @@ import numpy as np
 import warp as wp
 
 from .errors import InputError
-from .settings import check_settings, setting
+from .params import CollisionParams
 from .kernels import collision as k
 
 __all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges",
            "triangle_ownership"]
-
-
-@dataclass
-class CollisionParams:
-    """Self-collision settings (a scene's ``[collision]``). Each field's kind, default, range,
-    unit and help are declared with it (:mod:`warpskin.settings`): the checks, the scene keys and
-    the docs' reference are made from that. Notes beyond the one-line help:
-
-    * ``detection_margin``: detection runs once per step; pairs that close in during the
-      constraint loop must already be listed.
-    * ``rest_gap_margin``: side by side on a smooth surface, vertices of one patch are closer than
-      the thickness; their pairs become contacts only when they cross during a step (a fold).
-    * ``rebuild_spread``: the tree is refit every step; a refit keeps the rest pose's topology,
-      whose boxes overlap more and more as limbs swing, so it is rebuilt (in place, between
-      frames) past this deformation (vertex displacements less their mean).
-    * ``volume_weight``: Diziol et al. 2011 use 0 (colliding particles stay put); then a part
-      whose skin is all in contact (a paw that LBS passes through the other leg) cannot keep its
-      volume at all and turns inside out. A small weight keeps both that volume and a bent
-      joint's crease free of intersections; larger ones let the volume loop push contacts through.
-    * ``fail_safe_rounds``: after the elasticity loop of every step, pairs of the skin's
-      triangles as written that intersect, did not at the start of the step and do not under LBS
-      are found exactly and their vertices put back where they started (carried along by their
-      bones, held where that still intersects; :meth:`SelfCollision.fail_safe`). The constraints
-      alone miss a vertex that slides into a neighbouring triangle from behind its plane or runs
-      past the search radius in the constraint loop. A second pass after the volume loop holds
-      what that loop pushed through where the loop found it, and the loop runs again with those
-      vertices pinned.
-    """
-
-    _section = "collision"
-
-    enabled: bool = setting(True, "bool", "detect and resolve skin self-collisions", cli="--no-collisions",
-                            cli_help="switch skin self-collision off")
-    thickness: float | None = setting(None, "number", "contact thickness; automatic: 0.15 x the mean skin edge",
-                                      unit="m", low=0.0, open_low=True, optional=True, must="a positive length [m]")
-    friction: float = setting(0.3, "number", "Coulomb friction coefficient of the contacts", low=0.0, must=">= 0")
-    restitution: float = setting(0.0, "number", "restitution coefficient of the contacts", low=0.0, high=1.0,
-                                 must="in [0, 1]")
-    capacity: int = setting(4096, "integer", "initial contact candidates per kind (the buffers grow on overflow)",
-                            low=1, must="a positive integer")
-    rigid_weight: float = setting(0.999, "number", "a vertex with at least this weight on one bone moves rigidly with "
-                                  "it; two such vertices of one bone never collide", low=0.0, high=1.0, open_low=True,
-                                  must="in (0, 1]")
-    detection_margin: float = setting(3.0, "number", "candidates are searched within this many thicknesses", low=1.0,
-                                      must=">= 1 (times the thickness)")
-    rest_gap_margin: float = setting(2.0, "number", "vertices closer than this many search radii at rest are one "
-                                     "surface patch (they collide only across a fold)", low=0.0, must=">= 0")
-    fold_cos: float = setting(0.0, "number", "pairs of one patch whose normals are more than acos(fold_cos) apart "
-                              "face each other across a fold", low=-1.0, high=1.0, must="in [-1, 1]")
-    rebuild_spread: float = setting(0.1, "number", "the tree is rebuilt once the skin has deformed by more than this "
-                                    "share of its rest diagonal", low=0.0, open_low=True, must="> 0")
-    passes: int = setting(4, "integer", "Jacobi passes over the contacts per elasticity iteration", low=1,
-                          must="an integer >= 1")
-    volume_weight: float = setting(0.05, "number", "factor on a colliding particle's inverse mass in the volume loop",
-                                   low=0.0, high=1.0, must="in [0, 1]")
-    fail_safe_rounds: int = setting(4, "integer", "rounds of the fail-safe that puts back pairs the constraints let "
-                                    "through (0: off)", low=0, must="an integer >= 0")
-
-    def check(self, where: str = "model") -> None:
-        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
-
-        Raises:
-            SceneError: ``"<where>: [collision] <key> must be <range>, got <value>"``.
-        """
-        check_settings(self, where, "collision")
 
 
 def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -506,7 +441,6 @@ class SelfCollision:
 
     def friction_restitution(self, x: wp.array, v: wp.array, inv_mass: wp.array, contacts) -> None:
         dev = self.device
-        c = self.data
         m = self.model
         wp.launch(k.friction_restitution_kernel, dim=self._threads(contacts.capacity),
                   inputs=[x, v, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,

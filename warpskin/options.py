@@ -100,8 +100,10 @@ class CommonOptions:
 
     target: str = setting("", "string", "a .glb/.gltf/.usd/.usda/.usdc/.usdz file, a scene name or a .toml file",
                           cli="target", metavar="RIG|SCENE")
-    output: str | None = setting(None, "string", "output .usdc (default format), .usda or .usd", cli=("-o", "--output"))
-    device: str | None = setting(None, "string", "cpu, cuda or cuda:N (default: Warp's default)", cli="--device")
+    output: str | None = setting(None, "string", "output .usdc (default format), .usda or .usd", optional=True,
+                                 cli=("-o", "--output"))
+    device: str | None = setting(None, "string", "cpu, cuda or cuda:N (default: Warp's default)", optional=True,
+                                 cli="--device")
     start_frame: int | None = setting(None, "integer", "write the first frame at time code N (default: the source's "
                                       "own frame numbers)", optional=True, cli="--start-frame", metavar="N")
     topology: str = setting("file", "string", "the file's own vertices, faces, UVs and materials (default) or the "
@@ -152,7 +154,7 @@ class SimulateOptions:
                                           "[physics.weights])", optional=True, cli="--physics-weight",
                                           metavar="PATTERN=W", parse=weight_arg)
     report: str | None = setting(None, "string", "write report.json and PNG plots (volume, energy) to DIR",
-                                 cli="--report", metavar="DIR")
+                                 optional=True, cli="--report", metavar="DIR")
     no_gravity: bool = setting(False, "bool", "switch gravity off ([solver] gravity = [0, 0, 0])", cli="--no-gravity")
     allow_unstable: bool = setting(False, "bool", "go on (with one warning) when the skin leaves its plausible range "
                                    "instead of stopping with exit 3 ([solver] max_offset, max_volume_error)",
@@ -175,7 +177,8 @@ class BenchOptions:
     frames: int = setting(60, "integer", "skinning frames per measurement", low=1, cli="--frames")
     steps: int = setting(10, "integer", "solver steps per measurement", low=1, cli="--steps")
     repeat: int = setting(3, "integer", "measurements; the best is reported", low=1, cli="--repeat")
-    json: str | None = setting(None, "string", "also write the JSON to FILE", cli="--json", metavar="FILE")
+    json: str | None = setting(None, "string", "also write the JSON to FILE", optional=True, cli="--json",
+                               metavar="FILE")
     build: bool = setting(False, "bool", "time the model build (layers ... sub-volumes) instead; default scenes: arm, "
                           "cesium_man, arm35k", cli="--build")
     batch: int | None = setting(None, "integer", "instead: N instances of each scene (default: arm) in one batched "
@@ -196,12 +199,12 @@ class PopOptions:
                                     "the <skin>_normal guide (half the cost)", cli="--no-normal-guide")
     report: str | None = setting(None, "string", "write each muscle group's bulge against its activation over time "
                                  "(popping.json, popping.png; in layered mode beside the simulation's report)",
-                                 cli="--report", metavar="DIR")
+                                 optional=True, cli="--report", metavar="DIR")
     cage: object = setting("auto", "string", "muscles found from the skeleton: simulate (and pop) an automatic closed "
                            "cage where the skin is not one closed manifold (auto), always, never, or your own cage "
                            "FILE, as simulate does", cli="--cage", metavar=_CAGE, parse=cage_arg)
-    # the defaults stated are DEFAULT_SURFACE_SWELL and DEFAULT_SWELL, which a test compares (the
-    # parser imports no popping code)
+    # the defaults stated are warpskin.popping's DEFAULT_SURFACE_SWELL and DEFAULT_SWELL (a test
+    # compares them)
     swell: float | None = setting(None, "number", "muscles found from the skeleton: peak swelling as a share of the "
                                   "fat-plus-muscle depth (default 0.4; 0.3 with --pop-on layers)", low=0.0,
                                   open_low=True, optional=True, must="a positive number", cli="--swell")

@@ -147,15 +147,13 @@ class PhysicsSettings:
 def scene_sections() -> dict[str, list]:
     """``{section: [Setting, ...]}``: every section a scene file may hold and its declared keys
     (:mod:`warpskin.settings`), in the order of the docs' reference."""
-    from .collision import CollisionParams
     from .guard import GuardParams
     from .model import ModelParams
-    from .popping.activation import PoppingSettings
+    from .params import CollisionParams, PoppingSettings, SolverParams
     from .preprocess.joint_constraints import JointParams
     from .preprocess.layers import LayerParams
     from .preprocess.sub_volumes import SubVolumeParams
     from .settings import settings_of
-    from .solver import SolverParams
 
     return {
         "scene": settings_of(SceneInfo),

@@ -33,6 +33,7 @@ import argparse
 import copy
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Callable
 
@@ -99,11 +100,14 @@ class Setting:
         return self.key or self.name
 
     def _in_range(self, value) -> bool:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
             return False
-        if self.kind in ("integer", "integers") and not isinstance(value, int):
+        if self.kind in ("integer", "integers") and not isinstance(value, numbers.Integral):
             return False
-        if not math.isfinite(value):
+        try:
+            if not math.isfinite(value):
+                return False
+        except OverflowError:  # an int too large for a float
             return False
         if self.low is not None and (value <= self.low if self.open_low else value < self.low):
             return False
@@ -120,8 +124,9 @@ class Setting:
         elif self.kind == "string":
             ok = isinstance(value, str) and (not self.choices or value in self.choices)
         elif self.kind in ("numbers", "integers", "strings"):
-            ok = isinstance(value, (list, tuple)) and (not self.length or len(value) == self.length) and all(
-                isinstance(x, str) if self.kind == "strings" else self._in_range(x) for x in value)
+            ok = _is_list(value) and (not self.length or len(value) == self.length) and all(
+                (isinstance(x, str) and (not self.choices or x in self.choices)) if self.kind == "strings"
+                else self._in_range(x) for x in value)
         elif self.kind == "table":
             ok = isinstance(value, dict)
         else:
@@ -135,12 +140,21 @@ class Setting:
                 "numbers": f"a list of {n}numbers", "integers": f"a list of {n}integers",
                 "strings": "a list of strings", "table": "a table"}[self.kind]
 
-    def range_text(self) -> str:
-        """The range in words (``must``, else made from the kind, the bounds and the choices)."""
+    def range_text(self, unit: bool = True) -> str:
+        """The range in words (``must``, else made from the kind, the bounds and the choices),
+        with the unit where the words do not already give one (``unit=False``: without)."""
+        text = self._range_words()
+        if unit and self.unit and "[" not in text and "second" not in text:
+            text += f" [{self.unit}]"
+        return text
+
+    def _range_words(self) -> str:
         if self.must:
             return self.must
         if self.choices:
             names = [repr(c) for c in self.choices]
+            if self.kind == "strings":
+                return "a list of " + ", ".join(names)
             return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
         if self.kind not in ("number", "integer", "numbers", "integers"):
             return self.kind_text()
@@ -158,16 +172,24 @@ class Setting:
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind in ("number", "integer"):
-            return not isinstance(value, bool) and isinstance(value, (int, float))
+            return not isinstance(value, bool) and isinstance(value, numbers.Real)
         if self.kind == "string":
             return isinstance(value, str)
         if self.kind == "table":
             return isinstance(value, dict)
-        if not isinstance(value, (list, tuple)) or (self.length and len(value) != self.length):
+        if not _is_list(value) or (self.length and len(value) != self.length):
             return False
         if self.kind == "strings":
             return all(isinstance(x, str) for x in value)
-        return all(not isinstance(x, bool) and isinstance(x, (int, float)) for x in value)
+        return all(not isinstance(x, bool) and isinstance(x, numbers.Real) for x in value)
+
+
+def _is_list(value) -> bool:
+    """A list, a tuple or a one-dimensional array (anything sized and iterable but a string or
+    a mapping)."""
+    if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__len__") or not hasattr(value, "__iter__"):
+        return False
+    return getattr(value, "ndim", 1) == 1
 
 
 def setting(default, kind: str, help: str, **options) -> dataclasses.Field:
@@ -202,6 +224,8 @@ def settings_of(cls, section: str | None = None) -> list[Setting]:
             continue
         if f.default is not dataclasses.MISSING:
             default = f.default
+        elif meta["kind"] == "table":  # an empty table (its factory may build an object, lazily)
+            default = {}
         elif f.default_factory is not dataclasses.MISSING:
             default = f.default_factory()
         else:
@@ -219,16 +243,20 @@ def setting_named(cls, name: str) -> Setting:
 
 
 def _value_text(value) -> str:
-    return repr(list(value)) if isinstance(value, tuple) else repr(value)
+    """A value as the user wrote it: a list for a tuple or an array, a plain number for a
+    NumPy scalar."""
+    if isinstance(value, numbers.Real) and not isinstance(value, bool) and type(value).__module__ == "numpy":
+        value = value.item()
+    if not isinstance(value, (str, bytes, dict, list)) and _is_list(value):
+        value = [x.item() if type(x).__module__ == "numpy" else x for x in value]
+    return repr(value)
 
 
 def check_value(s: Setting, value, prefix: str) -> None:
     """``value`` of the right kind and range for ``s``, else a :class:`SceneError`
-    ``"<prefix><key> must be <kind or range>, got <value>"`` (``"... must be true or false"``)."""
+    ``"<prefix><key> must be <kind or range>, got <value>"``."""
     key = s.scene_key if s.section else s.name
     if not s.type_ok(value):
-        if s.kind == "bool":
-            raise SceneError(f"{prefix}{key} must be true or false")
         raise SceneError(f"{prefix}{key} must be {s.kind_text()}, got {_value_text(value)}")
     if not s.allows(value):
         raise SceneError(f"{prefix}{key} must be {s.range_text()}, got {_value_text(value)}")
@@ -316,6 +344,8 @@ def add_option(parser, cls, name: str, **overrides):
     if not s.cli:
         raise KeyError(f"{cls.__name__}.{name} has no command-line option")
     positional = not s.cli[0].startswith("-")
+    if s.kind in ("numbers", "integers", "strings", "table") and s.parse is None and not positional:
+        raise TypeError(f"{cls.__name__}.{name}: a {s.kind} option needs a parse function in its declaration")
     kw: dict = {"help": cli_help(s)}
     if s.kind == "bool":
         kw["action"] = "store_true"
@@ -356,6 +386,6 @@ def reference_markdown(settings: list[Setting], section: str) -> str:
             "|---|---|---|---|---|---|---|"]
     for s in settings:
         option = ", ".join(f"`{c}`" for c in s.cli) or "-"
-        allowed, text = (x.replace("|", "\\|") for x in (s.range_text(), s.help))
+        allowed, text = (x.replace("|", "\\|") for x in (s.range_text(unit=False), s.help))
         rows.append(f"| `{s.scene_key}` | {s.kind} | {_default_text(s)} | {allowed} | {s.unit or '-'} | {text} | {option} |")
     return "\n".join(rows) + "\n"

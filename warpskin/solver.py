@@ -12,13 +12,12 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from .errors import InputError, SceneError, SimulationError
-from .settings import check_settings, setting
+from .params import SolverParams
 from .kernels import constraints as k_con
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
@@ -26,103 +25,6 @@ from .kernels import skinning as k_skin
 from .model import Contacts, Control, SkinModel, State
 
 __all__ = ["SolverParams", "SkinSolver", "SimulationError"]
-
-
-@dataclass
-class SolverParams:
-    """Solver settings (Table 1 of the paper: 20 elasticity iterations for the Arm).
-
-    Attributes:
-        iterations: Elasticity-loop iterations per step (``N_elasticity``), >= 1.
-        volume_iterations: Volume-loop iterations per step (``N_volume``; the paper uses 4), >= 0.
-        rotation_iterations: Warm-started rotation-extraction iterations per region fit, >= 1.
-        dt: Largest substep [s] (the paper uses 5 ms); frames are split into equal substeps.
-        gravity: External acceleration [m/s^2] (default: 9.81 down the Y axis).
-        damping: Velocity damping rate [1/s]: ``v *= exp(-damping dt)`` per step, >= 0.
-        fast_summation: Region sums by prefix scans along paths (True) or direct gather (False).
-        volume_stiffness: Stiffness of the volume constraints in [0, 1].
-        volume_along_normals: The volume constraints move the skin along its surface normals
-            (a third of each vertex's triangles' area-weighted normals, the surface part of
-            the volume gradient), weighted by inverse masses floored at the skin's median mass,
-            in place of the paper's full gradient and inverse masses: a cut loop's vertices do
-            not slide along the bone by the closing fans' part of the gradient, and thin tissue
-            (light particles near their bone) does not take most of a sub-volume's correction.
-            ``warpskin pop`` turns it on (a pop's volume is taken back near the muscle, not at
-            a neck's thin tissue), its normal-only guide too.
-        tether: Every particle stays within ``tether x its vertex's tissue depth + tether_floor
-            x the body's diagonal`` of its LBS target (a maximum-distance constraint, applied
-            once per step after the elasticity loop; the volume loop may then move a particle
-            past it by its sub-volume's correction), so that no part swings far from the
-            animation and thin tissue (head, hands, feet) wobbles less than the bulk; 0 turns
-            it off. Tissue depth: the distance from the skin vertex to its bone layer at rest.
-            Each volume iteration is followed by the cap (``tether_max``), a hard bound (without
-            volume constraints, the cap follows the self-collision fail-safe).
-        tether_floor: See ``tether``; a fraction of the rest bounding-box diagonal.
-        tether_max: No tether radius exceeds this fraction of the diagonal, so that a run the
-            tether holds is not stopped by the ``max_offset`` check (deep tissue of a
-            low-poly body would otherwise get a radius above it); no particle is farther than
-            this from its LBS target at the end of a step. A flex as deep as the procedural
-            arm's 150 degrees, whose crease skin lies far from its collapsed LBS, needs more
-            than the default (the arm scene sets its own).
-        max_offset: A run stops (SimulationError) at the first frame whose skin is farther
-            than this fraction of the body's diagonal from LBS.
-        max_volume_error: A run stops at the first frame whose volume (whole or any
-            sub-volume) is off its rest volume by more than this fraction.
-        max_speed: A run stops at the first frame where the skin's motion relative to the
-            animation (its velocities minus LBS's, mass-weighted RMS) is faster than this many
-            body diagonals per second and still growing: energy the animation did not put in.
-        max_strained: A run stops at the first frame where a written mesh has more of its edges
-            strained past 1.5x of their rest length (or under 1/1.5) than its own LBS by more
-            than this share (:mod:`warpskin.quality`).
-        max_flipped: A run stops at the first frame where more than this share of a written
-            mesh's triangles turn by more than 90 degrees against its LBS.
-        max_capped: A run stops at the first frame where more than this share of the simulated
-            skin is held at the tether's cap (``tether_max``): the cap would hide an explosion.
-    """
-
-    _section = "solver"
-
-    iterations: int = setting(20, "integer", "elasticity iterations per step", low=1, cli="--iterations")
-    volume_iterations: int = setting(4, "integer", "volume iterations per step", low=0, cli="--volume-iterations")
-    rotation_iterations: int = setting(1, "integer", "warm-started rotation-extraction iterations per region fit",
-                                       low=1)
-    dt: float = setting(0.005, "number", "largest substep", unit="s", low=0.0, open_low=True, must="a positive number",
-                        cli="--dt")
-    gravity: tuple[float, float, float] = setting((0.0, -9.81, 0.0), "numbers", "external acceleration", unit="m/s^2",
-                                                  length=3, must="three finite numbers")
-    damping: float = setting(2.0, "number", "velocity damping rate", unit="1/s", low=0.0, must="a rate >= 0",
-                             cli="--damping")
-    fast_summation: bool = setting(False, "bool", "region sums by prefix scans along paths (false: direct gather)",
-                                   cli="--fast-summation")
-    volume_along_normals: bool = setting(False, "bool", "volume corrections along the surface normals, inverse "
-                                         "masses floored at the median")
-    volume_stiffness: float = setting(1.0, "number", "stiffness of the volume constraints", low=0.0, high=1.0,
-                                      must="in [0, 1]")
-    tether: float = setting(1.5, "number", "the farthest a particle may be from its LBS target, x its tissue depth "
-                            "(0: off)", low=0.0)
-    tether_floor: float = setting(0.01, "number", "added to the tether radius, x the body's diagonal", low=0.0)
-    tether_max: float = setting(0.05, "number", "no tether radius is longer than this, x the body's diagonal",
-                                low=0.0)
-    max_offset: float = setting(0.1, "number", "a frame farther than this from LBS (x the diagonal) stops the run",
-                                low=0.0)
-    max_volume_error: float = setting(0.1, "number", "a frame whose volume or a sub-volume's is off by more than this "
-                                      "share stops the run", low=0.0)
-    max_speed: float = setting(2.0, "number", "skin motion relative to LBS faster than this, and growing, stops the "
-                               "run", unit="diagonals/s", low=0.0)
-    max_strained: float = setting(0.05, "number", "a written mesh with this share more strained edges than its LBS "
-                                  "stops the run", low=0.0)
-    max_flipped: float = setting(0.05, "number", "a written mesh with more than this share of its triangles turned "
-                                 "over against LBS stops the run", low=0.0)
-    max_capped: float = setting(0.1, "number", "more than this share of the skin held at the tether's cap stops the "
-                                "run", low=0.0)
-
-    def check(self, where: str = "solver") -> None:
-        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
-
-        Raises:
-            SceneError: ``"<where>: [solver] <key> must be <range>, got <value>"``.
-        """
-        check_settings(self, where, "solver")
 
 
 class SkinSolver:

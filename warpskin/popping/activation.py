@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
-from ..settings import check_settings, setting
+from ..params import PoppingSettings
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -360,60 +360,6 @@ def vibrating(sample: Callable[[float], np.ndarray], start: float, end: float, *
 # --------------------------------------------------------------------------------------------
 # Scenes
 # --------------------------------------------------------------------------------------------
-@dataclass
-class PoppingSettings:
-    """The ``[popping]`` section of a scene.
-
-    Attributes:
-        mode: ``"goal"``: the paper's goal-seeking skin; ``"layered"``: the activation moves the
-            muscle layer's rest shape of the multi-layer model toward the clenched example (or
-            the swelling of a muscle found from the skeleton) and the physical skin (shape
-            matching, volume, collisions) makes the pop; ``None``: goal where the scene has
-            examples, else layered.
-        alpha_min: Stiffness at the largest disparity, in (0, 1] (eq. 3).
-        beta: Relaxation rate [1/s] (eq. 4).
-        threshold: Snap distance of relaxing vertices [m].
-        dt: Step length [s]; ``None``: one step per frame.
-        rbf_width: Gaussian width in pose space [rad]; ``None``: automatic.
-        joints: Joints spanning pose space; ``None``: the joints the examples vary.
-        activation: Activation per muscle group over clip time.
-    """
-
-    _section = "popping"
-
-    mode: str | None = setting(None, "string", "goal: the paper's goal-driven skin; layered: the activation drives "
-                               "the multi-layer model's muscle layer (default: goal where the scene has examples, "
-                               "else layered)", choices=("goal", "layered"), optional=True, cli="--mode")
-    alpha_min: float = setting(0.1, "number", "stiffness at the largest disparity (eq. 3)", low=0.0, high=1.0,
-                               open_low=True, must="in (0, 1]", cli="--alpha-min")
-    beta: float = setting(30.0, "number", "relaxation rate (eq. 4)", unit="1/s", low=0.0, open_low=True,
-                          must="a positive relaxation rate", cli="--beta")
-    threshold: float = setting(1e-4, "number", "snap distance of relaxing vertices", unit="m", low=0.0,
-                               must="a distance >= 0")
-    dt: float | None = setting(None, "number", "step length (default: one step per frame)", unit="s", low=0.0,
-                               open_low=True, optional=True, must="a positive step length", cli="--dt")
-    rbf_width: float | None = setting(None, "number", "Gaussian width in pose space (default: automatic)", unit="rad",
-                                      low=0.0, open_low=True, optional=True, must="a positive angle")
-    joints: list[str] | None = setting(None, "strings", "the joints spanning pose space (default: those the examples "
-                                       "vary)", optional=True)
-    activation: ActivationTimeline = setting(
-        ActivationTimeline, "table", "activation per muscle group over clip time: [popping.activation.GROUP] keys = "
-        "[[t, a], ...] or beats = [t, ...] with hold (attack, release) [s]")
-    examples: dict | None = setting(None, "table", "the rig file's blend shapes as examples: clip, normal = [...], "
-                                    "clenched = {GROUP = [...]}", optional=True)
-
-    def check(self, where: str = "scene") -> None:
-        """Every setting in its declared range, and ``beta * dt <= 1``.
-
-        Raises:
-            SceneError: ``"<where>: [popping] <key> must be <range>, got <value>"``.
-        """
-        check_settings(self, where, "popping")
-        if self.dt is not None and self.beta * self.dt > 1.0 + 1e-12:
-            raise SceneError(f"{where}: [popping] beta * dt = {self.beta * self.dt:.4g} must be <= 1 (no overshoot on "
-                             f"relax); lower beta or dt")
-
-
 def popping_settings(scene) -> PoppingSettings:
     """Parse a scene's ``[popping]`` section (defaults where absent).
 

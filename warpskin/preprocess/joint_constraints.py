@@ -37,7 +37,7 @@ class JointParams:
     radius_factor: float = setting(1.0, "number", "a particle is constrained to a joint within this many times the "
                                    "joint's radius", low=0.0, open_low=True, must="a positive number")
     layers: tuple[str, ...] = setting(("fat", "muscle", "bone"), "strings", "the layers whose particles may be "
-                                      "constrained (of skin, fat, muscle, bone)")
+                                      "constrained", choices=LAYER_NAMES)
     joints: list[str] | None = setting(None, "strings", "the joints to constrain (default: every joint between two "
                                        "bones)", optional=True)
 
