@@ -68,7 +68,10 @@ class SolverParams:
             sub-volume) is off its rest volume by more than this fraction.
         max_speed: A run stops at the first frame where the skin's motion relative to the
             animation (its velocities minus LBS's, mass-weighted RMS) is faster than this many
-            body diagonals per second and still growing: energy the animation did not put in.
+            body diagonals per second and grew, since the frame before, by more than the
+            animation's own change of velocity over the frame (mass-weighted RMS): energy the
+            animation did not put in. A skin lagging a sudden start or stop (a jump, a punch)
+            moves fast relative to it, by no more than that change.
         max_strained: A run stops at the first frame where a written mesh has more of its edges
             strained past 1.5x of their rest length (or under 1/1.5) than its own LBS by more
             than this share (:mod:`warpskin.quality`).
@@ -105,8 +108,9 @@ class SolverParams:
                                 low=0.0)
     max_volume_error: float = setting(0.1, "number", "a frame whose volume or a sub-volume's is off by more than this "
                                       "share stops the run", low=0.0)
-    max_speed: float = setting(2.0, "number", "skin motion relative to LBS faster than this, and growing, stops the "
-                               "run", unit="diagonals/s", low=0.0)
+    max_speed: float = setting(2.0, "number", "skin motion relative to LBS faster than this, and growing by more "
+                               "than the animation's own change of velocity, stops the run", unit="diagonals/s",
+                               low=0.0)
     max_strained: float = setting(0.05, "number", "a written mesh with this share more strained edges than its LBS "
                                   "stops the run", low=0.0)
     max_flipped: float = setting(0.05, "number", "a written mesh with more than this share of its triangles turned "

@@ -78,13 +78,15 @@ class _Measurements:
         rig = builder.rig
         subs = builder.subvolumes
         self.m: dict = {k: [] for k in ("time", "frame", "volume", "volume_lbs", "subvolume", "subvolume_lbs", "kinetic_energy",
-                                         "max_offset_from_lbs", "relative_speed_rms", "step_ms", "residuals",
+                                         "max_offset_from_lbs", "relative_speed_rms", "animation_speed_change_rms",
+                                         "step_ms", "residuals",
                                          "contacts_point_triangle", "contacts_edge_edge", "constraints_active", "intersecting_pairs",
                                          "intersecting_pairs_lbs", "tether_clamped", "fail_safe_pairs")}
         self.m["volume_rest"] = signed_volume(rig.vertices[: rig.output_count], rig.output_triangles)
         self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
         self.lbs: np.ndarray | None = None
         self._prev_lbs: np.ndarray | None = None
+        self._prev_lbs_velocity: np.ndarray | None = None
         self._prev_speed = 0.0
         self._skin_mass = np.asarray(builder.masses[: rig.vertex_count], dtype=np.float64)
 
@@ -116,15 +118,27 @@ class _Measurements:
         # the skin's motion relative to the animation: its velocities minus LBS's over the frame
         e["velocities"] = vel = st.velocities()  # one host copy per frame, for __call__ too
         vs = vel[: b.rig.vertex_count].astype(np.float64)
+        # and the animation's own change of velocity over the frame (what it put in: a skin that
+        # lags a sudden start or stop is faster relative to it by up to that much)
+        w = self._skin_mass
+
+        def rms(x: np.ndarray) -> float:  # mass-weighted RMS of per-vertex vectors [m/s]
+            return float(np.sqrt(np.sum(w * np.einsum("ij,ij->i", x, x)) / w.sum()))
+
+        velocity_lbs = None
         if self._prev_lbs is not None and i > 0:
             frame_dt = self.plan.times[i] - self.plan.times[i - 1]
-            rel = vs - (lbs_all - self._prev_lbs) / frame_dt
+            velocity_lbs = (lbs_all - self._prev_lbs) / frame_dt
+            rel = vs - velocity_lbs
+            change = velocity_lbs - (self._prev_lbs_velocity if self._prev_lbs_velocity is not None else 0.0)
+            e["animation_speed_change_rms"] = rms(change)
         else:
             rel = np.zeros_like(vs)
-        w = self._skin_mass
-        e["relative_speed_rms"] = float(np.sqrt(np.sum(w * np.einsum("ij,ij->i", rel, rel)) / w.sum()))
+            e["animation_speed_change_rms"] = 0.0
+        e["relative_speed_rms"] = rms(rel)
         e["relative_speed"] = rel
         e["relative_speed_before"] = self._prev_speed
+        self._prev_lbs_velocity = velocity_lbs
         self._prev_lbs, self._prev_speed = lbs_all, e["relative_speed_rms"]
         self._pending = e
         problem = self._out_of_range(i, skin, e, d)
@@ -146,15 +160,15 @@ class _Measurements:
             return (f"frame {f}: the skin left its plausible range: {_vertex(b.rig, k)} "
                     f"(bone {bone!r}) is {e['offset']:.3g} m from LBS, {100 * e['offset'] / diag:.1f} % of the body's "
                     f"{diag:.3g} m diagonal (max_offset {p.max_offset:g})")
-        speed, before = e["relative_speed_rms"], e["relative_speed_before"]
-        if speed > p.max_speed * diag and speed > before:
+        speed, before, given = e["relative_speed_rms"], e["relative_speed_before"], e["animation_speed_change_rms"]
+        if speed > p.max_speed * diag and speed - before > given:
             rel = np.linalg.norm(e["relative_speed"], axis=1)
             k = int(np.argmax(rel))
             bone = b.layers.bones.joint_names[b.layers.bone[k]]
             return (f"frame {f}: the skin left its plausible range: its motion relative to the animation keeps "
                     f"growing without input (RMS {speed:.3g} m/s, {speed / diag:.2g} body diagonals per second, "
-                    f"max_speed {p.max_speed:g}; fastest near {_vertex(b.rig, k)}, "
-                    f"bone {bone!r})")
+                    f"max_speed {p.max_speed:g}; up {speed - before:.3g} m/s in the frame, where the animation's "
+                    f"own velocity changed by {given:.3g} m/s; fastest near {_vertex(b.rig, k)}, bone {bone!r})")
         v0 = self.m["volume_rest"]
         err, err_lbs = abs(e["volume"] / v0 - 1.0), abs(e["volume_lbs"] / v0 - 1.0)
         if err > max(p.max_volume_error, 2.0 * err_lbs):
@@ -191,6 +205,7 @@ class _Measurements:
         m["kinetic_energy"].append(float(0.5 * np.sum(b.masses * np.einsum("ij,ij->i", vel, vel))))
         m["max_offset_from_lbs"].append(e["offset"])
         m["relative_speed_rms"].append(e["relative_speed_rms"])
+        m["animation_speed_change_rms"].append(e["animation_speed_change_rms"])
         m["step_ms"].append(step_ms)
         m["residuals"].append(st.solver.residuals.numpy().tolist() if i > 0 else [])
         clamped = int(st.solver.tether_clamped.numpy()[0])  # a running count: this frame's share
