@@ -204,6 +204,43 @@ def test_a_fast_clip_is_not_taken_for_an_explosion(tmp_path, assets):
     assert np.all(gained[fast] <= given[fast])  # ... by what the animation put in
 
 
+def test_a_share_held_at_the_cap_stops_the_run_once_it_lasts_capped_time(tmp_path):
+    # a gravity of 1000 m/s^2 holds most of the skin at the tether's cap from the first frames
+    # on (an explosion the cap hides). The reference: the same run's own per-frame share at the
+    # cap, unbounded. With capped_time 0.05 s (between one and two frames at 30 fps) the run
+    # stops at the first frame that is the third in a row above max_capped; with 0, at the
+    # first frame above it
+    scene = _scene(tmp_path, "held", solver="gravity = [0.0, -1000.0, 0.0]\ncapped_time = 0.05\n")
+    with pytest.warns(RuntimeWarning):
+        free = simulate(scene, tmp_path / "free.usdc", progress=False, frames=(0, 10), allow_unstable=True)
+    above = np.array(free.metrics["capped_share"]) > scene.solver_params().max_capped
+    assert above.sum() >= 4
+    third = next(i for i in range(2, len(above)) if above[i - 2:i + 1].all())
+    with pytest.raises(SimulationError, match=rf"frame {third}: .*held at the tether's cap .*above that for 0.0667 s"):
+        simulate(scene, tmp_path / "a.usdc", progress=False, frames=(0, 10))
+    params = scene.solver_params()
+    params.capped_time = 0.0
+    first = int(np.argmax(above))
+    with pytest.raises(SimulationError, match=rf"frame {first}: .*held at the tether's cap"):
+        simulate(scene, tmp_path / "b.usdc", progress=False, frames=(0, 10), solver_params=params)
+
+
+def test_a_punch_is_not_taken_for_an_explosion_the_cap_hides(tmp_path, assets):
+    # RobotExpressive's Punch: within one frame the punch holds more than max_capped of the
+    # hand at the tether's cap, and the next frame it is back under: a lag, not an explosion;
+    # the run ends with every frame written
+    from warpskin.scene import Scene
+
+    scene = Scene.from_rig_file(assets / "RobotExpressive" / "RobotExpressive.glb", clip="Punch")
+    with pytest.warns(Warning):  # the file's scaled bind space and weights, one line each
+        result = simulate(scene, tmp_path / "punch.usdc", progress=False)
+    first, last = scene.frame_range()
+    assert len(result.frames) == last - first + 1
+    above = np.array(result.metrics["capped_share"]) > SolverParams().max_capped
+    assert above.any()  # the bound was passed ...
+    assert not (above[1:] & above[:-1]).any()  # ... in no two frames in a row
+
+
 def test_allow_unstable_goes_on_with_one_warning(tmp_path):
     scene = _scene(tmp_path, "dt", solver="dt = 0.02\nmax_offset = 0.001\n")
     with pytest.raises(SimulationError, match=r"frame \d+: the skin left its plausible range"):

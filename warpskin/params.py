@@ -78,7 +78,11 @@ class SolverParams:
         max_flipped: A run stops at the first frame where more than this share of a written
             mesh's triangles turn by more than 90 degrees against its LBS.
         max_capped: A run stops at the first frame where more than this share of the simulated
-            skin is held at the tether's cap (``tether_max``): the cap would hide an explosion.
+            skin has been held at the tether's cap (``tether_max``) in every frame of the last
+            ``capped_time`` seconds: the cap would hide an explosion.
+        capped_time: See ``max_capped``. A skin lagging a sudden start or stop (a punch, a
+            flex in a few hundredths of a second) reaches the cap for a frame and comes back;
+            an explosion the cap holds stays there. 0: the first such frame stops the run.
     """
 
     _section = "solver"
@@ -115,8 +119,10 @@ class SolverParams:
                                   "stops the run", low=0.0)
     max_flipped: float = setting(0.05, "number", "a written mesh with more than this share of its triangles turned "
                                  "over against LBS stops the run", low=0.0)
-    max_capped: float = setting(0.1, "number", "more than this share of the skin held at the tether's cap stops the "
-                                "run", low=0.0)
+    max_capped: float = setting(0.1, "number", "more than this share of the skin held at the tether's cap for "
+                                "capped_time stops the run", low=0.0)
+    capped_time: float = setting(0.1, "number", "how long more than max_capped of the skin must stay at the "
+                                 "tether's cap to stop the run (0: one frame)", unit="s", low=0.0)
 
     def check(self, where: str = "SolverParams") -> None:
         """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).

@@ -81,7 +81,7 @@ class _Measurements:
                                          "max_offset_from_lbs", "relative_speed_rms", "animation_speed_change_rms",
                                          "step_ms", "residuals",
                                          "contacts_point_triangle", "contacts_edge_edge", "constraints_active", "intersecting_pairs",
-                                         "intersecting_pairs_lbs", "tether_clamped", "fail_safe_pairs")}
+                                         "intersecting_pairs_lbs", "tether_clamped", "fail_safe_pairs", "capped_share")}
         self.m["volume_rest"] = signed_volume(rig.vertices[: rig.output_count], rig.output_triangles)
         self.m["subvolume_rest"] = subs.rest_volume.tolist() if subs is not None else []
         self.lbs: np.ndarray | None = None
@@ -245,6 +245,7 @@ class _WrittenQuality:
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
         self.capped: list[float] = []
+        self._capped_since: float | None = None  # clip time the share went above max_capped
         self.measures = measures  # one warning per run, shared with the simulated surface's checks
         self.cap = params.tether_max * stepper.model.diagonal if params.tether > 0 else None
         # the simulated vertices that show in what is written (a thin part written as LBS may
@@ -266,11 +267,21 @@ class _WrittenQuality:
             d = np.linalg.norm(st.positions[:v] - target, axis=1)
             share = float(np.mean((d >= 0.99 * self.cap) & self.shown))
             self.capped.append(share)
-            if problem is None and share > self.params.max_capped:
+            self.measures.m["capped_share"].append(share)
+            # how long the share has stayed above the bound, frame after frame (a lag clears
+            # within a frame or two; an explosion the cap holds stays)
+            t = float(self.plan.times[i])
+            if share > self.params.max_capped:
+                self._capped_since = t if self._capped_since is None else self._capped_since
+            else:
+                self._capped_since = None
+            held = None if self._capped_since is None else t - self._capped_since
+            if problem is None and held is not None and held >= self.params.capped_time - 1e-6:
                 problem = (f"frame {f}: the skin left its plausible range: {100 * share:.1f} % of the simulated skin "
                            f"(where it shows in the written meshes) is held at the tether's cap "
                            f"({self.cap:.3g} m from LBS, tether_max {self.params.tether_max:g}; max_capped "
-                           f"{100 * self.params.max_capped:g} %): an explosion the cap hides")
+                           f"{100 * self.params.max_capped:g} %), above that for {held:.3g} s (capped_time "
+                           f"{self.params.capped_time:g} s): an explosion the cap hides")
         if problem is None:
             return
         if not self.allow_unstable:
