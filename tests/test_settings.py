@@ -291,7 +291,7 @@ def test_command_line_numbers_refuse_what_the_declaration_does_not_allow():
             continue
         bad = _outside(s)
         with pytest.raises(argparse.ArgumentTypeError, match=rf"^{a.option_strings[-1]} must be "
-                           + re.escape(s.range_text()) + ", got "):
+                           + re.escape(s.range_text(unit=False)) + ", got "):
             a.type(str(int(bad) if s.kind == "integer" else bad))
         good = _number_inside(s)
         assert a.type(str(good)) == pytest.approx(good)

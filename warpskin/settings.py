@@ -308,7 +308,7 @@ def from_section(cls, table: dict, where: str, section: str):
 # ---------------------------------------------------------------------------- command line
 def _cli_type(s: Setting, flag: str):
     """An argparse type for a number or integer setting: its kind and range, else one line
-    ``"<flag> must be <range>, got '<text>'"``."""
+    ``"<flag> must be <range>, got '<text>'"`` (the unit is in the option's help)."""
 
     def parse(text: str):
         try:
@@ -316,7 +316,7 @@ def _cli_type(s: Setting, flag: str):
         except ValueError:
             value = None
         if value is None or not s.allows(value):
-            raise argparse.ArgumentTypeError(f"{flag} must be {s.range_text()}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"{flag} must be {s.range_text(unit=False)}, got {text!r}")
         return value
 
     return parse
