@@ -183,18 +183,25 @@ def test_motion_growing_faster_than_max_speed_stops_at_the_first_such_frame(tmp_
     assert len(times.GetTimeSamples()) == first
 
 
+def _robot_clip_runs_to_the_end(tmp_path, assets, clip: str):
+    """RobotExpressive's ``clip`` simulated with defaults; every frame written (its written hand
+    checked against LBS as always)."""
+    from warpskin.scene import Scene
+
+    scene = Scene.from_rig_file(assets / "RobotExpressive" / "RobotExpressive.glb", clip=clip)
+    with pytest.warns(Warning):  # the file's scaled bind space and weights, one line each
+        result = simulate(scene, tmp_path / f"{clip}.usdc", progress=False)
+    first, last = scene.frame_range()
+    assert len(result.frames) == last - first + 1
+    return result
+
+
 def test_a_fast_clip_is_not_taken_for_an_explosion(tmp_path, assets):
     # RobotExpressive's Jump: the hand's animation changes its velocity by several body
     # diagonals per second within a frame, and the skin, lagging it, moves relative to it faster
     # than max_speed; but it never gains more in a frame than the animation's own change of
-    # velocity, so the run ends with every frame written (its written hand checked as always)
-    from warpskin.scene import Scene
-
-    scene = Scene.from_rig_file(assets / "RobotExpressive" / "RobotExpressive.glb", clip="Jump")
-    with pytest.warns(Warning):  # the file's scaled bind space and weights, one line each
-        result = simulate(scene, tmp_path / "jump.usdc", progress=False)
-    first, last = scene.frame_range()
-    assert len(result.frames) == last - first + 1
+    # velocity, so the run ends with every frame written
+    result = _robot_clip_runs_to_the_end(tmp_path, assets, "Jump")
     diag = result.summary["body_diagonal_m"]
     speed = np.array(result.metrics["relative_speed_rms"]) / diag
     given = np.array(result.metrics["animation_speed_change_rms"]) / diag
@@ -229,13 +236,7 @@ def test_a_punch_is_not_taken_for_an_explosion_the_cap_hides(tmp_path, assets):
     # RobotExpressive's Punch: within one frame the punch holds more than max_capped of the
     # hand at the tether's cap, and the next frame it is back under: a lag, not an explosion;
     # the run ends with every frame written
-    from warpskin.scene import Scene
-
-    scene = Scene.from_rig_file(assets / "RobotExpressive" / "RobotExpressive.glb", clip="Punch")
-    with pytest.warns(Warning):  # the file's scaled bind space and weights, one line each
-        result = simulate(scene, tmp_path / "punch.usdc", progress=False)
-    first, last = scene.frame_range()
-    assert len(result.frames) == last - first + 1
+    result = _robot_clip_runs_to_the_end(tmp_path, assets, "Punch")
     above = np.array(result.metrics["capped_share"]) > SolverParams().max_capped
     assert above.any()  # the bound was passed ...
     assert not (above[1:] & above[:-1]).any()  # ... in no two frames in a row
