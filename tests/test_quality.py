@@ -167,6 +167,14 @@ def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
               for tc in skin.GetPointsAttr().GetTimeSamples()]
     assert row["max_split"] == pytest.approx(max(splits), abs=1e-7)
     assert len(data["metrics"]["tether_clamped"]) == 11 and "max_capped_share" in data["summary"]
+    assert len(data["metrics"]["capped_share"]) == 11 and max(data["metrics"]["capped_share"]) == pytest.approx(
+        data["summary"]["max_capped_share"])
+    # every per-frame metric is named in the docs' description of report.json
+    from pathlib import Path
+
+    described = (Path(__file__).resolve().parent.parent / "docs" / "model.md").read_text()
+    for key in data["metrics"]:
+        assert f"`{key}`" in described, key
 
 
 def _welded(rest: np.ndarray, tris: np.ndarray) -> np.ndarray:
