@@ -301,20 +301,18 @@ class Scene:
     def collision_params(self):
         """The :class:`~warpskin.collision.CollisionParams` of the ``[collision]`` section
         (self-collision is on by default)."""
-        from .collision import CollisionParams
+        from .params import CollisionParams
+        from .settings import from_section
 
-        params = CollisionParams(**_read(self.extra, "collision", _where(self.source)))
-        params.check(_where(self.source))
-        return params
+        return from_section(CollisionParams, self.extra.get("collision", {}), _where(self.source), "collision")
 
     def guard_params(self):
         """The :class:`~warpskin.guard.GuardParams` of the ``[guard]`` section (the surface guard
         of the written meshes; on by default)."""
         from .guard import GuardParams
+        from .settings import from_section
 
-        params = GuardParams(**_read(self.extra, "guard", _where(self.source)))
-        params.check(_where(self.source))
-        return params
+        return from_section(GuardParams, self.extra.get("guard", {}), _where(self.source), "guard")
 
     def physics_weights(self) -> dict[str, float]:
         """``[physics.weights]``: joint-name patterns (shell-style, case-insensitive: ``"*hand*"``)

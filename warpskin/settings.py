@@ -116,21 +116,19 @@ class Setting:
         return True
 
     def allows(self, value) -> bool:
-        """Whether ``value`` is of this setting's kind and in its range."""
+        """Whether ``value`` is of this setting's kind (:meth:`type_ok`) and in its range."""
         if value is None:
             return self.optional
-        if self.kind == "bool":
-            ok = isinstance(value, bool)
-        elif self.kind == "string":
-            ok = isinstance(value, str) and (not self.choices or value in self.choices)
-        elif self.kind in ("numbers", "integers", "strings"):
-            ok = _is_list(value) and (not self.length or len(value) == self.length) and all(
-                (isinstance(x, str) and (not self.choices or x in self.choices)) if self.kind == "strings"
-                else self._in_range(x) for x in value)
-        elif self.kind == "table":
-            ok = isinstance(value, dict)
-        else:
+        if not self.type_ok(value):
+            return False
+        if self.kind in ("number", "integer"):
             ok = self._in_range(value)
+        elif self.kind in ("numbers", "integers"):
+            ok = all(self._in_range(x) for x in value)
+        elif self.kind in ("string", "strings") and self.choices:
+            ok = all(x in self.choices for x in ([value] if self.kind == "string" else value))
+        else:
+            ok = True
         return ok and (self.valid is None or bool(self.valid(value)))
 
     def kind_text(self) -> str:
