@@ -71,12 +71,53 @@ def triangle_bounds_kernel(
     uppers[t] = hi + pad
 
 
+@wp.struct
+class CollisionFilter:
+    """What never collides: ``rigid_bone`` ``[V]`` (the bone a vertex moves rigidly with, else
+    -1: two vertices of one bone's rigid neighbourhood never collide), ``group`` ``[V]`` (the
+    vertex's collision group: a piece of the surface, or a piece's cap) and ``group_pairs``
+    ``[G, G]`` (nonzero: those two groups never collide; pieces that overlap at rest, a cap and
+    any other piece; a model of one piece has one group, and no pair); ``fail_safe_pairs``
+    ``[G, G]`` (nonzero: the fail-safe leaves the pairs of triangles of those two groups alone:
+    the groups of two different pieces, whose crossings the contacts alone handle)."""
+
+    rigid_bone: wp.array(dtype=wp.int32)
+    group: wp.array(dtype=wp.int32)
+    group_pairs: wp.array2d(dtype=wp.int32)
+    fail_safe_pairs: wp.array2d(dtype=wp.int32)
+
+
 @wp.func
 def excluded(a: int, b: int, rigid_bone: wp.array(dtype=wp.int32)) -> bool:
     """Two skin vertices inside one bone's rigid neighbourhood (both move rigidly with the same
     bone) can never collide with each other."""
     ra = rigid_bone[a]
     return ra >= 0 and ra == rigid_bone[b]
+
+
+@wp.func
+def apart(a: int, b: int, f: CollisionFilter) -> bool:
+    """Vertices ``a`` and ``b`` lie in groups that never collide."""
+    return f.group_pairs[f.group[a], f.group[b]] != 0
+
+
+@wp.func
+def point_filtered(i: int, ia: int, ib: int, ic: int, f: CollisionFilter) -> bool:
+    """Point ``i`` never collides with triangle ``(ia, ib, ic)``: all three corners in its rigid
+    neighbourhood, or any corner in a group it never collides with (a cap's triangle touches its
+    piece's rim)."""
+    rigid = excluded(i, ia, f.rigid_bone) and excluded(i, ib, f.rigid_bone) and excluded(i, ic, f.rigid_bone)
+    return rigid or apart(i, ia, f) or apart(i, ib, f) or apart(i, ic, f)
+
+
+@wp.func
+def triangles_filtered(a0: int, a1: int, a2: int, b0: int, b1: int, b2: int, f: CollisionFilter) -> bool:
+    """Two triangles the fail-safe leaves alone: corners in groups that never collide, or in
+    groups whose crossings are left to the contacts (any pair of corners)."""
+    if (apart(a0, b0, f) or apart(a0, b1, f) or apart(a0, b2, f) or apart(a1, b0, f) or apart(a1, b1, f)
+            or apart(a1, b2, f) or apart(a2, b0, f) or apart(a2, b1, f) or apart(a2, b2, f)):
+        return True
+    return f.fail_safe_pairs[f.group[a0], f.group[b0]] != 0
 
 
 @wp.func
@@ -178,7 +219,7 @@ def point_triangle_candidate(
     x_old: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
-    rigid_bone: wp.array(dtype=wp.int32),
+    filt: CollisionFilter,
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
     vertex_normals: wp.array(dtype=wp.vec3),
@@ -199,7 +240,7 @@ def point_triangle_candidate(
     ic = tri_indices[t, 2]
     if ia == i or ib == i or ic == i:
         return
-    if excluded(i, ia, rigid_bone) and excluded(i, ib, rigid_bone) and excluded(i, ic, rigid_bone):
+    if point_filtered(i, ia, ib, ic, filt):
         return
     p0 = x_old[i]
     p1 = x_pred[i]
@@ -241,7 +282,7 @@ def detect_point_triangle_kernel(
     x_old: wp.array(dtype=wp.vec3),
     x_pred: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
-    rigid_bone: wp.array(dtype=wp.int32),
+    filt: CollisionFilter,
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
     vertex_normals: wp.array(dtype=wp.vec3),
@@ -265,7 +306,7 @@ def detect_point_triangle_kernel(
     query = wp.bvh_query_aabb(bvh, wp.min(p0, p1), wp.max(p0, p1))
     t = int(0)
     while wp.bvh_query_next(query, t):
-        point_triangle_candidate(i, t, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap, vertex_normals,
+        point_triangle_candidate(i, t, x_old, x_pred, tri_indices, filt, rest, rest_gap, vertex_normals,
                                  fold_cos, thickness, radius, capacity, pt_count, pt_vertex, pt_triangle, overflow,
                                  colliding)
 
@@ -366,7 +407,7 @@ def edge_edge_candidates(
     edge_owner: wp.array(dtype=wp.int32),
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
-    rigid_bone: wp.array(dtype=wp.int32),
+    filt: CollisionFilter,
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
     vertex_normals: wp.array(dtype=wp.vec3),
@@ -401,7 +442,9 @@ def edge_edge_candidates(
         i4 = edge_indices[f, 1]
         if i3 == i1 or i3 == i2 or i4 == i1 or i4 == i2:
             continue
-        if excluded(i1, i3, rigid_bone) and excluded(i2, i4, rigid_bone) and excluded(i1, i4, rigid_bone):
+        if excluded(i1, i3, filt.rigid_bone) and excluded(i2, i4, filt.rigid_bone) and excluded(i1, i4, filt.rigid_bone):
+            continue
+        if apart(i1, i3, filt) or apart(i1, i4, filt) or apart(i2, i3, filt) or apart(i2, i4, filt):
             continue
         p3 = x_pred[i3]
         p4 = x_pred[i4]
@@ -459,7 +502,7 @@ def detect_edge_edge_kernel(
     edge_owner: wp.array(dtype=wp.int32),
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
-    rigid_bone: wp.array(dtype=wp.int32),
+    filt: CollisionFilter,
     rest: wp.array(dtype=wp.vec3),
     rest_gap: float,
     vertex_normals: wp.array(dtype=wp.vec3),
@@ -485,7 +528,7 @@ def detect_edge_edge_kernel(
     t = int(0)
     while wp.bvh_query_next(query, t):
         edge_edge_candidates(e, t, lo, hi, x_old, x_pred, edge_indices, tri_edges, edge_owner, lowers, uppers,
-                             rigid_bone, rest, rest_gap, vertex_normals, fold_cos, radius, capacity, ee_count, ee_a,
+                             filt, rest, rest_gap, vertex_normals, fold_cos, radius, capacity, ee_count, ee_a,
                              ee_b, ee_sign, overflow, colliding)
 
 
@@ -510,7 +553,7 @@ def detect_kernel(
     edge_owner: wp.array(dtype=wp.int32),
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
-    rigid_bone: wp.array(dtype=wp.int32),
+    filt: CollisionFilter,
     rest: wp.array(dtype=wp.vec3),
     vertex_normals: wp.array(dtype=wp.vec3),
     params: wp.array(dtype=CollisionScalars),
@@ -577,13 +620,13 @@ def detect_kernel(
             continue
         for k in range(3):
             if (owns >> k) & 1 != 0 and boxes_overlap(lowers[u], uppers[u], lo[k], hi[k]):
-                point_triangle_candidate(tri_indices[t, k], u, x_old, x_pred, tri_indices, rigid_bone, rest, rest_gap,
+                point_triangle_candidate(tri_indices[t, k], u, x_old, x_pred, tri_indices, filt, rest, rest_gap,
                                          vertex_normals, fold_cos, thickness, radius, capacity, pt_count, pt_vertex,
                                          pt_triangle, overflow, colliding)
             if (owns >> (3 + k)) & 1 != 0:  # edge k: corner k to corner k + 1
                 k1 = (k + 1) % 3
                 edge_edge_candidates(tri_edges[t, k], u, wp.min(lo[k], lo[k1]), wp.max(hi[k], hi[k1]), x_old, x_pred,
-                                     edge_indices, tri_edges, edge_owner, lowers, uppers, rigid_bone, rest, rest_gap,
+                                     edge_indices, tri_edges, edge_owner, lowers, uppers, filt, rest, rest_gap,
                                      vertex_normals, fold_cos, radius, capacity, ee_count, ee_a, ee_b, ee_sign,
                                      overflow, colliding)
 
@@ -1145,13 +1188,16 @@ def new_intersection(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
+    filt: CollisionFilter,
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
-    """Two triangles with no shared vertex that intersect at ``x`` (widened by ``tol``), did not
-    at ``x_old`` (narrowed by it), and whose LBS (``rest`` skinned by ``skin_matrices``;
-    widened by ``tol``) does not intersect: mark their six vertices in ``revert`` and add the
-    pair to ``count``."""
+    """Two triangles with no shared vertex, in groups that may collide (``filt``), that
+    intersect at ``x`` (widened by ``tol``), did not at ``x_old`` (narrowed by it), and whose LBS
+    (``rest`` skinned by ``skin_matrices``; widened by ``tol``) does not intersect: mark their
+    six vertices in ``revert`` and add the pair to ``count``."""
+    if triangles_filtered(a0, a1, a2, b0, b1, b2, filt):
+        return
     if triangles_intersect(x, a0, a1, a2, b0, b1, b2, tol) and not triangles_intersect(x_old, a0, a1, a2, b0, b1, b2,
                                                                                        -tol):
         # where the animation itself drives the two through each other (their LBS
@@ -1192,6 +1238,7 @@ def new_intersections_from(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
+    filt: CollisionFilter,
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
@@ -1236,7 +1283,7 @@ def new_intersections_from(
         if a0 == b0 or a0 == b1 or a0 == b2 or a1 == b0 or a1 == b1 or a1 == b2 or a2 == b0 or a2 == b1 or a2 == b2:
             continue
         new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
-                         revert, count)
+                         filt, revert, count)
 
 
 @wp.kernel
@@ -1258,6 +1305,7 @@ def new_intersections_kernel(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
+    filt: CollisionFilter,
     reverted: wp.array(dtype=wp.int32),
     after_round: int,
     chunk: int,
@@ -1286,7 +1334,7 @@ def new_intersections_kernel(
         pad = params[vertex_tree[tri_indices[t, 0]]].fail_safe_pad
         new_intersections_from(t, trees, tri_tree, tree_start, x_old, x, tri_indices, pad, tol, moved, only_moved,
                                escaped, only_escaped, rest,
-                               joint_indices, joint_weights, skin_matrices, revert, count)
+                               joint_indices, joint_weights, skin_matrices, filt, revert, count)
 
 
 @wp.func
@@ -1306,6 +1354,7 @@ def listed_pair(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
+    filt: CollisionFilter,
     revert: wp.array(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
@@ -1328,7 +1377,7 @@ def listed_pair(
                 or moved[b2] != 0):
             return
     new_intersection(a0, a1, a2, b0, b1, b2, x_old, x, tol, rest, joint_indices, joint_weights, skin_matrices,
-                     revert, count)
+                     filt, revert, count)
 
 
 @wp.kernel
@@ -1348,6 +1397,7 @@ def listed_new_intersections_kernel(
     joint_indices: wp.array2d(dtype=wp.int32),
     joint_weights: wp.array2d(dtype=wp.float32),
     skin_matrices: wp.array(dtype=wp.mat44),
+    filt: CollisionFilter,
     chunk: int,
     # outputs
     revert: wp.array(dtype=wp.int32),
@@ -1361,7 +1411,7 @@ def listed_new_intersections_kernel(
     first, last = contact_range(wp.tid(), chunk, pair_count[0], tri_pairs.shape[0])
     for s in range(first, last):
         listed_pair(s, tri_pairs, x_old, x, tri_indices, lowers, uppers, tol, moved, only_moved, escaped, rest,
-                    joint_indices, joint_weights, skin_matrices, revert, count)
+                    joint_indices, joint_weights, skin_matrices, filt, revert, count)
 
 
 @wp.kernel

@@ -709,6 +709,16 @@ def _folded_strip(angle_deg: float, *, jitter: float = 0.02, row_shift: float = 
     return x, np.array(tris)
 
 
+def _no_filter(n: int):
+    """A collision filter that filters nothing (no rigid bone, one group), on the scoped device."""
+    f = k.CollisionFilter()
+    f.rigid_bone = wp.full(n, -1, dtype=wp.int32)
+    f.group = wp.zeros(n, dtype=wp.int32)
+    f.group_pairs = wp.zeros((1, 1), dtype=wp.int32)
+    f.fail_safe_pairs = wp.zeros((1, 1), dtype=wp.int32)
+    return f
+
+
 def _detect_pt(x, tris, fold_cos, h, radius, device):
     n = len(x)
     rest = np.stack([x[:, 0], np.repeat([-1.0, 0.0, 1.0], 6), np.zeros(n)], 1)  # the flat strip
@@ -726,7 +736,7 @@ def _detect_pt(x, tris, fold_cos, h, radius, device):
         pv = wp.zeros(256, dtype=wp.int32)
         pt = wp.zeros(256, dtype=wp.int32)
         wp.launch(k.detect_point_triangle_kernel, dim=n,
-                  inputs=[bvh.id, xw, xw, tw, wp.full(n, -1, dtype=wp.int32), wp.array(rest.astype(np.float32), dtype=wp.vec3),
+                  inputs=[bvh.id, xw, xw, tw, _no_filter(n), wp.array(rest.astype(np.float32), dtype=wp.vec3),
                           100.0, vn, fold_cos, h, radius, 256],
                   outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)])
         c = int(count.numpy()[0])
@@ -782,7 +792,7 @@ def _edge_pairs_detected(points, tris, x_tri, device, h=0.1, radius=0.3):
         cap = 4 * len(points) * len(tris)
         count, pv, pt = wp.zeros(1, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32)
         wp.launch(k.detect_point_triangle_kernel, dim=n,
-                  inputs=[bvh.id, xw, xw, tw, wp.full(n, -1, dtype=wp.int32), xw, 0.0, wp.zeros(n, dtype=wp.vec3), 0.0, h,
+                  inputs=[bvh.id, xw, xw, tw, _no_filter(n), xw, 0.0, wp.zeros(n, dtype=wp.vec3), 0.0, h,
                           radius, cap],
                   outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)])
         c = int(count.numpy()[0])
@@ -951,3 +961,39 @@ def test_detected_edge_edge_pairs_match_brute_force(device):
     expected = set(zip(e[dist < 0.98 * col.radius].tolist(), f[dist < 0.98 * col.radius].tolist()))
     assert len(expected) > 50
     assert expected <= ee
+
+
+def test_groups_that_never_collide_are_filtered_and_the_others_are_not(device):
+    # a point 0.05 in front of a triangle (within the search radius, inside it in projection):
+    # a contact candidate, unless its group and the triangle's never collide; a triangle with one
+    # corner in such a group (a cap's triangle at its piece's rim) is filtered too
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.2, 1.0, 0.0], [0.37, 0.33, 0.05]])
+    tris = np.array([[0, 1, 2]])
+    radius, h = 0.3, 0.1
+    with wp.ScopedDevice(device):
+        xw = wp.array(x.astype(np.float32), dtype=wp.vec3)
+        tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
+        lo, hi = wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3)
+        wp.launch(k.triangle_bounds_kernel, dim=1, inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
+                                                           wp.zeros(4, dtype=wp.int32)], outputs=[lo, hi])
+        bvh = wp.Bvh(lo, hi)
+
+        def found(group, pairs):
+            f = k.CollisionFilter()
+            f.rigid_bone = wp.full(4, -1, dtype=wp.int32)
+            f.group = wp.array(np.asarray(group, dtype=np.int32), dtype=wp.int32)
+            f.group_pairs = wp.array(np.asarray(pairs, dtype=np.int32), dtype=wp.int32)
+            f.fail_safe_pairs = wp.zeros((1, 1), dtype=wp.int32)
+            count = wp.zeros(1, dtype=wp.int32)
+            pv, pt = wp.zeros(8, dtype=wp.int32), wp.zeros(8, dtype=wp.int32)
+            wp.launch(k.detect_point_triangle_kernel, dim=4,
+                      inputs=[bvh.id, xw, xw, tw, f, xw, 0.0, wp.zeros(4, dtype=wp.vec3), 0.0, h, radius, 8],
+                      outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(4, dtype=wp.int32)])
+            return int(count.numpy()[0])
+
+        apart = [[0, 1, 0], [1, 0, 1], [0, 1, 0]]
+        assert found([0, 0, 0, 0], [[0]]) == 1  # one group: a contact
+        assert found([0, 0, 0, 2], apart) == 1  # groups 0 and 2 may collide
+        assert found([0, 0, 0, 1], apart) == 0  # groups 0 and 1 never do
+        assert found([0, 1, 0, 2], apart) == 0  # one corner in a group the point's never meets
+        assert found([2, 2, 2, 2], apart) == 1  # a group with itself always may

@@ -57,6 +57,12 @@ class CollisionTopology:
         dominant_weight: That weight ``[V]``.
         mean_edge: Mean skin edge length [m].
         diagonal: Rest bounding-box diagonal [m].
+        group: ``[V]`` each vertex's collision group (a piece of the surface, or a piece's cap;
+            :class:`~warpskin.preprocess.pieces.SurfaceGroups`), ``None``: one group.
+        group_pairs: ``[G, G]`` bool, the pairs of groups that never collide, ``None``: none.
+        fail_safe_triangles: ``[W, 3]`` the triangles the fail-safe tests, where they are not
+            the rig's written ones (a surface of pieces: its caps left out), else ``None``.
+        group_owner: ``[G]`` the piece of every group, ``None``: one piece.
     """
 
     edges: np.ndarray
@@ -66,10 +72,15 @@ class CollisionTopology:
     dominant_weight: np.ndarray
     mean_edge: float
     diagonal: float
+    group: np.ndarray | None = None
+    group_pairs: np.ndarray | None = None
+    fail_safe_triangles: np.ndarray | None = None
+    group_owner: np.ndarray | None = None
 
 
 def collision_topology(rig) -> CollisionTopology:
-    """The :class:`CollisionTopology` of a rig's closed skin surface."""
+    """The :class:`CollisionTopology` of a rig's closed skin surface (with the collision groups
+    of a surface made of several pieces, ``rig.surface_groups``, where it has them)."""
     tris = rig.triangles
     edges, tri_edges = skin_edges(tris)
     mean_edge = float(np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1).mean())
@@ -78,6 +89,14 @@ def collision_topology(rig) -> CollisionTopology:
     w = rig.joint_weights
     rows = np.arange(len(w))
     best = np.argmax(w, axis=1)
+    groups = getattr(rig, "surface_groups", None)
+    fail_safe = None
+    if groups is not None:  # the fail-safe keeps what is written from crossing: the caps are not
+        n_pieces = len(groups.names)
+        g = np.asarray(groups.group)
+        cap = (g >= n_pieces) & (g < 2 * n_pieces)
+        out = np.asarray(rig.output_triangles)
+        fail_safe = out[~cap[out].any(axis=1)]
     return CollisionTopology(
         edges=edges,
         tri_edges=tri_edges,
@@ -86,6 +105,10 @@ def collision_topology(rig) -> CollisionTopology:
         dominant_weight=w[rows, best],
         mean_edge=mean_edge,
         diagonal=rig.size(),
+        group=None if groups is None else np.asarray(groups.group, dtype=np.int64),
+        group_pairs=None if groups is None else np.asarray(groups.excluded, dtype=bool),
+        fail_safe_triangles=fail_safe,
+        group_owner=None if groups is None or groups.owner is None else np.asarray(groups.owner, dtype=np.int64),
     )
 
 
@@ -110,7 +133,8 @@ class CollisionData:
 
     Attributes:
         edge_indices ``[E, 2]``, tri_edges ``[T, 3]``, edge_owner ``[E]``, rigid_bone ``[V]``
-        (the bone a vertex moves rigidly with, else -1), rest_lowers/rest_uppers ``[T]`` (rest
+        (the bone a vertex moves rigidly with, else -1), group ``[V]`` and group_pairs ``[G, G]``
+        (the collision groups and the pairs that never collide), rest_lowers/rest_uppers ``[T]`` (rest
         triangle boxes); thickness [m], radius [m] (search radius), rest_gap [m], fold_cos,
         friction, restitution, passes, rebuild_spread, fail_safe_rounds;
         edge_count, triangle_count; diagonal [m]; characters: each character's contact
@@ -155,12 +179,23 @@ def upload_collision(topo: CollisionTopology, rig, params: CollisionParams, devi
         d.edge_owner = wp.array(topo.edge_owner.astype(np.int32), dtype=wp.int32)
         d.tri_owns = wp.array(triangle_ownership(tris, topo.tri_edges, topo.edge_owner), dtype=wp.int32)
         d.rigid_bone = wp.array(rigid.astype(np.int32), dtype=wp.int32)
+        group = np.zeros(len(rigid), dtype=np.int32) if topo.group is None else np.asarray(topo.group, dtype=np.int32)
+        pairs = np.zeros((1, 1), dtype=np.int32) if topo.group_pairs is None else \
+            np.asarray(topo.group_pairs, dtype=np.int32)
+        d.group = wp.array(group, dtype=wp.int32)
+        d.group_pairs = wp.array(pairs, dtype=wp.int32)
+        # the fail-safe keeps to each piece's own crossings (two pieces' are the contacts' part)
+        if topo.group_owner is None:
+            d.fail_safe_pairs = wp.zeros((1, 1), dtype=wp.int32)
+        else:
+            o = np.asarray(topo.group_owner)
+            d.fail_safe_pairs = wp.array((o[:, None] != o[None, :]).astype(np.int32), dtype=wp.int32)
         d.rest_lowers = wp.array(rig.vertices[tris].min(axis=1).astype(np.float32), dtype=wp.vec3)
         d.rest_uppers = wp.array(rig.vertices[tris].max(axis=1).astype(np.float32), dtype=wp.vec3)
         # the fail-safe tests the surface as written: the file's triangles of a refined skin
         # (chords of the simulated one: RobotExpressive's refined hand folds within them,
         # invisibly, and putting those folds back crossed the chords), else the skin's own
-        out = np.asarray(rig.output_triangles)
+        out = np.asarray(rig.output_triangles if topo.fail_safe_triangles is None else topo.fail_safe_triangles)
         d.output_triangles = None if out.shape == tris.shape and np.array_equal(out, tris) else \
             wp.array(out.astype(np.int32), dtype=wp.int32)
         d.output_triangle_count = int(out.shape[0])
@@ -245,6 +280,10 @@ class SelfCollision:
             # another min_move (a caller's own, outside a captured graph): an array of its own, so
             # that graphs captured with the solver's keep reading the solver's
             self._other_min_move = wp.zeros(len(chars), dtype=wp.float32)
+            #: what never collides (rigid neighbourhoods, pieces apart at rest), one struct
+            self.filter = k.CollisionFilter()
+            self.filter.rigid_bone, self.filter.group, self.filter.group_pairs = c.rigid_bone, c.group, c.group_pairs
+            self.filter.fail_safe_pairs = c.fail_safe_pairs
             self.vertex_normals = wp.zeros(v, dtype=wp.vec3)
             self.delta = wp.zeros(v, dtype=wp.vec3)
             self.delta_count = wp.zeros(v, dtype=wp.int32)
@@ -316,7 +355,7 @@ class SelfCollision:
         wp.launch(k.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
         wp.launch(k.detect_kernel, dim=c.triangle_count,
                   inputs=[self.trees, self.tri_tree, self.tree_start, x_old, x_pred, m.tri_indices, c.tri_owns, c.edge_indices, c.tri_edges,
-                          c.edge_owner, self.lowers, self.uppers, c.rigid_bone, m.particle_q0,
+                          c.edge_owner, self.lowers, self.uppers, self.filter, m.particle_q0,
                           self.vertex_normals, self.params, contacts.capacity],
                   outputs=[contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle, contacts.ee_count, contacts.ee_a,
                            contacts.ee_b, contacts.ee_sign, contacts.overflow_flag, contacts.colliding,
@@ -407,13 +446,13 @@ class SelfCollision:
             if only_escaped:
                 wp.launch(k.listed_new_intersections_kernel, dim=self._threads(contacts.pair_capacity),
                           inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
-                                  self.moved, only_moved, self.escaped, *lbs, self.chunk],
+                                  self.moved, only_moved, self.escaped, *lbs, self.filter, self.chunk],
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
             wp.launch(k.new_intersections_kernel, dim=tri_threads,
                       inputs=[self._fs_trees, self._fs_tri_tree, self._fs_tree_start, x_old, x, tris, self.params,
                               self.vertex_tree, 1.0e-4, self.moved, only_moved, self.escaped,
-                              only_escaped, *lbs, self.reverted, r - 1, self.chunk],
+                              only_escaped, *lbs, self.filter, self.reverted, r - 1, self.chunk],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
             wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
                       outputs=[self.revert, self.carried, self.moved, x, self.reverted], device=dev)
