@@ -23,7 +23,7 @@ from .collision import CollisionParams
 from .preprocess.bones import Bones, bone_segments
 from .preprocess.joint_constraints import JointConstraints, JointParams, build_joint_constraints
 from .preprocess.kinematic_coupling import KinematicCoupling, build_kinematic_coupling
-from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds, fit_layer_depths
+from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds, fit_piece_depths
 from .preprocess.masses import particle_masses
 from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
@@ -189,7 +189,7 @@ class SkinModelBuilder:
         self.bones: Bones = self._stage("bones", lambda: bone_segments(loaded))
         self.layers: Layers = self._stage("layers", lambda: build_layers(loaded, p.layers, bones=self.bones))
         if p.layers.adaptive:
-            self.layers = self._stage("layer_depths", lambda: fit_layer_depths(loaded, self.layers, where=self.where))
+            self.layers = self._stage("layer_depths", lambda: fit_piece_depths(loaded, self.layers, where=self.where))
         if loaded is not rig:
             self.layers = self.layers.refined(rig.vertex_parents)
         self._stage("layer_check", lambda: check_layer_folds(self.layers, rig.triangles, where=self.where))

@@ -521,8 +521,15 @@ class Rig:
     #: Meshes parented rigidly to joints, written beside the skin (:class:`Attachment`).
     attachments: list = field(default_factory=list)
     #: What the vertices are called in messages: ``"file"`` (the file's own numbers, from
-    #: :meth:`file_vertex_ids`) or ``"cage"`` (an automatic or user cage: its own numbers).
+    #: :meth:`file_vertex_ids`), ``"cage"`` (an automatic or user cage: its own numbers) or
+    #: ``"piece"`` (a character's own pieces made closed: :meth:`vertex_label`).
     vertex_kind: str = "file"
+    #: For a surface of several pieces (:mod:`warpskin.preprocess.pieces`): their collision
+    #: groups (:class:`~warpskin.preprocess.pieces.SurfaceGroups`), else ``None``.
+    surface_groups: Any = None
+    #: For a surface of several pieces: ``(file vertex [V] (-1: a cap's), mesh [V], mesh names,
+    #: piece [V], piece names)``, what :meth:`vertex_label` says.
+    surface_labels: Any = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64)
@@ -700,6 +707,21 @@ class Rig:
             welded = origin[welded]
         return first[welded]
 
+    def vertex_label(self, k: int) -> str:
+        """What messages call vertex ``k``: ``"file vertex N"`` (the file's number),
+        ``"cage vertex N"``, or on a surface of pieces ``"file vertex N of mesh M"`` / ``"a cap
+        vertex of piece P"`` (a cap is not in the file)."""
+        k = int(k)
+        if self.vertex_kind == "file":
+            return f"file vertex {int(self.file_vertex_ids([k])[0])}"
+        if self.vertex_kind == "piece" and self.surface_labels is not None:
+            file_id, mesh, mesh_names, piece, piece_names = self.surface_labels
+            if k < len(file_id) and file_id[k] >= 0:
+                return f"file vertex {int(file_id[k])} of mesh {mesh_names[int(mesh[k])]!r}"
+            if k < len(piece):
+                return f"a cap vertex of piece {piece_names[int(piece[k])]!r}"
+        return f"{self.vertex_kind} vertex {k}"
+
     @property
     def refined_skin(self) -> bool:
         """Whether the skin was refined for the simulation (:meth:`refined`)."""
@@ -720,10 +742,15 @@ class Rig:
         if not self.refined_skin:
             return self
         n = self.output_count
+        groups, labels = self.surface_groups, self.surface_labels
+        if groups is not None:
+            groups = dataclasses.replace(groups, group=np.asarray(groups.group)[:n])
+        if labels is not None:
+            labels = (labels[0][:n], labels[1][:n], labels[2], labels[3][:n], labels[4])
         return dataclasses.replace(
             self, vertices=self.vertices[:n].copy(), triangles=self.render_triangles.copy(),
             joint_indices=self.joint_indices[:n].copy(), joint_weights=self.joint_weights[:n].copy(),
-            render_triangles=None, vertex_parents=None, report=None)
+            render_triangles=None, vertex_parents=None, report=None, surface_groups=groups, surface_labels=labels)
 
     def refined(self, max_edge: float) -> Rig:
         """A copy whose skin has every edge longer than ``max_edge`` [m] split at its midpoint
@@ -745,6 +772,14 @@ class Rig:
         ji = np.argsort(-dense, axis=1, kind="stable")[:, :k]
         jw = np.take_along_axis(dense, ji, axis=1)
         jw /= jw.sum(axis=1, keepdims=True)
+        groups, labels = self.surface_groups, self.surface_labels
+        if groups is not None:  # an added vertex in its parents' group (a cap's, where one parent is)
+            g = np.asarray(groups.group)
+            groups = dataclasses.replace(groups, group=np.concatenate([g, g[ref.parents].max(axis=1)]))
+        if labels is not None:
+            f, m, mn, pc, pn = labels
+            labels = (np.concatenate([f, np.full(ref.added, -1)]), np.concatenate([m, m[ref.parents[:, 0]]]), mn,
+                      np.concatenate([pc, pc[ref.parents[:, 0]]]), pn)
         return dataclasses.replace(
             self,
             vertices=ref.vertices,
@@ -754,6 +789,8 @@ class Rig:
             render_triangles=self.triangles.copy(),
             vertex_parents=ref.parents,
             report=None,
+            surface_groups=groups,
+            surface_labels=labels,
         )
 
     def size(self) -> float:

@@ -18,10 +18,11 @@ import numpy as np
 
 from ..errors import SceneError
 from ..settings import check_settings, setting
-from ..rig import Rig, RigError
+from ..rig import Rig, RigError, RigWarning
 from .bones import Bones, bone_segments, closest_point_on_segments, dominant_bone
 
-__all__ = ["LayerParams", "Layers", "build_layers", "fit_layer_depths", "folded_triangles", "LAYER_NAMES", "check_layer_folds"]
+__all__ = ["LayerParams", "Layers", "build_layers", "fit_layer_depths", "fit_piece_depths", "folded_triangles", "LAYER_NAMES",
+           "check_layer_folds"]
 
 LAYER_NAMES = ("skin", "fat", "muscle", "bone")
 
@@ -270,7 +271,8 @@ def _ramp(scale: np.ndarray, edges: np.ndarray, step: float) -> np.ndarray:
 
 
 def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink: float = 0.9, ramp: float = 0.15,
-                     min_scale: float = 0.02, max_rounds: int = 200, exit_margin: float = 0.9) -> Layers:
+                     min_scale: float = 0.02, max_rounds: int = 200, exit_margin: float = 0.9,
+                     anchor_outward: bool = False) -> Layers:
     """Reduce the depth of the inner layers locally, and smoothly, wherever the full depth does
     not fit: where a layer (or the tissue between two layers) would fold over, where the layer
     would pass through itself, and where a projection segment leaves the body before the bone
@@ -296,6 +298,12 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     the body however thin the layers are) the vertices keep ``min_scale`` and are marked
     :attr:`Layers.unresolved`, with a note that counts them and names their bones; the run
     writes LBS there.
+
+    A vertex whose bone lies outside the skin (its segment points out of the body) goes in along
+    its inward normal instead, as deep as its bone is far; with ``anchor_outward`` (a piece
+    attached to a body whose bone it does not hold: a hair bun on the skull) it is anchored
+    instead: the thinnest depth (``min_scale``), the piece held where it meets the body and free
+    away from it (it is not marked unresolved).
     """
     from ..collision import skin_edges
     from ..metrics import self_intersections
@@ -306,9 +314,14 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     p = layers.params
     deepest = p[:, 2]
     length = np.linalg.norm(seg, axis=1)
+    typical = float(np.median(length[length > 0])) if (length > 0).any() else 0.0
+    on_bone = length <= 1e-6 * typical
+    if on_bone.any():  # a vertex on its bone's centre line has no way in: along its inward normal
+        seg[on_bone] = -_vertex_normals(v, tris)[on_bone] * typical
+        length = np.linalg.norm(seg, axis=1)
     exits, inward = _segment_exits(rig, seg, deepest * length / exit_margin)
     outward = ~inward
-    if outward.any():
+    if outward.any() and not anchor_outward:
         # the nearest point of the bone lies outside the skin here (the segment points out of
         # the body): such a vertex's layers go in along its inward normal instead, as deep as
         # its bone is far
@@ -318,6 +331,8 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     with np.errstate(divide="ignore", invalid="ignore"):
         cap = np.where(np.isfinite(exits), exit_margin * exits / np.maximum(deepest * length, 1e-300), 1.0)
     cap = np.clip(cap, 0.0, 1.0)
+    if anchor_outward:
+        cap[outward] = min_scale
     left_body = cap < 1.0
     edges, _ = skin_edges(tris)
     s = _ramp(cap, edges, ramp)
@@ -348,7 +363,9 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     else:
         hit = np.unique(tris[bad].ravel())
         s[hit] = 0.0
-    weak = np.nonzero(s < min_scale)[0]
+    if anchor_outward:  # an anchored vertex keeps the thinnest depth (never none: its particles need mass)
+        s[outward] = np.maximum(s[outward], min_scale)
+    weak = np.nonzero((s < min_scale) & ~(anchor_outward & outward))[0]
     unresolved = np.zeros(rig.vertex_count, dtype=bool)
     notes = []
     if weak.size:
@@ -366,8 +383,9 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         warnings.warn(notes[-1], RigWarning, stacklevel=2)
     if outward.any():
         bones = np.unique(layers.bone[outward])
-        notes.append(f"{where}: {int(outward.sum())} vertices whose bone lies outside the skin go in along their normal "
-                     "instead (bones " + ", ".join(layers.bones.joint_names[b] for b in bones[:6]) + ")")
+        how = "are anchored (the thinnest depth)" if anchor_outward else "go in along their normal instead"
+        notes.append(f"{where}: {int(outward.sum())} vertices whose bone lies outside the skin {how} (bones "
+                     + ", ".join(layers.bones.joint_names[b] for b in bones[:6]) + ")")
     reduced = s < 1.0
     if reduced.any():
         for label, mask in (("the layer folded over or passed through itself", folded_any & reduced),
@@ -390,6 +408,58 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         positions[k + 1] = v + params[:, k, None] * seg
     return Layers(positions=positions, foot=v + seg, bone=layers.bone, bone_t=layers.bone_t, params=params,
                   bones=layers.bones, depth_scale=s, depth_notes=notes, unresolved=unresolved)
+
+
+def fit_piece_depths(rig: Rig, layers: Layers, *, where: str = "layers") -> Layers:
+    """:func:`fit_layer_depths` of each piece of a surface made of several
+    (``rig.surface_groups``, :mod:`warpskin.preprocess.pieces`) on its own, merged: a piece's
+    layers fit its own body (its projection segments leave through its own surface, its layers
+    must not cross each other), whatever other pieces lie over or inside it (the body inside
+    its trousers). A rig of one surface: :func:`fit_layer_depths` itself."""
+    import dataclasses
+
+    groups = getattr(rig, "surface_groups", None)
+    if groups is None:
+        return fit_layer_depths(rig, layers, where=where)
+    piece = groups.piece
+    tri_piece = piece[rig.triangles[:, 0]]
+    positions = layers.positions.copy()
+    foot, params = layers.foot.copy(), layers.params.copy()
+    scale = np.ones(rig.vertex_count)
+    unresolved = np.zeros(rig.vertex_count, dtype=bool)
+    notes: list[str] = []
+    for k in np.unique(piece):
+        sel = np.nonzero(piece == k)[0]
+        remap = np.full(rig.vertex_count, -1, dtype=np.int64)
+        remap[sel] = np.arange(sel.size)
+        sub = dataclasses.replace(rig, vertices=rig.vertices[sel], triangles=remap[rig.triangles[tri_piece == k]],
+                                  joint_indices=rig.joint_indices[sel], joint_weights=rig.joint_weights[sel],
+                                  weld_map=np.arange(sel.size), file_triangles=None, render_triangles=None,
+                                  vertex_parents=None, report=None, surface_groups=None, surface_labels=None,
+                                  vertex_kind="piece")
+        part = Layers(positions=layers.positions[:, sel], foot=layers.foot[sel], bone=layers.bone[sel],
+                      bone_t=layers.bone_t[sel], params=layers.params[sel], bones=layers.bones)
+        import warnings
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fit = fit_layer_depths(sub, part, where=f"{where}, piece {groups.names[k]!r}", anchor_outward=True)
+        for w in caught:  # named again below, with the pieces' own vertex numbers
+            if not issubclass(w.category, RigWarning):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        positions[:, sel], foot[sel], params[sel] = fit.positions, fit.foot, fit.params
+        scale[sel], unresolved[sel] = fit.depth_scale, fit.unresolved
+        notes += fit.depth_notes
+    weak = np.nonzero(unresolved)[0]
+    if weak.size:
+        import warnings
+
+        names = sorted({layers.bones.joint_names[b] for b in layers.bone[weak]})[:6]
+        warnings.warn(f"{where}: no positive layer depth fits at {weak.size} vertices (e.g. "
+                      f"{', '.join(rig.vertex_label(i) for i in weak[:3])}; bones {names}): the skin there folds over or "
+                      "leaves the body however thin the layers are; they follow LBS", RigWarning, stacklevel=2)
+    return Layers(positions=positions, foot=foot, bone=layers.bone, bone_t=layers.bone_t, params=params,
+                  bones=layers.bones, depth_scale=scale, depth_notes=notes, unresolved=unresolved)
 
 
 def _list(idx, limit: int = 8) -> str:
