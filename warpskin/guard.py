@@ -29,12 +29,12 @@ Every frame, per mesh (on the host, in the mesh's welded topology):
 4. after ``rounds`` rounds, up to :attr:`SurfaceGuard.FALLBACK_ROUNDS` more rounds set the
    points still flagged to ``g = 0`` (exactly their LBS), the ramp around them in proportion.
 
-A skin simulated directly is written as its physics gives it (``W = P``: its own collisions,
-volume constraints and layers act on the surface that is written) while that physics keeps the
-surface: until a frame in which it turns more than ``trust_flipped`` of the triangles over
-against LBS, or strains ``trust_strained`` more of its edges than LBS does. From that frame on
-(a crumpled skin: a low-poly leg folded by its contacts) it is guarded as every captured mesh
-is.
+A skin simulated directly (or a character's own pieces) is written as its physics gives it
+(``W = P``: its own collisions, volume constraints and layers act on the surface that is written)
+while that physics keeps the surface: until a frame in which it turns more than
+``trust_flipped`` of the triangles over against LBS, or strains ``trust_strained`` more of its
+edges than LBS does. From that frame on (a crumpled
+skin: a low-poly leg folded by its contacts) it is guarded as every captured mesh is.
 
 Invariants: with no flag ``W = P`` exactly; ``g = 0`` gives ``W = L`` exactly. A mesh the
 guard converged on has no strained edge or flipped triangle that LBS does not have (within the
@@ -58,7 +58,7 @@ from .metrics import PairQuery
 from .quality import STRAIN_LIMIT, WrittenMesh
 from .settings import check_settings, setting
 
-__all__ = ["GuardParams", "SurfaceGuard"]
+__all__ = ["GuardParams", "SurfaceGuard", "JumpLimit"]
 
 
 @dataclass
@@ -102,6 +102,9 @@ class GuardParams:
                                    "share of its triangles turns over", low=0.0, high=1.0, must="in [0, 1]")
     trust_strained: float = setting(0.0045, "number", "... or this share of its edges strains past the limit "
                                     "beyond LBS's", low=0.0, high=1.0, must="in [0, 1]")
+    max_jump: float = setting(0.015, "number", "a written point's offset from LBS changes by at most this share of "
+                              "the character's height from one frame to the next (0: no limit)", low=0.0, high=1.0,
+                              must="in [0, 1]")
 
     def check(self, where: str = "guard") -> None:
         """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
@@ -220,6 +223,8 @@ class SurfaceGuard:
         #: After each :meth:`apply`: the pair counts of the result and of LBS (``None`` where the
         #: result was not counted exactly: the guard off, or not converged).
         self.pair_counts: tuple[int, int] | None = None
+        #: The same pairs as keys (:meth:`~warpskin.quality.WrittenMesh.pair_keys_of_two`), or ``None``.
+        self.pair_keys: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ measures
     def _strain(self, x: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
@@ -367,7 +372,7 @@ class SurfaceGuard:
         self.fallbacks = 0
         self.flags = {"edges": 0, "flipped": 0, "pairs": 0}
         if not prm.enabled or self.count == 0:
-            self.pair_counts = None
+            self.pair_counts = self.pair_keys = None
             if np.all(self.ceiling >= 1.0):
                 return p
             return self._blend(p, lb, self.ceiling)
@@ -391,10 +396,11 @@ class SurfaceGuard:
             self.trusted = False  # the physics crumpled: guarded from this frame on
         if self.trusted:
             self.g = g
-            self.pair_counts = None
+            self.pair_counts = self.pair_keys = None
             if np.all(g >= 1.0):
                 return given
             return self._blend(p, lb, g)
+        shape = True
         pairs_lbs, pairs_w, active = np.zeros(0, dtype=np.int64), None, None
         converged = False
         last = prm.rounds + self.FALLBACK_ROUNDS
@@ -409,10 +415,10 @@ class SurfaceGuard:
                 ce, ct = changed[e].any(axis=1), changed[t].any(axis=1)
                 s[ce] = self._strain(w, ce)
                 cos[ct] = self._cosines(w, n_lbs, len_lbs, ct)
-            strained = (s > prm.strain) & (s > s_lbs + 0.01) & (edge_ok_lbs | (s > 1.1 * s_lbs))
+            strained = (s > prm.strain) & (s > s_lbs + 0.01) & (edge_ok_lbs | (s > 1.1 * s_lbs)) & shape
             strained &= ~self._stretched(w, strained)
             flag[e[strained].ravel()] = True
-            flipped = cos < self._cos
+            flipped = (cos < self._cos) & shape
             flag[t[flipped].ravel()] = True
             new = np.zeros(0, dtype=np.int64)
             if prm.pairs:
@@ -446,6 +452,7 @@ class SurfaceGuard:
             r += 1
         self.g = g
         self.pair_counts = (int(pairs_w.size), int(pairs_lbs.size)) if prm.pairs and converged else None
+        self.pair_keys = (pairs_w, pairs_lbs) if prm.pairs and converged else None
         if np.all(g >= 1.0):
             return given
         return self._blend(p, lb, g)
@@ -456,12 +463,55 @@ class SurfaceGuard:
 
     @property
     def guarded(self) -> float:
-        """The share of the mesh's welded points the guard holds (``g < 1``) after the last
-        frame."""
-        return float(np.mean(self.g < 1.0)) if self.count else 0.0
+        """The share of the mesh's welded points the guard holds (``g`` under its ceiling: 1, or
+        a directly simulated skin's physics weight) after the last frame."""
+        return float(np.mean(self.g < self.ceiling)) if self.count else 0.0
 
     @property
     def held(self) -> float:
-        """The mean of ``1 - g`` over the mesh's welded points after the last frame (0: nothing
-        held, 1: all written as LBS)."""
-        return float(np.mean(1.0 - self.g)) if self.count else 0.0
+        """The mean of ``ceiling - g`` over the mesh's welded points after the last frame (0:
+        nothing held, 1: all written as LBS where it would be all physical): what the guard took
+        back, not what the physics weight leaves to LBS."""
+        return float(np.mean(np.maximum(self.ceiling - self.g, 0.0))) if self.count else 0.0
+
+
+class JumpLimit:
+    """No chatter: the offset from LBS of a written point, ``o = W - L``, changes by at most
+    ``max_jump`` (:class:`GuardParams`) x the character's ``height`` [m] from one frame to the
+    next. Where the result of a frame would move it farther (contacts that hold two parts of
+    the body apart in one frame and let them through in the next), the change is cut to that
+    length, so the point gets there over the next frames (a smooth path through the flicker):
+    ``o(t) = o(t-1) + d min(1, r / |d|)``, ``d = o_guarded(t) - o(t-1)``. The first frame is
+    taken as it is. Applied after the surface guard, to what is written only.
+
+    Attributes:
+        limited: The share of the mesh's points cut in the last frame.
+    """
+
+    def __init__(self, height: float, params: GuardParams | None = None) -> None:
+        prm = params or GuardParams()
+        self.step = float(prm.max_jump) * float(height) if prm.enabled else 0.0
+        self._last: np.ndarray | None = None
+        self.limited = 0.0
+
+    def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+        """The limited points of one frame, ``[N, 3]`` (``points``: after the guard; ``lbs``:
+        the mesh's LBS), rounded to float32 where a point was cut; ``points`` itself where
+        none was."""
+        p = np.asarray(points, dtype=np.float64)
+        lb = np.asarray(lbs, dtype=np.float64)
+        o = p - lb
+        self.limited = 0.0
+        if self._last is None or self.step <= 0.0:
+            self._last = o
+            return points
+        d = o - self._last
+        length = np.linalg.norm(d, axis=1)
+        cut = length > self.step
+        if not cut.any():
+            self._last = o
+            return points
+        self.limited = float(cut.mean())
+        o = self._last + d * np.minimum(1.0, self.step / np.maximum(length, 1e-300))[:, None]
+        self._last = o
+        return _as_written(lb + o)

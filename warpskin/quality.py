@@ -16,7 +16,9 @@ Measures of one frame (``points`` and ``lbs``, both ``[N, 3]`` in the file's ver
   not count);
 * **pairs**: intersecting triangle pairs of the mesh (the exact test of
   :func:`~warpskin.metrics.self_intersections` on the mesh welded by rest position, so that
-  triangles meeting across a UV seam count as neighbours), beside LBS's;
+  triangles meeting across a UV seam count as neighbours), beside LBS's; and the pairs beyond
+  those the rest pose already has (pieces that cross at rest: a bun sunk into the skull, an eye
+  in its socket), beside LBS's: what the animation added and the physics did or did not undo;
 * **offset**: the largest distance of a vertex from its LBS position [m];
 * **split**: the largest distance between two copies of one rest point (file vertices at one
   rest position: a UV seam, flat shading, a split normal) [m], beside LBS's: copies written
@@ -144,19 +146,64 @@ class WrittenMesh:
 
     def pairs_of_two(self, points: np.ndarray, lbs: np.ndarray) -> tuple[int, int]:
         """:meth:`pairs` of ``points`` and of ``lbs``, found in one pass."""
+        a, b = self.pair_keys_of_two(points, lbs)
+        return int(len(a)), int(len(b))
+
+    def pair_keys_of_two(self, points: np.ndarray, lbs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The intersecting pairs of ``points`` and of ``lbs`` as sorted keys ``i T + j``
+        (``i < j`` welded triangles, ``T`` their count), found in one pass."""
         from .metrics import self_intersections_of_two
 
         a, b = self_intersections_of_two(self.welded(points), self.welded(lbs), self.welded_triangles)
-        return int(len(a)), int(len(b))
+        t = len(self.welded_triangles)
+        return np.unique(a[:, 0] * t + a[:, 1]), np.unique(b[:, 0] * t + b[:, 1])
+
+    @property
+    def rest_pair_keys(self) -> np.ndarray:
+        """The keys (:meth:`pair_keys_of_two`) of the pairs the rest pose has (computed once)."""
+        keys = getattr(self, "_rest_keys", None)
+        if keys is None:
+            from .metrics import self_intersections
+
+            a = self_intersections(self.welded(self.rest), self.welded_triangles)
+            keys = self._rest_keys = np.unique(a[:, 0] * len(self.welded_triangles) + a[:, 1])
+        return keys
+
+    def pairs_beyond_rest(self, keys: np.ndarray) -> int:
+        """How many more intersecting pairs ``keys`` has than the rest pose, per pair of pieces
+        of the mesh (connected components of the welded mesh, each with itself too): the sum
+        over piece pairs of the count above that pair's count at rest."""
+        if getattr(self, "_piece_of_tri", None) is None:
+            from scipy.sparse.csgraph import connected_components
+            import scipy.sparse as sp
+
+            t = self.welded_triangles
+            c = self.first.size
+            rows, cols = np.concatenate([t[:, 0], t[:, 1]]), np.concatenate([t[:, 1], t[:, 2]])
+            _, label = connected_components(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(c, c)),
+                                            directed=False)
+            self._piece_of_tri = label[t[:, 0]]
+            self._pieces = int(label.max()) + 1 if c else 0
+            self._rest_piece_pairs = self._piece_pair_counts(self.rest_pair_keys)
+        return int(np.maximum(self._piece_pair_counts(keys) - self._rest_piece_pairs, 0).sum())
+
+    def _piece_pair_counts(self, keys: np.ndarray) -> np.ndarray:
+        """``[P * P]`` the pairs of ``keys`` per (lower, higher) pair of pieces."""
+        t = len(self.welded_triangles)
+        k = np.asarray(keys, dtype=np.int64)
+        a, b = self._piece_of_tri[k // t], self._piece_of_tri[k % t]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        return np.bincount(lo * self._pieces + hi, minlength=self._pieces * self._pieces)
 
 
 def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True,
-                  pair_counts: tuple[int, int] | None = None) -> dict:
+                  pair_keys: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """The measures of one frame of ``mesh`` (see the module docstring) as a dict: ``strained``,
     ``strained_lbs`` (shares of edges), ``worst_strain`` (ratio) and ``worst_strain_vertex`` (a
     file vertex of that edge), ``flipped`` (share of triangles) and ``flipped_vertex``,
-    ``pairs``, ``pairs_lbs`` (``None`` without ``pairs``; ``pair_counts`` where the caller
-    counted them with the same exact test on the same welded mesh, as the surface guard does),
+    ``pairs``, ``pairs_lbs``, and ``pairs_new``, ``pairs_new_lbs`` (beyond the rest pose's;
+    all ``None`` without ``pairs``; ``pair_keys`` where the caller found them with the same exact
+    test on the same welded mesh, as the surface guard does: :meth:`WrittenMesh.pair_keys_of_two`),
     ``offset`` [m] and ``offset_vertex``, ``split`` and ``split_lbs`` [m] and ``split_vertices``
     (the file vertices of the widest split, ``(-1, -1)`` for none)."""
     points = np.asarray(points, dtype=np.float64)
@@ -167,8 +214,12 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
     flips = mesh.flipped(points, lbs)
     d = np.linalg.norm(points - lbs, axis=1)
     j = int(np.argmax(d)) if d.size else -1
-    if pairs and pair_counts is None:
-        pair_counts = mesh.pairs_of_two(points, lbs)
+    counts = (None, None, None, None)
+    if pairs:
+        if pair_keys is None:
+            pair_keys = mesh.pair_keys_of_two(points, lbs)
+        counts = (int(pair_keys[0].size), int(pair_keys[1].size), mesh.pairs_beyond_rest(pair_keys[0]),
+                  mesh.pairs_beyond_rest(pair_keys[1]))
     split, c = mesh.split(points)
     return {
         "strained": float((s > STRAIN_LIMIT).sum() / e),
@@ -177,8 +228,10 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
         "worst_strain_vertex": int(mesh.file_ids[mesh.first[mesh.edges[k, 0]]]) if k >= 0 else -1,
         "flipped": float(flips.size / max(mesh.triangle_count, 1)),
         "flipped_vertex": int(mesh.file_ids[mesh.triangles[flips[0], 0]]) if flips.size else -1,
-        "pairs": pair_counts[0] if pairs else None,
-        "pairs_lbs": pair_counts[1] if pairs else None,
+        "pairs": counts[0],
+        "pairs_lbs": counts[1],
+        "pairs_new": counts[2],
+        "pairs_new_lbs": counts[3],
         "offset": float(d[j]) if j >= 0 else 0.0,
         "offset_vertex": int(mesh.file_ids[j]) if j >= 0 else -1,
         "split": split,
@@ -243,7 +296,8 @@ class QualityLog:
         pairs: Count intersecting pairs (the costliest measure) every frame.
     """
 
-    KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "offset", "split", "split_lbs")
+    KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "pairs_new", "pairs_new_lbs",
+            "offset", "split", "split_lbs")
 
     def __init__(self, meshes: list[WrittenMesh], limits: QualityLimits | None = None, *, pairs: bool = True) -> None:
         self.meshes = list(meshes)
@@ -256,13 +310,13 @@ class QualityLog:
                 extra: dict | None = None) -> str | None:
         """Measure frame ``frame`` (``points[name]``, ``lbs[name]`` for every mesh); returns the first
         range problem (``"frame F: mesh ...``) or ``None``. The series are kept either way.
-        ``pairs``: ``{name: (pairs, pairs_lbs)}`` counted already (see :func:`mesh_measures`);
+        ``pairs``: ``{name: (keys, keys_lbs)}`` found already (see :func:`mesh_measures`);
         ``extra``: ``{name: {key: value}}`` further per-frame series to keep (the guard's)."""
         self.frames.append(frame)
         problem = None
         for mesh in self.meshes:
             m = mesh_measures(mesh, points[mesh.name], lbs[mesh.name], pairs=self.count_pairs,
-                              pair_counts=(pairs or {}).get(mesh.name))
+                              pair_keys=(pairs or {}).get(mesh.name))
             for k in self.KEYS:
                 self.series[mesh.name][k].append(m[k])
             for k, v in (extra or {}).get(mesh.name, {}).items():
@@ -294,7 +348,9 @@ class QualityLog:
                 p, pl = np.asarray(s["pairs"]), np.asarray(s["pairs_lbs"])
                 row["max_pairs"], row["max_pairs_lbs"] = int(p.max()), int(pl.max())
                 row["max_pairs_excess"] = int((p - pl).max())
-            for k in ("guarded", "held"):
+                pn, pnl = np.asarray(s["pairs_new"]), np.asarray(s["pairs_new_lbs"])
+                row["max_pairs_new"], row["max_pairs_new_lbs"] = int(pn.max()), int(pnl.max())
+            for k in ("guarded", "held", "jump_limited"):
                 if s.get(k):
                     row[f"max_{k}"] = float(np.max(s[k]))
             if s.get("guard_fallbacks"):

@@ -1,0 +1,162 @@
+"""What the physics delivered to the written meshes (warpskin.delivery), the jump limit of the
+written offsets (warpskin.guard.JumpLimit) and the wrap of a worn piece on the simulated surface
+(warpskin.kernels.deform.wrap_kernel), against closed forms: a box's volume, a rigid motion's
+zero residual, sequences whose ratios are known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+from warpskin.delivery import DeliveryLog, hole_fans, piece_volumes, rigid_rms
+from warpskin.guard import GuardParams, JumpLimit
+from warpskin.quality import WrittenMesh
+
+
+def _rotation(seed: int) -> np.ndarray:
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _open_box():
+    """A box 0.3 x 0.2 x 0.1 without its top: 5 faces, one hole."""
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    top = box.triangles_center[:, 2] > 0.049
+    return np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces[~top], dtype=np.int64)
+
+
+def test_piece_volumes_close_the_holes_exactly():
+    v, t = _open_box()
+    fans = hole_fans(t)
+    assert len(fans[0]) == 4  # the rim of the missing top
+    piece = np.zeros(len(v), dtype=np.int64)
+    assert np.isclose(piece_volumes(v, t, piece, 1, fans)[0], 0.3 * 0.2 * 0.1, rtol=1e-12)
+    moved = v @ _rotation(3).T + [1.1, -0.4, 2.0]  # a rigid motion changes nothing
+    assert np.isclose(piece_volumes(moved, t, piece, 1, fans)[0], 0.006, rtol=1e-12)
+    # without the fans the cone volume about the centroid misses the lid's cone
+    assert piece_volumes(v, t, piece, 1)[0] < 0.006 * 0.99
+
+
+def test_rigid_rms_is_zero_for_a_rigid_motion_and_exact_for_a_stretch():
+    rng = np.random.default_rng(5)
+    rest = rng.normal(size=(40, 3))
+    rest -= rest.mean(axis=0)
+    assert rigid_rms(rest @ _rotation(9).T + [0.3, 0.2, -1.0], rest) < 1e-12
+    # a stretch by 1 + e along x: the best rigid motion is the identity (rest centred, principal
+    # axes aligned), the residual e * x
+    u, _, _ = np.linalg.svd(rest.T @ rest)
+    aligned = rest @ u
+    e = 1e-3
+    stretched = aligned * [1.0 + e, 1.0, 1.0]
+    assert np.isclose(rigid_rms(stretched, aligned), e * np.sqrt(np.mean(aligned[:, 0] ** 2)), rtol=1e-6)
+
+
+def _sphere_mesh(seed: int = 1):
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    v = np.asarray(s.vertices) @ _rotation(seed).T
+    return WrittenMesh("ball", np.asarray(s.faces), v)
+
+
+def test_delivery_measures_held_motion_and_chatter():
+    mesh = _sphere_mesh()
+    rest = mesh.rest
+    log = DeliveryLog({"ball": mesh}, height=0.2)
+    lbs_step = np.array([0.01, 0.0, 0.0])
+    offset = np.zeros_like(rest)
+    offset[:, 1] = 0.002
+    for f in range(5):
+        lbs = rest + f * lbs_step
+        physical = lbs + (offset if f % 2 else 0.0)  # the physics alternates: +2 mm, 0, +2 mm, ...
+        written = lbs + 0.25 * (physical - lbs)  # the guard takes three quarters back
+        log.measure({"ball": written}, {"ball": lbs}, {"ball": physical})
+    s = log.summary()["ball"]
+    assert np.isclose(s["held"], 0.75, rtol=1e-9)  # frames 1..4: all the physical displacement there is, 3/4 held
+    assert np.isclose(s["held_max"], 0.75, rtol=1e-9)
+    # written offset changes by 0.5 mm every frame; LBS moves 10 mm
+    assert np.isclose(s["secondary_motion"], 0.05, rtol=1e-9)
+    assert np.isclose(s["chatter"], 0.0005 / 0.2, rtol=1e-6)
+    assert s["volume"] < 1e-12 and s["volume_lbs"] < 1e-12
+    assert s["rigid_pieces"] == 0
+
+
+def test_the_rigid_pieces_of_a_mesh_are_measured():
+    mesh = _sphere_mesh()
+    w = np.zeros((len(mesh.rest), 2))
+    w[:, 1] = 1.0
+    log = DeliveryLog({"ball": mesh}, height=0.2, weights={"ball": w})
+    squash = mesh.rest * [1.0, 1.0, 0.98]
+    log.measure({"ball": squash}, {"ball": mesh.rest})
+    s = log.summary()["ball"]
+    assert s["rigid_pieces"] == 1
+    assert s["rigid_rms_m"] > 1e-4
+    assert np.isclose(s["volume"], 0.02, rtol=1e-9)  # the squash takes 2 % of the volume
+
+
+def test_jump_limit_cuts_a_jump_to_the_limit_and_leaves_the_rest():
+    rng = np.random.default_rng(2)
+    lbs = rng.normal(size=(30, 3))
+    limit = JumpLimit(height=2.0, params=GuardParams(max_jump=0.01))  # 2 cm per frame
+    assert limit.apply(lbs + 0.0, lbs) is not None and limit.limited == 0.0
+    small = lbs.copy()
+    small[:, 0] += 0.015  # 1.5 cm: under the limit, untouched (the same array back)
+    out = limit.apply(small, lbs)
+    assert out is small
+    big = lbs.copy()
+    big[:5, 2] += 0.1  # five points jump 10 cm further: cut to 2 cm
+    out = limit.apply(big, lbs)
+    assert np.isclose(limit.limited, 5 / 30)
+    step = np.linalg.norm((out - lbs) - (small - lbs), axis=1)
+    assert np.allclose(step[:5], 0.02, rtol=1e-5)
+    assert np.allclose(out[5:], big[5:], atol=1e-6)
+    # off: nothing is cut
+    off = JumpLimit(height=2.0, params=GuardParams(max_jump=0.0))
+    off.apply(lbs, lbs)
+    assert off.apply(big, lbs) is big
+
+
+def test_wrap_follows_a_rigid_motion_and_keeps_within_the_free_space(device):
+    from warpskin.capture import wrap_points
+    from warpskin.kernels import deform as k
+
+    # a small closed surface (a box, subdivided: its top face's inner vertices' normals point
+    # straight up) and worn points 5 mm out in front of its top face
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.1)).subdivide().subdivide()
+    x = np.asarray(box.vertices, dtype=np.float64)
+    tris = np.asarray(box.faces, dtype=np.int64)
+    worn = np.array([[0.013, -0.021, 0.055], [-0.017, 0.018, 0.055], [0.021, 0.027, 0.055]])
+    corners, bary, coef, dist = wrap_points(worn, x, tris, tris, device=device)
+    assert np.allclose(dist, 0.005, atol=1e-6)
+
+    def wrapped(xs, other=None, room0=0.0):
+        with wp.ScopedDevice(device):
+            xa = wp.array(xs.astype(np.float32), dtype=wp.vec3)
+            normals = wp.zeros(len(xs), dtype=wp.vec3)
+            flat = wp.array(tris.astype(np.int32).ravel(), dtype=wp.int32)
+            wp.launch(k.surface_normals_kernel, dim=len(tris), inputs=[xa, flat], outputs=[normals])
+            surf = np.concatenate([xs, other[0]]) if other is not None else xs
+            st = np.concatenate([tris, other[1] + len(xs)]) if other is not None else tris
+            mesh = wp.Mesh(points=wp.array(surf.astype(np.float32), dtype=wp.vec3),
+                           indices=wp.array(st.astype(np.int32).ravel(), dtype=wp.int32))
+            out = wp.array(np.zeros((3, 3), dtype=np.float32), dtype=wp.vec3)
+            wp.launch(k.wrap_kernel, dim=3, inputs=[xa, normals, mesh.id, 0.5, wp.array([0, 1, 2], dtype=wp.int32),
+                                                    wp.array(corners.astype(np.int32).ravel(), dtype=wp.int32),
+                                                    wp.array(bary.astype(np.float32), dtype=wp.vec3),
+                                                    wp.array(coef.astype(np.float32), dtype=wp.vec3),
+                                                    wp.array(np.full(3, room0, dtype=np.float32), dtype=wp.float32),
+                                                    wp.array(np.ones(3, dtype=np.float32), dtype=wp.float32)],
+                      outputs=[out])
+            return out.numpy().astype(np.float64)
+
+    assert np.allclose(wrapped(x), worn, atol=1e-6)
+    r, tr = _rotation(4), np.array([0.2, -0.1, 0.3])
+    assert np.allclose(wrapped(x @ r.T + tr), worn @ r.T + tr, atol=2e-6)
+    # another surface 4 mm above the top face: the worn points keep to half of the 4 mm
+    lid = trimesh.creation.box(extents=(0.3, 0.3, 0.01))
+    lid_v = np.asarray(lid.vertices) + [0.0, 0.0, 0.05 + 0.004 + 0.005]
+    out = wrapped(x, (lid_v, np.asarray(lid.faces)))
+    assert np.allclose(out[:, 2], 0.05 + 0.002, atol=2e-6)
+    # where the lid lay there at rest (8 mm up) and came down to 4 mm: the gap in proportion, half
+    out = wrapped(x, (lid_v, np.asarray(lid.faces)), room0=0.008)
+    assert np.allclose(out[:, 2], 0.05 + 0.0025, atol=2e-6)
