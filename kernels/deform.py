@@ -16,9 +16,29 @@ whose points share one capture row moves by one translation on top of its LBS.
 
 Influences and captures are flat arrays with a fixed count per point (weight 0 pads), so every
 argument is one-dimensional (Warp's contiguous CPU path). One thread per point, no atomics.
+
+A piece that moves as a whole (an eye carried by its socket, a fist, a hair bun rigid in the
+file) moves by the best rigid motion of the simulated vertices that carry it
+(:func:`group_fit_kernel`: weighted Kabsch, the polar factor of their covariance; then
+:func:`group_apply_kernel`): it keeps its shape and turns with what holds it.
+
+A piece worn over the simulated pieces (a garment, a hair cap) is *wrapped* instead
+(:func:`wrap_kernel`): each of its points rides on its closest point at rest of the written
+surface of the simulated pieces (what shows beneath it), ``c = sum_k b_k x_{t_k}`` (barycentric
+on triangle ``t``), at its rest offset ``o``
+expressed as ``alpha e_1 + beta e_2 + gamma n`` in that triangle's edges ``e_1, e_2`` and the
+surface's unit normal ``n`` there (the vertex normals blended by ``b``): where the surface
+stretches, bends or swells the worn point follows at its own distance from it, so a garment keeps
+its gap to the body and crosses it no more than the body crosses itself. Then
+(:func:`push_out_kernel`) a worn point that another part of the surface has come nearer than
+its clearance (the thigh and the calf meeting at a bent knee, under the trousers) is put back
+out to it, along the closest surface point's side: the overlap present at rest is kept (a point
+inside a simulated piece at rest has no clearance and is left where it is wrapped).
 """
 
 import warp as wp
+
+from .rotation import polar_rotation_svd
 
 wp.set_module_options({"enable_backward": False})
 
@@ -143,3 +163,241 @@ def inward_rays_kernel(
                 break
             travelled += start
         hits[i * 5 + r] = result
+
+
+@wp.kernel
+def zero_vec3_kernel(
+    # output
+    a: wp.array(dtype=wp.vec3),
+):
+    a[wp.tid()] = wp.vec3(0.0)
+
+
+@wp.kernel
+def surface_normals_kernel(
+    x: wp.array(dtype=wp.vec3),
+    triangles: wp.array(dtype=wp.int32),
+    # output
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Area-weighted vertex normals (not normalised) of the simulated surface ``x`` (its first
+    vertices the skin layer; ``triangles`` flat, three per triangle), accumulated per triangle
+    into ``normals`` (zeroed first)."""
+    t = wp.tid()
+    a = triangles[3 * t]
+    b = triangles[3 * t + 1]
+    c = triangles[3 * t + 2]
+    n = wp.cross(x[b] - x[a], x[c] - x[a])
+    wp.atomic_add(normals, a, n)
+    wp.atomic_add(normals, b, n)
+    wp.atomic_add(normals, c, n)
+
+
+@wp.func
+def wrapped_point(x: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), mesh: wp.uint64, i0: int, i1: int,
+                  i2: int, bary: wp.vec3, coef: wp.vec3, share: float, room0: float) -> wp.vec3:
+    """The point at ``coef = (alpha, beta, gamma)`` from the surface point ``bary`` of triangle
+    ``(i0, i1, i2)``: ``c + alpha e_1 + beta e_2 + gamma' n`` (see the module docstring). Where
+    another part of the surface (``mesh``, as it is now) lies along ``n`` within ``gamma /
+    share``, the worn point keeps to its share of that room: ``gamma' = min(gamma, share x s)``
+    (the back of a bent knee); where something already lay there at rest, ``room0`` away (a hair
+    cap over a bun), in proportion: ``gamma' = gamma min(1, s / room0)``."""
+    x0 = x[i0]
+    x1 = x[i1]
+    x2 = x[i2]
+    c = bary[0] * x0 + bary[1] * x1 + bary[2] * x2
+    n = bary[0] * normals[i0] + bary[1] * normals[i1] + bary[2] * normals[i2]
+    ln = wp.length(n)
+    if ln > 0.0:
+        n = n / ln
+    g = coef[2]
+    if g > 0.0 and ln > 0.0:
+        start = 1.0e-3 * g
+        reach = g / share
+        if room0 > 0.0:
+            reach = wp.max(reach, room0)
+        q = wp.mesh_query_ray(mesh, c + start * n, n, reach)
+        if q.result:
+            room = q.t + start
+            if room0 > 0.0:
+                g = g * wp.min(1.0, room / room0)
+            else:
+                g = wp.min(g, share * room)
+    return c + coef[0] * (x1 - x0) + coef[1] * (x2 - x0) + g * n
+
+
+@wp.kernel
+def wrap_kernel(
+    x: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    share: float,
+    points: wp.array(dtype=wp.int32),
+    tri_vertices: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    coef: wp.array(dtype=wp.vec3),
+    room0: wp.array(dtype=wp.float32),
+    physics_weight: wp.array(dtype=wp.float32),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """Wrapped point ``k`` (written point ``points[k]``, whose ``out`` holds its LBS): ``out =
+    LBS + phi (wrapped - LBS)``, ``wrapped`` by :func:`wrapped_point` on the written surface
+    ``x`` with its vertex ``normals`` (``mesh``: the same surface, refitted; ``room0``: the room
+    along its normal at rest, 0 where there was none within its reach)."""
+    k = wp.tid()
+    i = points[k]
+    w = wrapped_point(x, normals, mesh, tri_vertices[3 * k], tri_vertices[3 * k + 1], tri_vertices[3 * k + 2], bary[k],
+                      coef[k], share, room0[k])
+    lb = out[i]
+    out[i] = lb + physics_weight[i] * (w - lb)
+
+
+@wp.kernel
+def room_kernel(
+    x: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    share: float,
+    tri_vertices: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    coef: wp.array(dtype=wp.vec3),
+    # output
+    room: wp.array(dtype=wp.float32),
+):
+    """The room along the normal at rest of wrapped point ``k`` (see :func:`wrapped_point`): the
+    distance to the surface ``mesh`` within ``gamma / share`` of its surface point, else 0."""
+    k = wp.tid()
+    i0 = tri_vertices[3 * k]
+    i1 = tri_vertices[3 * k + 1]
+    i2 = tri_vertices[3 * k + 2]
+    b = bary[k]
+    c = b[0] * x[i0] + b[1] * x[i1] + b[2] * x[i2]
+    n = b[0] * normals[i0] + b[1] * normals[i1] + b[2] * normals[i2]
+    ln = wp.length(n)
+    g = coef[k][2]
+    room[k] = 0.0
+    if g > 0.0 and ln > 0.0:
+        n = n / ln
+        start = 1.0e-3 * g
+        q = wp.mesh_query_ray(mesh, c + start * n, n, g / share)
+        if q.result:
+            room[k] = q.t + start
+
+
+@wp.kernel
+def copy_vec3_kernel(
+    src: wp.array(dtype=wp.vec3),
+    # output
+    dst: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()
+    dst[i] = src[i]
+
+
+@wp.kernel
+def push_out_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.int32),
+    clearance: wp.array(dtype=wp.float32),
+    max_dist: float,
+    max_push: float,
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """Worn point ``k`` (written point ``points[k]``) nearer the written surface of the simulated
+    pieces (``mesh``, over the written points as they are) than its ``clearance`` [m], or behind
+    it by at most ``max_push`` [m], goes out to that clearance from its closest surface point; a
+    clearance of 0 or less leaves it, and so does a point deeper behind the surface (where two
+    parts of the body press together its closest face may be the other part's: the sign of an
+    open surface is not to be trusted that far in)."""
+    k = wp.tid()
+    c = clearance[k]
+    if c <= 0.0:
+        return
+    i = points[k]
+    p = out[i]
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        return
+    s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    # (the surface is open where pieces meet: its sign is the side of the closest face)
+    d = p - s
+    ld = wp.length(d)
+    if q.sign >= 0.0 and ld >= c:
+        return
+    if q.sign < 0.0 and ld > max_push:
+        return
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if ld > 1.0e-9 * c:
+        n = d / ld
+        if q.sign < 0.0:
+            n = -n
+    out[i] = s + c * n
+
+
+@wp.kernel
+def signed_distance_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    # output
+    dist: wp.array(dtype=wp.float32),
+):
+    """The distance [m] of ``points[i]`` to ``mesh``, negative behind its closest face."""
+    i = wp.tid()
+    p = points[i]
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    dist[i] = max_dist
+    if q.result:
+        dist[i] = q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+
+
+@wp.kernel
+def group_fit_kernel(
+    x: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3),
+    offsets: wp.array(dtype=wp.int32),
+    vertices: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=wp.float32),
+    rest_centre: wp.array(dtype=wp.vec3),
+    # outputs
+    rotation: wp.array(dtype=wp.mat33),
+    translation: wp.array(dtype=wp.vec3),
+):
+    """Group ``g``'s rigid motion from rest: its simulated vertices ``vertices[offsets[g] ..
+    offsets[g + 1]]`` with ``weights`` (summing to one) at ``x`` against their ``rest``;
+    ``R`` the polar factor of ``sum w (x - c)(X - c0)^T``, ``t = c - R c0``."""
+    g = wp.tid()
+    c = wp.vec3(0.0)
+    for k in range(offsets[g], offsets[g + 1]):
+        c += weights[k] * x[vertices[k]]
+    c0 = rest_centre[g]
+    a = wp.mat33(0.0)
+    for k in range(offsets[g], offsets[g + 1]):
+        j = vertices[k]
+        a += weights[k] * wp.outer(x[j] - c, rest[j] - c0)
+    r = wp.quat_to_matrix(polar_rotation_svd(a))
+    rotation[g] = r
+    translation[g] = c - r * c0
+
+
+@wp.kernel
+def group_apply_kernel(
+    points: wp.array(dtype=wp.int32),
+    group: wp.array(dtype=wp.int32),
+    rest_points: wp.array(dtype=wp.vec3),
+    rotation: wp.array(dtype=wp.mat33),
+    translation: wp.array(dtype=wp.vec3),
+    physics_weight: wp.array(dtype=wp.float32),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """Grouped point ``k`` (written point ``points[k]``, whose ``out`` holds its LBS): ``out =
+    LBS + phi (R P + t - LBS)`` with its group's motion and its rest position ``P``."""
+    k = wp.tid()
+    i = points[k]
+    g = group[k]
+    w = rotation[g] * rest_points[k] + translation[g]
+    lb = out[i]
+    out[i] = lb + physics_weight[i] * (w - lb)

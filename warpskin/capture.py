@@ -43,7 +43,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 __all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "point_normals", "shape_diameter",
-           "welded_pieces"]
+           "welded_pieces", "wrap_points"]
 
 
 @dataclass
@@ -85,6 +85,11 @@ class Capture:
         group: ``[N]`` the group of points that move as a whole (one capture row, one weight),
             or -1.
         notes: What set weights to 0 or moved pieces as a whole, for the run's summary.
+        wrap: The points wrapped onto the written surface of the simulated pieces instead (a
+            worn piece, :func:`~warpskin.kernels.deform.wrap_kernel`), ``(points [M], triangle
+            corners [M, 3] (written points), barycentric [M, 3], offset coefficients [M, 3],
+            clearance [M], the surface's triangles [B, 3])``, or ``None``; their capture rows are
+            empty.
     """
 
     indices: np.ndarray
@@ -94,6 +99,7 @@ class Capture:
     confidence: np.ndarray
     group: np.ndarray | None = None
     notes: dict = field(default_factory=dict)
+    wrap: tuple | None = None
 
     def __post_init__(self) -> None:
         if self.group is None:
@@ -161,6 +167,8 @@ def shape_diameter(points: np.ndarray, normals: np.ndarray, mesh_points: np.ndar
     p = np.asarray(points, dtype=np.float64)
     if p.shape[0] == 0:
         return np.zeros(0)
+    if np.asarray(mesh_triangles).size == 0:  # no surface to cast at: no other side anywhere
+        return np.full(p.shape[0], np.inf)
     mp = np.asarray(mesh_points, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(mp, axis=0)))
     far = 2.0 * diag + 1.0
@@ -394,3 +402,46 @@ def identity_capture(count: int, physics_weight: np.ndarray | None = None) -> Ca
     phi = np.ones(count) if physics_weight is None else np.asarray(physics_weight, dtype=np.float64)
     return Capture(indices=np.arange(count)[:, None], weights=np.ones((count, 1)), physics_weight=phi,
                    thickness=np.full(count, np.inf), confidence=np.ones(count))
+
+
+def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, all_triangles: np.ndarray, *,
+                device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """How each of ``points`` ``[M, 3]`` rides on the simulated ``surface`` ``[V, 3]`` (both at
+    rest) for :func:`~warpskin.kernels.deform.wrap_kernel`: its closest point on ``triangles``
+    (``[T, 3]``: the surface's own, no cap), and its offset from there as ``alpha e_1 + beta e_2 +
+    gamma n`` in that triangle's edges and the unit normal blended from the vertex normals of
+    ``all_triangles`` (the whole closed surface, as the kernel computes them). Returns
+    ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
+    import warp as wp
+
+    from .kernels import cage as k_cage
+
+    p = np.asarray(points, dtype=np.float64)
+    x = np.asarray(surface, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([p, x]), axis=0))) + 1.0
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(points=wp.array(x.astype(np.float32), dtype=wp.vec3),
+                       indices=wp.array(t.astype(np.int32).ravel(), dtype=wp.int32))
+        face = wp.zeros(len(p), dtype=wp.int32)
+        bary = wp.zeros(len(p), dtype=wp.vec3)
+        wp.launch(k_cage.closest_face_kernel, dim=len(p), inputs=[mesh.id, wp.array(p.astype(np.float32), dtype=wp.vec3),
+                                                               far], outputs=[face, bary])
+        face, bary = face.numpy(), bary.numpy().astype(np.float64)
+    corners = t[np.maximum(face, 0)]
+    bary = np.clip(bary, 0.0, None)
+    bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-300)
+    vn = np.zeros_like(x)
+    at = np.asarray(all_triangles, dtype=np.int64)
+    fn = np.cross(x[at[:, 1]] - x[at[:, 0]], x[at[:, 2]] - x[at[:, 0]])
+    for k in range(3):
+        np.add.at(vn, at[:, k], fn)
+    c = np.einsum("mk,mkj->mj", bary, x[corners])
+    n = np.einsum("mk,mkj->mj", bary, vn[corners])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    e1 = x[corners[:, 1]] - x[corners[:, 0]]
+    e2 = x[corners[:, 2]] - x[corners[:, 0]]
+    basis = np.stack([e1, e2, n], axis=2)  # columns
+    offset = p - c
+    coef = np.linalg.solve(basis, offset[:, :, None])[:, :, 0]
+    return corners, bary, coef, np.linalg.norm(offset, axis=1)

@@ -2,9 +2,12 @@
 
 One place decides and holds, for a run:
 
-* the **simulation surface**: the rig's own closed skin (welded), or, where the skin is not one
-  closed manifold (or on request), an automatic closed cage around every mesh of the character
-  with the skin weights transferred (:mod:`warpskin.preprocess.cage`), or the user's own cage;
+* the **simulation surface**: the rig's own closed skin (welded); where the skin is not one
+  closed manifold, the character's own pieces made closed (holes capped, pieces that overlap at
+  rest kept from colliding; :mod:`warpskin.preprocess.pieces`), with the pieces that cannot be
+  closed (sheets) and small rigid ones (eyes) captured by them; where no piece can be closed
+  (or on request), an automatic closed cage around every mesh of the character with the skin
+  weights transferred (:mod:`warpskin.preprocess.cage`), or the user's own cage;
 * the **written meshes**: the skin in the file's topology and every other mesh of the
   character, each at rest in stage space, with the file's vertex numbers for messages;
 * the **physics weight** of every written point (0 = LBS, 1 = the physical result) and the
@@ -32,7 +35,7 @@ import numpy as np
 
 from .capture import Capture, CaptureParams, capture_points, identity_capture
 from .errors import SceneError
-from .guard import GuardParams, SurfaceGuard
+from .guard import GuardParams, JumpLimit, SurfaceGuard
 from .quality import WrittenMesh
 
 __all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices", "is_caged"]
@@ -57,14 +60,18 @@ def check_choices(cage, rigid_pieces: str) -> Path | None:
 
 
 def is_caged(rig, cage) -> bool:
-    """Whether ``rig`` is simulated through a cage for the choice ``cage`` (``"auto"``: where
-    its skin is not one closed manifold; ``"always"``; ``"none"``; a cage mesh file)."""
+    """Whether ``rig``'s skin is not simulated directly for the choice ``cage`` (``"auto"`` and
+    ``"none"``: where its skin is not one closed manifold: its own pieces, else a cage;
+    ``"always"``; a cage mesh file)."""
     if check_choices(cage, "cage") is not None or cage == "always":
         return True
-    if cage != "auto":
-        return False
     report = rig.report or rig.validate(raise_on_error=False)
     return not (report.closed and report.manifold)
+
+
+#: Through its own pieces, at least this share of the written points must lie on simulated
+#: pieces, else (a character of sheets) ``"auto"`` takes a cage.
+MIN_SIMULATED_SHARE = 0.5
 
 
 @dataclass
@@ -96,8 +103,10 @@ class Character:
 
     Args:
         rig: The rig as loaded (:class:`~warpskin.rig.Rig`): what is written.
-        cage: ``"auto"`` (a cage where the skin is not one closed manifold), ``"always"``,
-            ``"none"`` (the skin must be closed), or a cage mesh file.
+        cage: ``"auto"`` (where the skin is not one closed manifold: its own pieces made closed,
+            where at least :data:`MIN_SIMULATED_SHARE` of its points lie on pieces that can be;
+            else a cage), ``"always"`` (a cage), ``"none"`` (never a cage: the skin, or its
+            own pieces), or a cage mesh file.
         rigid_pieces: Through a cage, the pieces that LBS moves rigidly move by one translation
             with the cage around them (``"cage"``) or follow their joints exactly
             (``"joint"``).
@@ -129,15 +138,32 @@ class Character:
 
         cage_file = self.cage_file = check_choices(self.cage, self.rigid_pieces)
         rig = self.rig
-        self.caged = is_caged(rig, self.cage)
         t0 = time.perf_counter()
         self.soup = character_soup(rig)
+        #: What is simulated: ``"skin"`` (the rig's closed skin), ``"pieces"`` (its own pieces,
+        #: capped) or ``"cage"``.
+        self.surface = "skin"
+        #: The :class:`~warpskin.preprocess.pieces.PieceSurface` where ``surface`` is ``"pieces"``.
+        self.pieces = None
+        self.cage_surface = self.matched = None
+        if is_caged(rig, self.cage):
+            if cage_file is None and self.cage in ("auto", "none"):
+                self.pieces = self._piece_surface()
+            if self.pieces is not None:
+                self.surface = "pieces"
+            elif self.cage == "none":
+                rig.require_closed()  # says what is open
+            else:
+                self.surface = "cage"
+        self.caged = self.surface == "cage"
         self.rigid = rigid_pieces(self.soup) if self.caged else np.full(len(self.soup.points), -1)
+        self.parts = self._parts()
         if self.caged:
             self._build_cage(cage_file)
+        elif self.surface == "pieces":
+            self.sim_rig = self._pieces_rig()
         else:
-            self.sim_rig, self.cage_surface, self.matched = rig, None, None
-        self.parts = self._parts()
+            self.sim_rig = rig
         self.build_s = time.perf_counter() - t0
         self.capture_result: Capture | None = None
         self._deformer = None
@@ -147,6 +173,65 @@ class Character:
         self.guards: dict[str, SurfaceGuard] = {}
 
     # ------------------------------------------------------------------ construction
+    @property
+    def captured(self) -> bool:
+        """Whether the written meshes are captured by a simulated surface of their own (a cage,
+        or the character's pieces made closed), rather than being the simulated skin itself."""
+        return self.surface != "skin"
+
+    @property
+    def pieces_params(self):
+        """The :class:`~warpskin.preprocess.pieces.PieceParams` of the character's own pieces."""
+        from .preprocess.pieces import PieceParams
+
+        return PieceParams()
+
+    def _piece_surface(self):
+        """The character's own pieces made closed (:func:`~warpskin.preprocess.pieces.piece_surface`),
+        or ``None`` where too few of its points lie on pieces that can be (see ``cage``)."""
+        from .preprocess.pieces import piece_surface
+
+        soup = self.soup
+        names = [self.display_name(name) for name, _, _ in soup.pieces]
+        ps = piece_surface(soup.points, soup.triangles, soup.dense_weights, self._mesh_of_soup(), names,
+                           joint_names=self.rig.skeleton.joint_names, params=self.pieces_params, device=self.device)
+        if ps is None:
+            return None
+        share = float(np.mean(ps.simulated[ps.piece_of_point]))
+        if share < MIN_SIMULATED_SHARE and self.cage != "none":
+            return None
+        return ps
+
+    def _mesh_of_soup(self) -> np.ndarray:
+        out = np.zeros(len(self.soup.points), dtype=np.int64)
+        for k, (_, start, count) in enumerate(self.soup.pieces):
+            out[start:start + count] = k
+        return out
+
+    def _pieces_rig(self):
+        """The pieces' closed surface as a rig to simulate, bound at the rest pose in stage space
+        (as a cage is: :func:`~warpskin.preprocess.cage.cage_rig`), with its collision groups."""
+        from .preprocess.cage import _pick
+        from .rig import Clip, Rig
+
+        rig, ps = self.rig, self.pieces
+        ji, jw = _pick(ps.dense_weights, 4)
+        rest_world = rig.joint_world_transforms(Clip("rest"), 0.0)
+        sim = Rig(name=rig.name, vertices=ps.vertices.copy(), triangles=ps.triangles, skeleton=rig.skeleton,
+                  joint_indices=ji, joint_weights=jw, inverse_bind=np.linalg.inv(rest_world), clips=rig.clips,
+                  source=f"{rig.source} (its own pieces, holes capped)", mesh_name=rig.mesh_name, up_axis=rig.up_axis,
+                  meters_per_unit=rig.meters_per_unit, vertex_kind="piece", surface_groups=ps.groups)
+        # each simulated vertex's mesh and file vertex number, -1 for a cap's, for messages
+        file_ids = np.concatenate([p.file_ids for p in self.parts])
+        mesh_of = self.mesh_of_point
+        ok = ps.origin >= 0
+        labels = np.full(len(ps.origin), -1, dtype=np.int64)
+        labels[ok] = file_ids[ps.origin[ok]]
+        sim.surface_labels = (labels, mesh_of[np.maximum(ps.origin, 0)], [self.display_name(p.name) for p in self.parts],
+                              ps.vertex_piece, ps.groups.names)
+        sim.validate(raise_on_error=True)
+        return sim
+
     def _build_cage(self, cage_file) -> None:
         from .preprocess.cage import build_cage, cage_from_mesh, cage_rig, character_parts
 
@@ -169,7 +254,7 @@ class Character:
             else:
                 att = next(a for a in rig.attachments if a.name == name)
                 tris, ids = np.asarray(att.triangles), np.arange(count)
-            physics = self.caged or name == "skin"
+            physics = self.captured or name == "skin"
             out.append(WrittenPart(name, start, count, np.asarray(tris, dtype=np.int64),
                                    self.soup.points[start:start + count], np.asarray(ids), physics, att))
         return out
@@ -220,6 +305,8 @@ class Character:
             cap = capture_points(soup.points, soup.triangles, soup.dense_weights, mesh_of, self.cage_surface.vertices,
                                  self.cage_surface.triangles, cage_dense, self.edge(), rigid=rigid, exclude=exclude,
                                  cage_exclude=unresolved, params=self.capture, device=device or self.device)
+        elif self.surface == "pieces":
+            cap = self._capture_pieces(builder, device or self.device)
         else:
             # a skin simulated directly is written as simulated (its own collisions keep it
             # clean), except where no layer depth fits: LBS there
@@ -240,27 +327,180 @@ class Character:
                           "that encloses no volume, or parts thinner than about two cage cells): what is written is "
                           "its LBS", RigWarning, stacklevel=2)
         self.capture_result = cap
-        self._deformer = _Deformer(self, cap, device=device or self.device) if self.caged else None
+        self._deformer = _Deformer(self, cap, device=device or self.device) if self.captured else None
         self.meshes = {p.name: WrittenMesh(self.display_name(p.name), p.triangles, p.rest, p.file_ids)
                        for p in self.parts if p.physics}
         params = self.guard or GuardParams()
         intended = None  # a popped character: where its muscles stretch the written skin on purpose
         if builder is not None and builder.rest_drive is not None:
             belly = builder.rest_drive_support()
-            if self.caged:  # the points that the cage's bellies carry (most of their capture)
+            if self.captured:  # the points that the surface's bellies carry (most of their capture)
                 intended = (cap.weights * belly[cap.indices]).sum(axis=1) > 0.5
             else:
                 intended = np.zeros(n, dtype=bool)
                 c = self.parts[0].count
                 intended[:c] = belly[:c]
-        # a skin simulated directly hands the guard its physical result whole, its physics
-        # weight as the ceiling: it is written as simulated while its physics keeps the surface
+        # a skin simulated directly (or a character's own pieces) hands the guard its physical
+        # result whole, its physics weight as the ceiling: it is written as simulated while its
+        # physics keeps the surface
+        height = float(np.ptp(self.soup.points, axis=0).max())
+        #: Per mesh written with physics, its :class:`~warpskin.guard.JumpLimit` (after its guard).
+        self.limits = {p.name: JumpLimit(height, params) for p in self.parts if p.physics}
         self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
                                             ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
                                             direct=not self.caged,
                                             intended=None if intended is None else intended[p.start:p.start + p.count])
                        for p in self.parts if p.physics}
         self.build_s += time.perf_counter() - t0
+        return cap
+
+    def _capture_pieces(self, builder, device) -> Capture:
+        """The capture of a character simulated on its own pieces: a point of a simulated piece
+        is its simulated vertex (physics weight 1, 0 where no layer depth fits); a point of a
+        simulated piece that was reduced is captured by that piece's simulated vertices alone
+        (:func:`~warpskin.capture.capture_points`, caps and unresolved vertices left out); a
+        garment's by the simulated surface beneath it (within 1.5 x its gap), so that it follows
+        the body's deformation; the other points (sheets, small rigid pieces) by the simulated
+        surface near them, each rigid piece as a whole. A captured point's physics weight is the capture's confidence (its
+        skinning similarity, :class:`~warpskin.capture.CaptureParams` ``confidence``)."""
+        from .capture import _smoothstep
+
+        ps, soup = self.pieces, self.soup
+        prm = self.capture or CaptureParams()
+        n = self.point_count
+        vop = ps.vertex_of_point
+        unresolved = np.zeros(ps.vertex_count, dtype=bool)
+        if builder is not None:
+            unresolved = np.asarray(builder.layers.unresolved[:ps.vertex_count], dtype=bool)
+        on = vop >= 0
+        phi = np.zeros(n)
+        phi[on] = np.where(unresolved[vop[on]], 0.0, 1.0)
+        rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = [(np.nonzero(on)[0], vop[on, None],
+                                                                  np.ones((int(on.sum()), 1)))]
+        group = np.full(n, -1, dtype=np.int64)
+        confidence = np.ones(n)
+        notes = {"simulated_points": int(on.sum())}
+        piece = ps.piece_of_point
+        # the captured sets: each reduced piece by itself, then the attached points by any piece
+        # (a reduced piece deforms with its surface: none of its parts moves as a whole)
+        import dataclasses
+
+        whole = dataclasses.replace(prm, small=0.0)
+        # near a seam (within the seam zone's reach of another simulated piece: a tube's end in
+        # a ball, a wrist at a hand) a point is captured by both pieces, so that the two keep
+        # the relative motion LBS gives them there and cross no more than at rest
+        from scipy.spatial import cKDTree
+
+        seam = np.zeros(n, dtype=bool)
+        sim_pts = np.nonzero(ps.simulated[piece])[0]
+        for k in np.nonzero(ps.decimated)[0]:
+            mine, others = sim_pts[piece[sim_pts] == k], sim_pts[piece[sim_pts] != k]
+            if mine.size and others.size:
+                d, _ = cKDTree(soup.points[others]).query(soup.points[mine], distance_upper_bound=1.5 * ps.edge)
+                seam[mine[np.isfinite(d)]] = True
+        sets = [(np.nonzero(~on & (piece == k) & ~seam)[0], (ps.vertex_piece != k), whole)
+                for k in np.nonzero(ps.decimated)[0]]
+        sets.append((np.nonzero(~on & seam)[0], np.zeros(ps.vertex_count, dtype=bool), whole))
+        # a worn piece (a garment, a sheet such as a hair cap, knuckles on a palm: an attached
+        # piece that lies on the simulated surface, within a garment's gap of it) rides on the
+        # surface beneath it; a small rigid one (an eye), or one that stands off the surface (a
+        # mitten beyond a wrist), is carried by the surface near it
+        anywhere = np.zeros(ps.vertex_count, dtype=bool)
+        reach = self.pieces_params.garment_gap * float(np.ptp(soup.points, axis=0).max())
+        candidates = np.nonzero(~on & ~ps.simulated[piece] & ~ps.rigid[piece] & ~ps.carried[piece])[0]
+        worn = np.zeros(n, dtype=bool)
+        wrap = None
+        if candidates.size:
+            from .capture import wrap_points
+
+            # on the written surface of the simulated pieces (what shows beneath a garment)
+            body = soup.triangles[ps.simulated[piece[soup.triangles[:, 0]]]]
+            corners, bary, coef, dist = wrap_points(soup.points[candidates], soup.points, body, body, device=device)
+            for k in np.unique(piece[candidates]):
+                sel = piece[candidates] == k
+                if ps.garment[k] or float(np.percentile(dist[sel], 90)) <= reach:
+                    worn[candidates[sel]] = True
+            keep = worn[candidates]
+            if keep.any():
+                points = candidates[keep]
+                corners, bary, coef, dist = corners[keep], bary[keep], coef[keep], dist[keep]
+                # the clearance a worn point keeps from the written simulated pieces (none where it
+                # is inside one at rest: a hair cap through a bun)
+                clearance = _clearance(soup.points[points], soup.points, body, None, 0.1, 0.05 * ps.edge, device)
+                wrap = (points, corners, bary, coef, clearance, body)
+                phi[points] = 1.0 - _smoothstep(dist, reach, 2.0 * reach)  # beyond a garment's gap: less and less
+                notes["wrapped_points"] = int(points.size)
+        sets.append((np.nonzero(~on & ~ps.simulated[piece] & ~worn)[0], anywhere, prm))
+        next_group = 0
+        for points, other, sub_prm in sets:
+            if points.size == 0:
+                continue
+            remap = np.full(n, -1, dtype=np.int64)
+            remap[points] = np.arange(points.size)
+            t = soup.triangles
+            t = remap[t[(remap[t] >= 0).all(axis=1)]]
+            rigid = np.where(ps.rigid[piece[points]], piece[points], -1)
+            sub = capture_points(soup.points[points], t, soup.dense_weights[points], self.mesh_of_point[points],
+                                 ps.vertices, ps.triangles, ps.dense_weights, ps.edge, rigid=rigid,
+                                 cage_exclude=ps.cap | unresolved | other, params=sub_prm, device=device)
+            rows.append((points, sub.indices, sub.weights))
+            phi[points] = _smoothstep(sub.confidence, *prm.confidence)
+            # a carried assembly (a fist) moves with the surface that holds it, whatever that
+            # surface's joints (the forearm's end): its weight is 1 where it is captured at all
+            carried = ps.carried[piece[points]] & (sub.confidence > 0.0)
+            phi[points[carried]] = 1.0
+            phi[points[sub.weights.sum(axis=1) <= 0]] = 0.0
+            confidence[points] = sub.confidence
+            g = sub.group
+            group[points] = np.where(g >= 0, g + next_group, -1)
+            next_group = int(group.max()) + 1 if (group >= 0).any() else 0
+            for key, v in sub.notes.items():
+                notes[key] = notes.get(key, 0) + v
+        # a simulated piece rigid in the file (a hair bun on the head joint) moves as a whole: its
+        # points share one row, the mean displacement of up to 16 of its simulated vertices
+        # spread over it (the piece swings, it does not deform)
+        for k in np.nonzero(ps.simulated & ps.rigid)[0]:
+            members = np.nonzero(piece == k)[0]
+            verts = np.nonzero((ps.vertex_piece == k) & ~ps.cap & ~unresolved)[0]
+            if members.size == 0 or verts.size == 0:
+                continue
+            chosen = [int(verts[0])]
+            d = np.linalg.norm(ps.vertices[verts] - ps.vertices[chosen[0]], axis=1)
+            while len(chosen) < min(16, verts.size):  # farthest-point sampling
+                j = int(np.argmax(d))
+                chosen.append(int(verts[j]))
+                d = np.minimum(d, np.linalg.norm(ps.vertices[verts] - ps.vertices[verts[j]], axis=1))
+            row = np.array(chosen, dtype=np.int64)
+            rows.append((members, np.broadcast_to(row, (members.size, row.size)),
+                         np.full((members.size, row.size), 1.0 / row.size)))
+            group[members] = next_group
+            next_group += 1
+        notes["captured_points"] = int(n - on.sum())
+        # parts of a simulated piece thinner than the simulated surface resolves (a wrist, the
+        # fingers of a piece that was kept): their physics weight ramps down with the thickness
+        # (the shape diameter, CaptureParams thin and thick, in the surface's edges), smoothed
+        # over the written surface
+        from .capture import point_normals, shape_diameter, welded_pieces
+
+        sim_points = np.nonzero(ps.simulated[piece])[0]
+        if sim_points.size:
+            first, cls, ctri, _ = welded_pieces(soup.points, soup.triangles, self.mesh_of_point)
+            q = soup.points[first]
+            thick = shape_diameter(q, point_normals(q, ctri), q, ctri, device=device)[cls]
+            ramp = _smoothstep(np.where(np.isfinite(thick), thick, np.inf), prm.thin * ps.edge, prm.thick * ps.edge)
+            phi[sim_points] *= ramp[sim_points]
+            notes["thin_points"] = int((ramp[sim_points] < 1.0).sum())
+        k = max(r[1].shape[1] for r in rows)
+        idx = np.zeros((n, k), dtype=np.int64)
+        w = np.zeros((n, k))
+        for points, i, ww in rows:  # later rows replace earlier ones (a rigid piece's shared row)
+            idx[points] = 0
+            w[points] = 0.0
+            idx[points, :i.shape[1]] = i
+            w[points, :ww.shape[1]] = ww
+        cap = Capture(indices=idx, weights=w, physics_weight=phi, thickness=np.full(n, np.inf), confidence=confidence,
+                      group=group, notes=notes, wrap=wrap)
+        cap.physics_weight = cap.uniform_in_groups(cap.physics_weight)
         return cap
 
     def written(self, x, sim_skin: np.ndarray, clip, t: float, lbs: np.ndarray | None = None,
@@ -279,9 +519,11 @@ class Character:
             n = self.rig.output_count
             physical[:n] = np.asarray(sim_skin[:n], dtype=np.float64)
         physical, lbs_by = self.split(physical), self.split(lbs)
+        #: The last frame's physical result before the guard, ``{mesh name: [N, 3]}``.
+        self.last_physical = physical
         out = dict(physical)
         for name, guard in self.guards.items():
-            out[name] = guard.apply(physical[name], lbs_by[name])
+            out[name] = self.limits[name].apply(guard.apply(physical[name], lbs_by[name]), lbs_by[name])
         return out
 
     def painted(self) -> np.ndarray:
@@ -369,14 +611,14 @@ class Character:
         refining: 1)."""
         cap = self.capture_result
         out = np.zeros(vertex_count)
-        if not self.caged:
+        if not self.captured:
             n = self.rig.output_count
             out[:] = 1.0
             out[:n] = cap.physics_weight[:n]
             return out
         used = cap.weights > 0
         np.maximum.at(out, cap.indices[used], np.broadcast_to(cap.physics_weight[:, None], cap.weights.shape)[used])
-        return out
+        return out  # (a worn point rides on written points: those show through their own rows)
 
     def display_name(self, name: str) -> str:
         """The name a written mesh has in the output (the skin: its file's mesh name)."""
@@ -405,6 +647,32 @@ class Character:
     def split(self, points: np.ndarray) -> dict[str, np.ndarray]:
         """``{mesh name: its rows of points}``."""
         return {p.name: points[p.start:p.start + p.count] for p in self.parts}
+
+
+def _clearance(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, dist, share: float, edge: float,
+               device) -> np.ndarray:
+    """``[M]`` the clearance [m] worn ``points`` keep from the written surface of the simulated
+    pieces (``surface`` ``[N, 3]``, ``triangles``) at rest: ``share`` x their rest distance to it
+    (at most ``edge``), 0 (none) where a point lies behind it at rest (inside a simulated piece:
+    a hair cap through a bun). ``dist``: unused (the distance is measured here)."""
+    import warp as wp
+
+    from .kernels import deform as k
+
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(points=wp.array(np.asarray(surface, dtype=np.float32), dtype=wp.vec3),
+                       indices=wp.array(np.asarray(triangles, dtype=np.int32).ravel(), dtype=wp.int32))
+        far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([points, surface]), axis=0))) + 1.0
+        d = wp.zeros(len(points), dtype=wp.float32)
+        wp.launch(k.signed_distance_kernel, dim=len(points),
+                  inputs=[mesh.id, wp.array(np.asarray(points, dtype=np.float32), dtype=wp.vec3), far], outputs=[d])
+        d = d.numpy().astype(np.float64)
+    return np.where(d > 0.0, np.minimum(share * d, edge), 0.0)
+
+
+#: A worn point lies at most this share of the free space along its normal from the written
+#: surface it is wrapped on (:func:`~warpskin.kernels.deform.wrapped_point`).
+WRAP_SHARE = 0.5
 
 
 class _Deformer:
@@ -436,6 +704,27 @@ class _Deformer:
             bind[s:s + c] = pts
         self.mesh_count = len(parts)
         self.influences = k
+        # pieces that move as a whole: the best rigid motion of the simulated vertices that carry
+        # them (their capture rows summed), applied to their rest positions
+        grouped = np.nonzero(cap.group >= 0)[0]
+        self.groups = None
+        if grouped.size:
+            gid = np.unique(cap.group[grouped], return_inverse=True)[1].ravel()
+            ng = int(gid.max()) + 1
+            rows = cap.indices[grouped].ravel()
+            wts = (cap.weights[grouped] / np.maximum(cap.weights[grouped].sum(axis=1, keepdims=True), 1e-300)).ravel()
+            owner = np.repeat(gid, cap.indices.shape[1])
+            key = owner.astype(np.int64) * (sim.vertex_count + 1) + rows
+            uniq, inv = np.unique(key[wts > 0], return_inverse=True)
+            summed = np.bincount(inv.ravel(), weights=wts[wts > 0])
+            g_of, v_of = uniq // (sim.vertex_count + 1), uniq % (sim.vertex_count + 1)
+            totals = np.bincount(g_of, weights=summed, minlength=ng)
+            summed = summed / totals[g_of]
+            offsets = np.concatenate([[0], np.cumsum(np.bincount(g_of, minlength=ng))]).astype(np.int32)
+            centre = np.zeros((ng, 3))
+            np.add.at(centre, g_of, summed[:, None] * sim.vertices[v_of])
+            self.group_points = grouped
+            self.groups = (offsets, v_of.astype(np.int32), summed.astype(np.float32), centre, gid.astype(np.int32))
         ks = sim.joint_indices.shape[1]
         v = sim.vertex_count
         with wp.ScopedDevice(self.device):
@@ -444,7 +733,10 @@ class _Deformer:
             self.jw = wp.array(jw.ravel(), dtype=wp.float32)
             self.cap_count = cap.indices.shape[1]
             self.cap_i = wp.array(cap.indices.astype(np.int32).ravel(), dtype=wp.int32)
-            self.cap_w = wp.array(cap.weights.astype(np.float32).ravel(), dtype=wp.float32)
+            cap_w = cap.weights.astype(np.float32).copy()
+            if self.groups is not None:  # a grouped point's capture is its group's motion instead
+                cap_w[self.group_points] = 0.0
+            self.cap_w = wp.array(cap_w.ravel(), dtype=wp.float32)
             self.phi = wp.array(cap.physics_weight.astype(np.float32), dtype=wp.float32)
             self.sim_rest = wp.array(sim.vertices.astype(np.float32), dtype=wp.vec3)
             self.sim_count = ks
@@ -454,6 +746,42 @@ class _Deformer:
             self.sim_mats = wp.zeros(j, dtype=wp.mat44)
             self.sim_lbs = wp.zeros(v, dtype=wp.vec3)  # the surface's LBS where the caller has none
             self.out = wp.zeros(n, dtype=wp.vec3)
+            if self.groups is not None:
+                offsets, verts, wts, centre, gid = self.groups
+                self.group_arrays = (wp.array(offsets, dtype=wp.int32), wp.array(verts, dtype=wp.int32),
+                                     wp.array(wts, dtype=wp.float32), wp.array(centre.astype(np.float32), dtype=wp.vec3))
+                self.group_rotation = wp.zeros(len(offsets) - 1, dtype=wp.mat33)
+                self.group_translation = wp.zeros(len(offsets) - 1, dtype=wp.vec3)
+                self.group_apply = (wp.array(self.group_points.astype(np.int32), dtype=wp.int32),
+                                    wp.array(gid, dtype=wp.int32),
+                                    wp.array(character.soup.points[self.group_points].astype(np.float32), dtype=wp.vec3))
+            self.wrap = None
+            if cap.wrap is not None:  # worn pieces: the surface's vertex normals, then each point on them
+                points, corners, bary, coef, clearance, body = cap.wrap
+                self.wrap = (wp.array(points.astype(np.int32), dtype=wp.int32),
+                             wp.array(corners.astype(np.int32).ravel(), dtype=wp.int32),
+                             wp.array(bary.astype(np.float32), dtype=wp.vec3),
+                             wp.array(coef.astype(np.float32), dtype=wp.vec3))
+                # the written simulated pieces as they are (over the written points): their normals,
+                # the free space along them, and the push-out
+                self.body_triangles = wp.array(np.asarray(body, dtype=np.int32).ravel(), dtype=wp.int32)
+                self.body_normals = wp.zeros(n, dtype=wp.vec3)
+                self.body_mesh = wp.Mesh(points=self.out, indices=self.body_triangles)
+                # the room along each worn point's normal at rest, on the rest surface
+                from .kernels import deform as kd
+
+                rest_pts = wp.array(character.soup.points.astype(np.float32), dtype=wp.vec3)
+                rest_mesh = wp.Mesh(points=rest_pts, indices=self.body_triangles)
+                rest_normals = wp.zeros(n, dtype=wp.vec3)
+                wp.launch(kd.surface_normals_kernel, dim=self.body_triangles.shape[0] // 3,
+                          inputs=[rest_pts, self.body_triangles], outputs=[rest_normals])
+                self.room0 = wp.zeros(len(points), dtype=wp.float32)
+                wp.launch(kd.room_kernel, dim=len(points),
+                          inputs=[rest_pts, rest_normals, rest_mesh.id, WRAP_SHARE, self.wrap[1], self.wrap[2],
+                                  self.wrap[3]], outputs=[self.room0])
+                self.clearance = wp.array(np.asarray(clearance, dtype=np.float32), dtype=wp.float32)
+                self.far = 2.0 * float(np.linalg.norm(np.ptp(sim.vertices, axis=0))) + 1.0
+                self.max_push = float(character.pieces.edge)  # one edge of the simulated surface
         self.sim_vertex_count = v
         self._cmds: dict = {}
 
@@ -500,7 +828,37 @@ class _Deformer:
             cmds.append(wp.launch(k.deform_from_targets_kernel, dim=self.out.shape[0],
                                   inputs=[*common, x, self.sim_lbs if surface_lbs is None else surface_lbs],
                                   outputs=[self.out], device=self.device, record_cmd=True))
-            hit = self._cmds[key] = (x, surface_lbs, tuple(cmds))  # holds the arrays: their ids stay theirs
+            if self.groups is not None:
+                offsets, verts, wts, centre = self.group_arrays
+                cmds.append(wp.launch(k.group_fit_kernel, dim=offsets.shape[0] - 1,
+                                      inputs=[x, self.sim_rest, offsets, verts, wts, centre],
+                                      outputs=[self.group_rotation, self.group_translation], device=self.device,
+                                      record_cmd=True))
+                cmds.append(wp.launch(k.group_apply_kernel, dim=self.group_apply[0].shape[0],
+                                      inputs=[*self.group_apply, self.group_rotation, self.group_translation, self.phi],
+                                      outputs=[self.out], device=self.device, record_cmd=True))
+            if self.wrap is not None:
+                n = self.out.shape[0]
+                after = (  # once the written pieces are in out (and the mesh over them refitted)
+                    wp.launch(k.zero_vec3_kernel, dim=n, outputs=[self.body_normals], device=self.device,
+                              record_cmd=True),
+                    wp.launch(k.surface_normals_kernel, dim=self.body_triangles.shape[0] // 3,
+                              inputs=[self.out, self.body_triangles], outputs=[self.body_normals], device=self.device,
+                              record_cmd=True),
+                    wp.launch(k.wrap_kernel, dim=self.wrap[0].shape[0],
+                              inputs=[self.out, self.body_normals, self.body_mesh.id, WRAP_SHARE, *self.wrap, self.room0,
+                                      self.phi],
+                              outputs=[self.out], device=self.device, record_cmd=True),
+                    wp.launch(k.push_out_kernel, dim=self.wrap[0].shape[0],
+                              inputs=[self.body_mesh.id, self.wrap[0], self.clearance, self.far, self.max_push],
+                              outputs=[self.out], device=self.device, record_cmd=True))
+            else:
+                after = ()
+            hit = self._cmds[key] = (x, surface_lbs, tuple(cmds), after)  # holds the arrays: their ids stay theirs
         for cmd in hit[2]:
             cmd.launch()
+        if hit[3]:  # the worn points, on the written pieces as they are now
+            self.body_mesh.refit()
+            for cmd in hit[3]:
+                cmd.launch()
         return self.out

@@ -286,21 +286,37 @@ def cmd_simulate(args) -> int:
     s = result.summary
     if args.json:
         return _print_json({"path": str(result.path), **s})
+    delivered = s.get("delivered", {})
+    worst = max(delivered.values(), key=lambda d: d["volume"]) if delivered else None
     line = (
         f"wrote {result.path} ({s['frames']} frames, {s['particles']} particles, {s['substeps_per_frame']} substeps "
-        f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']}); "
-        f"largest volume deviation after the first frame: warpskin {100 * s['max_volume_deviation']:.2f} %, "
-        f"LBS {100 * s['max_volume_deviation_lbs']:.2f} %"
+        f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']})"
     )
+    if worst is not None:
+        line += (f"; largest volume change of what is written after the first frame: warpskin "
+                 f"{100 * worst['volume']:.2f} %, LBS {100 * worst['volume_lbs']:.2f} %")
     print(line)
-    # what was written: each mesh's worst frame against its own LBS
+    # what was written: each mesh's worst frame against its own LBS, and what the physics delivered
     for name, r in s["written"].items():
-        pairs = f", pairs {r['max_pairs']} (LBS {r['max_pairs_lbs']})" if "max_pairs" in r else ""
-        held = f", held by the guard {100 * r['max_held']:.1f} %" if r.get("max_held") else ""
+        d = delivered.get(name, {})
+        pairs = (f", pairs beyond the rest pose's {r['max_pairs_new']} (LBS {r['max_pairs_new_lbs']})"
+                 if "max_pairs_new" in r else "")
+        held = f", held by the guard {100 * d['held']:.1f} % (worst frame {100 * d['held_max']:.1f} %)" if d else ""
         held += f", copies of a point apart {1e3 * r['max_split']:.2f} mm" if r.get("max_split") else ""
-        print(f"  {name}: edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
-              f"flipped {100 * r['max_flipped']:.2f} %{pairs}, offset {r['max_offset']:.3g} m, physics weight "
-              f"{s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}{held}")
+        motion = (f", secondary motion {100 * d['secondary_motion']:.1f} % of the animation's, largest jump "
+                  f"{100 * d['chatter']:.2f} % of the height, volume {100 * d['volume']:.2f} % (LBS "
+                  f"{100 * d['volume_lbs']:.2f} %)" if d else "")
+        rigid = (f", rigid pieces within {1e3 * d['rigid_rms_m']:.2f} mm RMS" if d.get("rigid_pieces") else "")
+        print(f"  {name}: physics weight {s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}{held}{motion}"
+              f"{pairs}, edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
+              f"flipped {100 * r['max_flipped']:.2f} %, offset {r['max_offset']:.3g} m{rigid}")
+    surface = s.get("surface", {})
+    kind = {"skin": "the skin itself", "pieces": f"its own pieces ({len(surface.get('simulated', []))} simulated, "
+            f"{len(surface.get('attached', []))} carried or worn)", "cage": "an automatic cage"}.get(surface.get("kind"), "")
+    if surface.get("kind") == "cage" and s.get("cage", {}) and s["cage"].get("source") != "automatic":
+        kind = f"the cage {s['cage']['source']}"
+    print(f"simulated surface, {kind}: volume after the first frame {100 * s['max_volume_deviation']:.2f} % "
+          f"(LBS {100 * s['max_volume_deviation_lbs']:.2f} %)")
     if "max_intersecting_pairs" in s:
         print(f"intersecting pairs of the simulated surface (exact check, worst frame): warpskin {s['max_intersecting_pairs']}, "
               f"LBS {s['max_intersecting_pairs_lbs']}")
@@ -464,7 +480,7 @@ def cmd_render(args) -> int:
     from .render import render_bake
 
     render_bake(args.bake, args.output, frames=args.frames, extra=args.extra, close_up=not args.no_close_up,
-                resolution=args.resolution, python=args.python, progress=not args.quiet)
+                resolution=args.resolution, python=args.python, progress=not args.quiet, yaw=args.yaw)
     return 0
 
 
@@ -610,7 +626,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("render", help="pictures of a bake in Blender: the physical result beside LBS, at its worst frame")
     opt(s, RenderOptions, "bake")
     opt(s, RenderOptions, "output", required=True)
-    for name in ("frames", "extra", "no_close_up", "resolution", "python", "quiet"):
+    for name in ("frames", "extra", "no_close_up", "resolution", "yaw", "python", "quiet"):
         opt(s, RenderOptions, name)
     s.set_defaults(func=cmd_render)
 

@@ -57,9 +57,9 @@ def _measured(subs) -> np.ndarray:
 
 
 def _vertex(rig, k: int) -> str:
-    """``"file vertex N"`` (the file's number) or ``"cage vertex N"``, for messages."""
-    n = int(rig.file_vertex_ids([k])[0]) if rig.vertex_kind == "file" else int(k)
-    return f"{rig.vertex_kind} vertex {n}"
+    """``"file vertex N"`` (the file's number), ``"cage vertex N"`` or a piece's vertex
+    (:meth:`~warpskin.rig.Rig.vertex_label`), for messages."""
+    return rig.vertex_label(k)
 
 
 class _Measurements:
@@ -176,9 +176,11 @@ class _Measurements:
                     f"{100 * err_lbs:.1f} %, max_volume_error {100 * p.max_volume_error:g} %)")
         if "subvolume" in e:
             rest = b.subvolumes.rest_volume
-            err_s = np.abs(e["subvolume"] / rest - 1.0)
-            err_s_lbs = np.abs(e["subvolume_lbs"] / rest - 1.0)
-            over = (err_s > np.maximum(p.max_volume_error, 2.0 * err_s_lbs)) & _measured(b.subvolumes)
+            ok = _measured(b.subvolumes)  # (a sub-volume that encloses almost none is held, not measured)
+            safe = np.where(ok, rest, 1.0)
+            err_s = np.where(ok, np.abs(e["subvolume"] / safe - 1.0), 0.0)
+            err_s_lbs = np.where(ok, np.abs(e["subvolume_lbs"] / safe - 1.0), 0.0)
+            over = (err_s > np.maximum(p.max_volume_error, 2.0 * err_s_lbs)) & ok
             if over.any():
                 k = int(np.argmax(np.where(over, err_s, -1.0)))
                 return (f"frame {f}: the skin left its plausible range: sub-volume {b.subvolumes.names[k]!r} is off by "
@@ -243,7 +245,15 @@ class _WrittenQuality:
         self.names = {p.name: (skin_prim if p.name == "skin" else _prim_name(p.name)) for p in character.parts}
         self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
+        self.limits = {self.names[name]: lim for name, lim in character.limits.items()}
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
+        from ..delivery import DeliveryLog
+
+        self.character = character
+        #: what the physics delivered to each written mesh (:mod:`warpskin.delivery`)
+        self.delivery = DeliveryLog({m.name: m for m in self.meshes}, float(np.ptp(character.soup.points, axis=0).max()),
+                                    weights={self.names[p.name]: character.soup.dense_weights[p.start:p.start + p.count]
+                                             for p in character.parts if p.physics})
         self.capped: list[float] = []
         self._capped_since: float | None = None  # clip time the share went above max_capped
         self.measures = measures  # one warning per run, shared with the simulated surface's checks
@@ -255,10 +265,15 @@ class _WrittenQuality:
     def check(self, i: int, written: dict, lbs: dict) -> None:
         f = self.plan.frames[i]
         guards = self.guards
+        physical = getattr(self.character, "last_physical", None) or {}
+        self.delivery.measure({self.names[k]: v for k, v in written.items() if self.names[k] in self.delivery.meshes},
+                              {self.names[k]: v for k, v in lbs.items() if self.names[k] in self.delivery.meshes},
+                              {self.names[k]: v for k, v in physical.items() if self.names[k] in self.delivery.meshes})
         problem = self.log.measure(f, {self.names[k]: v for k, v in written.items()},
                                    {self.names[k]: v for k, v in lbs.items()},
-                                   pairs={k: g.pair_counts for k, g in guards.items() if g.pair_counts is not None},
-                                   extra={k: {"guarded": g.guarded, "held": g.held, "guard_fallbacks": g.fallbacks}
+                                   pairs={k: g.pair_keys for k, g in guards.items() if g.pair_keys is not None},
+                                   extra={k: {"guarded": g.guarded, "held": g.held, "guard_fallbacks": g.fallbacks,
+                                              "jump_limited": self.limits[k].limited}
                                           for k, g in guards.items()})
         if self.cap is not None:
             st = self.stepper
@@ -291,6 +306,20 @@ class _WrittenQuality:
             self.measures.warned = True
 
 
+def _surface_summary(character) -> dict:
+    """What was simulated: ``kind`` (``skin``, ``pieces`` or ``cage``) and, for the character's
+    own pieces, which were simulated and which attached, the holes capped and the pairs of
+    pieces kept from colliding."""
+    out = {"kind": character.surface, "vertices": int(character.sim_rig.vertex_count)}
+    ps = character.pieces
+    if ps is not None:
+        n = ps.notes
+        out.update({"pieces": int(ps.piece_count), "simulated": list(n["simulated"]), "attached": list(n["attached"]),
+                    "capped_holes": int(n["capped_loops"]), "cap_vertices": int(ps.cap.sum()),
+                    "apart": [list(p) for p in n["excluded_pairs"]], "edge_m": float(ps.edge)})
+    return out
+
+
 def _meshes_to_write(character, builder, render, with_lbs: bool, with_layers: bool) -> list:
     """``[(name, triangles, rest points, writer kwargs)]`` of a simulation's output: the skin
     (carrying its distance from LBS per vertex and frame, for a DCC to colour it by) and, with
@@ -300,7 +329,7 @@ def _meshes_to_write(character, builder, render, with_lbs: bool, with_layers: bo
     sim = builder.rig
     tris = sim.output_triangles
     n_out = sim.output_count
-    if not character.caged:
+    if not character.captured:
         meshes = [("skin", tris, sim.vertices[:n_out], {"color": _SKIN_COLOR, "animated_primvars": ("deviationFromLbs",)})]
         if with_lbs:
             meshes.append(("lbs", tris, sim.vertices[:n_out], {"color": _LBS_COLOR, "purpose": "guide"}))
@@ -314,8 +343,12 @@ def _meshes_to_write(character, builder, render, with_lbs: bool, with_layers: bo
         meshes += others
         if with_lbs:  # each mesh's own LBS beside it, as for the skin
             meshes += [(f"{name}_lbs", t, p, {"color": _LBS_COLOR, "purpose": "guide"}) for name, t, p, _ in others]
-        meshes.append(("cage", sim.output_triangles, character.cage_surface.vertices,
-                       {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
+        if character.caged:
+            meshes.append(("cage", sim.output_triangles, character.cage_surface.vertices,
+                           {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
+        elif with_layers:  # the character's own pieces as simulated, caps included (a guide)
+            meshes.append(("surface", sim.triangles, character.pieces.vertices,
+                           {"color": (0.6, 0.6, 0.6), "purpose": "guide", "as_is": True}))
     if with_layers:
         for k in range(1, 4):
             meshes.append((f"layer_{LAYER_NAMES[k]}", sim.triangles, builder.layers.positions[k],
@@ -441,6 +474,7 @@ def simulate(
     character = Character(rig, cage="none" if builder is not None else (cage_file or cage), rigid_pieces=rigid_pieces,
                           weights=weights or None, device=device, guard=guard)
     caged = character if character.caged else None
+    captured = character if character.captured else None
     rig = character.sim_rig
     builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
     if prepare is not None:
@@ -457,7 +491,7 @@ def simulate(
                              activation=activation, label="simulate", name=scene.name)
     measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
     sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
-    output = CharacterOutput(sim, topology, clip) if caged is None else CharacterOutput(render, topology)
+    output = CharacterOutput(sim, topology, clip) if captured is None else CharacterOutput(render, topology)
     quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures, output.skin_prim)
     meshes = _meshes_to_write(character, builder, render, with_lbs, with_layers)
     guided = []  # the meshes the overlay moves, each written without it beside it as a guide
@@ -499,10 +533,12 @@ def simulate(
                 written = {k: v + offsets[k] for k, v in written.items()}
             lbs_by = character.split(lbs_all)
             quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
-            out = dict(written) if caged is not None else {"skin": written["skin"]}
+            out = dict(written) if captured is not None else {"skin": written["skin"]}
             lbs = lbs_by["skin"]
             if caged is not None:
                 out["cage"] = pts["skin"][: sim.output_count]
+            elif captured is not None and with_layers:
+                out["surface"] = pts["skin"][: character.pieces.vertex_count]
             deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
             render_deviation[:] = np.maximum(render_deviation, deviation)
             out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
@@ -510,7 +546,7 @@ def simulate(
                 out["normal" if p.name == "skin" else f"{p.name}_normal"] = normal[p.name]
             if with_lbs:
                 out["lbs"] = lbs
-                if caged is not None:
+                if captured is not None:
                     for name in lbs_by:
                         if name != "skin":
                             out[f"{name}_lbs"] = lbs_by[name]
@@ -537,6 +573,7 @@ def simulate(
         "vertices": model.vertex_count,
         "topology": topology,
         "file_vertices_written": render.file_vertex_count if topology == "file" else render.output_count,
+        "surface": _surface_summary(character),
         "cage": None if caged is None else {
             "vertices": int(caged.sim_rig.vertex_count), "edge_m": caged.cage_surface.edge, "build_s": caged.build_s,
             "weights_matched": float(caged.matched.mean()), "captured_points": int(caged.point_count),
@@ -547,6 +584,7 @@ def simulate(
         "physics_weight": character.weight_summary(),
         "written": quality.log.summary(),
         "written_worst": quality.log.worst(),
+        "delivered": quality.delivery.summary(),
         "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
         "refined_vertices_added": model.vertex_count - sim.output_count,
         "frames": len(written),
