@@ -1,6 +1,8 @@
 """Open, multi-piece test characters with shoes and fists, made by the tests from what they
 have (nothing is written to the repo):
 
+* :func:`dancer_file`: the shipped production-style dancer written as a glTF file with a scaled
+  root (one mesh of open, overlapping pieces: what a motion-capture library hands over);
 * :func:`mannequin_file`: the shipped procedural mannequin written as a glTF file, so it goes
   through the importer as a user's file does (its shoes and fists other skinned meshes);
 * :func:`cut_cesium_man`: CesiumMan cut into open pieces along its joints (every triangle on
@@ -17,6 +19,17 @@ from pathlib import Path
 import numpy as np
 
 from gltf_builder import write_rig_glb
+
+
+def dancer_file(tmp_path: Path, root_scale: float | None = 0.1, **params) -> Path:
+    """The procedural dancer (:mod:`warpskin.scenes.dancer`: one skinned mesh of open and
+    overlapping pieces, clothes, hair, eyes) as ``dancer.glb``, its skeleton under a root node
+    scaled by ``root_scale`` (the character stands 0.18 m tall in its file at 0.1), as a
+    motion-capture library exports one."""
+    from warpskin.scenes.dancer import make_dancer
+
+    rig = make_dancer(**params)
+    return write_rig_glb(rig, Path(tmp_path) / "dancer.glb", root_scale=root_scale)
 
 
 def mannequin_file(tmp_path: Path, **params) -> Path:

@@ -124,22 +124,31 @@ def _top4(ji: np.ndarray, jw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return i, w / w.sum(axis=1, keepdims=True)
 
 
-def write_rig_glb(rig, path: Path, *, painted: dict[str, np.ndarray] | None = None) -> Path:
+def write_rig_glb(rig, path: Path, *, painted: dict[str, np.ndarray] | None = None, root_scale: float | None = None) -> Path:
     """Write ``rig`` as a binary glTF: one node per joint (rest TRS, the skeleton's hierarchy),
     one skin with the rig's inverse binds, the skin mesh (the rig's file vertices and triangles)
     and every attachment (skinned, bound with the same inverse binds) as meshes of their own
     named after them, and every clip as an animation. ``painted``: ``{mesh name: [N]}`` physics
-    weights written as the custom attribute ``_PHYSICS_WEIGHT``."""
+    weights written as the custom attribute ``_PHYSICS_WEIGHT``. ``root_scale``: the skeleton
+    under an ``Armature`` node of that uniform scale, as motion-capture libraries export a
+    character authored in other units (the file's points and joints unchanged: the character
+    stands ``root_scale`` times its size)."""
     b = GltfBuilder()
     skel = rig.skeleton
     j = skel.joint_count
     for k in range(j):
         b.node(name=skel.joint_names[k], translation=skel.rest_translation[k].tolist(),
                rotation=skel.rest_rotation[k].tolist(), scale=skel.rest_scale[k].tolist(), children=[])
+    armature = None
+    if root_scale is not None:
+        armature = b.node(name="Armature", scale=[float(root_scale)] * 3, children=[])
+        b.g.scenes[0].nodes.append(armature)
     for k in range(j):
         p = int(skel.parents[k])
         if p >= 0:
             b.g.nodes[p].children.append(k)
+        elif armature is not None:
+            b.g.nodes[armature].children.append(k)
         else:
             b.g.scenes[0].nodes.append(k)
     ibm = b.accessor(np.asarray(rig.inverse_bind, dtype=np.float64).transpose(0, 2, 1).reshape(j, 16))

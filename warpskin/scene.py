@@ -61,6 +61,7 @@ GENERATORS = {
     "arm": "warpskin.scenes.arm:make_arm",
     "popping_arm": "warpskin.scenes.popping_arm:make_popping_arm",
     "mannequin": "warpskin.scenes.mannequin:make_mannequin",
+    "dancer": "warpskin.scenes.dancer:make_dancer",
 }
 
 def _frames_arg(text: str) -> tuple[int, int]:
