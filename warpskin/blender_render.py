@@ -11,14 +11,15 @@ Usage (what :func:`warpskin.render.render_bake` runs)::
      "views": [{"frame": 12, "out": "walk_12.png", "captions": ["warpskin ...", "LBS ..."],
                 "focus": ["/mannequin/shoe_l"] or null, "focus_points": [vertex, ...] or null}],
      "physical": ["/mannequin/body", ...], "lbs": ["/mannequin/lbs", ...],
-     "resolution": [960, 720], "title": "..."}
+     "resolution": [960, 720], "title": "...", "yaw": 20}
 
 Every view renders the bake at one frame twice with the same orthographic camera, once with
 the physical meshes and once with their LBS guides, with Blender's Workbench engine (no GPU
 needed), and writes the two side by side into one PNG, each captioned. The camera frames the
 physical meshes (or those named in ``focus``; with ``focus_points``, those vertices of the
 first of them, with a margin) from the front, a little from the side; the bake
-is imported with its guides (``import_guide=True``), as a reviewer would.
+is imported with its guides (``import_guide=True``), as a reviewer would; ``yaw`` turns the
+camera about the vertical (180: from behind).
 """
 
 import json
@@ -131,7 +132,7 @@ def main(job_path: str) -> None:
             pad = 0.25 * float(np.linalg.norm(hi - lo)) + 1e-3 * float(np.linalg.norm(np.ptp(
                 np.concatenate([_world_points(o, graph) for o in physical]), axis=0)))
             lo, hi = lo - pad, hi + pad
-        cam = _camera(scene, lo, hi, aspect)
+        cam = _camera(scene, lo, hi, aspect, float(job.get("yaw", 20.0)))
         panels = []
         for k, (shown, hidden) in enumerate(((physical, lbs), (lbs, physical))):
             for o in shown:

@@ -248,6 +248,8 @@ class RenderOptions:
     no_close_up: bool = setting(False, "bool", "leave out the close-up of the worst mesh", cli="--no-close-up")
     resolution: tuple = setting((800, 900), "integers", "size of each panel in pixels (default 800x900)", length=2,
                                 low=16, high=8192, cli="--resolution", metavar="WxH", parse=resolution_arg)
+    yaw: float = setting(20.0, "number", "the camera's turn about the vertical from the front (180: from behind)",
+                         unit="degrees", low=-360.0, high=360.0, must="in [-360, 360]", cli="--yaw")
     python: str | None = setting(None, "string", "a Python with Blender's bpy (default: $WARPSKIN_BPY_PYTHON or "
                                  ".venv-bpy/bin/python)", optional=True, cli="--python", metavar="EXE")
     quiet: bool = setting(False, "bool", "do not list the pictures written", cli="--quiet")

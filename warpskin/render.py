@@ -151,11 +151,13 @@ def _pct(x: float) -> str:
 
 
 def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int = 2, close_up: bool = True,
-                resolution: tuple[int, int] = (800, 900), python: str | None = None, progress: bool = True) -> list[Path]:
+                resolution: tuple[int, int] = (800, 900), python: str | None = None, progress: bool = True,
+                yaw: float = 20.0) -> list[Path]:
     """Render ``bake`` (a USD file written with ``--lbs``) into PNGs in ``out_dir``: the worst
     frame and ``extra`` others (or exactly ``frames``, time codes), the physical meshes beside
-    their LBS, captioned; with ``close_up``, also the worst frame framed on its worst mesh.
-    Returns the PNG paths.
+    their LBS, captioned; with ``close_up``, also the worst frame framed on its worst mesh. The
+    camera looks at the character's front turned by ``yaw`` degrees about the vertical (180:
+    from behind). Returns the PNG paths.
 
     Raises:
         InputError: the bake does not exist, has no mesh with an LBS guide, a frame is not one
@@ -205,7 +207,7 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
                       "captions": _captions(stem, times[worst], worst, {name: series[name]}, True, close=name),
                       "focus": [pair.physical], "focus_points": _where_worst(stage, pair, times[worst])})
     job = {"bake": str(bake.resolve()), "views": views, "physical": [p.physical for p in pairs],
-           "lbs": [p.lbs for p in pairs], "resolution": list(resolution)}
+           "lbs": [p.lbs for p in pairs], "resolution": list(resolution), "yaw": float(yaw)}
     script = Path(__file__).with_name("blender_render.py")
     with tempfile.TemporaryDirectory(prefix="warpskin-render-") as tmp:
         job_path = Path(tmp) / "job.json"
