@@ -19,8 +19,9 @@ argument is one-dimensional (Warp's contiguous CPU path). One thread per point, 
 
 A piece that moves as a whole (an eye carried by its socket, a fist, a hair bun rigid in the
 file) moves by the best rigid motion of the simulated vertices that carry it
-(:func:`group_fit_kernel`: weighted Kabsch, the polar factor of their covariance; then
-:func:`group_apply_kernel`): it keeps its shape and turns with what holds it.
+away from their LBS (:func:`group_fit_kernel`: weighted Kabsch, the polar factor of their
+covariance; then :func:`group_apply_kernel`, the share ``phi`` of it on the piece's LBS): it
+keeps the shape its LBS gives it and turns with what holds it.
 
 A piece worn over the simulated pieces (a garment, a hair cap) is *wrapped* instead
 (:func:`wrap_kernel`): each of its points rides on its closest point at rest of the written
@@ -356,48 +357,56 @@ def signed_distance_kernel(
 @wp.kernel
 def group_fit_kernel(
     x: wp.array(dtype=wp.vec3),
-    rest: wp.array(dtype=wp.vec3),
+    lbs: wp.array(dtype=wp.vec3),
     offsets: wp.array(dtype=wp.int32),
     vertices: wp.array(dtype=wp.int32),
     weights: wp.array(dtype=wp.float32),
-    rest_centre: wp.array(dtype=wp.vec3),
     # outputs
-    rotation: wp.array(dtype=wp.mat33),
-    translation: wp.array(dtype=wp.vec3),
+    rotation: wp.array(dtype=wp.quat),
+    centre_lbs: wp.array(dtype=wp.vec3),
+    centre: wp.array(dtype=wp.vec3),
 ):
-    """Group ``g``'s rigid motion from rest: its simulated vertices ``vertices[offsets[g] ..
-    offsets[g + 1]]`` with ``weights`` (summing to one) at ``x`` against their ``rest``;
-    ``R`` the polar factor of ``sum w (x - c)(X - c0)^T``, ``t = c - R c0``."""
+    """Group ``g``'s rigid motion away from its LBS: its simulated vertices ``vertices[offsets[g]
+    .. offsets[g + 1]]`` with ``weights`` (summing to one) at ``x`` against their ``lbs`` (the
+    surface's LBS this frame): ``centre`` and ``centre_lbs`` their weighted centres, ``rotation``
+    the polar factor of ``sum w (x - c)(l - c_l)^T`` (weighted Kabsch)."""
     g = wp.tid()
     c = wp.vec3(0.0)
+    cl = wp.vec3(0.0)
     for k in range(offsets[g], offsets[g + 1]):
         c += weights[k] * x[vertices[k]]
-    c0 = rest_centre[g]
+        cl += weights[k] * lbs[vertices[k]]
     a = wp.mat33(0.0)
     for k in range(offsets[g], offsets[g + 1]):
         j = vertices[k]
-        a += weights[k] * wp.outer(x[j] - c, rest[j] - c0)
-    r = wp.quat_to_matrix(polar_rotation_svd(a))
-    rotation[g] = r
-    translation[g] = c - r * c0
+        a += weights[k] * wp.outer(x[j] - c, lbs[j] - cl)
+    rotation[g] = polar_rotation_svd(a)
+    centre_lbs[g] = cl
+    centre[g] = c
 
 
 @wp.kernel
 def group_apply_kernel(
     points: wp.array(dtype=wp.int32),
     group: wp.array(dtype=wp.int32),
-    rest_points: wp.array(dtype=wp.vec3),
-    rotation: wp.array(dtype=wp.mat33),
-    translation: wp.array(dtype=wp.vec3),
+    rotation: wp.array(dtype=wp.quat),
+    centre_lbs: wp.array(dtype=wp.vec3),
+    centre: wp.array(dtype=wp.vec3),
     physics_weight: wp.array(dtype=wp.float32),
     # output
     out: wp.array(dtype=wp.vec3),
 ):
-    """Grouped point ``k`` (written point ``points[k]``, whose ``out`` holds its LBS): ``out =
-    LBS + phi (R P + t - LBS)`` with its group's motion and its rest position ``P``."""
+    """Grouped point ``k`` (written point ``points[k]``, whose ``out`` holds its LBS ``l``):
+    ``out = R_phi (l - c_l) + c_l + phi (c - c_l)``, ``R_phi`` the share ``phi`` of its group's
+    rotation (slerp from the identity). A piece that LBS moves rigidly stays rigid for every
+    ``phi`` in [0, 1]: ``phi = 0`` is its LBS, ``phi = 1`` the whole fitted motion."""
     k = wp.tid()
     i = points[k]
     g = group[k]
-    w = rotation[g] * rest_points[k] + translation[g]
-    lb = out[i]
-    out[i] = lb + physics_weight[i] * (w - lb)
+    phi = physics_weight[i]
+    q = rotation[g]
+    if q[3] < 0.0:  # the same rotation on the short arc from the identity
+        q = -q
+    r = wp.quat_slerp(wp.quat_identity(), q, phi)
+    cl = centre_lbs[g]
+    out[i] = wp.quat_rotate(r, out[i] - cl) + cl + phi * (centre[g] - cl)

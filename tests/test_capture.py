@@ -5,6 +5,7 @@ keeps apart what is apart (warpskin.preprocess.cage): against closed forms and N
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 import pytest
 import scipy.sparse as sp
 import trimesh
@@ -168,7 +169,23 @@ def test_the_deformation_kernel_is_lbs_plus_the_weighted_captured_displacement(d
     x = cage_lbs + rng.normal(scale=0.01, size=cage_lbs.shape)
     got = ch.points(wp.array(x.astype(np.float32), dtype=wp.vec3, device=device), None, clip, t)
     d = x - cage_lbs
-    want = ch.lbs(clip, t) + cap.physics_weight[:, None] * np.einsum("nk,nkc->nc", cap.weights, d[cap.indices])
+    own = ch.lbs(clip, t)
+    phi = cap.physics_weight.astype(np.float32).astype(np.float64)
+    want = own + phi[:, None] * np.einsum("nk,nkc->nc", cap.weights, d[cap.indices])
+    # a block LBS moves rigidly is one group: the share phi of the rigid motion (weighted Kabsch,
+    # against the cage's LBS) of the cage vertices that carry it, on top of its own LBS
+    deformer = ch._deformer
+    assert deformer.groups is not None
+    offsets, verts, wts, gid = deformer.groups
+    for g in range(len(offsets) - 1):
+        v, w = verts[offsets[g]:offsets[g + 1]], wts[offsets[g]:offsets[g + 1]].astype(np.float64)
+        c, cl = w @ x[v], w @ cage_lbs[v]
+        u, _, vt = np.linalg.svd(((x[v] - c) * w[:, None]).T @ (cage_lbs[v] - cl))
+        r = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        pts = deformer.group_points[gid == g]
+        for i in pts:
+            turn = Rotation.from_rotvec(Rotation.from_matrix(r).as_rotvec() * phi[i]).as_matrix()
+            want[i] = turn @ (own[i] - cl) + cl + phi[i] * (c - cl)
     np.testing.assert_allclose(got, want, atol=5e-6)
 
 

@@ -116,6 +116,25 @@ def test_jump_limit_cuts_a_jump_to_the_limit_and_leaves_the_rest():
     assert off.apply(big, lbs) is big
 
 
+def test_jump_limit_leaves_a_rigid_group_whole():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    lbs = rng.normal(size=(20, 3))
+    groups = np.full(20, -1)
+    groups[10:] = 0  # a piece written by one rigid motion
+    limit = JumpLimit(height=2.0, params=GuardParams(max_jump=0.01), groups=groups)
+    limit.apply(lbs + 0.0, lbs)
+    moved = lbs.copy()
+    moved[:10, 1] += 0.1  # free points jump 10 cm: cut
+    centre = lbs[10:].mean(axis=0)  # the group turns 20 degrees and moves 10 cm: kept rigid
+    moved[10:] = (lbs[10:] - centre) @ Rotation.from_euler("z", 20, degrees=True).as_matrix().T + centre + 0.1
+    out = limit.apply(moved, lbs)
+    assert np.isclose(limit.limited, 0.5)
+    assert np.allclose(np.linalg.norm(out[:10] - lbs[:10], axis=1), 0.02, rtol=1e-5)
+    assert np.allclose(out[10:], moved[10:], atol=1e-6)
+
+
 def test_wrap_follows_a_rigid_motion_and_keeps_within_the_free_space(device):
     from warpskin.capture import wrap_points
     from warpskin.kernels import deform as k

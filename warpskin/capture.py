@@ -21,8 +21,8 @@ mesh's own connectivity and skinning:
 3. **Pieces that move as a whole**: a piece, or an assembly of pieces of one mesh that touch
    (a fist's knuckles on its palm), smaller than ``small`` cage edges (a button, a toe cap, a
    fist) and a piece LBS moves rigidly (an eye, rigidly parented armour) take one
-   capture row, the mean of their points': they move by one translation on top of their LBS,
-   so they never crumple.
+   capture row, the mean of their points': they move by one rigid motion on top of their LBS
+   (the best fit of the simulated vertices that carry them), so they never crumple.
 4. The ``count`` largest weights of each point are kept and renormalised.
 
 The **physics weight** ``phi`` in [0, 1] blends LBS (0) and the physical result (1). It is 0
@@ -107,7 +107,7 @@ class Capture:
 
     def uniform_in_groups(self, phi: np.ndarray) -> np.ndarray:
         """``phi`` with every group's points at the group's mean (so the group still moves by
-        one translation)."""
+        one rigid motion)."""
         phi = np.asarray(phi, dtype=np.float64).copy()
         sel = self.group >= 0
         if sel.any():

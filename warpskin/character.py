@@ -107,7 +107,7 @@ class Character:
             where at least :data:`MIN_SIMULATED_SHARE` of its points lie on pieces that can be;
             else a cage), ``"always"`` (a cage), ``"none"`` (never a cage: the skin, or its
             own pieces), or a cage mesh file.
-        rigid_pieces: Through a cage, the pieces that LBS moves rigidly move by one translation
+        rigid_pieces: Through a cage, the pieces that LBS moves rigidly move by one rigid motion
             with the cage around them (``"cage"``) or follow their joints exactly
             (``"joint"``).
         capture: :class:`~warpskin.capture.CaptureParams`.
@@ -345,7 +345,8 @@ class Character:
         # physics keeps the surface
         height = float(np.ptp(self.soup.points, axis=0).max())
         #: Per mesh written with physics, its :class:`~warpskin.guard.JumpLimit` (after its guard).
-        self.limits = {p.name: JumpLimit(height, params) for p in self.parts if p.physics}
+        self.limits = {p.name: JumpLimit(height, params, cap.group[p.start:p.start + p.count])
+                       for p in self.parts if p.physics}
         self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
                                             ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
                                             direct=not self.caged,
@@ -704,8 +705,8 @@ class _Deformer:
             bind[s:s + c] = pts
         self.mesh_count = len(parts)
         self.influences = k
-        # pieces that move as a whole: the best rigid motion of the simulated vertices that carry
-        # them (their capture rows summed), applied to their rest positions
+        # pieces that move as a whole: the best rigid motion, away from their LBS, of the
+        # simulated vertices that carry them (their capture rows summed), the share phi of it
         grouped = np.nonzero(cap.group >= 0)[0]
         self.groups = None
         if grouped.size:
@@ -721,10 +722,8 @@ class _Deformer:
             totals = np.bincount(g_of, weights=summed, minlength=ng)
             summed = summed / totals[g_of]
             offsets = np.concatenate([[0], np.cumsum(np.bincount(g_of, minlength=ng))]).astype(np.int32)
-            centre = np.zeros((ng, 3))
-            np.add.at(centre, g_of, summed[:, None] * sim.vertices[v_of])
             self.group_points = grouped
-            self.groups = (offsets, v_of.astype(np.int32), summed.astype(np.float32), centre, gid.astype(np.int32))
+            self.groups = (offsets, v_of.astype(np.int32), summed.astype(np.float32), gid.astype(np.int32))
         ks = sim.joint_indices.shape[1]
         v = sim.vertex_count
         with wp.ScopedDevice(self.device):
@@ -747,14 +746,14 @@ class _Deformer:
             self.sim_lbs = wp.zeros(v, dtype=wp.vec3)  # the surface's LBS where the caller has none
             self.out = wp.zeros(n, dtype=wp.vec3)
             if self.groups is not None:
-                offsets, verts, wts, centre, gid = self.groups
+                offsets, verts, wts, gid = self.groups
                 self.group_arrays = (wp.array(offsets, dtype=wp.int32), wp.array(verts, dtype=wp.int32),
-                                     wp.array(wts, dtype=wp.float32), wp.array(centre.astype(np.float32), dtype=wp.vec3))
-                self.group_rotation = wp.zeros(len(offsets) - 1, dtype=wp.mat33)
-                self.group_translation = wp.zeros(len(offsets) - 1, dtype=wp.vec3)
+                                     wp.array(wts, dtype=wp.float32))
+                ng = len(offsets) - 1
+                self.group_motion = (wp.zeros(ng, dtype=wp.quat), wp.zeros(ng, dtype=wp.vec3),
+                                     wp.zeros(ng, dtype=wp.vec3))
                 self.group_apply = (wp.array(self.group_points.astype(np.int32), dtype=wp.int32),
-                                    wp.array(gid, dtype=wp.int32),
-                                    wp.array(character.soup.points[self.group_points].astype(np.float32), dtype=wp.vec3))
+                                    wp.array(gid, dtype=wp.int32))
             self.wrap = None
             if cap.wrap is not None:  # worn pieces: the surface's vertex normals, then each point on them
                 points, corners, bary, coef, clearance, body = cap.wrap
@@ -829,13 +828,13 @@ class _Deformer:
                                   inputs=[*common, x, self.sim_lbs if surface_lbs is None else surface_lbs],
                                   outputs=[self.out], device=self.device, record_cmd=True))
             if self.groups is not None:
-                offsets, verts, wts, centre = self.group_arrays
+                offsets, verts, wts = self.group_arrays
                 cmds.append(wp.launch(k.group_fit_kernel, dim=offsets.shape[0] - 1,
-                                      inputs=[x, self.sim_rest, offsets, verts, wts, centre],
-                                      outputs=[self.group_rotation, self.group_translation], device=self.device,
-                                      record_cmd=True))
+                                      inputs=[x, self.sim_lbs if surface_lbs is None else surface_lbs, offsets,
+                                              verts, wts],
+                                      outputs=[*self.group_motion], device=self.device, record_cmd=True))
                 cmds.append(wp.launch(k.group_apply_kernel, dim=self.group_apply[0].shape[0],
-                                      inputs=[*self.group_apply, self.group_rotation, self.group_translation, self.phi],
+                                      inputs=[*self.group_apply, *self.group_motion, self.phi],
                                       outputs=[self.out], device=self.device, record_cmd=True))
             if self.wrap is not None:
                 n = self.out.shape[0]

@@ -484,14 +484,21 @@ class JumpLimit:
     ``o(t) = o(t-1) + d min(1, r / |d|)``, ``d = o_guarded(t) - o(t-1)``. The first frame is
     taken as it is. Applied after the surface guard, to what is written only.
 
+    Points of a group (``groups[i] >= 0``: a piece written by one rigid motion, a shoe, a fist, a
+    hair bun) are never cut: a cut is a blend of two frames' offsets, and a blend of two rigid
+    motions is not rigid, so the piece would deform. Their motion is one rigid fit of the
+    surface beneath them, as smooth as that surface.
+
     Attributes:
         limited: The share of the mesh's points cut in the last frame.
     """
 
-    def __init__(self, height: float, params: GuardParams | None = None) -> None:
+    def __init__(self, height: float, params: GuardParams | None = None,
+                 groups: np.ndarray | None = None) -> None:
         prm = params or GuardParams()
         self.step = float(prm.max_jump) * float(height) if prm.enabled else 0.0
         self._last: np.ndarray | None = None
+        self._free = None if groups is None else np.asarray(groups) < 0
         self.limited = 0.0
 
     def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
@@ -508,10 +515,12 @@ class JumpLimit:
         d = o - self._last
         length = np.linalg.norm(d, axis=1)
         cut = length > self.step
+        if self._free is not None:
+            cut &= self._free
         if not cut.any():
             self._last = o
             return points
         self.limited = float(cut.mean())
-        o = self._last + d * np.minimum(1.0, self.step / np.maximum(length, 1e-300))[:, None]
+        o = self._last + d * np.where(cut, self.step / np.maximum(length, 1e-300), 1.0)[:, None]
         self._last = o
         return _as_written(lb + o)
