@@ -157,7 +157,7 @@ def cmd_info(args) -> int:
     print(f"simulate would use: {how}")
     if out["rigid_pieces"]:
         print(f"rigid pieces (meshes or parts that LBS moves rigidly, one joint each): {out['rigid_pieces']}; through a "
-              "cage they move by one translation with the cage around them (--rigid-pieces joint: with their joints)")
+              "cage they move by one rigid motion with the cage around them (--rigid-pieces joint: with their joints)")
     _print_weights(out["physics_weight"])
     muscles = out["muscles"]
     if isinstance(muscles, list):

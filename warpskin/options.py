@@ -140,13 +140,15 @@ class SimulateOptions:
 
     lbs: bool = setting(False, "bool", "also write the LBS result as a sibling prim", cli="--lbs")
     layers: bool = setting(False, "bool", "also write the fat, muscle and bone layers", cli="--layers")
-    cage: object = setting("auto", "string", "simulate an automatic closed cage and write every mesh as its LBS plus "
-                           "the cage's physical deformation captured near it: where the skin is not one closed "
-                           "manifold (auto, the default), always (its other meshes too), or never; or FILE, your own "
+    cage: object = setting("auto", "string", "where the skin is not one closed manifold, auto (the default) "
+                           "simulates the character's own pieces, holes capped and clothes worn over them, or an "
+                           "automatic closed cage where fewer than half its points lie on pieces that close; always: "
+                           "a cage around every mesh, each written as its LBS plus the cage's physical deformation "
+                           "captured near it; none: never a cage (the skin or its own pieces); or FILE, your own "
                            "closed cage (.obj, .glb, .gltf, .usd, .usda, .usdc, .usdz) around the character's rest "
                            "pose, in the character file's units", cli="--cage", metavar=_CAGE, parse=cage_arg)
     rigid_pieces: str = setting("cage", "string", "through a cage, the pieces LBS moves rigidly (eyes or teeth "
-                                "skinned to one joint, rigidly parented parts): moved by one translation with the cage "
+                                "skinned to one joint, rigidly parented parts): moved by one rigid motion with the cage "
                                 "around them (cage, the default) or following their joints exactly (joint)",
                                 choices=("cage", "joint"), cli="--rigid-pieces")
     physics_weight: list | None = setting(None, "string", "the physics weight (0: LBS, 1: physical) of the skin the "

@@ -439,7 +439,7 @@ def simulate(
     own cage, used as the automatic one would be
     (:func:`~warpskin.preprocess.cage.cage_from_mesh`: closed, manifold, around the rest pose,
     in the character file's units). ``rigid_pieces``: through a cage, the pieces that LBS moves
-    rigidly (eyes or teeth skinned to one joint, rigidly parented parts) move by one translation
+    rigidly (eyes or teeth skinned to one joint, rigidly parented parts) move by one rigid motion
     with the cage around them (``"cage"``, default) or follow their joints (``"joint"``).
     ``physics_weights``: ``{joint-name pattern: weight}`` overrides of the physics weight (0:
     LBS, 1: physical), before the scene's ``[physics.weights]``
