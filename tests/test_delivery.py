@@ -1,5 +1,6 @@
 """What the physics delivered to the written meshes (warpskin.delivery), the jump limit of the
-written offsets (warpskin.guard.JumpLimit) and the wrap of a worn piece on the simulated surface
+written offsets (warpskin.guard.JumpLimit), the repair of worn layers that cross
+(warpskin.guard.WornRepair, against a brute-force triangle test) and the wrap of a worn piece on the simulated surface
 (warpskin.kernels.deform.wrap_kernel), against closed forms: a box's volume, a rigid motion's
 zero residual, sequences whose ratios are known."""
 
@@ -11,7 +12,7 @@ import trimesh
 import warp as wp
 
 from warpskin.delivery import DeliveryLog, hole_fans, piece_volumes, rigid_rms
-from warpskin.guard import GuardParams, JumpLimit
+from warpskin.guard import GuardParams, JumpLimit, WornRepair
 from warpskin.quality import WrittenMesh
 
 
@@ -179,3 +180,69 @@ def test_wrap_follows_a_rigid_motion_and_keeps_within_the_free_space(device):
     # where the lid lay there at rest (8 mm up) and came down to 4 mm: the gap in proportion, half
     out = wrapped(x, (lid_v, np.asarray(lid.faces)), room0=0.008)
     assert np.allclose(out[:, 2], 0.05 + 0.0025, atol=2e-6)
+
+
+def _two_layers(slope: float):
+    """Two worn grid sheets over x, z in [0, 1]: ``B`` 15 mm above its carriers on a curved
+    surface, ``A`` below its carriers on the same surface 30 mm higher, by 5 mm + ``slope`` x. With a slope
+    of 21 mm, ``A`` passes through ``B`` near x = 0.48 (between grid columns)."""
+    g = np.linspace(0.0, 1.0, 7)
+    x, z = np.meshgrid(g, g, indexing="ij")
+    x, z = x.ravel(), z.ravel()
+    quads = [(i * 7 + j, (i + 1) * 7 + j, (i + 1) * 7 + j + 1, i * 7 + j + 1) for i in range(6) for j in range(6)]
+    tri = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int64)
+    bump = 0.05 * (x * x + 0.7 * z * z + 0.3 * x * z)  # both surfaces curved alike: no two triangles coplanar
+    carrier_b = np.stack([x, bump, z], axis=1)
+    carrier_a = np.stack([x, bump + 0.03, z], axis=1)
+    b = carrier_b + [0.0, 0.015, 0.0]
+    a = carrier_a - np.stack([np.zeros_like(x), 0.005 + slope * x, np.zeros_like(x)], axis=1)
+    rest_a = carrier_a - [0.0, 0.005, 0.0]
+    return (np.concatenate([a, b]), np.concatenate([rest_a, b]), np.concatenate([carrier_a, carrier_b]),
+            np.concatenate([tri, tri + 49]))
+
+
+def test_worn_repair_takes_crossing_layers_towards_their_carriers():
+    from oracles import intersecting_pair_list_brute_force
+
+    points, rest, carriers, tri = _two_layers(0.021)
+    assert len(intersecting_pair_list_brute_force(rest, tri)) == 0
+    assert len(intersecting_pair_list_brute_force(points, tri)) > 0  # the layers cross
+    params = GuardParams(recover=0.1)
+    repair = WornRepair(WrittenMesh("layers", tri, rest), np.arange(len(points)), params=params)
+    out = repair.apply(points, carriers)
+    assert len(intersecting_pair_list_brute_force(out, tri)) == 0
+    # every point on the segment from its carrier to where it was worn, no farther out
+    s = np.linalg.norm(out - carriers, axis=1) / np.linalg.norm(points - carriers, axis=1)
+    assert np.allclose(np.cross(out - carriers, points - carriers), 0.0, atol=1e-7)
+    assert s.min() >= WornRepair.SHRINK ** WornRepair.ROUNDS - 1e-6 and s.max() <= 1.0 + 1e-6
+    assert 0.0 < repair.repaired <= repair.repaired_max < 1.0
+    # the next frame, the layers apart: the share rises by recover where it was taken
+    apart, _, _, _ = _two_layers(0.0)
+    again = repair.apply(apart, carriers)
+    s2 = np.linalg.norm(again - carriers, axis=1) / np.linalg.norm(apart - carriers, axis=1)
+    np.testing.assert_allclose(s2, np.minimum(s + 0.1, 1.0), atol=1e-5)
+
+
+def test_worn_repair_leaves_layers_that_do_not_cross():
+    points, rest, carriers, tri = _two_layers(0.008)  # A comes down to 17 mm, B stays at 15 mm
+    repair = WornRepair(WrittenMesh("layers", tri, rest), np.arange(len(points)))
+    assert repair.apply(points, carriers) is points and repair.repaired == 0.0
+    off = WornRepair(WrittenMesh("layers", tri, rest), np.arange(len(points)), params=GuardParams(enabled=False))
+    crossing, _, _, _ = _two_layers(0.021)
+    assert off.apply(crossing, carriers) is crossing
+
+
+def test_worn_repair_keeps_each_point_at_or_above_its_floor():
+    from oracles import intersecting_pair_list_brute_force
+
+    points, rest, carriers, tri = _two_layers(0.021)
+    # sheet A may come no nearer its carrier than 0.9 of its offset; sheet B not at all (floor 1)
+    floor = np.concatenate([np.full(49, 0.9), np.ones(49)])
+    repair = WornRepair(WrittenMesh("layers", tri, rest), np.arange(len(points)), floor)
+    out = repair.apply(points, carriers)
+    s = np.linalg.norm(out - carriers, axis=1) / np.linalg.norm(points - carriers, axis=1)
+    np.testing.assert_allclose(out[49:], points[49:], atol=1e-7)  # as written (float32)
+    assert s[:49].min() == pytest.approx(0.9, abs=1e-5) and s.max() <= 1.0 + 1e-5  # float32 as written
+    # at its floor the crossing is left as it is (counted by the quality measures)
+    assert len(intersecting_pair_list_brute_force(out, tri)) > 0
+    assert repair.repaired_max == pytest.approx(0.1, abs=1e-9)

@@ -35,7 +35,7 @@ import numpy as np
 
 from .capture import Capture, CaptureParams, capture_points, identity_capture
 from .errors import SceneError
-from .guard import GuardParams, JumpLimit, SurfaceGuard
+from .guard import GuardParams, JumpLimit, SurfaceGuard, WornRepair
 from .quality import WrittenMesh
 
 __all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices", "is_caged"]
@@ -347,6 +347,23 @@ class Character:
         #: Per mesh written with physics, its :class:`~warpskin.guard.JumpLimit` (after its guard).
         self.limits = {p.name: JumpLimit(height, params, cap.group[p.start:p.start + p.count])
                        for p in self.parts if p.physics}
+        #: Per mesh with garment points, its :class:`~warpskin.guard.WornRepair` (before its
+        #: guard) and the rows of ``cap.wrap`` that are its points. Only garments (pieces worn
+        #: over others, :class:`~warpskin.preprocess.pieces.PieceParams`) are repaired: other
+        #: worn sheets lie on or in their neighbours, where taking them nearer crosses more.
+        self.repairs = {}
+        if cap.wrap is not None and self.pieces is not None:
+            worn = np.asarray(cap.wrap[0], dtype=np.int64)
+            gamma, clearance = np.asarray(cap.wrap[3])[:, 2], np.asarray(cap.wrap[4])
+            garment = self.pieces.garment[self.pieces.piece_of_point[worn]]
+            # a point keeps its rest clearance over the surface it is worn on (floor 1: a point
+            # at or under that surface at rest is not moved)
+            floor = np.where((gamma > 0.0) & (clearance > 0.0), clearance / np.maximum(gamma, 1e-30), 1.0)
+            for p in self.parts:
+                rows = np.nonzero((worn >= p.start) & (worn < p.start + p.count) & garment)[0]
+                if p.physics and rows.size:
+                    self.repairs[p.name] = (WornRepair(self.meshes[p.name], worn[rows] - p.start, floor[rows], params),
+                                            rows)
         self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
                                             ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
                                             direct=not self.caged,
@@ -523,8 +540,17 @@ class Character:
         #: The last frame's physical result before the guard, ``{mesh name: [N, 3]}``.
         self.last_physical = physical
         out = dict(physical)
+        carriers = None
+        if self.repairs:  # the worn points' carrier points on the written surface as it is
+            _, corners, bary = self.capture_result.wrap[:3]
+            whole = np.concatenate([physical[p.name] for p in self.parts])
+            carriers = np.einsum("kj,kjc->kc", bary, whole[corners])
         for name, guard in self.guards.items():
-            out[name] = self.limits[name].apply(guard.apply(physical[name], lbs_by[name]), lbs_by[name])
+            pts = physical[name]
+            if name in self.repairs:
+                repair, rows = self.repairs[name]
+                pts = repair.apply(pts, carriers[rows])
+            out[name] = self.limits[name].apply(guard.apply(pts, lbs_by[name]), lbs_by[name])
         return out
 
     def painted(self) -> np.ndarray:

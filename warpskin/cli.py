@@ -301,7 +301,7 @@ def cmd_simulate(args) -> int:
         d = delivered.get(name, {})
         pairs = (f", pairs beyond the rest pose's {r['max_pairs_new']} (LBS {r['max_pairs_new_lbs']})"
                  if "max_pairs_new" in r else "")
-        held = f", held by the guard {100 * d['held']:.1f} % (worst frame {100 * d['held_max']:.1f} %)" if d else ""
+        held = f", held back {100 * d['held']:.1f} % (worst frame {100 * d['held_max']:.1f} %)" if d else ""
         held += f", copies of a point apart {1e3 * r['max_split']:.2f} mm" if r.get("max_split") else ""
         motion = (f", secondary motion {100 * d['secondary_motion']:.1f} % of the animation's, largest jump "
                   f"{100 * d['chatter']:.2f} % of the height, volume {100 * d['volume']:.2f} % (LBS "

@@ -524,3 +524,127 @@ class JumpLimit:
         o = self._last + d * np.where(cut, self.step / np.maximum(length, 1e-300), 1.0)[:, None]
         self._last = o
         return _as_written(lb + o)
+
+
+class WornRepair:
+    """Worn pieces that cross themselves or each other, repaired where they cross: a garment
+    layer is brought nearer the surface it is worn on there, keeping its shape elsewhere.
+
+    A worn point (:mod:`warpskin.kernels.deform`'s wrap: trousers, a shirt, a hair cap) is
+    written at ``P``, its rest offset from its carrier point ``C`` (the point of the simulated
+    surface it rides on, at the written surface as it is now). Where the body folds (the back of
+    a bent knee, an armpit), two layers of a garment, each at its own offset from its own part
+    of the body, can pass through each other: a cloth would bunch up, a wrapped garment has no
+    cloth of its own. Per frame, per mesh with worn points (on the host):
+
+        W = C + s (P - C),     s in [floor, 1] per worn point, kept from frame to frame
+
+    1. ``s`` rises by ``recover`` (:class:`GuardParams`) from the last frame's, up to 1;
+    2. the pairs of the worn triangles (every point worn) that intersect and did not at rest are
+       found (the exact test of :class:`~warpskin.metrics.PairQuery`, on the welded mesh);
+    3. the worn points of those pairs get ``s x SHRINK``, then every worn point at most the mean
+       of its own and its neighbours' ``s`` (the fold's edge eases into the rest of the garment
+       instead of stepping), and at least its ``floor``; only the triangles that moved are
+       tested again; up to ``ROUNDS`` rounds.
+
+    The floor keeps a garment off the body it is worn on: a point's rest clearance over its rest
+    offset (:func:`~warpskin.character._clearance`), so that ``W`` stays that far above the
+    carrier surface; a point at or under the surface at rest (a hair cap through a bun, a sheet
+    sunk into its neighbour) has floor 1 and is never moved.
+
+    Invariants: with no new pair ``W = P`` exactly (where ``s`` is 1); every written copy of a
+    welded point gets the same ``s``; ``s >= floor``. Limits: the repair takes the layers towards
+    the body, it does not model the fold; a crossing that remains after ``ROUNDS`` rounds, or at
+    the floor, is left (and counted by the quality measures). How much it took is
+    :attr:`repaired` (mean of ``1 - s`` over the worn points) and :attr:`repaired_max`.
+
+    Args:
+        mesh: The written mesh (its welded topology).
+        worn: ``[K]`` the mesh's own point indices that are worn (a garment's).
+        floor: ``[K]`` the least ``s`` of each, in [0, 1] (``None``: 0).
+        params: :class:`GuardParams` (``recover``; ``enabled`` false: no repair).
+    """
+
+    #: Rounds per frame.
+    ROUNDS = 4
+    #: The share of its offset a worn point of a crossing pair keeps per round.
+    SHRINK = 0.5
+
+    def __init__(self, mesh: WrittenMesh, worn: np.ndarray, floor: np.ndarray | None = None,
+                 params: GuardParams | None = None) -> None:
+        prm = params or GuardParams()
+        self.recover = float(prm.recover)
+        self.mesh = mesh
+        n = mesh.first.size
+        worn = np.asarray(worn, dtype=np.int64)
+        self.worn = worn
+        welded_worn = np.zeros(n, dtype=bool)
+        welded_worn[mesh.weld[worn]] = True
+        #: ``[n]`` the least ``s`` per welded point (the largest over its written copies).
+        self.floor = np.ones(n)
+        self.floor[mesh.weld[worn]] = 0.0
+        f = np.zeros(worn.size) if floor is None else np.clip(np.asarray(floor, dtype=np.float64), 0.0, 1.0)
+        np.maximum.at(self.floor, mesh.weld[worn], f)
+        wt = mesh.welded_triangles
+        self.triangles = wt[welded_worn[wt].all(axis=1)]
+        self.enabled = bool(prm.enabled) and len(self.triangles) > 1
+        self.s = np.ones(n)
+        self.repaired = self.repaired_max = 0.0
+        if not self.enabled:
+            return
+        self.query = PairQuery(self.triangles)
+        # the mean over each welded point and its neighbours on the worn triangles
+        e = np.concatenate([self.triangles[:, [0, 1]], self.triangles[:, [1, 2]], self.triangles[:, [2, 0]]])
+        e = np.concatenate([e, e[:, ::-1], np.repeat(np.unique(self.triangles)[:, None], 2, axis=1)])
+        e = np.unique(e, axis=0)
+        adj = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+        deg = np.asarray(adj.sum(axis=1)).ravel()
+        self._mean = sp.diags(1.0 / np.maximum(deg, 1.0)) @ adj
+        self._has = deg > 0
+        count = len(self.triangles)
+        self._count = count
+        self._rest = _keys(self.query.pairs(mesh.welded(mesh.rest)), count)
+
+    def _new(self, pairs: np.ndarray) -> np.ndarray:
+        """The rows of ``pairs`` not crossing at rest."""
+        if pairs.size == 0:
+            return pairs.reshape(0, 2)
+        keys = pairs[:, 0] * self._count + pairs[:, 1]
+        return pairs[~np.isin(keys, self._rest)]
+
+    def apply(self, points: np.ndarray, carriers: np.ndarray) -> np.ndarray:
+        """The repaired points of one frame, ``[N, 3]`` (``points``: the mesh's written points;
+        ``carriers``: ``[K, 3]`` the carrier point of each of ``worn``, in its order);
+        ``points`` itself where nothing was taken."""
+        self.repaired = self.repaired_max = 0.0
+        if not self.enabled:
+            return points
+        m = self.mesh
+        p = np.asarray(points, dtype=np.float64)
+        welded_worn = m.weld[self.worn]
+        offset = p[self.worn] - np.asarray(carriers, dtype=np.float64)
+        s = np.minimum(self.s + self.recover, 1.0)
+        out = p.copy()
+
+        def place() -> np.ndarray:
+            out[self.worn] = carriers + s[welded_worn][:, None] * offset
+            return out[m.first]
+
+        pairs = self._new(self.query.pairs(place()))
+        for _ in range(self.ROUNDS):
+            if pairs.size == 0:
+                break
+            hit = np.unique(self.triangles[pairs.ravel()].ravel())
+            before = s.copy()
+            s[hit] *= self.SHRINK
+            s = np.maximum(np.where(self._has, np.minimum(s, self._mean @ s), s), self.floor)
+            moved = s < before
+            pairs = self._new(self.query.active(place(), moved[self.triangles].any(axis=1)))
+        self.s = s
+        taken = 1.0 - s[np.unique(welded_worn)]
+        self.repaired = float(taken.mean()) if taken.size else 0.0
+        self.repaired_max = float(taken.max()) if taken.size else 0.0
+        if self.repaired_max <= 0.0:
+            return points
+        place()
+        return _as_written(out)

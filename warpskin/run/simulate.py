@@ -246,6 +246,7 @@ class _WrittenQuality:
         self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.limits = {self.names[name]: lim for name, lim in character.limits.items()}
+        self.repairs = {self.names[name]: r for name, r in getattr(character, "repairs", {}).items()}
         self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
         from ..delivery import DeliveryLog
 
@@ -273,7 +274,9 @@ class _WrittenQuality:
                                    {self.names[k]: v for k, v in lbs.items()},
                                    pairs={k: g.pair_keys for k, g in guards.items() if g.pair_keys is not None},
                                    extra={k: {"guarded": g.guarded, "held": g.held, "guard_fallbacks": g.fallbacks,
-                                              "jump_limited": self.limits[k].limited}
+                                              "jump_limited": self.limits[k].limited,
+                                              **({"worn_repaired": self.repairs[k][0].repaired}
+                                                 if k in self.repairs else {})}
                                           for k, g in guards.items()})
         if self.cap is not None:
             st = self.stepper
