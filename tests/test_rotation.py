@@ -80,3 +80,20 @@ def test_warm_start_converges_geometrically(device):
     errors = [np.abs(_run(a, near, it, device) - rots.as_matrix()).max() for it in (0, 2, 4, 8, 16)]
     assert all(b < a_ / 2.5 for a_, b in zip(errors[:-1], errors[1:]))
     assert errors[-1] < 1e-6
+
+
+@pytest.mark.parametrize("scale", [1e-12, 1e-6, 1e6])
+def test_the_rotation_does_not_depend_on_the_matrix_scale(device, scale):
+    # a moment matrix is mass x length^2: a character 18 cm tall in its file (a 0.1 scale on its
+    # root) has entries near 1e-9. Each iteration's step must be the same for A and s A (the
+    # polar factor of s A is A's): the warm start from a perturbed rotation, a few iterations
+    rng = np.random.default_rng(3)
+    rots = Rotation.random(30, random_state=rng)
+    stretch = np.array([np.diag(rng.uniform(0.8, 1.2, 3)) for _ in range(30)])
+    a = rots.as_matrix() @ stretch
+    near = (rots * Rotation.from_rotvec(rng.normal(scale=0.2, size=(30, 3)))).as_quat()
+    for iterations in (1, 3):
+        unit = _run(a, near, iterations, device)
+        scaled = _run(a * scale, near, iterations, device)
+        assert np.abs(scaled - unit).max() < 1e-5, iterations
+    assert np.abs(_run(a * scale, near, 30, device) - rots.as_matrix()).max() < 1e-5
