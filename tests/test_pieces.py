@@ -140,6 +140,22 @@ def test_pieces_are_told_apart_and_the_surface_is_closed(device):
     assert not ex[np.ix_(np.unique(g[far]), np.unique(g[foot_far]))].any()
 
 
+@pytest.mark.parametrize("scale", [2.0 ** -7, 2.0 ** 7])
+def test_decimation_does_not_depend_on_the_file_unit(device, scale):
+    # the same character about a hundred times smaller or larger is reduced to the same surface,
+    # scaled (the quadric collapse's error thresholds are absolute: it must run in a frame of
+    # unit size). Powers of two: scaled, every float of the reduction's input is exactly the same
+    points, tris, dense = _character()
+    prm = PieceParams(max_vertices=400, min_piece_points=60)
+    ref = piece_surface(points, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"], params=prm, device=device)
+    other = piece_surface(points * scale, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"], params=prm,
+                          device=device)
+    assert ref.decimated.any()
+    assert other.vertex_count == ref.vertex_count
+    assert np.array_equal(other.triangles, ref.triangles)
+    np.testing.assert_allclose(other.vertices / scale, ref.vertices, rtol=0.0, atol=1e-12 * np.ptp(points))
+
+
 def test_decimation_keeps_the_loops_and_the_shape(device):
     points, tris, dense = _character()
     full = piece_surface(points, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"],

@@ -486,10 +486,27 @@ def _close(local: _Local, prm: PieceParams) -> tuple[bool, dict]:
     return True, info
 
 
-def _decimated(local: _Local, target: int, prm: PieceParams, device) -> _Local | None:
+#: A character is reduced at about this height [m] (see :func:`_decimated`).
+REDUCE_AT = 1.75
+
+
+def _reduction_unit(height: float) -> float:
+    """The power of two that takes a character of ``height`` [m] nearest :data:`REDUCE_AT` in
+    ratio (1 for a human in metres): multiplying by it changes no float but its exponent."""
+    if not (height > 0.0) or not math.isfinite(height):
+        return 1.0
+    return 2.0 ** round(math.log2(REDUCE_AT / height))
+
+
+def _decimated(local: _Local, target: int, prm: PieceParams, device, unit: float = 1.0) -> _Local | None:
     """``local`` reduced to about ``target`` points by quadric edge collapse (``fast_simplification``,
     its open boundary kept), the weights of each new point those of its closest point on the
-    piece as it was, capped again; ``None`` where the result is not a closed body once capped."""
+    piece as it was, capped again; ``None`` where the result is not a closed body once capped.
+
+    The collapse's error thresholds are absolute (squared lengths), so it runs on the points
+    times ``unit`` (:func:`_reduction_unit`: the character at about human height, scaled by a
+    power of two): the same character in centimetres, decimetres or metres is reduced alike, and
+    exactly alike where its sizes differ by a power of two."""
     import fast_simplification
 
     from ..rig import mesh_edge_report
@@ -498,9 +515,10 @@ def _decimated(local: _Local, target: int, prm: PieceParams, device) -> _Local |
     goal = int(round(len(f) * target / max(len(local.points), 1)))
     if goal < 8 or goal >= len(f):
         return None
-    pts, tris = fast_simplification.simplify(local.points, f.astype(np.int64), target_count=goal, preserve_border=True)
+    pts, tris = fast_simplification.simplify(local.points * unit, f.astype(np.int64), target_count=goal,
+                                             preserve_border=True)
     tris = np.asarray(tris, dtype=np.int64)
-    pts = np.asarray(pts, dtype=np.float64)
+    pts = np.asarray(pts, dtype=np.float64) / unit
     rep = mesh_edge_report(tris, len(pts))
     if not rep["manifold"] or len(rep["unused_vertices"]):
         return None
@@ -733,7 +751,7 @@ def piece_surface(points: np.ndarray, triangles: np.ndarray, dense_weights: np.n
         for k, n in sizes.items():
             target = max(prm.min_piece_points, int(round(n * factor)))
             if target < 0.9 * n:
-                out = _decimated(locals_[k], target, prm, device)
+                out = _decimated(locals_[k], target, prm, device, _reduction_unit(height))
                 if out is not None:
                     locals_[k] = out
                     decimated[k] = True
