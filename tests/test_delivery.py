@@ -117,7 +117,8 @@ def test_jump_limit_cuts_a_jump_to_the_limit_and_leaves_the_rest():
     assert off.apply(big, lbs) is big
 
 
-def test_jump_limit_leaves_a_rigid_group_whole():
+def test_jump_limit_takes_a_rigid_group_there_whole():
+    from scipy.spatial.distance import pdist
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(3)
@@ -128,12 +129,34 @@ def test_jump_limit_leaves_a_rigid_group_whole():
     limit.apply(lbs + 0.0, lbs)
     moved = lbs.copy()
     moved[:10, 1] += 0.1  # free points jump 10 cm: cut
-    centre = lbs[10:].mean(axis=0)  # the group turns 20 degrees and moves 10 cm: kept rigid
+    centre = lbs[10:].mean(axis=0)  # the group turns 20 degrees and moves 10 cm: cut as a whole
     moved[10:] = (lbs[10:] - centre) @ Rotation.from_euler("z", 20, degrees=True).as_matrix().T + centre + 0.1
-    out = limit.apply(moved, lbs)
-    assert np.isclose(limit.limited, 0.5)
-    assert np.allclose(np.linalg.norm(out[:10] - lbs[:10], axis=1), 0.02, rtol=1e-5)
-    assert np.allclose(out[10:], moved[10:], atol=1e-6)
+    frames = [limit.apply(moved, lbs) for _ in range(40)]
+    previous = lbs
+    for out in frames:
+        jump = np.linalg.norm(out - previous, axis=1)  # LBS is still: the offset's change
+        assert jump.max() <= 0.02 * (1 + 1e-4)
+        # rigid: the group's distances as at rest (float32 as written)
+        np.testing.assert_allclose(pdist(out[10:]), pdist(lbs[10:]), atol=1e-6)
+        previous = out
+    first = np.linalg.norm(frames[0][10:] - lbs[10:], axis=1)
+    assert first.max() > 0.02 * 0.99  # it goes as far as the limit lets it, not less
+    assert np.allclose(frames[0][:10] - lbs[:10], [0.0, 0.02, 0.0], atol=1e-6)
+    np.testing.assert_allclose(frames[-1], moved, atol=1e-6)  # and gets there
+
+
+def test_jump_limit_leaves_a_rigid_group_that_moves_with_its_lbs():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    rest = rng.normal(size=(12, 3))
+    groups = np.zeros(12, dtype=int)
+    limit = JumpLimit(height=2.0, params=GuardParams(max_jump=0.01), groups=groups)
+    offset = np.array([0.05, -0.02, 0.03])  # held off its LBS by 6 cm, frame after frame
+    for k in range(5):
+        lbs = rest @ Rotation.from_euler("xy", [3 * k, 2 * k], degrees=True).as_matrix().T + 0.004 * k
+        written = lbs + offset
+        assert limit.apply(written, lbs) is written and limit.limited == 0.0
 
 
 def test_wrap_follows_a_rigid_motion_and_keeps_within_the_free_space(device):

@@ -484,10 +484,13 @@ class JumpLimit:
     ``o(t) = o(t-1) + d min(1, r / |d|)``, ``d = o_guarded(t) - o(t-1)``. The first frame is
     taken as it is. Applied after the surface guard, to what is written only.
 
-    Points of a group (``groups[i] >= 0``: a piece written by one rigid motion, a shoe, a fist, a
-    hair bun) are never cut: a cut is a blend of two frames' offsets, and a blend of two rigid
-    motions is not rigid, so the piece would deform. Their motion is one rigid fit of the
-    surface beneath them, as smooth as that surface.
+    A group (``groups[i] >= 0``: a piece written by one rigid motion, a shoe, a fist, a hair
+    cap) is cut as a whole and stays rigid: a blend of two frames' offsets is not rigid, so its
+    new placement ``W`` is reached from ``H`` (the last frame's placement carried by the group's
+    own LBS motion, the best rigid fit of ``L(t-1) -> L(t)``) by the share ``c`` of the rigid
+    motion ``H -> W`` (rotation by slerp), ``c`` the largest in [0, 1] (bisection, 12 steps)
+    at which no point of the group jumps by more than the limit; ``c = 0`` where even ``H``
+    does (the group then moves with its LBS).
 
     Attributes:
         limited: The share of the mesh's points cut in the last frame.
@@ -499,6 +502,9 @@ class JumpLimit:
         self.step = float(prm.max_jump) * float(height) if prm.enabled else 0.0
         self._last: np.ndarray | None = None
         self._free = None if groups is None else np.asarray(groups) < 0
+        self._groups = [] if groups is None else [np.nonzero(np.asarray(groups) == g)[0]
+                                                  for g in np.unique(np.asarray(groups)[np.asarray(groups) >= 0])]
+        self._last_lbs: np.ndarray | None = None
         self.limited = 0.0
 
     def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
@@ -510,20 +516,63 @@ class JumpLimit:
         o = p - lb
         self.limited = 0.0
         if self._last is None or self.step <= 0.0:
-            self._last = o
+            self._last, self._last_lbs = o, lb
             return points
         d = o - self._last
         length = np.linalg.norm(d, axis=1)
         cut = length > self.step
         if self._free is not None:
             cut &= self._free
-        if not cut.any():
-            self._last = o
+        groups = [g for g in self._groups if length[g].max() > self.step]
+        if not cut.any() and not groups:
+            self._last, self._last_lbs = o, lb
             return points
-        self.limited = float(cut.mean())
         o = self._last + d * np.where(cut, self.step / np.maximum(length, 1e-300), 1.0)[:, None]
-        self._last = o
+        for g in groups:
+            o[g] = self._group(g, p[g], lb[g]) - lb[g]
+            cut[g] = True
+        self.limited = float(cut.mean())
+        self._last, self._last_lbs = o, lb
         return _as_written(lb + o)
+
+    def _group(self, g: np.ndarray, target: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+        """The placement ``[n, 3]`` of group ``g`` this frame (see the class docstring):
+        ``target`` its unlimited placement, ``lbs`` its LBS."""
+        from .transforms import matrix_to_quat, quat_slerp, quat_to_matrix
+
+        last_lbs = self._last_lbs[g]
+        last = last_lbs + self._last[g]
+        r, t = _rigid_fit(last_lbs, lbs)
+        hold = last @ r.T + t
+        r2, t2 = _rigid_fit(hold, target)
+        centre = hold.mean(axis=0)
+        q0, q1 = np.array([0.0, 0.0, 0.0, 1.0]), matrix_to_quat(r2)
+        moved = (centre @ r2.T + t2) - centre  # where the fit takes the held centre
+
+        def place(c: float) -> np.ndarray:
+            rc = quat_to_matrix(quat_slerp(q0, q1, c))
+            return (hold - centre) @ rc.T + centre + c * moved
+
+        def jump(x: np.ndarray) -> float:
+            return float(np.linalg.norm((x - lbs) - self._last[g], axis=1).max())
+
+        lo, hi = 0.0, 1.0
+        if jump(place(0.0)) > self.step:
+            return place(0.0)
+        for _ in range(12):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if jump(place(mid)) <= self.step else (lo, mid)
+        return place(lo)
+
+
+def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation ``R`` ``[3, 3]`` and translation ``t`` ``[3]`` minimising ``sum |R a_i + t -
+    b_i|^2`` (Kabsch; ``a``, ``b``: ``[n, 3]``), ``det R = +1``."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
+    return r, cb - r @ ca
 
 
 class WornRepair:
