@@ -35,6 +35,7 @@ import math
 import numpy as np
 
 from warpskin.rig import Clip, Rig, RigError, Skeleton, Track
+from warpskin.transforms import quat_axis_angle, quat_multiply
 
 __all__ = ["make_dancer", "DANCER_DEFAULTS", "JOINTS", "PIECES"]
 
@@ -279,20 +280,6 @@ def _kept(v: np.ndarray, f: np.ndarray, keep_face: np.ndarray) -> tuple[np.ndarr
 # --------------------------------------------------------------------------------------------
 # the animation
 # --------------------------------------------------------------------------------------------
-def _quat(axis, degrees: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    h = math.radians(degrees) / 2.0
-    return np.array([*(a * math.sin(h)), math.cos(h)])
-
-
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    x1, y1, z1, w1 = p
-    x2, y2, z2, w2 = q
-    return np.array([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
-
-
 #: The dance's key poses: (time [s], {joint or "hips_t": values}). A joint's values are degrees
 #: about (x, y, z) at rest, applied x first; an arm's ``y`` is its elbow's flexion about its own
 #: axis (see :func:`_pose_quaternions`); ``_s`` joints are both sides, their z and y mirrored.
@@ -376,9 +363,9 @@ def _clip(name: str, keys: list, rate: float, world: dict, arm_angle: float) -> 
             if joint.startswith("forearm"):  # the elbow bends forward about the arm's own axis
                 sgn = 1.0 if side == "l" else -1.0
                 d = arm_direction(sgn, arm_angle)
-                q = _quat(np.cross([0.0, 0.0, 1.0], d), -sgn * y)
+                q = quat_axis_angle(np.cross([0.0, 0.0, 1.0], d), -sgn * y)
             else:
-                q = _qmul(_quat((0, 0, 1), z), _qmul(_quat((0, 1, 0), y), _quat((1, 0, 0), x)))
+                q = quat_multiply(quat_axis_angle((0, 0, 1), z), quat_multiply(quat_axis_angle((0, 1, 0), y), quat_axis_angle((1, 0, 0), x)))
             qs.append(q)
         tracks[(index[joint], "rotation")] = Track("rotation", t, np.array(qs))
     trans = np.array([np.asarray(pose.get("hips_t", (0.0, 0.0, 0.0)), dtype=np.float64) for _, pose in keys])

@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from warpskin.rig import Attachment, Clip, Rig, RigError, Skeleton, Track
+from warpskin.transforms import quat_axis_angle, quat_multiply
 
 __all__ = ["make_mannequin", "MANNEQUIN_DEFAULTS", "JOINTS"]
 
@@ -181,25 +182,11 @@ class _Mesh:
 # --------------------------------------------------------------------------------------------
 # the character
 # --------------------------------------------------------------------------------------------
-def _quat(axis, degrees: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    h = math.radians(degrees) / 2.0
-    return np.array([*(a * math.sin(h)), math.cos(h)])
-
-
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    x1, y1, z1, w1 = p
-    x2, y2, z2, w2 = q
-    return np.array([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
-
-
 def _rot(*parts) -> np.ndarray:
     """The product of ``(axis, degrees)`` rotations, applied right to left."""
     q = np.array([0.0, 0.0, 0.0, 1.0])
     for axis, deg in parts:
-        q = _qmul(q, _quat(axis, deg))
+        q = quat_multiply(q, quat_axis_angle(axis, deg))
     return q
 
 

@@ -412,22 +412,13 @@ def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, 
     gamma n`` in that triangle's edges and the unit normal blended from the vertex normals of
     ``all_triangles`` (the whole closed surface, as the kernel computes them). Returns
     ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
-    import warp as wp
-
-    from .kernels import cage as k_cage
+    from .preprocess.cage import closest_faces
 
     p = np.asarray(points, dtype=np.float64)
     x = np.asarray(surface, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([p, x]), axis=0))) + 1.0
-    with wp.ScopedDevice(device):
-        mesh = wp.Mesh(points=wp.array(x.astype(np.float32), dtype=wp.vec3),
-                       indices=wp.array(t.astype(np.int32).ravel(), dtype=wp.int32))
-        face = wp.zeros(len(p), dtype=wp.int32)
-        bary = wp.zeros(len(p), dtype=wp.vec3)
-        wp.launch(k_cage.closest_face_kernel, dim=len(p), inputs=[mesh.id, wp.array(p.astype(np.float32), dtype=wp.vec3),
-                                                               far], outputs=[face, bary])
-        face, bary = face.numpy(), bary.numpy().astype(np.float64)
+    face, bary = closest_faces(p, x, t, far, device)
     corners = t[np.maximum(face, 0)]
     bary = np.clip(bary, 0.0, None)
     bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-300)

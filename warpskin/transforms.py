@@ -11,6 +11,8 @@ Conventions used everywhere in warpskin:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -18,6 +20,7 @@ __all__ = [
     "quat_to_matrix",
     "matrix_to_quat",
     "quat_multiply",
+    "quat_axis_angle",
     "quat_slerp",
     "compose_trs",
     "decompose_trs",
@@ -88,6 +91,15 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         ],
         axis=-1,
     )
+
+
+def quat_axis_angle(axis, degrees: float) -> np.ndarray:
+    """The unit quaternion ``(4,)`` in (x, y, z, w) order of a turn by ``degrees`` about ``axis``
+    (any non-zero length)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    h = math.radians(degrees) / 2.0
+    return np.array([*(a * math.sin(h)), math.cos(h)])
 
 
 def quat_slerp(q0: np.ndarray, q1: np.ndarray, u: float | np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..rig import RigError
 
-__all__ = ["Cage", "build_cage", "separable_parts", "character_parts", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
+__all__ = ["Cage", "closest_faces", "build_cage", "separable_parts", "character_parts", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
            "transfer_weights", "cage_rig"]
 
 #: Vertices of a default cage (the layered model's cost grows with them; a few thousand
@@ -448,6 +448,26 @@ def rigid_pieces(soup: CharacterSoup, rigid_weight: float = 0.999) -> np.ndarray
     return out
 
 
+def closest_faces(query: np.ndarray, points: np.ndarray, triangles: np.ndarray, max_distance: float,
+                  device=None) -> tuple[np.ndarray, np.ndarray]:
+    """The closest point of the mesh ``points`` ``[N, 3]``, ``triangles`` ``[T, 3]`` to each of
+    ``query`` ``[M, 3]`` (Warp's mesh query, float32, within ``max_distance`` [m]):
+    ``(face [M] int, -1 where none is that near; barycentric [M, 3] float64)``."""
+    import warp as wp
+
+    from ..kernels import cage as k_cage
+
+    q = np.asarray(query, dtype=np.float64)
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(points=wp.array(np.asarray(points).astype(np.float32), dtype=wp.vec3),
+                       indices=wp.array(np.asarray(triangles).astype(np.int32).ravel(), dtype=wp.int32))
+        face = wp.zeros(len(q), dtype=wp.int32)
+        bary = wp.zeros(len(q), dtype=wp.vec3)
+        wp.launch(k_cage.closest_face_kernel, dim=len(q), inputs=[mesh.id, wp.array(q.astype(np.float32), dtype=wp.vec3),
+                                                                 float(max_distance)], outputs=[face, bary])
+        return face.numpy(), bary.numpy().astype(np.float64)
+
+
 def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup: CharacterSoup, *, max_distance: float,
                      device=None, influences: int = 4, smooth_passes: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Skin weights on the cage: each cage vertex takes the barycentric blend of the weights at
@@ -461,20 +481,10 @@ def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup
     normalised. Returns ``(joint_indices [V, K], joint_weights [V, K], matched [V] bool)``."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
-    import warp as wp
-
-    from ..kernels import cage as k_cage
 
     cv = np.asarray(cage_vertices, dtype=np.float64)
     n = cv.shape[0]
-    with wp.ScopedDevice(device):
-        mesh = wp.Mesh(points=wp.array(soup.points.astype(np.float32), dtype=wp.vec3),
-                       indices=wp.array(soup.triangles.astype(np.int32).ravel(), dtype=wp.int32))
-        face = wp.zeros(n, dtype=wp.int32)
-        bary = wp.zeros(n, dtype=wp.vec3)
-        wp.launch(k_cage.closest_face_kernel, dim=n, inputs=[mesh.id, wp.array(cv.astype(np.float32), dtype=wp.vec3),
-                                                            float(max_distance)], outputs=[face, bary])
-        face, bary = face.numpy(), bary.numpy().astype(np.float64)
+    face, bary = closest_faces(cv, soup.points, soup.triangles, max_distance, device)
     matched = face >= 0
     dense = np.zeros((n, soup.dense_weights.shape[1]))
     corners = soup.triangles[face[matched]]

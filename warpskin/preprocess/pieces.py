@@ -532,19 +532,10 @@ def _closest_weights(query: np.ndarray, points: np.ndarray, triangles: np.ndarra
                      device) -> np.ndarray:
     """The barycentric blend of ``weights`` (per point of the mesh ``points``, ``triangles``)
     at the closest point of the mesh to each of ``query``."""
-    import warp as wp
-
-    from ..kernels import cage as k_cage
+    from .cage import closest_faces
 
     far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([query, points]), axis=0))) + 1.0
-    with wp.ScopedDevice(device):
-        mesh = wp.Mesh(points=wp.array(points.astype(np.float32), dtype=wp.vec3),
-                       indices=wp.array(triangles.astype(np.int32).ravel(), dtype=wp.int32))
-        face = wp.zeros(len(query), dtype=wp.int32)
-        bary = wp.zeros(len(query), dtype=wp.vec3)
-        wp.launch(k_cage.closest_face_kernel, dim=len(query),
-                  inputs=[mesh.id, wp.array(query.astype(np.float32), dtype=wp.vec3), far], outputs=[face, bary])
-        face, bary = face.numpy(), bary.numpy().astype(np.float64)
+    face, bary = closest_faces(query, points, triangles, far, device)
     return np.einsum("vc,vcj->vj", bary, weights[triangles[np.maximum(face, 0)]])
 
 
