@@ -12,7 +12,7 @@ wp.set_module_options({"enable_backward": False})
 # --------------------------------------------------------------------------------------------
 # Prediction (symplectic Euler) and orientation prediction of the oriented particles
 #
-#   v* = v + dt a,     x* = x + dt v*,
+#   v* = v + dt a,     x* = x + dt v*        (a: each particle's gravity in its file's unit)
 #   q* = normalize(q + dt/2 (omega, 0) q)      (Mueller and Chentanez 2011)
 # --------------------------------------------------------------------------------------------
 @wp.kernel
@@ -21,7 +21,7 @@ def predict_kernel(
     v: wp.array(dtype=wp.vec3),
     q: wp.array(dtype=wp.quat),
     omega: wp.array(dtype=wp.vec3),
-    gravity: wp.vec3,
+    gravity: wp.array(dtype=wp.vec3),
     dt: float,
     # outputs
     x_pred: wp.array(dtype=wp.vec3),
@@ -29,7 +29,7 @@ def predict_kernel(
     q_pred: wp.array(dtype=wp.quat),
 ):
     i = wp.tid()
-    vi = v[i] + dt * gravity
+    vi = v[i] + dt * gravity[i]
     v_pred[i] = vi
     x_pred[i] = x[i] + dt * vi
     w = omega[i]

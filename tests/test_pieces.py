@@ -13,6 +13,7 @@ import trimesh
 from oracles import point_mesh_distance
 from warpskin.preprocess.pieces import PieceParams, boundary_loops, cap_loop, piece_surface
 from warpskin.rig import mesh_edge_report
+from warpskin.units import metres_per_unit
 
 
 def _tube(p0, p1, radius: float, segments: int = 16, rings: int = 12, jitter: float = 0.0, seed: int = 0):
@@ -140,20 +141,27 @@ def test_pieces_are_told_apart_and_the_surface_is_closed(device):
     assert not ex[np.ix_(np.unique(g[far]), np.unique(g[foot_far]))].any()
 
 
-@pytest.mark.parametrize("scale", [2.0 ** -7, 2.0 ** 7])
+@pytest.mark.parametrize("scale", [0.5, 2.0, 1e-3, 1e-2, 1e2])
 def test_decimation_does_not_depend_on_the_file_unit(device, scale):
-    # the same character about a hundred times smaller or larger is reduced to the same surface,
-    # scaled (the quadric collapse's error thresholds are absolute: it must run in a frame of
-    # unit size). Powers of two: scaled, every float of the reduction's input is exactly the same
+    # the same character in another unit is reduced to the same surface, scaled (the quadric
+    # collapse's error thresholds are absolute: it runs at about human size). Within a decade
+    # (a power of two), every float of the reduction's input is exactly the same; across decades
+    # (a file in millimetres or centimetres, or a 0.01 scale on its root) the file's points times
+    # the power of ten are, as --unit-scale brings them to metres
     points, tris, dense = _character()
     prm = PieceParams(max_vertices=400, min_piece_points=60)
-    ref = piece_surface(points, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"], params=prm, device=device)
-    other = piece_surface(points * scale, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"], params=prm,
+    small = points * scale
+    metres = small / scale if scale in (0.5, 2.0) else small * metres_per_unit(np.ptp(small, axis=0).max())
+    if scale not in (0.5, 2.0):
+        assert not np.array_equal(metres, points)  # the round trip is not exact: a fair test
+    ref = piece_surface(metres, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"], params=prm, device=device)
+    other = piece_surface(small, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"], params=prm,
                           device=device)
     assert ref.decimated.any()
     assert other.vertex_count == ref.vertex_count
     assert np.array_equal(other.triangles, ref.triangles)
-    np.testing.assert_allclose(other.vertices / scale, ref.vertices, rtol=0.0, atol=1e-12 * np.ptp(points))
+    ratio = np.ptp(metres, axis=0).max() / np.ptp(small, axis=0).max()
+    np.testing.assert_allclose(other.vertices * ratio, ref.vertices, rtol=0.0, atol=1e-9 * np.ptp(points))
 
 
 def test_decimation_keeps_the_loops_and_the_shape(device):

@@ -16,8 +16,8 @@ from characters import dancer_file
 
 @pytest.fixture(scope="module")
 def dancer_bake(tmp_path_factory):
-    """The dancer at a coarse resolution, frames 0-24 of its dance (two bounces) at human scale
-    (``--unit-scale 10``), on the CPU: ``(summary, bake path)``."""
+    """The dancer at a coarse resolution, frames 0-24 of its dance (two bounces) at its file's
+    scale (18 cm: physics takes its unit as 10 m), on the CPU: ``(summary, bake path)``."""
     import warnings
 
     from warpskin.run import simulate
@@ -25,7 +25,7 @@ def dancer_bake(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("dancer")
     path = dancer_file(tmp, cell=0.035, shell=6)
-    scene = Scene.from_rig_file(str(path), clip="dance", unit_scale=10.0)
+    scene = Scene.from_rig_file(str(path), clip="dance")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         run = simulate(scene, tmp / "dancer.usdc", device="cpu", frames=(0, 24), with_lbs=True, progress=False)
@@ -50,6 +50,7 @@ def test_the_dancer_is_simulated_on_its_own_pieces(dancer_bake):
     summary, _ = dancer_bake
     surface = summary["surface"]
     assert surface["kind"] == "pieces" and summary["cage"] is None
+    assert summary["length_unit_m"] == pytest.approx(10.0)  # 18 cm in the file: a body in units of 10 m
     # the body, the head, the buns and the shoes simulated; the trousers and the shirt worn over
     # the body; the mittens (too thin for its layers), the eyes, the hair cap and the fringe carried
     assert len(surface["simulated"]) >= 5

@@ -170,6 +170,7 @@ def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None)
         out[key] = np.concatenate([p[key] for p in parts])
     out["tri_indices"] = np.concatenate([np.asarray(p["tri_indices"], dtype=np.int64) + v0[c] for c, p in enumerate(parts)])
     out["joint_rest"] = np.concatenate([p["joint_rest"] for p in parts])
+    out["extent"] = np.array([float(p.get("extent", 0.0)) for p in parts])
     # regions: a CSR over regions (region r is particle r) of member particles; entries follow
     regions = _csr_by_particle(parts, "region_offsets", ["region_members", "region_rest_offsets"], total,
                                {"region_members": particle_map, "region_rest_offsets": lambda c, x: x})

@@ -116,6 +116,7 @@ def cmd_info(args) -> int:
     pieces = rigid_pieces(character_soup(rig))
     out["rigid_pieces"] = int(pieces.max()) + 1 if pieces.size else 0
     out["joint_names"] = rig.skeleton.joint_names
+    out["length_unit_m"] = _length_unit_of(scene, rig)
     out["parents"] = rig.skeleton.parents.tolist()
     # the automatic physics weights of every mesh (through the cage simulate would build)
     from .character import Character
@@ -145,6 +146,7 @@ def cmd_info(args) -> int:
     )
     lo, hi = summary["bbox_min"], summary["bbox_max"]
     print("bounds [m]: " + " .. ".join("(" + ", ".join(f"{c:.4g}" for c in v) + ")" for v in (lo, hi)))
+    print(_unit_line(scene, rig))
     closed = "closed" if summary["closed"] else f"OPEN ({summary['boundary_edges']} boundary edges)"
     manifold = "manifold" if summary["manifold"] else f"NOT manifold ({summary['nonmanifold_edges']} non-manifold edges)"
     print(f"surface: {closed}, {manifold}; {out['pieces']} piece(s), {out['boundary_loops']} boundary loop(s); "
@@ -179,6 +181,25 @@ def cmd_info(args) -> int:
     for w in summary["warnings"]:
         print(f"warning: {w}")
     return 0
+
+
+def _length_unit_of(scene, rig) -> float:
+    """Metres per file unit that physics takes ``rig`` in (the scene's ``[solver] units``)."""
+    from .units import extent, metres_per_unit
+
+    return 1.0 if scene.solver_params().units == "file" else metres_per_unit(extent(rig.vertices))
+
+
+def _unit_line(scene, rig) -> str:
+    """One line: the character's size and the length unit physics takes it in."""
+    from .units import describe, extent
+
+    unit = _length_unit_of(scene, rig)
+    size = extent(rig.vertices)
+    how = ("[solver] units = \"file\"" if scene.solver_params().units == "file"
+           else "the power of ten nearest human size; [solver] units = \"file\" takes metres")
+    return (f"size: {size:.4g} units across (largest side); physics takes 1 unit as {describe(unit)} ({how}): "
+            f"{size * unit:.3g} m")
 
 
 def _print_weights(weights: dict) -> None:

@@ -29,6 +29,7 @@ from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
 from .settings import check_settings, setting
 from .rig import Rig
+from .units import extent
 
 __all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts", "model_host_arrays"]
 
@@ -400,6 +401,7 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
         "joint_rest": np.asarray(b.joint_constraints.joint_rest, dtype=np.float32).reshape(-1, 3),
         "vertex_tissue_depth": np.linalg.norm(b.layers.positions[3] - b.layers.positions[0], axis=1),
         "vertex_diagonal": np.full(v, rig.size(), dtype=np.float64),
+        "extent": extent(rig.vertices),
         "joint_offsets": lay["joint_offsets"],
         "joint_ids": lay["joint_ids"],
         "joint_rest_distance": lay["joint_rest_distance"],
@@ -473,6 +475,8 @@ class SkinModel:
             # tissue depth of every vertex at rest (skin to bone layer) [m], and the body's size
             self.vertex_tissue_depth = f32(h["vertex_tissue_depth"])
             self.diagonal = float(np.max(h["vertex_diagonal"], initial=0.0))
+            #: the rest skin's largest bounding-box side [m] (a batch's: its characters', in order)
+            self.extents = [float(e) for e in np.atleast_1d(h.get("extent", 0.0))]
             #: ``[V]`` float64: each vertex's body diagonal [m] (one value per character)
             self.vertex_diagonal = wp.array(np.asarray(h["vertex_diagonal"], dtype=np.float64), dtype=wp.float64,
                                             device=device)

@@ -35,7 +35,13 @@ class SolverParams:
         volume_iterations: Volume-loop iterations per step (``N_volume``; the paper uses 4), >= 0.
         rotation_iterations: Warm-started rotation-extraction iterations per region fit, >= 1.
         dt: Largest substep [s] (the paper uses 5 ms); frames are split into equal substeps.
-        gravity: External acceleration [m/s^2] (default: 9.81 down the Y axis).
+        gravity: External acceleration [m/s^2] (default: 9.81 down the Y axis), applied in the
+            file's length unit as ``units`` takes it.
+        units: ``"auto"``: physics takes the file's length unit as the power of ten of the metre
+            that brings the character nearest human size (:func:`warpskin.units.metres_per_unit`:
+            a character 155 units across in centimetres, one 0.0012 across in kilometres, one
+            0.54-5.4 across in metres), so that a character gives the same result relative to its
+            size at any power-of-ten scale of its file; ``"file"``: the file is in metres.
         damping: Velocity damping rate [1/s]: ``v *= exp(-damping dt)`` per step, >= 0.
         fast_summation: Region sums by prefix scans along paths (True) or direct gather (False).
         volume_stiffness: Stiffness of the volume constraints in [0, 1].
@@ -95,6 +101,8 @@ class SolverParams:
                         cli="--dt")
     gravity: tuple[float, float, float] = setting((0.0, -9.81, 0.0), "numbers", "external acceleration", unit="m/s^2",
                                                   length=3, must="three finite numbers")
+    units: str = setting("auto", "string", "the file's length unit for gravity: auto (the power of ten of the metre "
+                         "that makes the character nearest human size) or file (metres)", choices=("auto", "file"))
     damping: float = setting(2.0, "number", "velocity damping rate", unit="1/s", low=0.0, must="a rate >= 0",
                              cli="--damping")
     fast_summation: bool = setting(False, "bool", "region sums by prefix scans along paths (false: direct gather)",

@@ -24,6 +24,7 @@ import numpy as np
 from .errors import RigError, RigWarning
 
 from .transforms import compose_trs, decompose_trs, quat_normalize, quat_slerp
+from .units import PLAUSIBLE, describe, extent, metres_per_unit
 
 __all__ = [
     "RigError",
@@ -902,12 +903,13 @@ class Rig:
                     self.joint_weights = jw / sums[:, None]
         # scale: a body outside 5 cm - 20 m was most likely authored in other units
         if not errors and v.shape[0] and np.all(np.isfinite(v)):
-            extent = float((v.max(axis=0) - v.min(axis=0)).max())
-            if extent > 0 and not (0.05 <= extent <= 20.0):
-                guess = 10.0 ** round(np.log10(1.7 / extent))
+            size = extent(v)
+            if size > 0 and not (PLAUSIBLE[0] <= size <= PLAUSIBLE[1]):
+                guess = metres_per_unit(size)
                 rep.warnings.append(
-                    f"the character is {extent:.3g} m across, outside 5 cm - 20 m: if the file is not in metres, "
-                    f"pass --unit-scale {guess:g} (scene: [rig] unit_scale = {guess:g})"
+                    f"the character is {size:.3g} units across, outside 5 cm - 20 m in metres: physics takes its unit "
+                    f"as {describe(guess)} ([solver] units = \"file\" takes metres); --unit-scale {guess:g} (scene: "
+                    f"[rig] unit_scale = {guess:g}) also writes it in metres"
                 )
         # topology
         t = self.triangles

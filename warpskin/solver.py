@@ -23,8 +23,36 @@ from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
 from .model import Contacts, Control, SkinModel, State
+from .units import metres_per_unit
 
-__all__ = ["SolverParams", "SkinSolver", "SimulationError"]
+__all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity"]
+
+
+def length_units(model: SkinModel, units: str = "auto") -> list[float]:
+    """Metres per length unit of the file of each character of ``model`` (one for a single
+    character; a batch's in order): 1 for ``units`` ``"file"``; for ``"auto"`` the power of ten
+    that brings its rest skin nearest human size (:func:`warpskin.units.metres_per_unit` of its
+    largest bounding-box side).
+
+    Raises:
+        SceneError: ``units`` is neither.
+    """
+    if units not in ("auto", "file"):
+        raise SceneError(f"[solver] units must be 'auto' or 'file', got {units!r}")
+    extents = list(getattr(model, "extents", None) or [0.0])
+    return [1.0 if units == "file" else metres_per_unit(e) for e in extents]
+
+
+def particle_gravity(model: SkinModel, gravity, units: list[float]) -> np.ndarray:
+    """``gravity`` [m/s^2] in each particle's file unit, ``[particle_count, 3]`` float32: divided
+    by its character's ``units`` (metres per file unit). A batch's character ``c`` owns the
+    vertices of ``model.characters[c]``; a single character, all of them."""
+    g = np.asarray(gravity, dtype=np.float64).reshape(1, 3)
+    per_vertex = np.full(model.vertex_count, units[0], dtype=np.float64)
+    for r, unit in zip(getattr(model, "characters", None) or [], units):
+        per_vertex[r.vertex_start:r.vertex_start + r.vertex_count] = unit
+    per_particle = np.tile(per_vertex, model.particle_count // max(model.vertex_count, 1))
+    return (g / per_particle[:, None]).astype(np.float32)
 
 
 class SkinSolver:
@@ -126,8 +154,12 @@ class SkinSolver:
                 # the skin between the fail-safe and the volume loop: what the pass after the
                 # volume loop puts a pair's vertices back to
                 self.x_before_volume = wp.zeros(v, dtype=wp.vec3) if self.volume is not None else None
-        g = self.params.gravity
-        self._gravity = wp.vec3(float(g[0]), float(g[1]), float(g[2]))
+        #: metres per file length unit of each character (``[solver] units``; a batch's in
+        #: order): gravity acts in each one's unit, per particle
+        self.length_units = length_units(model, self.params.units)
+        self.length_unit = self.length_units[0]
+        self._gravity = wp.array(particle_gravity(model, self.params.gravity, self.length_units), dtype=wp.vec3,
+                                 device=dev)
 
     @property
     def residuals(self) -> wp.array:

@@ -491,11 +491,19 @@ REDUCE_AT = 1.75
 
 
 def _reduction_unit(height: float) -> float:
-    """The power of two that takes a character of ``height`` [m] nearest :data:`REDUCE_AT` in
-    ratio (1 for a human in metres): multiplying by it changes no float but its exponent."""
+    """The factor that takes a character of ``height`` (its file's units) to about
+    :data:`REDUCE_AT`: the power of ten physics takes its unit as
+    (:func:`warpskin.units.metres_per_unit`), times the power of two nearest the rest in ratio.
+    A file scaled by a power of two within a decade is reduced exactly alike (multiplying by a
+    power of two changes no float but its exponent); one scaled by a power of ten (a 0.1 scale on
+    its root) is reduced as the same file brought to metres (``--unit-scale``) is, float for float
+    where that file's points are these times the same power of ten."""
     if not (height > 0.0) or not math.isfinite(height):
         return 1.0
-    return 2.0 ** round(math.log2(REDUCE_AT / height))
+    from ..units import metres_per_unit
+
+    unit = metres_per_unit(height)
+    return unit * 2.0 ** round(math.log2(REDUCE_AT / (height * unit)))
 
 
 def _decimated(local: _Local, target: int, prm: PieceParams, device, unit: float = 1.0) -> _Local | None:

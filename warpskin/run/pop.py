@@ -226,7 +226,8 @@ def run_popping(
     if beats is not None:
         settings.activation = beats.timeline(deformer.group_names, float(plan.times[0]), float(plan.times[-1]))
     settings.activation.check_groups(deformer.group_names, f"{where}: [popping.activation]")
-    dynamics = PoppingDynamics(deformer, alpha_min=settings.alpha_min, beta=settings.beta, threshold=settings.threshold)
+    dynamics = PoppingDynamics(deformer, alpha_min=settings.alpha_min, beta=settings.beta,
+                               threshold=settings.threshold / _file_unit(scene, rig.vertices))
     h = plan.dt
     if settings.beta * h > 1.0 + 1e-12:
         raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
@@ -331,7 +332,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
 
         def overlay(character, builder, frames_plan):
             pop = _surface_pop(character, builder, frames_plan, settings, muscles, swell, found, timeline, device,
-                               vibrate, surface_bellies)
+                               vibrate, surface_bellies, unit=_file_unit(scene, character.soup.points))
             pop.normal_guide = bool(normal_guide)
             made.append(pop)
             return pop
@@ -457,11 +458,12 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
 
 
 def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
-                 bellies: list):
+                 bellies: list, unit: float = 1.0):
     """The written meshes' muscles (:func:`surface_muscles`) and their goal-driven offset
     (:class:`~warpskin.popping.surface.SurfacePop`), stepped with the solver's steps of
     ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh: belly mask per
-    point}``) and sets the activation ``timeline``."""
+    point}``) and sets the activation ``timeline``. ``unit``: metres per file unit (the snap
+    distance ``settings.threshold`` is in metres)."""
     from ..popping.surface import SurfacePop, seam_points
     from ..rig import Clip
 
@@ -474,9 +476,17 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
     return SurfacePop(swelling, soup.dense_weights, rig.skinning_matrices(Clip("rest"), 0.0), plan.substep_times(),
                       lambda t: settings.activation.sample(t, names), h=plan.dt,
                       alpha_min=settings.alpha_min if vibrate else 1.0, beta=settings.beta,
-                      threshold=settings.threshold, triangles=soup.triangles, margin=_CLEAR * diagonal,
+                      threshold=settings.threshold / unit, triangles=soup.triangles, margin=_CLEAR * diagonal,
                       start=1e-5 * diagonal, points=soup.points,
                       seams=seam_points(soup.points, soup.triangles, mesh), mesh_of_point=mesh, device=device)
+
+
+def _file_unit(scene, points) -> float:
+    """Metres per length unit of the file of ``scene`` (its ``[solver] units``), for a character
+    at rest at ``points`` ``[N, 3]`` (:func:`warpskin.units.metres_per_unit`)."""
+    from ..units import extent, metres_per_unit
+
+    return 1.0 if scene.solver_params().units == "file" else metres_per_unit(extent(points))
 
 
 def _pop_solver_params(scene):
