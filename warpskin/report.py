@@ -1,7 +1,7 @@
 """PNG plots of a simulation's per-frame measurements (``warpskin simulate --report``).
 
-Needs matplotlib (``pip install 'warpskin[report]'``); without it, only ``report.json`` is
-written and the summary says how to get the plots.
+Drawn with matplotlib (a dependency); where it cannot be imported (a broken install), only
+``report.json`` is written and the run warns once on stderr.
 """
 
 from __future__ import annotations

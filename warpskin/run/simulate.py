@@ -642,7 +642,10 @@ def simulate(
                             where=(output.rest, render_deviation),
                             weights=(character.soup.points, character.capture_result.physics_weight),
                             quality=quality.log.series)
-        summary["plots"] = plots or "matplotlib not installed: pip install 'warpskin[report]' for PNG plots"
+        if not plots:
+            warnings.warn(f"{report}: no PNG plots (matplotlib cannot be imported: reinstall warpskin); report.json "
+                          f"has the figures", RuntimeWarning, stacklevel=2)
+        summary["plots"] = plots or "matplotlib cannot be imported: no PNG plots"
         (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics,
                                                         "written": quality.log.series}, indent=1))
     if record.failure is not None:
