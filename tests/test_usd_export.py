@@ -125,3 +125,31 @@ def test_materials_of_one_name_stay_apart_and_shared_ones_are_written_once(tmp_p
     colours = [tuple(UsdShade.Material(stage.GetPrimAtPath(p)).ComputeSurfaceSource()[0].GetInput("diffuseColor").Get())
                for p in (a, b)]
     assert colours == [(1.0, 0.0, 0.0), (0.0, 0.0, 1.0)]
+
+
+def test_a_folder_that_refuses_files_is_named_before_any_work(tmp_path, monkeypatch):
+    # a folder access() calls writable that refuses a file anyway (a read-only or virtual file
+    # system): the up-front check and the writer each name the path; nothing is left behind
+    import errno
+    import tempfile
+
+    from warpskin.io.usd_export import check_output_path
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(ExportError, match=r"bake\.usdc: cannot write in folder .*\(Read-only file system\)"):
+        check_output_path(tmp_path / "bake.usdc")
+    with pytest.raises(ExportError, match=r"bake\.usdc: cannot write in folder .*\(Read-only file system\)"):
+        UsdSkinWriter(tmp_path / "bake.usdc", fps=24.0)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc, a folder that refuses files")
+def test_simulate_into_a_folder_that_refuses_files_exits_2(capsys):
+    from warpskin.cli import main
+
+    assert main(["simulate", "arm", "--frames", "0:1", "-o", "/proc/bake.usdc", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "/proc/bake.usdc: cannot write in folder /proc" in err and "internal error" not in err

@@ -77,6 +77,12 @@ def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
         raise ExportError(f"{p}: folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ExportError(f"{p}: folder {parent} is not writable")
+    try:  # what access() cannot tell (a read-only or virtual file system, a root-owned folder): try it
+        fd, probe = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=".probe", dir=parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ExportError(f"{p}: cannot write in folder {parent} ({exc.strerror or exc})") from None
     limit = os.pathconf(parent, "PC_NAME_MAX") if hasattr(os, "pathconf") else 255
     longest = max(len(p.name.encode()), len(f".{p.stem}.xxxxxxxx.tmp{ext}".encode()), len(f"{p.stem}_textures".encode()))
     if longest > limit:
@@ -166,7 +172,10 @@ class UsdSkinWriter:
             raise ExportError(f"{self.path}: folder {parent} does not exist")
         blocked = _block_stop_signals()  # a stop signal waits until the temporary name is registered
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{ext}", dir=parent)
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{ext}", dir=parent)
+            except OSError as exc:
+                raise ExportError(f"{self.path}: cannot write in folder {parent} ({exc.strerror or exc})") from None
             self._tmp = Path(tmp)
             _LIVE_TEMPORARIES.add(self._tmp)
             os.close(fd)
@@ -174,8 +183,14 @@ class UsdSkinWriter:
         finally:
             _unblock(blocked)
         self._vt, self._gf, self._usdgeom, self._sdf = Vt, Gf, UsdGeom, Sdf
-        self._stage = Usd.Stage.CreateNew(str(self._tmp))
+        try:
+            self._stage = Usd.Stage.CreateNew(str(self._tmp))
+        except Exception as exc:  # pxr's Tf.ErrorException: a folder that refuses the file
+            self._stage = None
+            _LIVE_TEMPORARIES.discard(self._tmp)
+            raise ExportError(f"{self.path}: USD could not create the file in {parent}: {exc}") from None
         if self._stage is None:  # pragma: no cover
+            _LIVE_TEMPORARIES.discard(self._tmp)
             raise ExportError(f"{self.path}: USD could not create a stage")
         self.fps = float(fps)
         st = self._stage
