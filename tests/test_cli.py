@@ -71,6 +71,13 @@ def test_info_and_scenes(capsys):
     assert main(["info", "arm"]) == 0
     text = capsys.readouterr().out
     assert "2918 vertices" in text and "closed, manifold" in text and "elbow" in text
+    # clips in frames, as --frames takes them (the arm scene: 0:150 at 30 fps), and the unit taken
+    from warpskin.scene import load_scene
+
+    scene = load_scene("arm")
+    first, last = scene.clip_frames()
+    assert f"frames {first}:{last} at {scene.frame_rate:g} fps" in text and (first, last) == (0, 150)
+    assert "physics takes 1 unit as 1 m" in text
 
 
 @pytest.mark.parametrize(

@@ -60,11 +60,13 @@ def test_missing_rig_file_exits_2(tmp_path, capsys):
 
 
 def test_bad_frames_option_exits_2(tmp_path, capsys):
-    # a usage error: argparse's usage, then one error line naming the option
+    # a usage error: one error line naming the option, then where the options are listed (not
+    # argparse's whole usage first)
     assert main(["skin", "arm", "-o", str(tmp_path / "o.usdc"), "--frames", "5:2", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err
-    assert err.strip().splitlines()[-1] == "warpskin skin: error: argument --frames: --frames 5:2: need 0 <= FIRST <= LAST"
+    assert "Traceback" not in err and "usage:" not in err
+    assert err.strip().splitlines() == ["warpskin skin: error: argument --frames: --frames 5:2: need 0 <= FIRST <= LAST",
+                                        "(options: warpskin skin --help)"]
 
 
 def test_failed_run_exits_3_and_keeps_the_frames_before_it(tmp_path, capsys, monkeypatch):
@@ -131,3 +133,17 @@ def test_load_scene_refuses_a_rig_file_or_binary_with_one_line(tmp_path):
     p.write_bytes(b"\xec\xff\x00 not text")
     with pytest.raises(SceneError, match="not a TOML scene file"):
         load_scene(p)
+
+
+def test_a_rig_under_another_extension_is_told_what_it_looks_like(tmp_path, capsys):
+    # a binary glTF named .txt: one line saying what it looks like and the extensions taken
+    from gltf_builder import write_rig_glb
+    from warpskin.scenes.arm import make_arm
+
+    glb = write_rig_glb(make_arm(rings=8, segments=8), tmp_path / "arm.glb")
+    wrong = tmp_path / "arm.txt"
+    wrong.write_bytes(glb.read_bytes())
+    assert main(["info", str(wrong)]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert "arm.txt: not a TOML scene file" in err and "looks like binary glTF: rename it to .glb" in err
+    assert ".usdz" in err

@@ -175,9 +175,15 @@ def cmd_info(args) -> int:
     names = rig.skeleton.joint_names
     for j, (n, p) in enumerate(zip(names, rig.skeleton.parents)):
         print(f"  {j:3d} {n}  <- {names[p] if p >= 0 else '(root)'}")
-    print("clips:" if summary["clips"] else "clips: none (rest pose only)")
+    print("clips:" if summary["clips"] else "clips: none (rest pose only; a scene file keys its joints in "
+          "[animation.keys], see the docs' scenes page)")
+    from .scene import DEFAULT_FPS, clip_frame_span
+
     for n, c in summary["clips"].items():
-        print(f"  {n}: {c['start']:.4g} .. {c['end']:.4g} s, {c['tracks']} tracks")
+        rate = scene.fps or rig.clip(n).rate or DEFAULT_FPS
+        first, last = clip_frame_span(rig.clip(n), rate)
+        print(f"  {n}: frames {first}:{last} at {rate:g} fps ({c['start']:.4g} .. {c['end']:.4g} s), "
+              f"{c['tracks']} tracks")
     for w in summary["warnings"]:
         print(f"warning: {w}")
     return 0
@@ -524,6 +530,14 @@ def cmd_warmup(args) -> int:
 
 
 # ------------------------------------------------------------------------------------ parser
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose usage error is one line naming the option, then where the help
+    is (argparse prints the whole usage first: 15 lines before the one that matters)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n(options: {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The parser of every command. Each option is made from its declaration
     (:func:`warpskin.settings.add_option`): a scene setting's field (``SolverParams.iterations``
@@ -537,12 +551,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .settings import add_option as opt
 
     C = CommonOptions
-    p = argparse.ArgumentParser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")
+    p = _Parser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")
     p.add_argument("--version", action="version", version=f"warpskin {__version__}")
     opt(p, GlobalOptions, "debug")
     # global flags are accepted after the command too (SUPPRESS: not given there, the value
     # before the command stands)
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     opt(common, GlobalOptions, "debug", default=argparse.SUPPRESS)
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     add_parser = sub.add_parser

@@ -257,11 +257,7 @@ class Scene:
     def clip_frames(self) -> tuple[int, int]:
         """The frames the clip spans at :attr:`frame_rate`: the first at or after its first
         key, the last at or before its last key."""
-        clip = self.rig().clip(self.clip)
-        r = self.frame_rate
-        eps = 1e-3  # frames: key times are often float32 (RiggedSimple's last key is 49.99999 frames)
-        first = int(math.ceil(clip.start * r - eps))
-        return first, max(first, int(math.floor(clip.end * r + eps)))
+        return clip_frame_span(self.rig().clip(self.clip), self.frame_rate)
 
     def frame_range(self) -> tuple[int, int]:
         """Inclusive frame range to play (the scene's, else the whole clip)."""
@@ -462,6 +458,32 @@ def resolve_scene(target: Scene | str | Path) -> Scene:
     return Scene.from_rig_file(target) if is_rig_file(target) else load_scene(target)
 
 
+def clip_frame_span(clip, rate: float) -> tuple[int, int]:
+    """The inclusive frames ``clip`` spans at ``rate`` [fps]: the first at or after its first key,
+    the last at or before its last key (within a thousandth of a frame: key times are often
+    float32, RiggedSimple's last key is 49.99999 frames)."""
+    eps = 1e-3
+    first = int(math.ceil(clip.start * rate - eps))
+    return first, max(first, int(math.floor(clip.end * rate + eps)))
+
+
+def _format_hint(path: Path) -> str:
+    """What a file that is not a scene looks like, by its first bytes, and the extensions a rig
+    file is taken by: ``"; it looks like binary glTF: rename it to .glb (...)"``."""
+    from .io import RIG_EXTENSIONS
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        head = b""
+    kinds = {b"glTF": ("binary glTF", ".glb"), b"PXR-USDC": ("USD crate", ".usdc"), b"PK\x03\x04": ("a zip (USDZ?)", ".usdz"),
+             b"#usda": ("USD text", ".usda")}
+    seen = next((kind for magic, kind in kinds.items() if head.startswith(magic)), None)
+    known = f"rig files end in {', '.join(RIG_EXTENSIONS)}; scenes in .toml"
+    return f"; it looks like {seen[0]}: rename it to {seen[1]} ({known})" if seen else f" ({known})"
+
+
 def load_scene(name_or_path: str | Path) -> Scene:
     """Load a shipped scene by name, or a TOML scene file by path.
 
@@ -480,7 +502,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
         try:
             text = candidate.read_text(encoding="utf-8")
         except UnicodeDecodeError:
-            raise SceneError(f"{candidate}: not a TOML scene file (not UTF-8 text)") from None
+            raise SceneError(f"{candidate}: not a TOML scene file (not UTF-8 text){_format_hint(candidate)}") from None
         name = candidate.stem
     else:
         name = str(name_or_path)
@@ -494,7 +516,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{where}: not valid TOML: {exc}") from None
+        hint = _format_hint(text_path) if text_path is not None and text_path.suffix.lower() != ".toml" else ""
+        raise SceneError(f"{where}: not valid TOML: {exc}{hint}") from None
 
     extra = {k: data[k] for k in ("layers", "joints", "subvolumes", "solver", "collision", "physics", "guard", "popping")
              if k in data}

@@ -77,17 +77,17 @@ def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
         raise ExportError(f"{p}: folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ExportError(f"{p}: folder {parent} is not writable")
-    try:  # what access() cannot tell (a read-only or virtual file system, a root-owned folder): try it
-        fd, probe = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=".probe", dir=parent)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise ExportError(f"{p}: cannot write in folder {parent} ({exc.strerror or exc})") from None
     limit = os.pathconf(parent, "PC_NAME_MAX") if hasattr(os, "pathconf") else 255
     longest = max(len(p.name.encode()), len(f".{p.stem}.xxxxxxxx.tmp{ext}".encode()), len(f"{p.stem}_textures".encode()))
     if longest > limit:
         raise ExportError(f"{p}: the file name is {len(p.name.encode())} bytes; with warpskin's temporary name it "
                           f"needs {longest}, over this file system's {limit}")
+    try:  # what access() cannot tell (a read-only or virtual file system, a root-owned folder): try it
+        fd, probe = tempfile.mkstemp(prefix=".warpskin-", suffix=".probe", dir=parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ExportError(f"{p}: cannot write in folder {parent} ({exc.strerror or exc})") from None
     for src in inputs:
         try:
             same = Path(src).exists() and p.exists() and os.path.samefile(src, p)
