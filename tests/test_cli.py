@@ -281,3 +281,13 @@ def test_nohup_keeps_a_run_going(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0 and out.is_file()
+
+
+def test_the_python_api_prints_nothing_on_stdout(tmp_path):
+    # a library says nothing of its own accord: no Warp banner, no module-load lines (a separate
+    # process: Warp prints its banner once, at its first initialisation)
+    code = ("from warpskin.run import skin_to_usd; from warpskin.scene import load_scene; "
+            f"skin_to_usd(load_scene('arm'), {str(tmp_path / 'a.usdc')!r}, frames=(0, 1), progress=False)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout == "" and (tmp_path / "a.usdc").is_file()

@@ -42,3 +42,21 @@ def test_the_changelog_keeps_its_form():
     assert all(re.fullmatch(r"\d+\.\d+\.\d+", v) for v in released)
     for section in re.findall(r"^### (.+)$", text, flags=re.M):
         assert section in {"Added", "Changed", "Deprecated", "Removed", "Fixed", "Security"}
+
+
+def test_the_checkout_imports_its_kernels_from_any_python_m(tmp_path):
+    # `python -m sphinx` (or any `python -m`) in the checkout imports its warpskin/, which has
+    # no kernels/ of its own; it must find the top-level one (not an installed copy)
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parent.parent
+    code = ("import sys; sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in repr(f).lower()]; "
+            f"sys.path.insert(0, {str(repo)!r}); import warpskin.kernels.rotation as r, warpskin.scenes as s, warpskin; "
+            "print(warpskin.__file__); print(r.__file__); print(s.__file__)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    pkg, kern, scenes = run.stdout.split()
+    assert Path(pkg) == repo / "warpskin" / "__init__.py"
+    assert Path(kern) == repo / "kernels" / "rotation.py" and Path(scenes) == repo / "scenes" / "__init__.py"

@@ -737,7 +737,13 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    if not args.debug:
+    if args.debug:  # Warp's banner and module-load lines too (warpskin.device quiets them)
+        import warp as wp
+
+        from . import device  # noqa: F401 (its import sets the level this one overrides)
+
+        wp.config.log_level = wp.LOG_INFO
+    else:
         import warp as wp
 
         wp.config.log_level = wp.LOG_ERROR  # no banner

@@ -6,6 +6,13 @@ import warp as wp
 
 from .errors import SceneError
 
+# A library prints nothing on stdout of its own accord: Warp's start-up banner and its per-module
+# load lines (log level INFO, Warp's default) are quieted to warnings when warpskin is imported,
+# unless the caller chose a level already. Set ``wp.config.log_level = wp.LOG_INFO`` after the
+# import to see them again (``warpskin --debug`` does).
+if wp.config.log_level == getattr(wp, "LOG_INFO", 20):
+    wp.config.log_level = getattr(wp, "LOG_WARNING", 30)
+
 __all__ = ["resolve_device", "available_devices"]
 
 
