@@ -233,3 +233,48 @@ def test_cuda_jobs_get_a_gpu_each(tmp_path):
     for j in jobs:
         e = result.entries[j.id]
         assert e["status"] == "ok" or (e["exit_code"] == 2 and "cuda" in e["message"].lower()), e
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` still runs (a zombie nobody reaped has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="the parent-death signal is Linux's (prctl)")
+def test_a_batch_killed_with_sigkill_takes_its_workers_with_it(tmp_path):
+    # a farm's SIGKILL cannot be caught by the batch; its workers get SIGTERM from the kernel as it
+    # dies, and end (keeping the frames they finished) instead of baking on for nothing
+    import subprocess
+    import sys
+
+    jobs = tmp_path / "jobs.toml"
+    jobs.write_text('[[job]]\nrig = "arm"\n')  # the whole clip: a minute of work
+    out = tmp_path / "out"
+    batch = subprocess.Popen([sys.executable, "-m", "warpskin", "batch", str(jobs), "-o", str(out), "--quiet"],
+                             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    pid = None
+    deadline = time.monotonic() + 120.0
+    try:
+        while pid is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+            try:
+                pid = _manifest(out)["arm/default.usdc"].get("pid")
+            except (OSError, json.JSONDecodeError, KeyError):
+                pass
+        assert pid is not None and _alive(pid)
+        time.sleep(1.0)
+        batch.kill()
+        batch.wait(timeout=30)
+        deadline = time.monotonic() + 30.0
+        while _alive(pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(pid), "the worker outlived its batch"
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+        if pid is not None and _alive(pid):
+            os.kill(pid, signal.SIGKILL)

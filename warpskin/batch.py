@@ -160,7 +160,7 @@ def _check_rig(rig: str, where: str) -> None:
 
 def _check_args(command: str, rig: str, args: list[str], where: str) -> None:
     """Parse the job's command line as the command would, so that a bad option fails the batch
-    before anything runs (argparse's own message, its last line)."""
+    before anything runs (argparse's own message, its error line)."""
     from .cli import build_parser
 
     err = io.StringIO()
@@ -168,7 +168,8 @@ def _check_args(command: str, rig: str, args: list[str], where: str) -> None:
         try:
             build_parser().parse_args([command, rig, "-o", "x.usdc", *args])
         except SystemExit:
-            last = (err.getvalue().strip().splitlines() or ["bad arguments"])[-1]
+            lines = [ln for ln in err.getvalue().strip().splitlines() if ": error: " in ln]
+            last = (lines or err.getvalue().strip().splitlines() or ["bad arguments"])[-1]
             raise BatchError(f"{where}: args: {re.sub(r'^warpskin( [a-z]+)?: error: ', '', last)}") from None
     for flag, key in (("-o", "output"), ("--output", "output"), ("--clip", "clip"), ("--frames", "frames"),
                       ("--json", None), ("--quiet", None)):
@@ -388,7 +389,8 @@ class _Processes:
             self.gpu_of[job.id] = gpu
             env = {**(os.environ if env is None else env), "CUDA_VISIBLE_DEVICES": str(gpu)}
         stdout, stderr = open(out, "w"), open(err, "w")
-        proc = subprocess.Popen(job.argv(), stdout=stdout, stderr=stderr, env=env)
+        proc = subprocess.Popen(job.argv(), stdout=stdout, stderr=stderr, env=env, start_new_session=True,
+                                preexec_fn=_end_with_parent(os.getpid()))
         self.running[job.id] = (proc, stdout, stderr)
         return {"pid": proc.pid, **({"gpu": self.gpu_of[job.id]} if job.id in self.gpu_of else {})}
 
@@ -417,6 +419,31 @@ class _Processes:
                 proc.wait(timeout=10)
             stdout.close()
             stderr.close()
+
+
+def _end_with_parent(parent: int):
+    """A ``preexec_fn`` that makes a worker end with the batch that started it, however the batch
+    ends (SIGKILL included): on Linux, the kernel sends the worker SIGTERM when its parent dies
+    (``prctl(PR_SET_PDEATHSIG)``), which keeps its finished frames and exits 3 as a failed run
+    does; a parent already gone when it is set is caught by the parent id check. Elsewhere
+    ``None`` (a batch stopped by a signal it can catch still stops its workers,
+    :meth:`_Processes.stop`). Workers run in a session (process group) of their own, so a
+    terminal's Ctrl-C reaches the batch, which ends them, rather than each of them."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+    def end_with_parent() -> None:
+        prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        if os.getppid() != parent:  # the batch died before the line above
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return end_with_parent
 
 
 def _cuda_device_count() -> int:
