@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -205,8 +206,11 @@ def test_json_summaries(tmp_path, capsys):
     assert s["frames"] == 3 and s["groups"]
 
 
-@pytest.mark.parametrize("signame, code", [("SIGTERM", 143), ("SIGHUP", 129)])
-def test_a_killed_run_leaves_no_temp_file(tmp_path, signame, code):
+@pytest.mark.parametrize("signame, code, wait", [("SIGTERM", 143, 0.0), ("SIGHUP", 129, 0.0), ("SIGTERM", 143, 4.0)])
+def test_a_stopped_run_keeps_its_finished_frames_and_no_temp_file(tmp_path, signame, code, wait):
+    # a stop signal as soon as the output is opened, or seconds into the run: no temporary file
+    # is left, and the frames finished before the signal are kept in a valid file (as a failed
+    # run keeps them), as many as the message says
     import signal
     import time
 
@@ -225,14 +229,27 @@ def test_a_killed_run_leaves_no_temp_file(tmp_path, signame, code):
         while not [p for p in tmp_path.iterdir() if p.name.startswith(".arm.")]:
             assert proc.poll() is None and time.monotonic() < deadline, "the run never opened its output"
             time.sleep(0.2)
+        time.sleep(wait)
         proc.send_signal(getattr(signal, signame))
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == code
     assert f"stopped by {signame}" in err
-    assert list(tmp_path.iterdir()) == []
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    kept = re.search(r"the (\d+) frames finished before it were written to (\S+)", err)
+    if kept is None:
+        assert "nothing was written" in err and list(tmp_path.iterdir()) == []
+    else:
+        from pxr import Usd, UsdGeom
+
+        assert kept.group(2) == str(out)
+        stage = Usd.Stage.Open(str(out))
+        mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+        assert len(mesh.GetPointsAttr().GetTimeSamples()) == int(kept.group(1)) >= 1
+    if wait > 0:
+        assert kept is not None and int(kept.group(1)) < 151  # stopped mid-run, frames kept
 
 
 def test_info_reports_pieces_loops_and_the_simulation_path(assets, capsys):

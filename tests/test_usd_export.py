@@ -153,3 +153,33 @@ def test_simulate_into_a_folder_that_refuses_files_exits_2(capsys):
     assert main(["simulate", "arm", "--frames", "0:1", "-o", "/proc/bake.usdc", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "/proc/bake.usdc: cannot write in folder /proc" in err and "internal error" not in err
+
+
+def test_one_writer_per_output_and_a_killed_runs_leftovers_go(tmp_path):
+    # a second writer of the same file while the first writes is refused, naming the path; a
+    # killed run's temporary file and lock are cleared by the next writer; nothing is left
+    from warpskin.io.usd_export import OutputLock, check_output_path
+
+    out = tmp_path / "bake.usdc"
+    first = UsdSkinWriter(out, fps=24.0)
+    with pytest.raises(ExportError, match=r"bake\.usdc: another run is writing this file"):
+        UsdSkinWriter(out, fps=24.0)
+    with pytest.raises(ExportError, match=r"bake\.usdc: another run is writing this file"):
+        check_output_path(out)
+    first.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bake.usdc"]
+    # what SIGKILL leaves: a temporary file of the stage, and a lock file nobody holds
+    stale = tmp_path / ".bake.k1ll3d00.tmp.usdc"
+    stale.write_bytes(b"x" * 492)
+    (tmp_path / ".bake.usdc.lock").write_bytes(b"")
+    other = tmp_path / ".other.k1ll3d00.tmp.usdc"  # another output's: not ours to remove
+    other.write_bytes(b"x")
+    check_output_path(out)
+    with UsdSkinWriter(out, fps=24.0) as w:
+        assert not stale.exists()
+        w.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.k1ll3d00.tmp.usdc", "bake.usdc"]
+    lock = OutputLock(out).acquire()
+    assert lock.lock_path.exists()
+    lock.release()
+    assert not lock.lock_path.exists()

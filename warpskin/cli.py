@@ -701,17 +701,10 @@ def _init_warp_quietly() -> None:
         os.close(devnull)
 
 
-class _Signalled(BaseException):
-    """Raised in the main thread by SIGTERM or SIGHUP, so that a run unwinds like an interrupt:
-    the writer drops its temporary file and nothing is left under the output name."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
-
-
 def _on_signal(signum, frame):
-    raise _Signalled(signum)
+    from .errors import Stopped
+
+    raise Stopped(signum)
 
 
 def _install_signal_handlers() -> dict:
@@ -749,7 +742,7 @@ def main(argv: list[str] | None = None) -> int:
         wp.config.log_level = wp.LOG_ERROR  # no banner
         if not str(getattr(args, "device", None) or "").startswith("cuda"):
             _init_warp_quietly()
-    from .errors import InputError, SimulationError
+    from .errors import InputError, SimulationError, Stopped
 
     def one_line(message, category, filename, lineno, file=None, line=None):  # no file paths or source lines
         print(f"warpskin: warning: {message}", file=sys.stderr if file is None else file)
@@ -766,12 +759,16 @@ def main(argv: list[str] | None = None) -> int:
         remove_temporary_files()
         print("warpskin: interrupted; nothing was written", file=sys.stderr)
         return 130
-    except _Signalled as exc:
+    except Stopped as exc:
         import signal
 
         from .io.usd_export import remove_temporary_files
 
         remove_temporary_files()  # also a writer the signal caught before anything could abort it
+        if exc.kept is not None:
+            print(f"warpskin: stopped by {signal.Signals(exc.signum).name}; the {exc.kept[0]} frames finished before "
+                  f"it were written to {exc.kept[1]}", file=sys.stderr)
+            return 128 + exc.signum
 
         print(f"warpskin: stopped by {signal.Signals(exc.signum).name}; nothing was written", file=sys.stderr)
         return 128 + exc.signum

@@ -13,13 +13,16 @@ class                       exit  raised when
                                   of the wrong shape, dtype or device
 :class:`SimulationError`    3     a run failed or left its valid range; the frames before
                                   it are kept in a valid file
+:class:`Stopped`            128   SIGTERM or SIGHUP reached the command (128 + the signal's
+                            + n   number); the frames finished before it are kept
 any other exception         1     a bug: ``warpskin --debug ...`` shows the traceback
 ==========================  ====  =====================================================
 """
 
 from __future__ import annotations
 
-__all__ = ["WarpskinError", "InputError", "RigError", "SceneError", "OutputError", "SimulationError", "RigWarning"]
+__all__ = ["WarpskinError", "InputError", "RigError", "SceneError", "OutputError", "SimulationError", "RigWarning",
+           "Stopped"]
 
 
 class WarpskinError(Exception):
@@ -51,6 +54,18 @@ class SimulationError(WarpskinError, RuntimeError):
     message names the frame and the particle, layer or vertex; earlier frames are kept."""
 
     exit_code = 3
+
+
+class Stopped(BaseException):
+    """A stop signal (SIGTERM, SIGHUP) reached a command; raised in its main thread, so that a
+    run unwinds as an interrupt does (not an ``Exception``: no handler swallows it). The frame
+    loop keeps the frames finished before it in a valid file, as a failed run does, and records
+    how many in ``kept`` (``(frames, path)``; ``None``: nothing was written)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+        self.kept: tuple[int, str] | None = None
 
 
 class RigWarning(UserWarning):

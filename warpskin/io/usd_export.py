@@ -14,6 +14,7 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from ..errors import OutputError
 
-__all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS", "check_output_path"]
+__all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS", "check_output_path", "OutputLock"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -64,7 +65,8 @@ def _prim_name(name: str) -> str:
 def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
     """Check, before any work, that a USD file can be written at ``path``: a USD extension, an
     existing folder we may write to, not a folder itself, a name short enough for the
-    temporary name beside it, and not one of ``inputs`` (a bake never overwrites its source).
+    temporary name beside it, not being written by another run (:class:`OutputLock`), and not one
+    of ``inputs`` (a bake never overwrites its source).
     Returns the path; raises :class:`ExportError` naming the problem."""
     p = Path(path)
     if p.is_dir():
@@ -78,7 +80,8 @@ def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ExportError(f"{p}: folder {parent} is not writable")
     limit = os.pathconf(parent, "PC_NAME_MAX") if hasattr(os, "pathconf") else 255
-    longest = max(len(p.name.encode()), len(f".{p.stem}.xxxxxxxx.tmp{ext}".encode()), len(f"{p.stem}_textures".encode()))
+    longest = max(len(p.name.encode()), len(f".{p.stem}.xxxxxxxx.tmp{ext}".encode()), len(f"{p.stem}_textures".encode()),
+                  len(f".{p.name}.lock".encode()))
     if longest > limit:
         raise ExportError(f"{p}: the file name is {len(p.name.encode())} bytes; with warpskin's temporary name it "
                           f"needs {longest}, over this file system's {limit}")
@@ -88,6 +91,7 @@ def check_output_path(path: str | os.PathLike, *, inputs=()) -> Path:
         os.unlink(probe)
     except OSError as exc:
         raise ExportError(f"{p}: cannot write in folder {parent} ({exc.strerror or exc})") from None
+    OutputLock(p).acquire().release()  # another run writing this file: refused now, not after the work
     for src in inputs:
         try:
             same = Path(src).exists() and p.exists() and os.path.samefile(src, p)
@@ -127,6 +131,74 @@ def remove_temporary_files() -> None:
         except OSError:
             pass
         _LIVE_TEMPORARIES.discard(tmp)
+
+
+class OutputLock:
+    """An exclusive lock on an output path while a writer fills it: the hidden file
+    ``.<name>.lock`` beside it, locked with ``flock`` (Linux, macOS; elsewhere no lock) and removed
+    when the writer closes or aborts. A second run asked to write the same file while the first
+    does is refused (:class:`ExportError`, exit 2) instead of both printing "wrote" and the last
+    silently winning. A lock file left by a killed run (SIGKILL) is not held and is taken over.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.lock_path = self.path.with_name(f".{self.path.name}.lock")
+        self._fd: int | None = None
+
+    def acquire(self) -> OutputLock:
+        """Take the lock (at once, or raise :class:`ExportError` naming the path)."""
+        try:
+            import fcntl
+        except ImportError:  # no flock here: no lock
+            return self
+        for _ in range(8):  # a lock file removed between our open and our lock: open it again
+            try:
+                fd = os.open(self.lock_path, os.O_CREAT | os.O_RDWR, 0o644)
+            except OSError as exc:
+                raise ExportError(f"{self.path}: cannot write in folder {self.lock_path.parent} "
+                                  f"({exc.strerror or exc})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                raise ExportError(f"{self.path}: another run is writing this file (its lock {self.lock_path.name} "
+                                  f"is held); wait for it to finish or write another file") from None
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.lock_path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                self._fd = fd
+                _LIVE_TEMPORARIES.add(self.lock_path)
+                return self
+            os.close(fd)
+        raise ExportError(f"{self.path}: its lock {self.lock_path.name} keeps changing; another run is writing it")
+
+    def release(self) -> None:
+        """Remove the lock file and let the lock go (no-op when not held)."""
+        if self._fd is None:
+            return
+        with contextlib.suppress(FileNotFoundError):
+            self.lock_path.unlink()
+        _LIVE_TEMPORARIES.discard(self.lock_path)
+        os.close(self._fd)
+        self._fd = None
+
+
+def _remove_stale_temporaries(path: Path) -> list[Path]:
+    """The temporary files of earlier writers of ``path`` that were killed before they could
+    remove them (``.<stem>.*.tmp<ext>`` beside it), removed; call with its :class:`OutputLock`
+    held (no live writer of ``path`` then owns one). Returns what was removed."""
+    prefix, suffix = f".{path.stem}.", f".tmp{path.suffix.lower()}"
+    gone = []
+    with contextlib.suppress(OSError):
+        for p in path.parent.iterdir():
+            if p.name.startswith(prefix) and p.name.endswith(suffix) and p.is_file():
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    gone.append(p)
+    return gone
 
 
 class UsdSkinWriter:
@@ -172,9 +244,12 @@ class UsdSkinWriter:
             raise ExportError(f"{self.path}: folder {parent} does not exist")
         blocked = _block_stop_signals()  # a stop signal waits until the temporary name is registered
         try:
+            self._lock = OutputLock(self.path).acquire()
+            _remove_stale_temporaries(self.path)  # a killed run's, now that no live writer has one
             try:
                 fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{ext}", dir=parent)
             except OSError as exc:
+                self._lock.release()
                 raise ExportError(f"{self.path}: cannot write in folder {parent} ({exc.strerror or exc})") from None
             self._tmp = Path(tmp)
             _LIVE_TEMPORARIES.add(self._tmp)
@@ -188,9 +263,11 @@ class UsdSkinWriter:
         except Exception as exc:  # pxr's Tf.ErrorException: a folder that refuses the file
             self._stage = None
             _LIVE_TEMPORARIES.discard(self._tmp)
+            self._lock.release()
             raise ExportError(f"{self.path}: USD could not create the file in {parent}: {exc}") from None
         if self._stage is None:  # pragma: no cover
             _LIVE_TEMPORARIES.discard(self._tmp)
+            self._lock.release()
             raise ExportError(f"{self.path}: USD could not create a stage")
         self.fps = float(fps)
         st = self._stage
@@ -583,6 +660,7 @@ class UsdSkinWriter:
             self._write_textures()
             os.replace(self._tmp, self.path)
             _LIVE_TEMPORARIES.discard(self._tmp)
+            self._lock.release()
         except Exception as exc:
             self.abort()
             if isinstance(exc, ExportError):
@@ -616,6 +694,7 @@ class UsdSkinWriter:
         except FileNotFoundError:
             pass
         _LIVE_TEMPORARIES.discard(self._tmp)
+        self._lock.release()
 
     def _check_open(self) -> None:
         if self._closed:

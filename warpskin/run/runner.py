@@ -6,7 +6,9 @@ A *stepper* advances the character to each frame and hands back the points to wr
 per-frame timing, the USD writer (opened, filled, closed, or aborted on an error so nothing
 half-written is left) and the measurements. A :class:`~warpskin.errors.SimulationError` raised
 by a stepper stops the loop and keeps every frame before it in a valid file; the error is
-raised again, naming how many frames were kept and where.
+raised again, naming how many frames were kept and where. A stop signal
+(:class:`~warpskin.errors.Stopped`, SIGTERM or SIGHUP on the command line) during a frame does
+the same with the frames finished before it.
 
 A stepper has:
 
@@ -27,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import SimulationError
+from ..errors import SimulationError, Stopped
 from ..progress import Progress
 from .plan import FramePlan
 
@@ -43,12 +45,14 @@ class RunRecord:
         step_ms: Milliseconds per step of every frame (advance and read-back, divided by the
             substeps; 0 for a frame that needed no step).
         failure: The error that stopped the run early, if one did (already re-raised by
-            :meth:`FrameRunner.run` unless ``keep_failure``).
+            :meth:`FrameRunner.run` unless ``keep_failure``): a
+            :class:`~warpskin.errors.SimulationError`, or the
+            :class:`~warpskin.errors.Stopped` of a stop signal after the first frame.
     """
 
     frames: list[int] = field(default_factory=list)
     step_ms: list[float] = field(default_factory=list)
-    failure: SimulationError | None = None
+    failure: SimulationError | Stopped | None = None
 
 
 class FrameRunner:
@@ -111,6 +115,12 @@ class FrameRunner:
                     where = f" to {writer.path}" if writer is not None else ""
                     rec.failure = SimulationError(f"{exc} ({len(rec.frames)} frames before it were written{where})")
                     break
+                except Stopped as exc:  # SIGTERM or SIGHUP: the finished frames are kept, as on a failure
+                    if writer is not None and rec.frames:
+                        exc.kept = (len(rec.frames), str(writer.path))
+                        rec.failure = exc
+                        break
+                    raise
                 primvars = points.pop("primvars", None) if isinstance(points, dict) else None
                 if self.output is not None and self.output.attachments:
                     points = {**points, **self.output.attachment_points(plan.times[i])}
