@@ -278,3 +278,20 @@ def test_a_batch_killed_with_sigkill_takes_its_workers_with_it(tmp_path):
             batch.kill()
         if pid is not None and _alive(pid):
             os.kill(pid, signal.SIGKILL)
+
+
+def test_the_example_jobs_file_is_a_batch(tmp_path, capsys):
+    # the jobs file the docs show reads as jobs of every command, and its skin job bakes
+    from pathlib import Path
+
+    from warpskin.batch import read_jobs, run_batch
+
+    example = Path(__file__).resolve().parent.parent / "docs" / "examples" / "jobs.toml"
+    jobs = read_jobs(example, tmp_path)
+    assert [j.command for j in jobs] == ["simulate", "skin", "pop", "simulate"]
+    assert len({j.output for j in jobs}) == len(jobs)
+    skin = [j for j in jobs if j.command == "skin"]
+    result = run_batch(skin, tmp_path, progress=False)
+    assert result.failed == [] and (tmp_path / "arm" / "dqs.usdc").is_file()
+    docs = (example.parent.parent / "commands.md").read_text()
+    assert "examples/jobs.toml" in docs
