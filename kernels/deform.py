@@ -385,6 +385,123 @@ def group_fit_kernel(
     centre[g] = c
 
 
+@wp.func
+def _short_arc(q: wp.quat) -> wp.quat:
+    """``q`` or ``-q``, the same rotation, whichever lies on the short arc from the identity."""
+    if q[3] < 0.0:
+        return -q
+    return q
+
+
+@wp.func
+def _anchor_reach(s: float, q: wp.quat, cl: wp.vec3, c: wp.vec3, out: wp.array(dtype=wp.vec3),
+                  anchors: wp.array(dtype=wp.int32), start: int, end: int) -> float:
+    """The farthest any anchor (written point ``anchors[start .. end]``, ``out`` its LBS ``l``)
+    moves under the share ``s`` of a group's motion: ``max |R_s (l - c_l) + c_l + s (c - c_l) - l|``."""
+    r = wp.quat_slerp(wp.quat_identity(), q, s)
+    far = float(0.0)
+    for k in range(start, end):
+        l = out[anchors[k]]
+        far = wp.max(far, wp.length(wp.quat_rotate(r, l - cl) + cl + s * (c - cl) - l))
+    return far
+
+
+@wp.kernel
+def group_limit_kernel(
+    out: wp.array(dtype=wp.vec3),
+    rotation: wp.array(dtype=wp.quat),
+    centre_lbs: wp.array(dtype=wp.vec3),
+    centre: wp.array(dtype=wp.vec3),
+    anchor_offsets: wp.array(dtype=wp.int32),
+    anchors: wp.array(dtype=wp.int32),
+    physics_weight: wp.array(dtype=wp.float32),
+    limit: float,
+    # output
+    share: wp.array(dtype=wp.float32),
+):
+    """Group ``g``'s share in [0, 1] of its motion (:func:`group_fit_kernel`, after the physics
+    weight of its points, uniform in a group): the largest with which no anchor (its points
+    where it meets other pieces at rest, ``anchors[anchor_offsets[g] .. anchor_offsets[g + 1]]``,
+    ``out`` holding their LBS) moves farther than ``limit`` [m] from its LBS (bisection, 20
+    halvings; 1 where the whole motion stays within it). A piece moved as a whole so keeps its
+    joints: no gap opens where it meets its neighbours, however far the simulated surface around
+    it swings."""
+    g = wp.tid()
+    a0 = anchor_offsets[g]
+    a1 = anchor_offsets[g + 1]
+    share[g] = 1.0
+    if a1 <= a0:
+        return
+    phi = physics_weight[anchors[a0]]
+    q = _short_arc(rotation[g])
+    cl = centre_lbs[g]
+    c = centre[g]
+    if _anchor_reach(phi, q, cl, c, out, anchors, a0, a1) <= limit:
+        return
+    lo = float(0.0)
+    hi = float(1.0)
+    for _it in range(20):
+        mid = 0.5 * (lo + hi)
+        if _anchor_reach(mid * phi, q, cl, c, out, anchors, a0, a1) <= limit:
+            lo = mid
+        else:
+            hi = mid
+    share[g] = lo
+
+
+@wp.kernel
+def piece_limit_kernel(
+    bind_points: wp.array(dtype=wp.vec3),
+    influence_count: int,
+    joint_indices: wp.array(dtype=wp.int32),
+    joint_weights: wp.array(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    out: wp.array(dtype=wp.vec3),
+    anchor_offsets: wp.array(dtype=wp.int32),
+    anchors: wp.array(dtype=wp.int32),
+    limit: float,
+    # output
+    share: wp.array(dtype=wp.float32),
+):
+    """Small piece ``c``'s share in [0, 1] of its written displacement from LBS (``out`` less its
+    LBS, :func:`deform_from_targets_kernel`'s): ``min(1, limit / the farthest of its anchors
+    anchors[anchor_offsets[c] .. anchor_offsets[c + 1]])``, so that where it meets other pieces at
+    rest it stays within ``limit`` [m] of its LBS (a hand at its wrist)."""
+    c = wp.tid()
+    far = float(0.0)
+    for k in range(anchor_offsets[c], anchor_offsets[c + 1]):
+        i = anchors[k]
+        l = lbs_flat(bind_points[i], i, influence_count, joint_indices, joint_weights, skin_matrices)
+        far = wp.max(far, wp.length(out[i] - l))
+    share[c] = 1.0
+    if far > limit:
+        share[c] = limit / far
+
+
+@wp.kernel
+def piece_scale_kernel(
+    bind_points: wp.array(dtype=wp.vec3),
+    influence_count: int,
+    joint_indices: wp.array(dtype=wp.int32),
+    joint_weights: wp.array(dtype=wp.float32),
+    skin_matrices: wp.array(dtype=wp.mat44),
+    points: wp.array(dtype=wp.int32),
+    piece: wp.array(dtype=wp.int32),
+    share: wp.array(dtype=wp.float32),
+    # output
+    out: wp.array(dtype=wp.vec3),
+):
+    """Written point ``points[k]`` of small piece ``piece[k]``: its displacement from LBS scaled
+    by the piece's ``share`` (:func:`piece_limit_kernel`): ``out = l + s (out - l)``, uniform
+    over the piece (no seam within it)."""
+    k = wp.tid()
+    i = points[k]
+    s = share[piece[k]]
+    if s < 1.0:
+        l = lbs_flat(bind_points[i], i, influence_count, joint_indices, joint_weights, skin_matrices)
+        out[i] = l + s * (out[i] - l)
+
+
 @wp.kernel
 def group_apply_kernel(
     points: wp.array(dtype=wp.int32),
@@ -393,20 +510,19 @@ def group_apply_kernel(
     centre_lbs: wp.array(dtype=wp.vec3),
     centre: wp.array(dtype=wp.vec3),
     physics_weight: wp.array(dtype=wp.float32),
+    share: wp.array(dtype=wp.float32),
     # output
     out: wp.array(dtype=wp.vec3),
 ):
     """Grouped point ``k`` (written point ``points[k]``, whose ``out`` holds its LBS ``l``):
-    ``out = R_phi (l - c_l) + c_l + phi (c - c_l)``, ``R_phi`` the share ``phi`` of its group's
-    rotation (slerp from the identity). A piece that LBS moves rigidly stays rigid for every
-    ``phi`` in [0, 1]: ``phi = 0`` is its LBS, ``phi = 1`` the whole fitted motion."""
+    ``out = R_s (l - c_l) + c_l + s (c - c_l)`` with ``s = phi x share[g]``, ``R_s`` the share
+    ``s`` of its group's rotation (slerp from the identity). A piece that LBS moves rigidly stays
+    rigid for every ``s`` in [0, 1]: ``s = 0`` is its LBS, ``s = 1`` the whole fitted motion."""
     k = wp.tid()
     i = points[k]
     g = group[k]
-    phi = physics_weight[i]
-    q = rotation[g]
-    if q[3] < 0.0:  # the same rotation on the short arc from the identity
-        q = -q
+    phi = physics_weight[i] * share[g]
+    q = _short_arc(rotation[g])
     r = wp.quat_slerp(wp.quat_identity(), q, phi)
     cl = centre_lbs[g]
     out[i] = wp.quat_rotate(r, out[i] - cl) + cl + phi * (centre[g] - cl)

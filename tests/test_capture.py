@@ -161,7 +161,7 @@ def test_the_deformation_kernel_is_lbs_plus_the_weighted_captured_displacement(d
     cap = ch.bind(device=device)
     rng = np.random.default_rng(2)
     cap.physics_weight[:] = rng.uniform(0, 1, size=cap.physics_weight.shape)  # generic weights
-    ch._deformer = type(ch._deformer)(ch, cap, device=device)
+    ch._deformer = type(ch._deformer)(ch, cap, device=device, joint_gap=0.0)  # the formula, no joint limit
     clip = ch.rig.clip("swing")
     sim = ch.sim_rig
     t = 0.35
@@ -187,6 +187,45 @@ def test_the_deformation_kernel_is_lbs_plus_the_weighted_captured_displacement(d
             turn = Rotation.from_rotvec(Rotation.from_matrix(r).as_rotvec() * phi[i]).as_matrix()
             want[i] = turn @ (own[i] - cl) + cl + phi[i] * (c - cl)
     np.testing.assert_allclose(got, want, atol=5e-6)
+
+
+def test_pieces_moved_as_a_whole_keep_their_joints(device):
+    # the two blocks meet at rest (6 mm apart): a swinging cage may carry each block's rigid fit
+    # far from its LBS, but where a block meets the other its points stay within joint_gap x the
+    # diagonal of their LBS; the block stays rigid; a motion within the limit is left whole
+    from scipy.spatial import cKDTree
+
+    ch = _blocks_character(device, gap=0.006)
+    cap = ch.bind(device=device)
+    clip = ch.rig.clip("swing")
+    sim, t = ch.sim_rig, 0.35
+    cage_lbs = lbs(sim.vertices, sim.joint_indices, sim.joint_weights, sim.skinning_matrices(clip, t))
+    rest = ch.soup.points
+    diagonal = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    n = len(rest) // 2
+    dist, _ = cKDTree(rest[n:]).query(rest[:n])
+    meets = np.concatenate([dist <= 0.02 * diagonal, cKDTree(rest[:n]).query(rest[n:])[0] <= 0.02 * diagonal])
+    own = ch.lbs(clip, t)
+    rng = np.random.default_rng(5)
+    for scale, limited in ((0.2, True), (1e-4, False)):  # a swing of 20 % of the cage's size, a tremor
+        x = cage_lbs + scale * np.ptp(cage_lbs, axis=0).max() * np.stack([np.sin(cage_lbs[:, 1] * 7), np.cos(
+            cage_lbs[:, 0] * 5), np.sin(cage_lbs[:, 2] * 3)], axis=1) + rng.normal(scale=1e-3 * scale, size=cage_lbs.shape)
+        xs = wp.array(x.astype(np.float32), dtype=wp.vec3, device=device)
+        free = type(ch._deformer)(ch, cap, device=device, joint_gap=0.0).evaluate(xs, clip, t).numpy()
+        ch._deformer = type(ch._deformer)(ch, cap, device=device, joint_gap=0.01)
+        got = ch.points(xs, None, clip, t)
+        far = np.linalg.norm(free - own, axis=1)[meets].max()
+        near = np.linalg.norm(got - own, axis=1)[meets].max()
+        if limited:
+            assert far > 0.02 * diagonal  # the test moves the joints well past the limit
+            assert 0.0099 * diagonal <= near <= 0.01 * diagonal * (1 + 1e-4)  # at the limit, not short of it
+        else:
+            np.testing.assert_allclose(got, free, atol=1e-7)
+        for part in (slice(0, n), slice(n, 2 * n)):  # each block rigid: its distances kept
+            a, b = got[part], own[part]
+            d_got = np.linalg.norm(a[:, None] - a[None], axis=2)
+            d_own = np.linalg.norm(b[:, None] - b[None], axis=2)
+            assert np.abs(d_got - d_own).max() < 1e-5 * diagonal
 
 
 def test_a_small_assembly_moves_as_a_whole(device):

@@ -327,8 +327,11 @@ class Character:
                           "that encloses no volume, or parts thinner than about two cage cells): what is written is "
                           "its LBS", RigWarning, stacklevel=2)
         self.capture_result = cap
-        self._deformer = _Deformer(self, cap, device=device or self.device) if self.captured else None
-        self.meshes = {p.name: WrittenMesh(self.display_name(p.name), p.triangles, p.rest, p.file_ids)
+        self._deformer = _Deformer(self, cap, device=device or self.device,
+                                   joint_gap=(self.guard or GuardParams()).joint_gap) if self.captured else None
+        joints = joint_points(self.soup.points, self.soup.triangles, cap.group)
+        self.meshes = {p.name: WrittenMesh(self.display_name(p.name), p.triangles, p.rest, p.file_ids,
+                                           joint_points=np.nonzero(joints[p.start:p.start + p.count])[0])
                        for p in self.parts if p.physics}
         params = self.guard or GuardParams()
         intended = None  # a popped character: where its muscles stretch the written skin on purpose
@@ -697,16 +700,81 @@ def _clearance(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, d
     return np.where(d > 0.0, np.minimum(share * d, edge), 0.0)
 
 
+#: A written mesh moved by the capture no larger than this share of the character's diagonal is a
+#: small piece (a hand, a prop) that keeps its joints by a share of its displacement
+#: (:func:`~warpskin.kernels.deform.piece_limit_kernel`).
+SMALL_PIECE = 0.4
+
 #: A worn point lies at most this share of the free space along its normal from the written
 #: surface it is wrapped on (:func:`~warpskin.kernels.deform.wrapped_point`).
 WRAP_SHARE = 0.5
+
+
+def joint_points(points: np.ndarray, triangles: np.ndarray, group: np.ndarray | None = None, share: float = 0.02,
+                 k: int = 48) -> np.ndarray:
+    """``[N]`` bool: the points of a character's written meshes at rest (``points`` ``[N, 3]``,
+    their ``triangles``) that lie within ``share`` of its bounding-box diagonal of a point of
+    another piece (a connected part of the triangles: another mesh, or another part of one mesh;
+    the points of one ``group`` >= 0, a piece moved as a whole, are one piece): where the pieces
+    meet at their joints. Found among each point's ``k`` nearest points."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    n = len(pts)
+    if n < 2:
+        return np.zeros(n, dtype=bool)
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    rows, cols = np.concatenate([t[:, 0], t[:, 1]]), np.concatenate([t[:, 1], t[:, 2]])
+    count, label = connected_components(coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)), directed=False)
+    if group is not None:
+        g = np.asarray(group, dtype=np.int64)
+        label = np.where(g >= 0, count + g, label)
+    reach = share * float(np.linalg.norm(np.ptp(pts, axis=0)))
+    dist, idx = cKDTree(pts).query(pts, k=min(k, n), distance_upper_bound=reach)
+    found = np.isfinite(dist)
+    other = np.zeros_like(found)
+    other[found] = label[idx[found]] != np.repeat(label, found.shape[1]).reshape(found.shape)[found]
+    return other.any(axis=1)
+
+
+def _group_anchors(rest: np.ndarray, grouped: np.ndarray, gid: np.ndarray, count: int, reach: float,
+                   most: int = 256, held: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per group of points moved as a whole (written points ``grouped``, group ``gid`` of each,
+    ``count`` groups), its anchors: its points within ``reach`` [m] at rest (``rest`` ``[N, 3]``)
+    of a point that is not its own (another piece: where it meets it at a joint), at most
+    ``most`` of them spread over the list; a group that meets nothing gets its one point nearest
+    another; a group whose ``held`` (per grouped point) is false gets none (it is not limited).
+    Returns a CSR: ``(offsets [count + 1], written point indices)``, int32."""
+    from scipy.spatial import cKDTree
+
+    out: list[np.ndarray] = []
+    for g in range(count):
+        if held is not None and not held[gid == g].any():
+            out.append(np.zeros(0, dtype=np.int64))
+            continue
+        mine = grouped[gid == g]
+        others = np.setdiff1d(np.arange(len(rest)), mine, assume_unique=False)
+        if not others.size or not mine.size:
+            out.append(np.zeros(0, dtype=np.int64))
+            continue
+        dist, _ = cKDTree(rest[others]).query(rest[mine])
+        near = mine[dist <= reach]
+        if not near.size:
+            near = mine[[int(np.argmin(dist))]]
+        if near.size > most:
+            near = near[np.linspace(0, near.size - 1, most).round().astype(np.int64)]
+        out.append(near)
+    offsets = np.concatenate([[0], np.cumsum([a.size for a in out])]).astype(np.int32)
+    return offsets, (np.concatenate(out) if out else np.zeros(0)).astype(np.int32)
 
 
 class _Deformer:
     """The device side of :meth:`Character.points` for a cage: the cage's displacement from its
     LBS, then every written point's LBS plus its captured displacement."""
 
-    def __init__(self, character: Character, cap: Capture, *, device=None) -> None:
+    def __init__(self, character: Character, cap: Capture, *, device=None, joint_gap: float = 0.01) -> None:
         import warp as wp
 
         rig, sim = character.rig, character.sim_rig
@@ -750,6 +818,36 @@ class _Deformer:
             offsets = np.concatenate([[0], np.cumsum(np.bincount(g_of, minlength=ng))]).astype(np.int32)
             self.group_points = grouped
             self.groups = (offsets, v_of.astype(np.int32), summed.astype(np.float32), gid.astype(np.int32))
+            # where each group meets the other pieces at rest: its anchors, kept within
+            # joint_gap x the diagonal of their LBS (group_limit_kernel)
+            rest = np.asarray(character.soup.points, dtype=np.float64)
+            diagonal = float(np.linalg.norm(np.ptp(rest, axis=0)))
+            # a simulated piece rigid in the file (a head on its joint, a hair bun) is one of the
+            # character's own pieces, seamed to its neighbours: it moves with them, not held at LBS
+            ps = character.pieces
+            held = None if ps is None else ~ps.simulated[ps.piece_of_point[grouped]]
+            self.anchor_offsets, self.anchors = _group_anchors(rest, grouped, gid, ng, 0.02 * diagonal, held=held)
+        # small pieces moved by the capture (a skinned hand, a prop): each keeps its joints by a
+        # share of its displacement (piece_limit_kernel), where it meets other pieces at rest
+        rest = np.asarray(character.soup.points, dtype=np.float64)
+        diagonal = float(np.linalg.norm(np.ptp(rest, axis=0)))
+        self.joint_limit = joint_gap * diagonal if joint_gap > 0 else np.inf
+        self.small = None
+        if np.isfinite(self.joint_limit) and len(parts) > 1:
+            joints = joint_points(rest, character.soup.triangles, cap.group)
+            pieces, anchors = [], []
+            for part in parts:
+                idx = np.arange(part.start, part.start + part.count)
+                free = idx[cap.group[idx] < 0]
+                size = float(np.linalg.norm(np.ptp(rest[idx], axis=0))) if idx.size else 0.0
+                if free.size and size <= SMALL_PIECE * diagonal and joints[free].any():
+                    pieces.append(free)
+                    anchors.append(free[joints[free]])
+            if pieces:
+                offsets = np.concatenate([[0], np.cumsum([a.size for a in anchors])]).astype(np.int32)
+                self.small = (offsets, np.concatenate(anchors).astype(np.int32),
+                              np.concatenate(pieces).astype(np.int32),
+                              np.concatenate([np.full(p.size, c) for c, p in enumerate(pieces)]).astype(np.int32))
         ks = sim.joint_indices.shape[1]
         v = sim.vertex_count
         with wp.ScopedDevice(self.device):
@@ -771,6 +869,11 @@ class _Deformer:
             self.sim_mats = wp.zeros(j, dtype=wp.mat44)
             self.sim_lbs = wp.zeros(v, dtype=wp.vec3)  # the surface's LBS where the caller has none
             self.out = wp.zeros(n, dtype=wp.vec3)
+            if self.small is not None:
+                offsets, anchors, points, piece = self.small
+                self.small_arrays = (wp.array(offsets, dtype=wp.int32), wp.array(anchors, dtype=wp.int32),
+                                     wp.array(points, dtype=wp.int32), wp.array(piece, dtype=wp.int32))
+                self.small_share = wp.ones(len(offsets) - 1, dtype=wp.float32)
             if self.groups is not None:
                 offsets, verts, wts, gid = self.groups
                 self.group_arrays = (wp.array(offsets, dtype=wp.int32), wp.array(verts, dtype=wp.int32),
@@ -778,6 +881,9 @@ class _Deformer:
                 ng = len(offsets) - 1
                 self.group_motion = (wp.zeros(ng, dtype=wp.quat), wp.zeros(ng, dtype=wp.vec3),
                                      wp.zeros(ng, dtype=wp.vec3))
+                self.group_share = wp.ones(ng, dtype=wp.float32)
+                self.anchor_arrays = (wp.array(self.anchor_offsets, dtype=wp.int32),
+                                      wp.array(self.anchors, dtype=wp.int32))
                 self.group_apply = (wp.array(self.group_points.astype(np.int32), dtype=wp.int32),
                                     wp.array(gid, dtype=wp.int32))
             self.wrap = None
@@ -853,14 +959,28 @@ class _Deformer:
             cmds.append(wp.launch(k.deform_from_targets_kernel, dim=self.out.shape[0],
                                   inputs=[*common, x, self.sim_lbs if surface_lbs is None else surface_lbs],
                                   outputs=[self.out], device=self.device, record_cmd=True))
+            if self.small is not None:
+                offsets, anchors, points, piece = self.small_arrays
+                lbs_in = [self.bind_points, self.influences, self.ji, self.jw, self.render_mats]
+                cmds.append(wp.launch(k.piece_limit_kernel, dim=offsets.shape[0] - 1,
+                                      inputs=[*lbs_in, self.out, offsets, anchors, float(self.joint_limit)],
+                                      outputs=[self.small_share], device=self.device, record_cmd=True))
+                cmds.append(wp.launch(k.piece_scale_kernel, dim=points.shape[0],
+                                      inputs=[*lbs_in, points, piece, self.small_share],
+                                      outputs=[self.out], device=self.device, record_cmd=True))
             if self.groups is not None:
                 offsets, verts, wts = self.group_arrays
                 cmds.append(wp.launch(k.group_fit_kernel, dim=offsets.shape[0] - 1,
                                       inputs=[x, self.sim_lbs if surface_lbs is None else surface_lbs, offsets,
                                               verts, wts],
                                       outputs=[*self.group_motion], device=self.device, record_cmd=True))
+                if np.isfinite(self.joint_limit):
+                    cmds.append(wp.launch(k.group_limit_kernel, dim=offsets.shape[0] - 1,
+                                          inputs=[self.out, *self.group_motion, *self.anchor_arrays, self.phi,
+                                                  float(self.joint_limit)],
+                                          outputs=[self.group_share], device=self.device, record_cmd=True))
                 cmds.append(wp.launch(k.group_apply_kernel, dim=self.group_apply[0].shape[0],
-                                      inputs=[*self.group_apply, *self.group_motion, self.phi],
+                                      inputs=[*self.group_apply, *self.group_motion, self.phi, self.group_share],
                                       outputs=[self.out], device=self.device, record_cmd=True))
             if self.wrap is not None:
                 n = self.out.shape[0]

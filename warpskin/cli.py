@@ -189,6 +189,17 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _joint_text(row: dict, summary: dict) -> str:
+    """``", at its joints 0.012 m (0.19 % of the diagonal)"``: how far a written mesh moved from
+    its LBS where it meets other pieces (empty where it meets none)."""
+    j = row.get("max_joint_offset")
+    if not j:
+        return ""
+    diag = summary.get("written_diagonal_m") or summary.get("body_diagonal_m") or 0.0
+    share = f" ({100 * j / diag:.2f} % of the diagonal)" if diag > 0 else ""
+    return f", at its joints {j:.3g} m{share}"
+
+
 def _length_unit_of(scene, rig) -> float:
     """Metres per file unit that physics takes ``rig`` in (the scene's ``[solver] units``)."""
     from .units import extent, metres_per_unit
@@ -336,7 +347,8 @@ def cmd_simulate(args) -> int:
         rigid = (f", rigid pieces within {1e3 * d['rigid_rms_m']:.2f} mm RMS" if d.get("rigid_pieces") else "")
         print(f"  {name}: physics weight {s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}{held}{motion}"
               f"{pairs}, edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
-              f"flipped {100 * r['max_flipped']:.2f} %, offset {r['max_offset']:.3g} m{rigid}")
+              f"flipped {100 * r['max_flipped']:.2f} %, offset {r['max_offset']:.3g} m"
+              f"{_joint_text(r, s)}{rigid}")
     surface = s.get("surface", {})
     kind = {"skin": "the skin itself", "pieces": f"its own pieces ({len(surface.get('simulated', []))} simulated, "
             f"{len(surface.get('attached', []))} carried or worn)", "cage": "an automatic cage"}.get(surface.get("kind"), "")

@@ -102,6 +102,9 @@ class GuardParams:
                                    "share of its triangles turns over", low=0.0, high=1.0, must="in [0, 1]")
     trust_strained: float = setting(0.0045, "number", "... or this share of its edges strains past the limit "
                                     "beyond LBS's", low=0.0, high=1.0, must="in [0, 1]")
+    joint_gap: float = setting(0.01, "number", "a piece moved as a whole (a rigid shoe, a robot's shin) moves the "
+                               "points where it meets other pieces at rest by at most this share of the diagonal from "
+                               "their LBS (0: no limit)", low=0.0, high=1.0, must="in [0, 1]")
     max_jump: float = setting(0.015, "number", "a written point's offset from LBS changes by at most this share of "
                               "the character's height from one frame to the next (0: no limit)", low=0.0, high=1.0,
                               must="in [0, 1]")

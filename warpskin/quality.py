@@ -20,6 +20,8 @@ Measures of one frame (``points`` and ``lbs``, both ``[N, 3]`` in the file's ver
   those the rest pose already has (pieces that cross at rest: a bun sunk into the skull, an eye
   in its socket), beside LBS's: what the animation added and the physics did or did not undo;
 * **offset**: the largest distance of a vertex from its LBS position [m];
+* **joint offset**: the same over the points where the mesh meets another piece at rest (a
+  robot's shin at its knee and ankle): how far a gap or an overlap opens at its joints [m];
 * **split**: the largest distance between two copies of one rest point (file vertices at one
   rest position: a UV seam, flat shading, a split normal) [m], beside LBS's: copies written
   apart open a crack in the surface that the measures above, made on the welded mesh, cannot see.
@@ -64,6 +66,9 @@ class WrittenMesh:
     triangles: np.ndarray
     rest: np.ndarray
     file_ids: np.ndarray | None = None
+    #: ``[K]`` its written points where it meets another piece at rest (a joint), whose offset
+    #: from LBS is the ``joint_offset`` measure; ``None``: not measured
+    joint_points: np.ndarray | None = None
     edges: np.ndarray = field(init=False)
     rest_length: np.ndarray = field(init=False)
 
@@ -204,8 +209,10 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
     ``pairs``, ``pairs_lbs``, and ``pairs_new``, ``pairs_new_lbs`` (beyond the rest pose's;
     all ``None`` without ``pairs``; ``pair_keys`` where the caller found them with the same exact
     test on the same welded mesh, as the surface guard does: :meth:`WrittenMesh.pair_keys_of_two`),
-    ``offset`` [m] and ``offset_vertex``, ``split`` and ``split_lbs`` [m] and ``split_vertices``
-    (the file vertices of the widest split, ``(-1, -1)`` for none)."""
+    ``offset`` [m] and ``offset_vertex``, ``joint_offset`` [m] (the largest offset of its
+    :attr:`WrittenMesh.joint_points`: a gap or overlap opening where it meets its neighbours),
+    ``split`` and ``split_lbs`` [m] and ``split_vertices`` (the file vertices of the widest split,
+    ``(-1, -1)`` for none)."""
     points = np.asarray(points, dtype=np.float64)
     lbs = np.asarray(lbs, dtype=np.float64)
     s, s_lbs = mesh.strain(points), mesh.strain(lbs)
@@ -234,6 +241,8 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
         "pairs_new_lbs": counts[3],
         "offset": float(d[j]) if j >= 0 else 0.0,
         "offset_vertex": int(mesh.file_ids[j]) if j >= 0 else -1,
+        "joint_offset": float(d[mesh.joint_points].max()) if mesh.joint_points is not None and
+        mesh.joint_points.size else 0.0,
         "split": split,
         "split_lbs": mesh.split(lbs)[0],
         "split_vertices": tuple(int(v) for v in mesh.file_ids[mesh.copies[c]]) if c >= 0 else (-1, -1),
@@ -297,7 +306,7 @@ class QualityLog:
     """
 
     KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "pairs_new", "pairs_new_lbs",
-            "offset", "split", "split_lbs")
+            "offset", "joint_offset", "split", "split_lbs")
 
     def __init__(self, meshes: list[WrittenMesh], limits: QualityLimits | None = None, *, pairs: bool = True) -> None:
         self.meshes = list(meshes)
@@ -336,7 +345,7 @@ class QualityLog:
             if not self.frames:
                 continue
             row: dict = {"edges": mesh.edge_count, "triangles": mesh.triangle_count}
-            for k in ("strained", "strained_lbs", "worst_strain", "flipped", "offset", "split"):
+            for k in ("strained", "strained_lbs", "worst_strain", "flipped", "offset", "joint_offset", "split"):
                 a = np.asarray(s[k], dtype=np.float64)
                 i = int(np.argmax(a))
                 row[f"max_{k}"] = float(a[i])
@@ -368,6 +377,7 @@ class QualityLog:
                 "strained_excess": np.asarray(s["strained"]) - np.asarray(s["strained_lbs"]),
                 "flipped": np.asarray(s["flipped"]),
                 "offset": np.asarray(s["offset"]),
+                "joint_offset": np.asarray(s["joint_offset"]),
                 "split_excess": np.asarray(s["split"]) - np.asarray(s["split_lbs"]),
             }
             if self.count_pairs:

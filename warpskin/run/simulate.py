@@ -613,6 +613,8 @@ def simulate(
         "tether_clamped_particle_steps": int(stepper.solver.tether_clamped.numpy()[0]),
         "max_offset_from_lbs_m": float(max(metrics["max_offset_from_lbs"])) if metrics["max_offset_from_lbs"] else 0.0,
         "body_diagonal_m": measures.diagonal,
+        # the written meshes' rest diagonal, all of them together (the joint limit's reference)
+        "written_diagonal_m": float(np.linalg.norm(np.ptp(character.soup.points, axis=0))),
         "length_unit_m": stepper.solver.length_unit,  # metres per file unit, as gravity takes it
         "depth_reduced_vertices": int((builder.layers.depth_scale < 1.0).sum()),
         "depth_notes": list(builder.layers.depth_notes),
