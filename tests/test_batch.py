@@ -293,5 +293,5 @@ def test_the_example_jobs_file_is_a_batch(tmp_path, capsys):
     skin = [j for j in jobs if j.command == "skin"]
     result = run_batch(skin, tmp_path, progress=False)
     assert result.failed == [] and (tmp_path / "arm" / "dqs.usdc").is_file()
-    docs = (example.parent.parent / "commands.md").read_text()
-    assert "examples/jobs.toml" in docs
+    docs = (example.parent.parent / "batches.md").read_text()
+    assert "{literalinclude} examples/jobs.toml" in docs
