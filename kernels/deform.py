@@ -394,15 +394,23 @@ def _short_arc(q: wp.quat) -> wp.quat:
 
 
 @wp.func
+def _group_place(r: wp.quat, s: float, l: wp.vec3, cl: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """A grouped point at LBS ``l`` under the share ``s`` of its group's motion (``r``: that share
+    of the rotation; ``cl``, ``c``: the group's centres under LBS and as simulated):
+    ``R_s (l - c_l) + c_l + s (c - c_l)``."""
+    return wp.quat_rotate(r, l - cl) + cl + s * (c - cl)
+
+
+@wp.func
 def _anchor_reach(s: float, q: wp.quat, cl: wp.vec3, c: wp.vec3, out: wp.array(dtype=wp.vec3),
                   anchors: wp.array(dtype=wp.int32), start: int, end: int) -> float:
     """The farthest any anchor (written point ``anchors[start .. end]``, ``out`` its LBS ``l``)
-    moves under the share ``s`` of a group's motion: ``max |R_s (l - c_l) + c_l + s (c - c_l) - l|``."""
+    moves from its LBS under the share ``s`` of a group's motion (:func:`_group_place`)."""
     r = wp.quat_slerp(wp.quat_identity(), q, s)
     far = float(0.0)
     for k in range(start, end):
         l = out[anchors[k]]
-        far = wp.max(far, wp.length(wp.quat_rotate(r, l - cl) + cl + s * (c - cl) - l))
+        far = wp.max(far, wp.length(_group_place(r, s, l, cl, c) - l))
     return far
 
 
@@ -524,5 +532,4 @@ def group_apply_kernel(
     phi = physics_weight[i] * share[g]
     q = _short_arc(rotation[g])
     r = wp.quat_slerp(wp.quat_identity(), q, phi)
-    cl = centre_lbs[g]
-    out[i] = wp.quat_rotate(r, out[i] - cl) + cl + phi * (centre[g] - cl)
+    out[i] = _group_place(r, phi, out[i], centre_lbs[g], centre[g])

@@ -356,3 +356,29 @@ def test_painted_weights_and_joint_patterns_override_the_automatic_map(tmp_path,
 
     with pytest.raises(SceneError, match=r"no joint matches \['\*tail\*'\]"):
         Character(rig, cage="always", device=device, weights={"*tail*": 0.0}).bind(device=device)
+
+
+def test_joint_points_are_where_pieces_meet_as_brute_force_finds():
+    # three dense strips (triangles of their own), two of them one rigid group: a point is a joint
+    # point where a point of another piece (not its own strip, not its own group) lies within 2 %
+    # of the diagonal; checked against all pairs, with pieces denser than the first search's 32
+    from warpskin.character import joint_points
+
+    rng = np.random.default_rng(3)
+    strips, tris = [], []
+    for k, x0 in enumerate((0.0, 0.0151, 0.4)):  # the first two 5 mm apart, the third far
+        p = np.column_stack([x0 + rng.uniform(0, 0.01, 300), rng.uniform(0, 0.1, 300), rng.uniform(0, 0.01, 300)])
+        off = sum(len(s) for s in strips)
+        tris.append(np.arange(300)[:-2, None] + np.array([0, 1, 2]) + off)
+        strips.append(p)
+    pts, tri = np.concatenate(strips), np.concatenate(tris)
+    group = np.full(len(pts), -1)
+    group[300:] = 0  # strips 2 and 3 move as one
+    got = joint_points(pts, tri, group)
+    piece = np.repeat([0, 1, 1], 300)  # strip 1 alone; 2 and 3 one piece
+    reach = 0.02 * np.linalg.norm(np.ptp(pts, axis=0))
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    want = ((d <= reach) & (piece[:, None] != piece[None])).any(axis=1)
+    np.testing.assert_array_equal(got, want)
+    assert 0 < want.sum() < 600 and not want[600:].any()
+    assert ((d <= reach) & (piece[:, None] == piece[None])).sum(axis=1).max() > 32  # past the first search

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from warpskin.units import HUMAN_SIZE, describe, extent, metres_per_unit
+from warpskin.units import HUMAN_SIZE, describe, extent, file_unit, metres_per_unit
 
 
 @pytest.mark.parametrize("size, unit", [(1.8, 1.0), (0.61, 1.0), (4.9, 1.0), (155.0, 0.01), (0.18, 10.0),
@@ -33,6 +33,13 @@ def test_the_unit_changes_halfway_between_decades_in_ratio():
 @pytest.mark.parametrize("size", [0.0, -1.0, float("nan"), float("inf")])
 def test_no_size_takes_metres(size):
     assert metres_per_unit(size) == 1.0
+
+
+def test_the_file_unit_follows_the_setting():
+    pts = np.array([[0.0, 0.0, 0.0], [1.2, 155.0, 30.0]])  # a Fox-sized character, in centimetres
+    assert file_unit("auto", pts) == pytest.approx(0.01) and file_unit("file", pts) == 1.0
+    with pytest.raises(ValueError, match="units must be 'auto' or 'file', got 'metres'"):
+        file_unit("metres", pts)
 
 
 def test_extent_and_names():

@@ -327,9 +327,9 @@ class Character:
                           "that encloses no volume, or parts thinner than about two cage cells): what is written is "
                           "its LBS", RigWarning, stacklevel=2)
         self.capture_result = cap
-        self._deformer = _Deformer(self, cap, device=device or self.device,
-                                   joint_gap=(self.guard or GuardParams()).joint_gap) if self.captured else None
         joints = joint_points(self.soup.points, self.soup.triangles, cap.group)
+        self._deformer = _Deformer(self, cap, joints, device=device or self.device,
+                                   joint_gap=(self.guard or GuardParams()).joint_gap) if self.captured else None
         self.meshes = {p.name: WrittenMesh(self.display_name(p.name), p.triangles, p.rest, p.file_ids,
                                            joint_points=np.nonzero(joints[p.start:p.start + p.count])[0])
                        for p in self.parts if p.physics}
@@ -710,21 +710,23 @@ SMALL_PIECE = 0.4
 WRAP_SHARE = 0.5
 
 
-def joint_points(points: np.ndarray, triangles: np.ndarray, group: np.ndarray | None = None, share: float = 0.02,
-                 k: int = 48) -> np.ndarray:
+def joint_points(points: np.ndarray, triangles: np.ndarray, group: np.ndarray | None = None,
+                 share: float = 0.02) -> np.ndarray:
     """``[N]`` bool: the points of a character's written meshes at rest (``points`` ``[N, 3]``,
     their ``triangles``) that lie within ``share`` of its bounding-box diagonal of a point of
     another piece (a connected part of the triangles: another mesh, or another part of one mesh;
     the points of one ``group`` >= 0, a piece moved as a whole, are one piece): where the pieces
-    meet at their joints. Found among each point's ``k`` nearest points."""
+    meet at their joints. Exact: each point's nearest neighbours are searched, twice as many
+    each round, until one of another piece or the edge of the ball is reached."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
+    other = np.zeros(n, dtype=bool)
     if n < 2:
-        return np.zeros(n, dtype=bool)
+        return other
     t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     rows, cols = np.concatenate([t[:, 0], t[:, 1]]), np.concatenate([t[:, 1], t[:, 2]])
     count, label = connected_components(coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)), directed=False)
@@ -732,37 +734,40 @@ def joint_points(points: np.ndarray, triangles: np.ndarray, group: np.ndarray | 
         g = np.asarray(group, dtype=np.int64)
         label = np.where(g >= 0, count + g, label)
     reach = share * float(np.linalg.norm(np.ptp(pts, axis=0)))
-    dist, idx = cKDTree(pts).query(pts, k=min(k, n), distance_upper_bound=reach)
-    found = np.isfinite(dist)
-    other = np.zeros_like(found)
-    other[found] = label[idx[found]] != np.repeat(label, found.shape[1]).reshape(found.shape)[found]
-    return other.any(axis=1)
+    tree = cKDTree(pts)
+    todo, k = np.arange(n), min(32, n)
+    while todo.size:
+        dist, idx = tree.query(pts[todo], k=k, distance_upper_bound=reach)
+        dist, idx = dist.reshape(len(todo), -1), idx.reshape(len(todo), -1)
+        found = np.isfinite(dist)
+        other[todo] = (found & (label[np.where(found, idx, 0)] != label[todo][:, None])).any(axis=1)
+        if k >= n:
+            break
+        todo = todo[found[:, -1] & ~other[todo]]  # every neighbour so far its own, the ball not exhausted
+        k = min(2 * k, n)
+    return other
 
 
-def _group_anchors(rest: np.ndarray, grouped: np.ndarray, gid: np.ndarray, count: int, reach: float,
+def _group_anchors(rest: np.ndarray, joints: np.ndarray, grouped: np.ndarray, gid: np.ndarray, count: int,
                    most: int = 256, held: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per group of points moved as a whole (written points ``grouped``, group ``gid`` of each,
-    ``count`` groups), its anchors: its points within ``reach`` [m] at rest (``rest`` ``[N, 3]``)
-    of a point that is not its own (another piece: where it meets it at a joint), at most
-    ``most`` of them spread over the list; a group that meets nothing gets its one point nearest
-    another; a group whose ``held`` (per grouped point) is false gets none (it is not limited).
-    Returns a CSR: ``(offsets [count + 1], written point indices)``, int32."""
+    ``count`` groups), its anchors: its :func:`joint_points` (``joints``, per written point at
+    rest ``rest`` ``[N, 3]``), at most ``most`` of them spread over the list; a group that meets
+    nothing gets its one point nearest another piece; a group whose ``held`` (per grouped point)
+    is false gets none (it is not limited). Returns a CSR: ``(offsets [count + 1], written point
+    indices)``, int32."""
     from scipy.spatial import cKDTree
 
     out: list[np.ndarray] = []
     for g in range(count):
-        if held is not None and not held[gid == g].any():
-            out.append(np.zeros(0, dtype=np.int64))
-            continue
         mine = grouped[gid == g]
-        others = np.setdiff1d(np.arange(len(rest)), mine, assume_unique=False)
-        if not others.size or not mine.size:
+        if (held is not None and not held[gid == g].any()) or not mine.size or mine.size == len(rest):
             out.append(np.zeros(0, dtype=np.int64))
             continue
-        dist, _ = cKDTree(rest[others]).query(rest[mine])
-        near = mine[dist <= reach]
+        near = mine[joints[mine]]
         if not near.size:
-            near = mine[[int(np.argmin(dist))]]
+            others = np.setdiff1d(np.arange(len(rest)), mine)
+            near = mine[[int(np.argmin(cKDTree(rest[others]).query(rest[mine])[0]))]]
         if near.size > most:
             near = near[np.linspace(0, near.size - 1, most).round().astype(np.int64)]
         out.append(near)
@@ -774,7 +779,8 @@ class _Deformer:
     """The device side of :meth:`Character.points` for a cage: the cage's displacement from its
     LBS, then every written point's LBS plus its captured displacement."""
 
-    def __init__(self, character: Character, cap: Capture, *, device=None, joint_gap: float = 0.01) -> None:
+    def __init__(self, character: Character, cap: Capture, joints: np.ndarray | None = None, *, device=None,
+                 joint_gap: float = 0.01) -> None:
         import warp as wp
 
         rig, sim = character.rig, character.sim_rig
@@ -801,6 +807,14 @@ class _Deformer:
         self.influences = k
         # pieces that move as a whole: the best rigid motion, away from their LBS, of the
         # simulated vertices that carry them (their capture rows summed), the share phi of it
+        # where the written pieces meet at rest (joint_points): kept within joint_gap x the
+        # diagonal of their LBS, a rigid group by a share of its motion (group_limit_kernel), a
+        # small captured mesh by a share of its displacement (piece_limit_kernel)
+        rest = np.asarray(character.soup.points, dtype=np.float64)
+        diagonal = float(np.linalg.norm(np.ptp(rest, axis=0)))
+        self.joint_limit = joint_gap * diagonal if joint_gap > 0 else np.inf
+        if joints is None:
+            joints = joint_points(rest, character.soup.triangles, cap.group)
         grouped = np.nonzero(cap.group >= 0)[0]
         self.groups = None
         if grouped.size:
@@ -818,23 +832,13 @@ class _Deformer:
             offsets = np.concatenate([[0], np.cumsum(np.bincount(g_of, minlength=ng))]).astype(np.int32)
             self.group_points = grouped
             self.groups = (offsets, v_of.astype(np.int32), summed.astype(np.float32), gid.astype(np.int32))
-            # where each group meets the other pieces at rest: its anchors, kept within
-            # joint_gap x the diagonal of their LBS (group_limit_kernel)
-            rest = np.asarray(character.soup.points, dtype=np.float64)
-            diagonal = float(np.linalg.norm(np.ptp(rest, axis=0)))
             # a simulated piece rigid in the file (a head on its joint, a hair bun) is one of the
             # character's own pieces, seamed to its neighbours: it moves with them, not held at LBS
             ps = character.pieces
             held = None if ps is None else ~ps.simulated[ps.piece_of_point[grouped]]
-            self.anchor_offsets, self.anchors = _group_anchors(rest, grouped, gid, ng, 0.02 * diagonal, held=held)
-        # small pieces moved by the capture (a skinned hand, a prop): each keeps its joints by a
-        # share of its displacement (piece_limit_kernel), where it meets other pieces at rest
-        rest = np.asarray(character.soup.points, dtype=np.float64)
-        diagonal = float(np.linalg.norm(np.ptp(rest, axis=0)))
-        self.joint_limit = joint_gap * diagonal if joint_gap > 0 else np.inf
-        self.small = None
+            self.anchor_offsets, self.anchors = _group_anchors(rest, joints, grouped, gid, ng, held=held)
+        self.small = None  # small meshes moved by the capture (a skinned hand, a prop)
         if np.isfinite(self.joint_limit) and len(parts) > 1:
-            joints = joint_points(rest, character.soup.triangles, cap.group)
             pieces, anchors = [], []
             for part in parts:
                 idx = np.arange(part.start, part.start + part.count)

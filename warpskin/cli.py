@@ -116,7 +116,9 @@ def cmd_info(args) -> int:
     pieces = rigid_pieces(character_soup(rig))
     out["rigid_pieces"] = int(pieces.max()) + 1 if pieces.size else 0
     out["joint_names"] = rig.skeleton.joint_names
-    out["length_unit_m"] = _length_unit_of(scene, rig)
+    from .units import file_unit
+
+    out["length_unit_m"] = file_unit(scene.solver_params().units, rig.vertices)
     out["parents"] = rig.skeleton.parents.tolist()
     # the automatic physics weights of every mesh (through the cage simulate would build)
     from .character import Character
@@ -200,18 +202,11 @@ def _joint_text(row: dict, summary: dict) -> str:
     return f", at its joints {j:.3g} m{share}"
 
 
-def _length_unit_of(scene, rig) -> float:
-    """Metres per file unit that physics takes ``rig`` in (the scene's ``[solver] units``)."""
-    from .units import extent, metres_per_unit
-
-    return 1.0 if scene.solver_params().units == "file" else metres_per_unit(extent(rig.vertices))
-
-
 def _unit_line(scene, rig) -> str:
     """One line: the character's size and the length unit physics takes it in."""
-    from .units import describe, extent
+    from .units import describe, extent, file_unit
 
-    unit = _length_unit_of(scene, rig)
+    unit = file_unit(scene.solver_params().units, rig.vertices)
     size = extent(rig.vertices)
     how = ("[solver] units = \"file\"" if scene.solver_params().units == "file"
            else "the power of ten nearest human size; [solver] units = \"file\" takes metres")

@@ -33,7 +33,8 @@ class Progress:
         self.done = 0
         self.clock = clock
         self.t0 = clock()
-        self.t_first: float | None = None  # when the first unit ended
+        self.t_first: float | None = None  # when the first update ended
+        self.first_units = 0  # the units done by then
         self._last_decile = -1
 
     def update(self, n: int = 1, extra: str = "") -> None:

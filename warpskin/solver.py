@@ -23,7 +23,7 @@ from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
 from .model import Contacts, Control, SkinModel, State
-from .units import metres_per_unit
+from .units import UNITS, metres_per_unit
 
 __all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity"]
 
@@ -32,12 +32,12 @@ def length_units(model: SkinModel, units: str = "auto") -> list[float]:
     """Metres per length unit of the file of each character of ``model`` (one for a single
     character; a batch's in order): 1 for ``units`` ``"file"``; for ``"auto"`` the power of ten
     that brings its rest skin nearest human size (:func:`warpskin.units.metres_per_unit` of its
-    largest bounding-box side).
+    largest bounding-box side, ``model.extents``).
 
     Raises:
         SceneError: ``units`` is neither.
     """
-    if units not in ("auto", "file"):
+    if units not in UNITS:
         raise SceneError(f"[solver] units must be 'auto' or 'file', got {units!r}")
     extents = list(getattr(model, "extents", None) or [0.0])
     return [1.0 if units == "file" else metres_per_unit(e) for e in extents]

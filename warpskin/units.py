@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-__all__ = ["HUMAN_SIZE", "PLAUSIBLE", "extent", "metres_per_unit", "describe"]
+__all__ = ["HUMAN_SIZE", "PLAUSIBLE", "UNITS", "extent", "metres_per_unit", "file_unit", "describe"]
 
 #: The size [m] (largest side of the bounding box) a character's size is brought nearest to.
 HUMAN_SIZE = 1.7
@@ -47,6 +47,23 @@ def metres_per_unit(size: float) -> float:
     if not (size > 0.0) or not math.isfinite(size):
         return 1.0
     return 10.0 ** round(math.log10(HUMAN_SIZE / size))
+
+
+#: The ``[solver] units`` choices.
+UNITS = ("auto", "file")
+
+
+def file_unit(units: str, points) -> float:
+    """Metres per file unit for a character at rest at ``points`` ``[N, 3]`` under ``units``
+    (``[solver] units``): 1 for ``"file"``, :func:`metres_per_unit` of its :func:`extent` for
+    ``"auto"``.
+
+    Raises:
+        ValueError: ``units`` is neither.
+    """
+    if units not in UNITS:
+        raise ValueError(f"[solver] units must be 'auto' or 'file', got {units!r}")
+    return 1.0 if units == "file" else metres_per_unit(extent(points))
 
 
 def describe(unit: float) -> str:

@@ -19,6 +19,7 @@ from ..popping.examples import PoppingExamples, examples_for_scene, examples_fro
 from ..popping.layered import muscle_rest_offset_deltas
 from ..popping.pose_space import PoseSpaceDeformer
 from ..scene import resolve_scene
+from ..units import file_unit
 from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
@@ -227,7 +228,7 @@ def run_popping(
         settings.activation = beats.timeline(deformer.group_names, float(plan.times[0]), float(plan.times[-1]))
     settings.activation.check_groups(deformer.group_names, f"{where}: [popping.activation]")
     dynamics = PoppingDynamics(deformer, alpha_min=settings.alpha_min, beta=settings.beta,
-                               threshold=settings.threshold / _file_unit(scene, rig.vertices))
+                               threshold=settings.threshold / file_unit(scene.solver_params().units, rig.vertices))
     h = plan.dt
     if settings.beta * h > 1.0 + 1e-12:
         raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
@@ -331,8 +332,9 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         made: list = []
 
         def overlay(character, builder, frames_plan):
+            unit = file_unit(scene.solver_params().units, character.soup.points)  # metres per file unit
             pop = _surface_pop(character, builder, frames_plan, settings, muscles, swell, found, timeline, device,
-                               vibrate, surface_bellies, unit=_file_unit(scene, character.soup.points))
+                               vibrate, surface_bellies, unit=unit)
             pop.normal_guide = bool(normal_guide)
             made.append(pop)
             return pop
@@ -479,14 +481,6 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
                       threshold=settings.threshold / unit, triangles=soup.triangles, margin=_CLEAR * diagonal,
                       start=1e-5 * diagonal, points=soup.points,
                       seams=seam_points(soup.points, soup.triangles, mesh), mesh_of_point=mesh, device=device)
-
-
-def _file_unit(scene, points) -> float:
-    """Metres per length unit of the file of ``scene`` (its ``[solver] units``), for a character
-    at rest at ``points`` ``[N, 3]`` (:func:`warpskin.units.metres_per_unit`)."""
-    from ..units import extent, metres_per_unit
-
-    return 1.0 if scene.solver_params().units == "file" else metres_per_unit(extent(points))
 
 
 def _pop_solver_params(scene):
