@@ -191,15 +191,20 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _of_diagonal(length: float, summary: dict, digits: int = 2) -> str:
+    """``" (0.19 % of the diagonal)"``: ``length`` [m] as a share of the written meshes' rest
+    diagonal (empty where the summary has none)."""
+    diag = summary.get("written_diagonal_m") or summary.get("body_diagonal_m") or 0.0
+    return f" ({100 * length / diag:.{digits}f} % of the diagonal)" if diag > 0 else ""
+
+
 def _joint_text(row: dict, summary: dict) -> str:
     """``", at its joints 0.012 m (0.19 % of the diagonal)"``: how far a written mesh moved from
     its LBS where it meets other pieces (empty where it meets none)."""
     j = row.get("max_joint_offset")
     if not j:
         return ""
-    diag = summary.get("written_diagonal_m") or summary.get("body_diagonal_m") or 0.0
-    share = f" ({100 * j / diag:.2f} % of the diagonal)" if diag > 0 else ""
-    return f", at its joints {j:.3g} m{share}"
+    return f", at its joints {j:.3g} m{_of_diagonal(j, summary)}"
 
 
 def _unit_line(scene, rig) -> str:
@@ -342,7 +347,7 @@ def cmd_simulate(args) -> int:
         rigid = (f", rigid pieces within {1e3 * d['rigid_rms_m']:.2f} mm RMS" if d.get("rigid_pieces") else "")
         print(f"  {name}: physics weight {s['physics_weight'].get(name, {}).get('mean', 0.0):.2f}{held}{motion}"
               f"{pairs}, edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
-              f"flipped {100 * r['max_flipped']:.2f} %, offset {r['max_offset']:.3g} m"
+              f"flipped {100 * r['max_flipped']:.2f} %, offset {r['max_offset']:.3g} m{_of_diagonal(r['max_offset'], s, 1)}"
               f"{_joint_text(r, s)}{rigid}")
     surface = s.get("surface", {})
     kind = {"skin": "the skin itself", "pieces": f"its own pieces ({len(surface.get('simulated', []))} simulated, "
