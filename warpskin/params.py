@@ -71,7 +71,13 @@ class SolverParams:
         max_offset: A run stops (SimulationError) at the first frame whose skin is farther
             than this fraction of the body's diagonal from LBS.
         max_volume_error: A run stops at the first frame whose volume (whole or any
-            sub-volume) is off its rest volume by more than this fraction.
+            sub-volume) is off its rest volume by more than this fraction, more than twice LBS's
+            error in that frame and more than LBS's worst error in any frame so far (an
+            animation whose LBS loses a third of the neck's volume as the head folds down shows
+            that such a change belongs to it; the physics, holding the volume, lags LBS's
+            recovery by a few frames). A sub-volume's error is a share of its rest volume or of
+            a hundredth of the body's, where it is smaller
+            (:attr:`~warpskin.preprocess.sub_volumes.SubVolumes.error_scale`).
         max_speed: A run stops at the first frame where the skin's motion relative to the
             animation (its velocities minus LBS's, mass-weighted RMS) is faster than this many
             body diagonals per second and grew, since the frame before, by more than the

@@ -189,10 +189,26 @@ class SubVolumes:
         self._tri_owner = np.repeat(np.arange(s), np.diff(self.tri_offsets))
         self._fan_owner = np.repeat(np.arange(s), np.diff(self.fan_offsets))
 
+    #: A sub-volume's volume error is measured against its rest volume, or against this share
+    #: of the whole rest volume where it is smaller (:attr:`error_scale`).
+    SMALL_SHARE = 0.01
+
     @property
     def count(self) -> int:
         """Number of sub-volumes ``S``."""
         return len(self.names)
+
+    @property
+    def error_scale(self) -> np.ndarray:
+        """``[S]`` [m^3]: what each sub-volume's volume error is a share of, its rest volume or
+        :attr:`SMALL_SHARE` of the whole rest volume where that is larger. A sub-volume of a small
+        part of the body (a foot's tip, a finger's end: a few thousandths of the body) is cut from
+        its neighbours by planes through the joints, and a change of the surface small against
+        the body (a few millimetres where the plane meets it) changes it by a large share of
+        itself, in LBS as in the simulation; against a hundredth of the body, a change of that
+        size is what it is: small. The checks of a run and its reports measure by this."""
+        rest = np.abs(np.asarray(self.rest_volume, dtype=np.float64))
+        return np.maximum(rest, self.SMALL_SHARE * float(rest.sum()))
 
     def triangle_labels(self) -> np.ndarray:
         """Sub-volume of every surface triangle, ``[T]``."""
