@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from .quality import WrittenMesh
+from .transforms import rigid_fit
 
 __all__ = ["DeliveryLog", "RIGID_WEIGHT", "hole_fans", "piece_volumes", "rigid_rms"]
 
@@ -91,12 +92,8 @@ def rigid_rms(points: np.ndarray, rest: np.ndarray) -> float:
     """The RMS distance [m] of ``points`` ``[N, 3]`` from the best rigid motion of ``rest`` onto
     them (Kabsch, without scaling)."""
     p = np.asarray(points, dtype=np.float64)
-    r = np.asarray(rest, dtype=np.float64)
-    pc, rc = p - p.mean(axis=0), r - r.mean(axis=0)
-    u, _, vt = np.linalg.svd(rc.T @ pc)
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = u @ np.diag([1.0, 1.0, d]) @ vt
-    return float(np.sqrt(np.mean(np.sum((rc @ rot - pc) ** 2, axis=1))))
+    r, t = rigid_fit(rest, p)
+    return float(np.sqrt(np.mean(np.sum((np.asarray(rest, dtype=np.float64) @ r.T + t - p) ** 2, axis=1))))
 
 
 class _Mesh:

@@ -57,6 +57,7 @@ import scipy.sparse as sp
 from .metrics import PairQuery
 from .quality import STRAIN_LIMIT, WrittenMesh
 from .settings import check_settings, setting
+from .transforms import matrix_to_quat, quat_slerp, quat_to_matrix, rigid_fit
 
 __all__ = ["GuardParams", "SurfaceGuard", "JumpLimit"]
 
@@ -541,13 +542,11 @@ class JumpLimit:
     def _group(self, g: np.ndarray, target: np.ndarray, lbs: np.ndarray) -> np.ndarray:
         """The placement ``[n, 3]`` of group ``g`` this frame (see the class docstring):
         ``target`` its unlimited placement, ``lbs`` its LBS."""
-        from .transforms import matrix_to_quat, quat_slerp, quat_to_matrix
-
         last_lbs = self._last_lbs[g]
         last = last_lbs + self._last[g]
-        r, t = _rigid_fit(last_lbs, lbs)
+        r, t = rigid_fit(last_lbs, lbs)
         hold = last @ r.T + t
-        r2, t2 = _rigid_fit(hold, target)
+        r2, t2 = rigid_fit(hold, target)
         centre = hold.mean(axis=0)
         q0, q1 = np.array([0.0, 0.0, 0.0, 1.0]), matrix_to_quat(r2)
         moved = (centre @ r2.T + t2) - centre  # where the fit takes the held centre
@@ -566,16 +565,6 @@ class JumpLimit:
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if jump(place(mid)) <= self.step else (lo, mid)
         return place(lo)
-
-
-def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rotation ``R`` ``[3, 3]`` and translation ``t`` ``[3]`` minimising ``sum |R a_i + t -
-    b_i|^2`` (Kabsch; ``a``, ``b``: ``[n, 3]``), ``det R = +1``."""
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    r = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
-    return r, cb - r @ ca
 
 
 class WornRepair:

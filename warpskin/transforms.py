@@ -26,6 +26,7 @@ __all__ = [
     "decompose_trs",
     "blend_skinning_matrices",
     "linear_blend_skin",
+    "rigid_fit",
 ]
 
 
@@ -171,3 +172,16 @@ def linear_blend_skin(points: np.ndarray, joint_indices: np.ndarray, joint_weigh
     """
     blend = blend_skinning_matrices(joint_indices, joint_weights, skin_matrices)
     return np.einsum("vij,vj->vi", blend[:, :3, :3], np.asarray(points, dtype=np.float64)) + blend[:, :3, 3]
+
+
+def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation ``R`` ``[3, 3]`` and translation ``t`` ``[3]`` minimising ``sum |R a_i + t -
+    b_i|^2`` over the rows of ``a`` and ``b`` (``[n, 3]``, matched): Kabsch, without scaling,
+    ``det R = +1`` (a reflection is never the answer)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
+    return r, cb - r @ ca

@@ -210,6 +210,13 @@ class SubVolumes:
         rest = np.abs(np.asarray(self.rest_volume, dtype=np.float64))
         return np.maximum(rest, self.SMALL_SHARE * float(rest.sum()))
 
+    def volume_errors(self, volumes: np.ndarray) -> np.ndarray:
+        """``[..., S]``: each sub-volume's error ``|V - V_rest|`` as a share of its
+        :attr:`error_scale` (``volumes`` ``[..., S]`` [m^3]: one frame's or a series'); 0 for the
+        sub-volumes that are not :attr:`measured` (they enclose next to nothing)."""
+        err = np.abs(np.asarray(volumes, dtype=np.float64) - self.rest_volume) / self.error_scale
+        return err if self.measured is None else np.where(self.measured, err, 0.0)
+
     def triangle_labels(self) -> np.ndarray:
         """Sub-volume of every surface triangle, ``[T]``."""
         lab = np.empty(self.triangles.shape[0], dtype=np.int64)

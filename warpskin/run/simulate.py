@@ -51,11 +51,6 @@ class SimulationResult:
     summary: dict = field(default_factory=dict)
 
 
-def _measured(subs) -> np.ndarray:
-    """``[S]`` bool: the sub-volumes whose relative error is checked and reported."""
-    return subs.measured if subs.measured is not None else np.ones(len(subs.rest_volume), dtype=bool)
-
-
 def _vertex(rig, k: int) -> str:
     """``"file vertex N"`` (the file's number), ``"cage vertex N"`` or a piece's vertex
     (:meth:`~warpskin.rig.Rig.vertex_label`), for messages."""
@@ -181,17 +176,15 @@ class _Measurements:
                     f"{100 * err_lbs:.1f} %, at worst {100 * self._worst_lbs:.1f} %; max_volume_error "
                     f"{100 * p.max_volume_error:g} %)")
         if "subvolume" in e:
-            rest, scale = b.subvolumes.rest_volume, b.subvolumes.error_scale
-            ok = _measured(b.subvolumes)  # (a sub-volume that encloses almost none is held, not measured)
-            err_s = np.where(ok, np.abs(e["subvolume"] - rest) / scale, 0.0)
-            err_s_lbs = np.where(ok, np.abs(e["subvolume_lbs"] - rest) / scale, 0.0)
+            subs = b.subvolumes
+            err_s, err_s_lbs = subs.volume_errors(e["subvolume"]), subs.volume_errors(e["subvolume_lbs"])
             self._worst_lbs_sub = np.maximum(self._worst_lbs_sub, err_s_lbs)
-            over = (err_s > np.maximum(np.maximum(p.max_volume_error, 2.0 * err_s_lbs), self._worst_lbs_sub)) & ok
+            over = err_s > np.maximum(np.maximum(p.max_volume_error, 2.0 * err_s_lbs), self._worst_lbs_sub)
             if over.any():
                 k = int(np.argmax(np.where(over, err_s, -1.0)))
-                of = "" if scale[k] <= abs(rest[k]) else (
-                    f" of {100 * b.subvolumes.SMALL_SHARE:g} % of the body's volume, which it is smaller than")
-                return (f"frame {f}: the skin left its plausible range: sub-volume {b.subvolumes.names[k]!r} is off by "
+                of = "" if subs.error_scale[k] <= abs(subs.rest_volume[k]) else (
+                    f" of {100 * subs.SMALL_SHARE:g} % of the body's volume, which it is smaller than")
+                return (f"frame {f}: the skin left its plausible range: sub-volume {subs.names[k]!r} is off by "
                         f"{100 * err_s[k]:.1f} %{of} (LBS {100 * err_s_lbs[k]:.1f} %, at worst "
                         f"{100 * self._worst_lbs_sub[k]:.1f} %; max_volume_error {100 * p.max_volume_error:g} %)")
         return None
@@ -632,12 +625,9 @@ def simulate(
         summary["max_intersecting_pairs_lbs"] = max(metrics["intersecting_pairs_lbs"])
         summary["intersecting_pairs_first_frame"] = metrics["intersecting_pairs"][0]
     if subs is not None and metrics["subvolume"]:
-        rest = np.array(metrics["subvolume_rest"])
         if len(metrics["subvolume"]) > 1:
-            ok, scale = _measured(subs), subs.error_scale
-            for key in ("subvolume", "subvolume_lbs"):
-                err = np.abs(np.array(metrics[key][1:])[:, ok] - rest[ok]) / scale[ok]
-                summary[f"max_{key.replace('subvolume', 'subvolume_deviation')}"] = float(err.max())
+            for key, name in (("subvolume", "max_subvolume_deviation"), ("subvolume_lbs", "max_subvolume_deviation_lbs")):
+                summary[name] = float(subs.volume_errors(np.array(metrics[key][1:])).max())
         summary["subvolume_names"] = list(subs.names)
     result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
     if report_dir is not None:
