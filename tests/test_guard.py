@@ -262,6 +262,42 @@ def test_a_skin_whose_physics_crumples_is_guarded_from_then_on():
     assert not guard.trusted
 
 
+def test_skin_bunched_where_lbs_passes_through_itself_keeps_the_trust_and_elsewhere_loses_it():
+    # LBS sinks the second sphere into the first; the physics keeps it clear and presses a band of
+    # it together (edges shortened past 1 / 1.5, over 0.6 % of all edges, none turned). Around
+    # the circle where LBS's spheres cross (a crease's bunching, a few rings from LBS's own
+    # crossings) the skin stays trusted; the same band on the far side of the sphere crumples the
+    # trust, and so does the band at the circle where the physics lets the spheres cross itself
+    rest, tris, lbs, _ = _pushed_out(23, 1.0)
+    half = len(rest) // 2
+    assert intersecting_pairs_brute_force(lbs, tris) > 20
+
+    def pressed(offset, shift):
+        x = rest.copy()
+        b = x[half:]
+        along = b[:, 0] - 2.05  # from the second sphere's centre, along the axis of the two
+        band = np.abs(along - offset) < 0.15
+        b[band, 0] -= 0.7 * (along[band] - offset)  # pressed along the axis: shortened, not turned
+        b[:, 0] += shift
+        return x, band.sum()
+
+    # (band's offset, the second sphere moved along the axis, trusted): LBS's crossing circle,
+    # its mirror, LBS's crossing circle with the spheres passing 0.07 into each other
+    for offset, shift, trusted in ((-0.625, 0.0, True), (0.625, 0.0, False), (-0.625, -0.12, False)):
+        physical, count = pressed(offset, shift)
+        assert count > 20
+        assert (intersecting_pairs_brute_force(physical, tris) == 0) == (shift == 0.0)
+        s, s_lbs, flipped = strain_and_flips(rest, physical, lbs, tris)
+        assert s - s_lbs > 0.006 and flipped == 0.0  # past the trust's 0.45 % of the edges
+        guard = SurfaceGuard(WrittenMesh("two", tris, rest), direct=True)
+        out = guard.apply(physical, lbs)
+        assert guard.trusted == trusted
+        if trusted:
+            assert np.array_equal(out, physical) and guard.held == 0.0
+        else:
+            assert guard.held > 0.0
+
+
 def test_a_stretch_made_on_purpose_is_written_and_a_squeeze_there_is_not():
     # the second sphere swollen by 2.2 (its edges stretched past 1.5) where the physics stretches
     # the skin on purpose (a muscle's belly): still trusted, and not flagged once guarded either

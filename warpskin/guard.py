@@ -33,7 +33,10 @@ A skin simulated directly (or a character's own pieces) is written as its physic
 (``W = P``: its own collisions, volume constraints and layers act on the surface that is written)
 while that physics keeps the surface: until a frame in which it turns more than
 ``trust_flipped`` of the triangles over against LBS, or strains ``trust_strained`` more of its
-edges than LBS does. From that frame on (a crumpled
+edges than LBS does (the strain a few rings around the places where LBS passes through itself
+left out where the physics kept those sides apart with no crossing of its own: LBS is no
+reference there, and keeping the sides apart bunches the skin between them, as in a deep
+flex's crease). From that frame on (a crumpled
 skin: a low-poly leg folded by its contacts) it is guarded as every captured mesh is.
 
 Invariants: with no flag ``W = P`` exactly; ``g = 0`` gives ``W = L`` exactly. A mesh the
@@ -191,10 +194,15 @@ class SurfaceGuard:
         # pieces): the triangles within two median edges of a triangle that intersects another
         # at rest, or whose box comes within 0.1 median edge of a triangle of another piece
         self._crossing = np.zeros(len(t), dtype=bool)
+        #: Keys of the pairs that intersect at rest (they never mark LBS as passing through itself).
+        self._rest_pairs = self._pairs(rest) if len(t) > 1 else np.zeros(0, dtype=np.int64)
+        # the edges with a point in the zone around LBS's own crossings of the frame whose trust
+        # is judged (:meth:`_kept_apart`); all False otherwise
+        self._zone_edges = np.zeros(len(e), dtype=bool)
         if self.params.pairs and len(t) > 1:
             from scipy.sparse.csgraph import connected_components, dijkstra
 
-            at_rest = self._pairs(rest)
+            at_rest = self._rest_pairs
             src = [t[np.concatenate([at_rest // len(t), at_rest % len(t)])].ravel()]
             _, piece = connected_components(self._graph, directed=False)
             corners = rest[t]
@@ -335,14 +343,51 @@ class SurfaceGuard:
             keep &= amount > self.noise
         return new[keep]
 
+    def _kept_apart(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray,
+                    len_lbs: np.ndarray) -> bool:
+        """Whether a physical result that :meth:`_crumpled` judged crumpled only bunched the skin
+        where LBS passes through itself, and kept the two sides apart (the trust is then kept).
+
+        Where LBS passes through itself (pairs of ``lw``, the welded LBS, that the rest pose does
+        not have; ``pw``: the welded physical result, ``[C, 3]`` [m]), it is no reference for the surface: its triangles there lie inside the body,
+        and a result that keeps the two sides apart must bunch or stretch the skin between them
+        (a deep flex's crease). The zone: the welded points within ``R`` along the surface (rest
+        edges) of a point of such a pair's triangles, ``R`` the largest displacement from LBS
+        of those points (how far the sides were moved apart: the skin bunches over about that
+        distance), at least two median edges. True where the result has no intersecting pair
+        the guard would take back (:meth:`_new_pairs`) and, its edges in the zone left out, is
+        not crumpled: it strains no more edges past the limit outside the zone than LBS does
+        over the whole mesh (LBS strains its side of a crease too, the physics bunches it over a
+        wider area) by ``trust_strained``; turned triangles count everywhere."""
+        from scipy.sparse.csgraph import dijkstra
+
+        moved = np.linalg.norm(pw - lw, axis=1)
+        pairs_p, pairs_lbs = self._pairs_of_two(pw, lw)
+        if self._new_pairs(pairs_p, pairs_lbs, lw, moved).size:
+            return False
+        own = np.setdiff1d(pairs_lbs, self._rest_pairs, assume_unique=True)
+        if not own.size:
+            return False
+        n = len(self._all_tri)
+        src = np.unique(self._all_tri[np.concatenate([own // n, own % n])].ravel())
+        radius = max(float(moved[src].max()), 2.0 * self.edge)
+        near = np.isfinite(dijkstra(self._graph, directed=False, indices=src, min_only=True, limit=radius))
+        self._zone_edges = near[self.mesh.edges].any(axis=1)
+        try:
+            return not self._crumpled(pw, s_lbs, n_lbs, len_lbs)
+        finally:
+            self._zone_edges[:] = False
+
     def _crumpled(self, physical: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray) -> bool:
         """Whether the physical result turns more than ``trust_flipped`` of the mesh's triangles
         over against LBS, or strains ``trust_strained`` more of its edges past
         :data:`~warpskin.quality.STRAIN_LIMIT` than LBS does (shares of all of them; the edges
-        wholly inside the intended stretch are counted only where they are shortened)."""
+        wholly inside the intended stretch are counted only where they are shortened; while
+        :meth:`_kept_apart` judges it, the physical result's edges in the zone around LBS's own
+        crossings are not counted, LBS's are)."""
         s = self._strain(physical)
         judged = ~self._stretched(physical, s > STRAIN_LIMIT)
-        excess = (np.count_nonzero((s > STRAIN_LIMIT) & judged)
+        excess = (np.count_nonzero((s > STRAIN_LIMIT) & judged & ~self._zone_edges)
                   - np.count_nonzero((s_lbs > STRAIN_LIMIT) & judged)) / max(len(s), 1)
         n = self._normals(physical)
         ln = np.linalg.norm(n, axis=1)
@@ -396,8 +441,10 @@ class SurfaceGuard:
         len_lbs = np.linalg.norm(n_lbs, axis=1)
         tris, tri_count = self._all_tri, len(self._all_tri)
         e, t = mesh.edges, self._tri
-        if self.trusted and self._crumpled(lw + d, s_lbs, n_lbs, len_lbs):
-            self.trusted = False  # the physics crumpled: guarded from this frame on
+        if self.trusted and self._crumpled(pw, s_lbs, n_lbs, len_lbs):
+            # the physics crumpled (guarded from this frame on), unless it bunched the skin only
+            # to keep apart what LBS passes through
+            self.trusted = self._kept_apart(pw, lw, s_lbs, n_lbs, len_lbs)
         if self.trusted:
             self.g = g
             self.pair_counts = self.pair_keys = None
