@@ -133,8 +133,10 @@ def test_with_the_volume_loop_no_skin_particle_ends_a_step_beyond_the_cap(device
 def test_a_setting_a_user_may_pick_ends_bounded_or_stops_with_exit_3(tmp_path, capsys, name, params, solver, extra, cli):
     # each ends with the skin within 10 % of the body's diagonal of LBS in every written frame,
     # or stops with exit 3 naming the frame, the frames before it kept; never an explosion
-    # written with exit 0. The dt, stiffness and gravity runs are explosions the tether's cap
-    # holds (a third to nine tenths of the skin at the cap): they stop
+    # written with exit 0. The stiffness run is an explosion the tether's cap holds (nine tenths
+    # of the skin at the cap): it stops. Steps of 16.7 ms, or a gravity of 1000 m/s^2, would let
+    # gravity drop the tissue by 0.14 or 1.2 of its mean edge per step, explosions too: the frames
+    # are split into the steps gravity allows, with one warning, and the runs end
     scene_path = _scene(tmp_path, name, params, solver, extra).source
     out = tmp_path / f"{name}.usdc"
     code = main(["simulate", str(scene_path), "-o", str(out), "--lbs", "--quiet"] + cli)
@@ -149,8 +151,11 @@ def test_a_setting_a_user_may_pick_ends_bounded_or_stops_with_exit_3(tmp_path, c
     worst = max(float(np.linalg.norm(np.array(skin.Get(t)) - np.array(ref.Get(t)), axis=1).max()) for t in times)
     print(f"{name}: exit {code}, {len(times)} frames written, worst offset {100 * worst / diag:.1f} % of the diagonal")
     assert worst <= 0.1 * diag
-    if name in ("dt", "stiffness", "gravity"):
+    if name == "stiffness":
         assert code == 3 and "held at the tether's cap" in err, err
+    split = {"dt": "4 steps of 8.33 ms", "gravity": "34 steps of 0.98 ms"}
+    if name in split:
+        assert code == 0 and err.count(f"each frame is split into {split[name]} instead") == 1, err
     if code == 3:
         assert "simulation failed: frame " in err and "plausible range" in err
         stopped = int(err.split("simulation failed: frame ")[1].split(":")[0])
@@ -212,12 +217,13 @@ def test_a_fast_clip_is_not_taken_for_an_explosion(tmp_path, assets):
 
 
 def test_a_share_held_at_the_cap_stops_the_run_once_it_lasts_capped_time(tmp_path):
-    # a gravity of 1000 m/s^2 holds most of the skin at the tether's cap from the first frames
+    # tissue of stiffness 0.01 holds most of the skin at the tether's cap from the first frames
     # on (an explosion the cap hides). The reference: the same run's own per-frame share at the
     # cap, unbounded. With capped_time 0.05 s (between one and two frames at 30 fps) the run
     # stops at the first frame that is the third in a row above max_capped; with 0, at the
     # first frame above it
-    scene = _scene(tmp_path, "held", solver="gravity = [0.0, -1000.0, 0.0]\ncapped_time = 0.05\n")
+    scene = _scene(tmp_path, "held", solver="capped_time = 0.05\n",
+                   extra="[layers]\nstiffness = [0.01, 0.01, 0.01, 0.01]\n")
     with pytest.warns(RuntimeWarning):
         free = simulate(scene, tmp_path / "free.usdc", progress=False, frames=(0, 10), allow_unstable=True)
     above = np.array(free.metrics["capped_share"]) > scene.solver_params().max_capped
@@ -354,3 +360,44 @@ def test_a_small_sub_volume_is_measured_against_a_hundredth_of_the_body(tmp_path
     assert small.any()
     assert _volume_stop(m, 0.1, True, 0.0) is not None  # each against its own rest volume: stopped
     assert _volume_stop(m, 0.1, True, 0.01) is None
+
+
+def test_the_gravity_step_limit_is_its_closed_form_in_any_unit():
+    # g dt^2 = GRAVITY_STEP x the mean edge at the limit; the same character in millimetres
+    # (edges 1000x, 1000 file units a metre) gets the same limit; no gravity, no limit
+    import math
+
+    from warpskin.solver import GRAVITY_STEP, gravity_step_limit
+
+    limit = gravity_step_limit(0.0084, (0.0, -9.81, 0.0), 1.0)
+    assert 9.81 * limit ** 2 == pytest.approx(GRAVITY_STEP * 0.0084, rel=1e-12)
+    assert gravity_step_limit(8.4, (0.0, -9.81, 0.0), 1e-3) == pytest.approx(limit, rel=1e-12)
+    assert gravity_step_limit(0.0084, (3.0, -4.0, 0.0), 1.0) == pytest.approx(math.sqrt(GRAVITY_STEP * 0.0084 / 5.0))
+    assert gravity_step_limit(0.0084, (0.0, 0.0, 0.0), 1.0) == math.inf
+
+
+def test_steps_longer_than_gravity_allows_are_split_and_the_arm_keeps_its_surface(tmp_path):
+    # the shipped arm at dt 0.02 (2 steps of 16.7 ms a frame): gravity drops its tissue by a
+    # third of its mean edge per step and, written as simulated, 15 % of its edges strain past
+    # 1.5x by frame 3 (exit 3); at most 6.5 ms for its edges. The frames are split into steps no longer than the limit (its
+    # mean edge from trimesh), with one warning naming them; the surface keeps within LBS's
+    # strain + 0.5 % of the edges
+    import trimesh
+
+    from warpskin.guard import GuardParams
+    from warpskin.solver import GRAVITY_STEP
+
+    scene = load_scene("arm")
+    rig = scene.rig()
+    edges = trimesh.Trimesh(rig.vertices, rig.triangles, process=False).edges_unique_length
+    limit = (GRAVITY_STEP * float(edges.mean()) / 9.81) ** 0.5
+    params = scene.solver_params()
+    params.dt = 0.02
+    with pytest.warns(RuntimeWarning, match=r"each frame is split into 6 steps of 5\.56 ms instead") as record:
+        result = simulate(scene, tmp_path / "arm.usdc", progress=False, frames=(0, 8), solver_params=params,
+                          guard=GuardParams(enabled=False))
+    assert len(record) == 1 and params.dt == 0.02  # the caller's settings are left as they were
+    s = result.summary
+    assert s["gravity_step_limit_s"] == pytest.approx(limit, rel=1e-6)
+    assert s["substeps_per_frame"] == 6 and s["dt_s"] == pytest.approx(1.0 / 180.0)
+    assert s["written"]["arm"]["max_strained_excess"] <= 0.005

@@ -34,7 +34,10 @@ class SolverParams:
         iterations: Elasticity-loop iterations per step (``N_elasticity``), >= 1.
         volume_iterations: Volume-loop iterations per step (``N_volume``; the paper uses 4), >= 0.
         rotation_iterations: Warm-started rotation-extraction iterations per region fit, >= 1.
-        dt: Largest substep [s] (the paper uses 5 ms); frames are split into equal substeps.
+        dt: Largest substep [s] (the paper uses 5 ms); frames are split into equal substeps,
+            none longer than gravity allows for the skin's edges
+            (:func:`~warpskin.solver.gravity_step_limit`: ``simulate`` splits further, with one
+            warning, where ``dt`` is longer).
         gravity: External acceleration [m/s^2] (default: 9.81 down the Y axis), applied in the
             file's length unit as ``units`` takes it.
         units: ``"auto"``: physics takes the file's length unit as the power of ten of the metre

@@ -25,7 +25,12 @@ from .kernels import skinning as k_skin
 from .model import Contacts, Control, SkinModel, State
 from .units import UNITS, metres_per_unit
 
-__all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity"]
+__all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
+           "gravity_step_limit"]
+
+#: The most a step may let gravity move a free particle (``g dt^2``), as a share of the skin's
+#: mean rest edge: :func:`gravity_step_limit`.
+GRAVITY_STEP = 0.05
 
 
 def length_units(model: SkinModel, units: str = "auto") -> list[float]:
@@ -41,6 +46,23 @@ def length_units(model: SkinModel, units: str = "auto") -> list[float]:
         raise SceneError(f"[solver] units must be 'auto' or 'file', got {units!r}")
     extents = list(getattr(model, "extents", None) or [0.0])
     return [1.0 if units == "file" else metres_per_unit(e) for e in extents]
+
+
+def gravity_step_limit(mean_edge: float, gravity, unit: float) -> float:
+    """The longest step [s] in which gravity alone moves a free particle by at most
+    :data:`GRAVITY_STEP` x ``mean_edge`` (the skin's mean rest edge, in the file's unit):
+    ``sqrt(GRAVITY_STEP mean_edge / g)``, ``g = |gravity| / unit`` (``gravity`` [m/s^2], ``unit``
+    metres per file unit, :func:`length_units`). ``inf`` where gravity or the edge is zero.
+
+    A longer step drops the tissue by more per step than the elasticity iterations take back
+    (their corrections spread over the regions a ring at a time), and the surface crumples
+    whatever the contacts do; the share is set so that the finest shipped skin keeps within the
+    strain the quality checks ask (docs: limits). Drivers split a frame into steps no longer
+    than this, whatever the ``dt`` asked (which stays the longest step)."""
+    g = float(np.linalg.norm(np.asarray(gravity, dtype=np.float64))) / float(unit)
+    if not (g > 0.0 and mean_edge > 0.0 and math.isfinite(g)):
+        return math.inf
+    return math.sqrt(GRAVITY_STEP * float(mean_edge) / g)
 
 
 def particle_gravity(model: SkinModel, gravity, units: list[float]) -> np.ndarray:

@@ -360,6 +360,35 @@ def _meshes_to_write(character, builder, render, with_lbs: bool, with_layers: bo
     return meshes
 
 
+def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: FramePlan, frames, start_frame):
+    """``(params, plan, limit)``: the solver settings and frame plan with steps no longer than
+    :func:`~warpskin.solver.gravity_step_limit` of the simulated skin (``limit`` [s], ``inf``
+    without gravity), with one warning where that splits the frames into more steps than
+    ``params.dt`` asked; unchanged where it does not."""
+    from dataclasses import replace
+
+    from ..collision import skin_edges
+    from ..solver import GRAVITY_STEP, gravity_step_limit, length_units
+
+    sim = builder.rig
+    edges, _ = skin_edges(sim.triangles)
+    mean_edge = float(np.linalg.norm(sim.vertices[edges[:, 0]] - sim.vertices[edges[:, 1]], axis=1).mean())
+    limit = gravity_step_limit(mean_edge, params.gravity, length_units(model, params.units)[0])
+    if not limit < params.dt:
+        return params, plan, limit
+    asked = plan
+    params = replace(params, dt=limit)
+    plan = FramePlan.for_scene(scene, frames, max_dt=limit, start_frame=start_frame)
+    if plan.substeps > asked.substeps:
+        warnings.warn(f"{scene.source or scene.name}: steps of {1e3 * asked.dt:.3g} ms let gravity move the skin by "
+                      f"{GRAVITY_STEP * (asked.dt / limit) ** 2:.2g} of its mean "
+                      f"edge per step, more than the elasticity iterations take back (the tissue would sag and "
+                      f"crumple): each frame is split into {plan.substeps} steps of {1e3 * plan.dt:.3g} ms instead "
+                      f"(dt is the longest step; at most {1e3 * limit:.3g} ms for this skin)", RuntimeWarning,
+                      stacklevel=3)
+    return params, plan, limit
+
+
 def simulate(
     scene: Scene,
     out_path,
@@ -487,6 +516,7 @@ def simulate(
         builder.params.collision = collision
     model = builder.finalize(device)
     character.bind(builder, device=model.device)
+    params, plan, gravity_limit = _steps_gravity_allows(scene, builder, model, params, plan, frames, start_frame)
     pop = overlay(character, builder, plan) if overlay is not None else None
     build_s = time.perf_counter() - t_build
     if check_intersections is None:
@@ -594,6 +624,7 @@ def simulate(
         "frames": len(written),
         "substeps_per_frame": plan.substeps,
         "dt_s": plan.dt,
+        "gravity_step_limit_s": gravity_limit if np.isfinite(gravity_limit) else None,
         "iterations": params.iterations,
         "volume_iterations": params.volume_iterations,
         "fast_summation": params.fast_summation,
