@@ -59,6 +59,28 @@ def test_a_good_physical_result_is_written_untouched():
     assert guard.pair_counts == (0, 0)
 
 
+def test_what_the_jump_limit_would_crumple_goes_back_to_the_guarded_surface():
+    # the guard's result this frame is smooth; the jump limit, keeping points near their last
+    # frame, leaves a crumpled dent in it: the dent's points and a ramp around them go back to
+    # the guarded points, far points stay as the limit left them; nothing to keep, no change
+    rest, tris = _sphere((0, 0, 0), 1.0, 2, subdivisions=4)
+    guard = SurfaceGuard(WrittenMesh("s", tris, rest))
+    lbs = _pose(rest, 2)
+    guarded = lbs + 0.01 * np.sin(3.0 * lbs)
+    assert strain_and_flips(rest, guarded, lbs, tris)[0] == 0.0
+    limited = _dent(rest, guarded, rest[17], 0.25, 0.05)
+    s, _, f = strain_and_flips(rest, limited, lbs, tris)
+    assert s > 0.002 and f > 0.002
+    out = guard.keep(limited, guarded, lbs)
+    s, s_lbs, f = strain_and_flips(rest, out, lbs, tris)
+    assert f == 0.0 and s <= s_lbs
+    far = np.linalg.norm(rest - rest[17], axis=1) > 1.0
+    assert np.array_equal(out[far], np.asarray(limited[far], dtype=np.float32).astype(np.float64))
+    assert guard.keep(guarded, guarded, lbs) is guarded
+    clean = guarded + 0.001
+    assert guard.keep(clean, guarded, lbs) is clean
+
+
 def test_a_crumpled_dent_is_taken_back_locally_and_smoothly():
     rest, tris = _sphere((0, 0, 0), 1.0, 2, subdivisions=4)  # edges of about 0.095
     mesh = WrittenMesh("s", tris, rest)
@@ -263,32 +285,43 @@ def test_a_skin_whose_physics_crumples_is_guarded_from_then_on():
 
 
 def test_skin_bunched_where_lbs_passes_through_itself_keeps_the_trust_and_elsewhere_loses_it():
-    # LBS sinks the second sphere into the first; the physics keeps it clear and presses a band of
-    # it together (edges shortened past 1 / 1.5, over 0.6 % of all edges, none turned). Around
-    # the circle where LBS's spheres cross (a crease's bunching, a few rings from LBS's own
-    # crossings) the skin stays trusted; the same band on the far side of the sphere crumples the
-    # trust, and so does the band at the circle where the physics lets the spheres cross itself
+    # LBS sinks the second sphere into the first; the physics keeps it clear and lifts three
+    # points of it (not neighbours, six edges each) by two median edges: 18 of the 3840 edges
+    # strained past 1.5x (0.47 %: past the trust's 0.45 %, within the 0.5 % the quality checks
+    # ask), no triangle turned. Near the circle where LBS's spheres cross (a crease's bunching)
+    # the skin stays trusted; the same points on the far side of the sphere crumple the trust,
+    # and so do the points near the circle where the physics lets the spheres cross itself
     rest, tris, lbs, _ = _pushed_out(23, 1.0)
     half = len(rest) // 2
     assert intersecting_pairs_brute_force(lbs, tris) > 20
+    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    assert len(edges) == 3840
+    degree = np.bincount(edges.ravel(), minlength=len(rest))
+    step = 2.0 * float(np.median(np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)))
+    along = rest[:, 0] - 2.05  # from the second sphere's centre, along the axis of the two
 
-    def pressed(offset, shift):
+    def lifted(offset, shift):
+        picked = []
+        for i in np.argsort(np.abs(along - offset)):
+            if i >= half and degree[i] == 6 and not any(((edges == [min(i, j), max(i, j)]).all(axis=1)).any()
+                                                        for j in picked):
+                picked.append(int(i))
+            if len(picked) == 3:
+                break
         x = rest.copy()
-        b = x[half:]
-        along = b[:, 0] - 2.05  # from the second sphere's centre, along the axis of the two
-        band = np.abs(along - offset) < 0.15
-        b[band, 0] -= 0.7 * (along[band] - offset)  # pressed along the axis: shortened, not turned
-        b[:, 0] += shift
-        return x, band.sum()
+        radial = x[picked] - np.array([2.05, 0.0, 0.0])
+        x[picked] += step * radial / np.linalg.norm(radial, axis=1)[:, None]
+        x[half:, 0] += shift
+        return x, np.abs(along[picked] - offset).max()
 
-    # (band's offset, the second sphere moved along the axis, trusted): LBS's crossing circle,
-    # its mirror, LBS's crossing circle with the spheres passing 0.07 into each other
+    # (the points' offset, the second sphere moved along the axis, trusted): LBS's crossing
+    # circle, its mirror, LBS's crossing circle with the spheres passing 0.07 into each other
     for offset, shift, trusted in ((-0.625, 0.0, True), (0.625, 0.0, False), (-0.625, -0.12, False)):
-        physical, count = pressed(offset, shift)
-        assert count > 20
+        physical, spread = lifted(offset, shift)
+        assert spread < 0.1
         assert (intersecting_pairs_brute_force(physical, tris) == 0) == (shift == 0.0)
         s, s_lbs, flipped = strain_and_flips(rest, physical, lbs, tris)
-        assert s - s_lbs > 0.006 and flipped == 0.0  # past the trust's 0.45 % of the edges
+        assert s - s_lbs == pytest.approx(18 / 3840) and flipped == 0.0
         guard = SurfaceGuard(WrittenMesh("two", tris, rest), direct=True)
         out = guard.apply(physical, lbs)
         assert guard.trusted == trusted

@@ -553,7 +553,11 @@ class Character:
             if name in self.repairs:
                 repair, rows = self.repairs[name]
                 pts = repair.apply(pts, carriers[rows])
-            out[name] = self.limits[name].apply(guard.apply(pts, lbs_by[name]), lbs_by[name])
+            guarded = guard.apply(pts, lbs_by[name])
+            limited = self.limits[name].apply(guarded, lbs_by[name])
+            out[name] = guard.keep(limited, guarded, lbs_by[name])
+            if out[name] is not limited:  # the limit goes on from what is written
+                self.limits[name].written(out[name], lbs_by[name])
         return out
 
     def painted(self) -> np.ndarray:

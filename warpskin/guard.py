@@ -62,7 +62,13 @@ from .quality import STRAIN_LIMIT, WrittenMesh
 from .settings import check_settings, setting
 from .transforms import matrix_to_quat, quat_slerp, quat_to_matrix, rigid_fit
 
-__all__ = ["GuardParams", "SurfaceGuard", "JumpLimit"]
+__all__ = ["GuardParams", "SurfaceGuard", "JumpLimit", "CREASE_EXCESS"]
+
+#: A directly simulated skin kept trusted where it bunches around LBS's own crossings
+#: (:meth:`SurfaceGuard._kept_apart`) still strains, over the whole mesh, at most this share of
+#: its edges past :data:`~warpskin.quality.STRAIN_LIMIT` more than LBS does: the 0.5 % the
+#: quality checks ask.
+CREASE_EXCESS = 0.005
 
 
 @dataclass
@@ -355,12 +361,18 @@ class SurfaceGuard:
         edges) of a point of such a pair's triangles, ``R`` the largest displacement from LBS
         of those points (how far the sides were moved apart: the skin bunches over about that
         distance), at least two median edges. True where the result has no intersecting pair
-        the guard would take back (:meth:`_new_pairs`) and, its edges in the zone left out, is
-        not crumpled: it strains no more edges past the limit outside the zone than LBS does
-        over the whole mesh (LBS strains its side of a crease too, the physics bunches it over a
-        wider area) by ``trust_strained``; turned triangles count everywhere."""
+        the guard would take back (:meth:`_new_pairs`), strains at most :data:`CREASE_EXCESS`
+        more of its edges past the limit than LBS, and, its edges in the zone left out, is not
+        crumpled: it strains no more edges outside the zone than LBS does over the whole mesh
+        (LBS strains its side of a crease too, the physics bunches it over a wider area) by
+        ``trust_strained``; turned triangles count everywhere."""
         from scipy.sparse.csgraph import dijkstra
 
+        s = self._strain(pw)
+        judged = ~self._stretched(pw, s > STRAIN_LIMIT)
+        if (np.count_nonzero((s > STRAIN_LIMIT) & judged)
+                - np.count_nonzero((s_lbs > STRAIN_LIMIT) & judged)) > CREASE_EXCESS * len(s):
+            return False
         moved = np.linalg.norm(pw - lw, axis=1)
         pairs_p, pairs_lbs = self._pairs_of_two(pw, lw)
         if self._new_pairs(pairs_p, pairs_lbs, lw, moved).size:
@@ -508,6 +520,41 @@ class SurfaceGuard:
             return given
         return self._blend(p, lb, g)
 
+    def keep(self, limited: np.ndarray, guarded: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+        """``limited`` (the guarded points after the :class:`JumpLimit`, ``[N, 3]`` [m], file
+        order), unless it is worse than ``guarded`` (this frame's :meth:`apply`) by the measures
+        of :mod:`warpskin.quality` against ``lbs`` (more edges past
+        :data:`~warpskin.quality.STRAIN_LIMIT` than LBS and than ``guarded``, or more triangles
+        turned over against LBS than ``guarded``): then the points of the edges and triangles
+        that make it worse go to ``guarded``, and a smooth ramp around them part way
+        (:meth:`_falloff`). The limit keeps a point from jumping, not from the surface the guard
+        made. ``limited`` itself where it is not worse."""
+        if not self.params.enabled or self.count == 0 or limited is guarded:
+            return limited
+        mesh = self.mesh
+        lw = mesh.welded(_as_written(lbs))
+        xw, gw = mesh.welded(_as_written(limited)), mesh.welded(_as_written(guarded))
+        e, t = mesh.edges, self._tri
+        lbs_over = self._strain(lw) > STRAIN_LIMIT
+        x_over, g_over = self._strain(xw) > STRAIN_LIMIT, self._strain(gw) > STRAIN_LIMIT
+        n_lbs = self._normals(lw)
+        len_lbs = np.linalg.norm(n_lbs, axis=1)
+        x_flip, g_flip = self._cosines(xw, n_lbs, len_lbs) < 0.0, self._cosines(gw, n_lbs, len_lbs) < 0.0
+        strained = np.count_nonzero(x_over) > max(np.count_nonzero(g_over), np.count_nonzero(lbs_over))
+        flipped = np.count_nonzero(x_flip) > np.count_nonzero(g_flip)
+        if not (strained or flipped):
+            return limited
+        flag = np.zeros(self.count, dtype=bool)
+        if strained:
+            flag[e[x_over & ~g_over & ~lbs_over].ravel()] = True
+        if flipped:
+            flag[t[x_flip & ~g_flip].ravel()] = True
+        if not flag.any():
+            return limited
+        ramp = self._falloff(flag, np.linalg.norm(xw - gw, axis=1))
+        out = xw + ramp[:, None] * (gw - xw)
+        return _as_written(out[mesh.weld])
+
     def _blend(self, p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
         """:func:`_blend` per file point (``g`` per welded point), rounded as it is written."""
         return _as_written(_blend(p, lb, g[self.mesh.weld]))
@@ -533,7 +580,9 @@ class JumpLimit:
     the body apart in one frame and let them through in the next), the change is cut to that
     length, so the point gets there over the next frames (a smooth path through the flicker):
     ``o(t) = o(t-1) + d min(1, r / |d|)``, ``d = o_guarded(t) - o(t-1)``. The first frame is
-    taken as it is. Applied after the surface guard, to what is written only.
+    taken as it is. Applied after the surface guard, to what is written only; where the cut
+    would leave the mesh worse than the guard's result, :meth:`SurfaceGuard.keep` takes those
+    points back to it (and :meth:`written` tells the limit what was written).
 
     A group (``groups[i] >= 0``: a piece written by one rigid motion, a shoe, a fist, a hair
     cap) is cut as a whole and stays rigid: a blend of two frames' offsets is not rigid, so its
@@ -585,6 +634,12 @@ class JumpLimit:
         self.limited = float(cut.mean())
         self._last, self._last_lbs = o, lb
         return _as_written(lb + o)
+
+    def written(self, points: np.ndarray, lbs: np.ndarray) -> None:
+        """What was written of this frame after :meth:`apply` (``points``, ``lbs``: ``[N, 3]``
+        [m]), where it differs from what :meth:`apply` returned: the next frame's limit counts
+        from it."""
+        self._last = np.asarray(points, dtype=np.float64) - np.asarray(lbs, dtype=np.float64)
 
     def _group(self, g: np.ndarray, target: np.ndarray, lbs: np.ndarray) -> np.ndarray:
         """The placement ``[n, 3]`` of group ``g`` this frame (see the class docstring):
