@@ -79,6 +79,13 @@ def test_what_the_jump_limit_would_crumple_goes_back_to_the_guarded_surface():
     assert guard.keep(guarded, guarded, lbs) is guarded
     clean = guarded + 0.001
     assert guard.keep(clean, guarded, lbs) is clean
+    # a group (a piece moved as a whole) that the ramp reaches moves by one share
+    group = np.where(np.linalg.norm(rest - rest[17], axis=1) < 0.6, 0, -1)
+    grouped = SurfaceGuard(WrittenMesh("s", tris, rest), groups=group).keep(limited, guarded, lbs)
+    inside = group == 0
+    moved, full = (grouped - limited)[inside].ravel(), (guarded - limited)[inside].ravel()
+    share = float(moved @ full / (full @ full))
+    assert 0.0 < share <= 1.0 + 1e-6 and np.abs(moved - share * full).max() < 1e-6
 
 
 def test_a_crumpled_dent_is_taken_back_locally_and_smoothly():

@@ -355,9 +355,9 @@ class SurfaceGuard:
         where LBS passes through itself, and kept the two sides apart (the trust is then kept).
 
         Where LBS passes through itself (pairs of ``lw``, the welded LBS, that the rest pose does
-        not have; ``pw``: the welded physical result, ``[C, 3]`` [m]), it is no reference for the surface: its triangles there lie inside the body,
-        and a result that keeps the two sides apart must bunch or stretch the skin between them
-        (a deep flex's crease). The zone: the welded points within ``R`` along the surface (rest
+        not have; ``pw``: the welded physical result, ``[C, 3]`` [m]), it is no reference for
+        the surface: its triangles there lie inside the body, and a result that keeps the two
+        sides apart must bunch or stretch the skin between them (a deep flex's crease). The zone: the welded points within ``R`` along the surface (rest
         edges) of a point of such a pair's triangles, ``R`` the largest displacement from LBS
         of those points (how far the sides were moved apart: the skin bunches over about that
         distance), at least two median edges. True where the result has no intersecting pair
@@ -527,8 +527,9 @@ class SurfaceGuard:
         :data:`~warpskin.quality.STRAIN_LIMIT` than LBS and than ``guarded``, or more triangles
         turned over against LBS than ``guarded``): then the points of the edges and triangles
         that make it worse go to ``guarded``, and a smooth ramp around them part way
-        (:meth:`_falloff`). The limit keeps a point from jumping, not from the surface the guard
-        made. ``limited`` itself where it is not worse."""
+        (:meth:`_falloff`; a group moves as a whole, by its largest share). The limit keeps a
+        point from jumping, not from the surface the guard made. ``limited`` itself where it is
+        not worse."""
         if not self.params.enabled or self.count == 0 or limited is guarded:
             return limited
         mesh = self.mesh
@@ -552,6 +553,10 @@ class SurfaceGuard:
         if not flag.any():
             return limited
         ramp = self._falloff(flag, np.linalg.norm(xw - gw, axis=1))
+        if self.group is not None:
+            high = np.zeros(int(self.group.max()) + 1)
+            np.maximum.at(high, self.group, ramp)
+            ramp = high[self.group]
         out = xw + ramp[:, None] * (gw - xw)
         return _as_written(out[mesh.weld])
 
