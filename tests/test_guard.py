@@ -338,6 +338,29 @@ def test_skin_bunched_where_lbs_passes_through_itself_keeps_the_trust_and_elsewh
             assert guard.held > 0.0
 
 
+def test_a_crossing_lbs_makes_that_slides_is_left_and_only_its_net_gain_taken_back():
+    # LBS sinks the second sphere into the first (pairs the rest pose does not have); the result
+    # sinks it as deep, slid sideways: the crossing moves by about a ring, trading each pair LBS
+    # has for a neighbour, and nothing is taken back. Slid further, it gains 2 pairs over LBS's:
+    # only those are flagged
+    rest, tris, lbs, _ = _pushed_out(23, 1.0)
+    half = len(rest) // 2
+    for slide, gained in ((0.02, 0), (0.04, 2)):
+        physical = lbs.copy()
+        physical[half:, 1] += slide
+        with_lbs = {tuple(p) for p in self_intersections(lbs, tris)}
+        ours = {tuple(p) for p in self_intersections(physical, tris)}
+        assert len(ours - with_lbs) > 20
+        assert intersecting_pairs_brute_force(physical, tris) - intersecting_pairs_brute_force(lbs, tris) == gained
+        guard = SurfaceGuard(WrittenMesh("two", tris, rest))
+        out = guard.apply(physical, lbs)
+        assert guard.flags["pairs"] == gained
+        if gained == 0:
+            assert np.array_equal(out, physical) and guard.held == 0.0
+        else:
+            assert 0.0 < guard.held < 0.02
+
+
 def test_a_stretch_made_on_purpose_is_written_and_a_squeeze_there_is_not():
     # the second sphere swollen by 2.2 (its edges stretched past 1.5) where the physics stretches
     # the skin on purpose (a muscle's belly): still trusted, and not flagged once guarded either

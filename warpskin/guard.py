@@ -18,7 +18,8 @@ Every frame, per mesh (on the host, in the mesh's welded topology):
    :data:`~warpskin.quality.STRAIN_LIMIT` or ``W``'s is over 1.1 x LBS's; triangles whose normal
    turns by more than ``flip_degrees`` against LBS; and intersecting triangle pairs (the exact
    test of :func:`~warpskin.metrics.self_intersections`) that LBS does not have, except, where
-   pieces cross or touch at rest (a ball joint inside a tube's end, a seam), those matched one
+   pieces cross or touch at rest (a ball joint inside a tube's end, a seam) or where LBS passes
+   through itself in the frame (a crease the physics keeps apart), those matched one
    to one with a nearby pair that LBS has and ``W`` lost (within ``match`` median edges: a
    crossing that slides trades a pair for its neighbour, and only a net gain is new). After
    the first round only the pairs of triangles whose points changed are tested again;
@@ -205,6 +206,8 @@ class SurfaceGuard:
         # the edges with a point in the zone around LBS's own crossings of the frame whose trust
         # is judged (:meth:`_kept_apart`); all False otherwise
         self._zone_edges = np.zeros(len(e), dtype=bool)
+        # the triangles near LBS's own crossings in the frame being guarded (:meth:`_pose_crossings`)
+        self._pose_crossing = np.zeros(len(t), dtype=bool)
         if self.params.pairs and len(t) > 1:
             from scipy.sparse.csgraph import connected_components, dijkstra
 
@@ -331,15 +334,17 @@ class SurfaceGuard:
 
     def _new_pairs(self, pairs_w: np.ndarray, pairs_lbs: np.ndarray, lbs: np.ndarray, moved: np.ndarray) -> np.ndarray:
         """The keys of the pairs of ``pairs_w`` the guard takes back: those LBS does not have,
-        less those where pieces cross or touch at rest that are matched with a pair LBS has and
-        ``pairs_w`` lost (:meth:`_match`: a crossing that slid). While the mesh has no more pairs than LBS, pairs whose points moved by less
-        than :attr:`noise` (``moved`` [m] per point) are left too (a contact LBS has to within
-        rounding)."""
+        less those where pieces cross or touch at rest, or where LBS passes through itself this
+        frame (:meth:`_pose_crossings`), that are matched with a pair LBS has and ``pairs_w``
+        lost (:meth:`_match`: a crossing that slid). While the mesh has no more pairs than LBS,
+        pairs whose points moved by less than :attr:`noise` (``moved`` [m] per point) are left
+        too (a contact LBS has to within rounding)."""
         new = np.setdiff1d(pairs_w, pairs_lbs, assume_unique=True)
         if not new.size:
             return new
         tri_count = len(self._all_tri)
-        crossing = self._crossing[new // tri_count] & self._crossing[new % tri_count]
+        cr = self._crossing | self._pose_crossing
+        crossing = cr[new // tri_count] & cr[new % tri_count]
         keep = np.ones(new.size, dtype=bool)
         if crossing.any():
             keep[crossing] = ~self._match(new[crossing], np.setdiff1d(pairs_lbs, pairs_w, assume_unique=True), lbs)[0]
@@ -348,6 +353,22 @@ class SurfaceGuard:
             amount = np.maximum(moved[tris[new // tri_count]].max(axis=1), moved[tris[new % tri_count]].max(axis=1))
             keep &= amount > self.noise
         return new[keep]
+
+    def _pose_crossings(self, pairs_lbs: np.ndarray) -> None:
+        """Mark, for this frame, where LBS passes through itself (``pairs_lbs``: the keys of its
+        pairs; those of the rest pose left out): the triangles within two median edges of such
+        a pair's points (:attr:`_pose_crossing`). There, as where pieces cross at rest, a new
+        pair matched with one LBS has and the result lost is a crossing that slid
+        (:meth:`_new_pairs`): keeping a crease apart, the physics moves where its sides meet."""
+        from scipy.sparse.csgraph import dijkstra
+
+        own = np.setdiff1d(pairs_lbs, self._rest_pairs, assume_unique=True)
+        self._pose_crossing = np.zeros(len(self._all_tri), dtype=bool)
+        if own.size:
+            n = len(self._all_tri)
+            src = np.unique(self._all_tri[np.concatenate([own // n, own % n])].ravel())
+            near = np.isfinite(dijkstra(self._graph, directed=False, indices=src, min_only=True, limit=2.0 * self.edge))
+            self._pose_crossing = near[self._all_tri].all(axis=1)
 
     def _kept_apart(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray,
                     len_lbs: np.ndarray) -> bool:
@@ -375,6 +396,7 @@ class SurfaceGuard:
             return False
         moved = np.linalg.norm(pw - lw, axis=1)
         pairs_p, pairs_lbs = self._pairs_of_two(pw, lw)
+        self._pose_crossings(pairs_lbs)
         if self._new_pairs(pairs_p, pairs_lbs, lw, moved).size:
             return False
         own = np.setdiff1d(pairs_lbs, self._rest_pairs, assume_unique=True)
@@ -487,6 +509,7 @@ class SurfaceGuard:
             if prm.pairs:
                 if pairs_w is None:  # both counts of the frame in one pass
                     pairs_w, pairs_lbs = self._pairs_of_two(w, lw)
+                    self._pose_crossings(pairs_lbs)
                 elif active is not None and active.any():  # only the pairs of moved triangles change
                     a, b = pairs_w // tri_count, pairs_w % tri_count
                     pairs_w = np.union1d(pairs_w[~(active[a] | active[b])], self._pairs(w, active))
