@@ -32,7 +32,7 @@ from .params import CollisionParams
 from .kernels import collision as k
 
 __all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges",
-           "triangle_ownership"]
+           "mean_edge", "triangle_ownership"]
 
 
 def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,6 +42,13 @@ def skin_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     und = np.sort(directed, axis=1)
     edges, inverse = np.unique(und, axis=0, return_inverse=True)
     return edges, inverse.reshape(-1, 3)
+
+
+def mean_edge(vertices: np.ndarray, triangles: np.ndarray) -> float:
+    """The mean length [m] of a mesh's unique edges (:func:`skin_edges`)."""
+    edges, _ = skin_edges(triangles)
+    v = np.asarray(vertices, dtype=np.float64)
+    return float(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean())
 
 
 @dataclass
@@ -83,7 +90,6 @@ def collision_topology(rig) -> CollisionTopology:
     of a surface made of several pieces, ``rig.surface_groups``, where it has them)."""
     tris = rig.triangles
     edges, tri_edges = skin_edges(tris)
-    mean_edge = float(np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1).mean())
     owner = np.full(edges.shape[0], tris.shape[0], dtype=np.int64)  # first triangle of each edge
     np.minimum.at(owner, tri_edges.ravel(), np.repeat(np.arange(tris.shape[0]), 3))
     w = rig.joint_weights
@@ -103,7 +109,7 @@ def collision_topology(rig) -> CollisionTopology:
         edge_owner=owner,
         dominant_joint=rig.joint_indices[rows, best],
         dominant_weight=w[rows, best],
-        mean_edge=mean_edge,
+        mean_edge=mean_edge(rig.vertices, tris),
         diagonal=rig.size(),
         group=None if groups is None else np.asarray(groups.group, dtype=np.int64),
         group_pairs=None if groups is None else np.asarray(groups.excluded, dtype=bool),

@@ -203,9 +203,6 @@ class SurfaceGuard:
         self._crossing = np.zeros(len(t), dtype=bool)
         #: Keys of the pairs that intersect at rest (they never mark LBS as passing through itself).
         self._rest_pairs = self._pairs(rest) if len(t) > 1 else np.zeros(0, dtype=np.int64)
-        # the edges with a point in the zone around LBS's own crossings of the frame whose trust
-        # is judged (:meth:`_kept_apart`); all False otherwise
-        self._zone_edges = np.zeros(len(e), dtype=bool)
         # the triangles near LBS's own crossings in the frame being guarded (:meth:`_pose_crossings`)
         self._pose_crossing = np.zeros(len(t), dtype=bool)
         if self.params.pairs and len(t) > 1:
@@ -354,80 +351,85 @@ class SurfaceGuard:
             keep &= amount > self.noise
         return new[keep]
 
-    def _pose_crossings(self, pairs_lbs: np.ndarray) -> None:
+    def _pose_crossings(self, pairs_lbs: np.ndarray) -> np.ndarray:
         """Mark, for this frame, where LBS passes through itself (``pairs_lbs``: the keys of its
         pairs; those of the rest pose left out): the triangles within two median edges of such
         a pair's points (:attr:`_pose_crossing`). There, as where pieces cross at rest, a new
         pair matched with one LBS has and the result lost is a crossing that slid
-        (:meth:`_new_pairs`): keeping a crease apart, the physics moves where its sides meet."""
+        (:meth:`_new_pairs`): keeping a crease apart, the physics moves where its sides meet.
+        Returns those pairs' welded points, ``[K]``."""
         from scipy.sparse.csgraph import dijkstra
 
         own = np.setdiff1d(pairs_lbs, self._rest_pairs, assume_unique=True)
-        self._pose_crossing = np.zeros(len(self._all_tri), dtype=bool)
-        if own.size:
-            n = len(self._all_tri)
-            src = np.unique(self._all_tri[np.concatenate([own // n, own % n])].ravel())
+        n = len(self._all_tri)
+        src = np.unique(self._all_tri[np.concatenate([own // n, own % n])].ravel())
+        self._pose_crossing = np.zeros(n, dtype=bool)
+        if src.size:
             near = np.isfinite(dijkstra(self._graph, directed=False, indices=src, min_only=True, limit=2.0 * self.edge))
             self._pose_crossing = near[self._all_tri].all(axis=1)
+        return src
 
-    def _kept_apart(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray,
-                    len_lbs: np.ndarray) -> bool:
-        """Whether a physical result that :meth:`_crumpled` judged crumpled only bunched the skin
-        where LBS passes through itself, and kept the two sides apart (the trust is then kept).
+    def _kept_apart(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray) -> bool:
+        """Whether a physical result that strains more edges than the trust allows
+        (:meth:`_strain_excess`, up to :data:`CREASE_EXCESS`) only bunched the skin where LBS
+        passes through itself, and kept the two sides apart (the trust is then kept).
 
         Where LBS passes through itself (pairs of ``lw``, the welded LBS, that the rest pose does
         not have; ``pw``: the welded physical result, ``[C, 3]`` [m]), it is no reference for
         the surface: its triangles there lie inside the body, and a result that keeps the two
-        sides apart must bunch or stretch the skin between them (a deep flex's crease). The zone: the welded points within ``R`` along the surface (rest
-        edges) of a point of such a pair's triangles, ``R`` the largest displacement from LBS
-        of those points (how far the sides were moved apart: the skin bunches over about that
-        distance), at least two median edges. True where the result has no intersecting pair
-        the guard would take back (:meth:`_new_pairs`), strains at most :data:`CREASE_EXCESS`
-        more of its edges past the limit than LBS, and, its edges in the zone left out, is not
-        crumpled: it strains no more edges outside the zone than LBS does over the whole mesh
-        (LBS strains its side of a crease too, the physics bunches it over a wider area) by
-        ``trust_strained``; turned triangles count everywhere."""
+        sides apart must bunch or stretch the skin between them (a deep flex's crease). The
+        zone: the welded points within ``R`` along the surface (rest edges) of a point of such
+        a pair's triangles, ``R`` the largest displacement from LBS of those points (how far the
+        sides were moved apart: the skin bunches over about that distance), at least two median
+        edges. True where the result has no intersecting pair the guard would take back
+        (:meth:`_new_pairs`) and strains no more edges outside the zone than LBS does over the
+        whole mesh (LBS strains its side of a crease too, the physics bunches it over a wider
+        area) by ``trust_strained``."""
         from scipy.sparse.csgraph import dijkstra
 
-        s = self._strain(pw)
-        judged = ~self._stretched(pw, s > STRAIN_LIMIT)
-        if (np.count_nonzero((s > STRAIN_LIMIT) & judged)
-                - np.count_nonzero((s_lbs > STRAIN_LIMIT) & judged)) > CREASE_EXCESS * len(s):
-            return False
         moved = np.linalg.norm(pw - lw, axis=1)
         pairs_p, pairs_lbs = self._pairs_of_two(pw, lw)
-        self._pose_crossings(pairs_lbs)
-        if self._new_pairs(pairs_p, pairs_lbs, lw, moved).size:
+        src = self._pose_crossings(pairs_lbs)
+        if not src.size or self._new_pairs(pairs_p, pairs_lbs, lw, moved).size:
             return False
-        own = np.setdiff1d(pairs_lbs, self._rest_pairs, assume_unique=True)
-        if not own.size:
-            return False
-        n = len(self._all_tri)
-        src = np.unique(self._all_tri[np.concatenate([own // n, own % n])].ravel())
         radius = max(float(moved[src].max()), 2.0 * self.edge)
         near = np.isfinite(dijkstra(self._graph, directed=False, indices=src, min_only=True, limit=radius))
-        self._zone_edges = near[self.mesh.edges].any(axis=1)
-        try:
-            return not self._crumpled(pw, s_lbs, n_lbs, len_lbs)
-        finally:
-            self._zone_edges[:] = False
+        zone = near[self.mesh.edges].any(axis=1)
+        return self._strain_excess(pw, s_lbs, excused=zone) <= self.params.trust_strained
 
-    def _crumpled(self, physical: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray) -> bool:
-        """Whether the physical result turns more than ``trust_flipped`` of the mesh's triangles
-        over against LBS, or strains ``trust_strained`` more of its edges past
-        :data:`~warpskin.quality.STRAIN_LIMIT` than LBS does (shares of all of them; the edges
-        wholly inside the intended stretch are counted only where they are shortened; while
-        :meth:`_kept_apart` judges it, the physical result's edges in the zone around LBS's own
-        crossings are not counted, LBS's are)."""
+    def _strain_excess(self, physical: np.ndarray, s_lbs: np.ndarray, excused: np.ndarray | None = None) -> float:
+        """The share of the mesh's edges past :data:`~warpskin.quality.STRAIN_LIMIT` in the
+        physical result beyond LBS's (``s_lbs``): the edges wholly inside the intended stretch
+        counted only where they are shortened, the result's edges ``excused`` (``[E]``) not at
+        all."""
         s = self._strain(physical)
         judged = ~self._stretched(physical, s > STRAIN_LIMIT)
-        excess = (np.count_nonzero((s > STRAIN_LIMIT) & judged & ~self._zone_edges)
-                  - np.count_nonzero((s_lbs > STRAIN_LIMIT) & judged)) / max(len(s), 1)
+        mine = (s > STRAIN_LIMIT) & judged
+        if excused is not None:
+            mine &= ~excused
+        return (np.count_nonzero(mine) - np.count_nonzero((s_lbs > STRAIN_LIMIT) & judged)) / max(len(s), 1)
+
+    def _turned(self, physical: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray) -> float:
+        """The share of the judged triangles the physical result turns over against LBS (normal
+        against normal, ``n_lbs`` with lengths ``len_lbs``; degenerate ones never)."""
         n = self._normals(physical)
         ln = np.linalg.norm(n, axis=1)
         ok = (ln > self._floor) & (len_lbs > self._floor)
-        flipped = np.count_nonzero(ok & (np.einsum("ij,ij->i", n, n_lbs) < 0.0)) / max(len(self._tri), 1)
-        return bool(flipped > self.params.trust_flipped or excess > self.params.trust_strained)
+        return np.count_nonzero(ok & (np.einsum("ij,ij->i", n, n_lbs) < 0.0)) / max(len(self._tri), 1)
+
+    def _trusted_after(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray,
+                       len_lbs: np.ndarray) -> bool:
+        """Whether a trusted mesh stays trusted with the physical result ``pw``: it turns at
+        most ``trust_flipped`` of its triangles over against LBS (:meth:`_turned`) and strains
+        at most ``trust_strained`` more of its edges than LBS (:meth:`_strain_excess`), or up to
+        :data:`CREASE_EXCESS` where it bunched only around LBS's own crossings
+        (:meth:`_kept_apart`)."""
+        if self._turned(pw, n_lbs, len_lbs) > self.params.trust_flipped:
+            return False
+        excess = self._strain_excess(pw, s_lbs)
+        if excess <= self.params.trust_strained:
+            return True
+        return excess <= CREASE_EXCESS and self._kept_apart(pw, lw, s_lbs)
 
     def _falloff(self, flagged: np.ndarray, moved: np.ndarray) -> np.ndarray:
         """``[C]`` in [0, 1]: 1 on the ``flagged`` points, falling smoothly to 0 at the distance
@@ -475,10 +477,8 @@ class SurfaceGuard:
         len_lbs = np.linalg.norm(n_lbs, axis=1)
         tris, tri_count = self._all_tri, len(self._all_tri)
         e, t = mesh.edges, self._tri
-        if self.trusted and self._crumpled(pw, s_lbs, n_lbs, len_lbs):
-            # the physics crumpled (guarded from this frame on), unless it bunched the skin only
-            # to keep apart what LBS passes through
-            self.trusted = self._kept_apart(pw, lw, s_lbs, n_lbs, len_lbs)
+        if self.trusted:  # guarded from the first frame whose physics crumples on
+            self.trusted = self._trusted_after(pw, lw, s_lbs, n_lbs, len_lbs)
         if self.trusted:
             self.g = g
             self.pair_counts = self.pair_keys = None

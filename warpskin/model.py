@@ -129,14 +129,12 @@ def written_surface(rig: Rig):
 def refine_coarse(rig: Rig, max_edge: float | None = None) -> Rig:
     """``rig`` refined for the simulation (:meth:`Rig.refined`) where its skin is coarse, or
     everywhere an edge is longer than an explicit ``max_edge``; ``rig`` itself otherwise."""
-    from .collision import skin_edges
+    from .collision import mean_edge
     from .preprocess.refine import default_max_edge
 
     if max_edge is None:
         max_edge = default_max_edge(rig.vertices, rig.triangles)
-        edges, _ = skin_edges(rig.triangles)
-        mean_edge = float(np.linalg.norm(rig.vertices[edges[:, 0]] - rig.vertices[edges[:, 1]], axis=1).mean())
-        if mean_edge <= COARSE_EDGE * max_edge:
+        if mean_edge(rig.vertices, rig.triangles) <= COARSE_EDGE * max_edge:
             return rig
     return rig.refined(float(max_edge))
 

@@ -367,13 +367,11 @@ def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: Fra
     ``params.dt`` asked; unchanged where it does not."""
     from dataclasses import replace
 
-    from ..collision import skin_edges
+    from ..collision import mean_edge
     from ..solver import GRAVITY_STEP, gravity_step_limit, length_units
 
-    sim = builder.rig
-    edges, _ = skin_edges(sim.triangles)
-    mean_edge = float(np.linalg.norm(sim.vertices[edges[:, 0]] - sim.vertices[edges[:, 1]], axis=1).mean())
-    limit = gravity_step_limit(mean_edge, params.gravity, length_units(model, params.units)[0])
+    edge = mean_edge(builder.rig.vertices, builder.rig.triangles)
+    limit = gravity_step_limit(edge, params.gravity, length_units(model, params.units)[0])
     if not limit < params.dt:
         return params, plan, limit
     asked = plan
