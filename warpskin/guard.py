@@ -63,13 +63,16 @@ from .quality import STRAIN_LIMIT, WrittenMesh
 from .settings import check_settings, setting
 from .transforms import matrix_to_quat, quat_slerp, quat_to_matrix, rigid_fit
 
-__all__ = ["GuardParams", "SurfaceGuard", "JumpLimit", "CREASE_EXCESS"]
+__all__ = ["GuardParams", "SurfaceGuard", "JumpLimit", "WRITTEN_STRAINED", "WRITTEN_FLIPPED"]
 
-#: A directly simulated skin kept trusted where it bunches around LBS's own crossings
-#: (:meth:`SurfaceGuard._kept_apart`) still strains, over the whole mesh, at most this share of
-#: its edges past :data:`~warpskin.quality.STRAIN_LIMIT` more than LBS does: the 0.5 % the
-#: quality checks ask.
-CREASE_EXCESS = 0.005
+#: The bounds the quality checks ask of a written mesh: at most this share of its edges past
+#: :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's ...
+WRITTEN_STRAINED = 0.005
+#: ... and at most this share of its triangles turned over against LBS. A directly simulated
+#: skin kept trusted where it bunches around LBS's own crossings
+#: (:meth:`SurfaceGuard._kept_apart`) stays within the first; the jump limit's cut is taken back
+#: to the guard's result only where it would leave either (:meth:`SurfaceGuard.keep`).
+WRITTEN_FLIPPED = 0.01
 
 
 @dataclass
@@ -371,7 +374,7 @@ class SurfaceGuard:
 
     def _kept_apart(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray) -> bool:
         """Whether a physical result that strains more edges than the trust allows
-        (:meth:`_strain_excess`, up to :data:`CREASE_EXCESS`) only bunched the skin where LBS
+        (:meth:`_strain_excess`, up to :data:`WRITTEN_STRAINED`) only bunched the skin where LBS
         passes through itself, and kept the two sides apart (the trust is then kept).
 
         Where LBS passes through itself (pairs of ``lw``, the welded LBS, that the rest pose does
@@ -422,14 +425,14 @@ class SurfaceGuard:
         """Whether a trusted mesh stays trusted with the physical result ``pw``: it turns at
         most ``trust_flipped`` of its triangles over against LBS (:meth:`_turned`) and strains
         at most ``trust_strained`` more of its edges than LBS (:meth:`_strain_excess`), or up to
-        :data:`CREASE_EXCESS` where it bunched only around LBS's own crossings
+        :data:`WRITTEN_STRAINED` where it bunched only around LBS's own crossings
         (:meth:`_kept_apart`)."""
         if self._turned(pw, n_lbs, len_lbs) > self.params.trust_flipped:
             return False
         excess = self._strain_excess(pw, s_lbs)
         if excess <= self.params.trust_strained:
             return True
-        return excess <= CREASE_EXCESS and self._kept_apart(pw, lw, s_lbs)
+        return excess <= WRITTEN_STRAINED and self._kept_apart(pw, lw, s_lbs)
 
     def _falloff(self, flagged: np.ndarray, moved: np.ndarray) -> np.ndarray:
         """``[C]`` in [0, 1]: 1 on the ``flagged`` points, falling smoothly to 0 at the distance
@@ -545,14 +548,15 @@ class SurfaceGuard:
 
     def keep(self, limited: np.ndarray, guarded: np.ndarray, lbs: np.ndarray) -> np.ndarray:
         """``limited`` (the guarded points after the :class:`JumpLimit`, ``[N, 3]`` [m], file
-        order), unless it is worse than ``guarded`` (this frame's :meth:`apply`) by the measures
-        of :mod:`warpskin.quality` against ``lbs`` (more edges past
-        :data:`~warpskin.quality.STRAIN_LIMIT` than LBS and than ``guarded``, or more triangles
-        turned over against LBS than ``guarded``): then the points of the edges and triangles
-        that make it worse go to ``guarded``, and a smooth ramp around them part way
-        (:meth:`_falloff`; a group moves as a whole, by its largest share). The limit keeps a
-        point from jumping, not from the surface the guard made. ``limited`` itself where it is
-        not worse."""
+        order), unless it leaves the bounds the quality checks ask that ``guarded`` (this
+        frame's :meth:`apply`) keeps better, against ``lbs``: more than :data:`WRITTEN_STRAINED`
+        of its edges past :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's, or more than
+        :data:`WRITTEN_FLIPPED` of its triangles turned over against LBS, and more of them than
+        ``guarded``. Then the points of the edges and triangles that make it worse go to
+        ``guarded``, and a smooth ramp around them part way (:meth:`_falloff`; a group moves as a
+        whole, by its largest share), jumping by more than the limit there. Within the bounds
+        the limit's cut stands: it keeps points from jumping. ``limited`` itself where nothing
+        is taken back."""
         if not self.params.enabled or self.count == 0 or limited is guarded:
             return limited
         mesh = self.mesh
@@ -564,8 +568,10 @@ class SurfaceGuard:
         n_lbs = self._normals(lw)
         len_lbs = np.linalg.norm(n_lbs, axis=1)
         x_flip, g_flip = self._cosines(xw, n_lbs, len_lbs) < 0.0, self._cosines(gw, n_lbs, len_lbs) < 0.0
-        strained = np.count_nonzero(x_over) > max(np.count_nonzero(g_over), np.count_nonzero(lbs_over))
-        flipped = np.count_nonzero(x_flip) > np.count_nonzero(g_flip)
+        over, over_g, over_lbs = np.count_nonzero(x_over), np.count_nonzero(g_over), np.count_nonzero(lbs_over)
+        strained = over - over_lbs > WRITTEN_STRAINED * max(len(e), 1) and over > over_g
+        flipped = (np.count_nonzero(x_flip) > WRITTEN_FLIPPED * max(len(t), 1)
+                   and np.count_nonzero(x_flip) > np.count_nonzero(g_flip))
         if not (strained or flipped):
             return limited
         flag = np.zeros(self.count, dtype=bool)
