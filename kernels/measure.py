@@ -58,6 +58,8 @@ def box_pairs_kernel(
     triangles: wp.array(dtype=wp.vec3i),
     active: wp.array(dtype=wp.int32),
     skip_shared: int,
+    labels: wp.array(dtype=wp.int32),
+    across: int,
     points: wp.array(dtype=wp.vec3d),
     points_b: wp.array(dtype=wp.vec3d),
     exact: int,
@@ -72,7 +74,8 @@ def box_pairs_kernel(
     """Every pair of overlapping boxes with an active triangle, once, from a BVH over every
     triangle's box: the thread of triangle ``i = queries[tid]`` (an active one) appends
     ``(i, j)`` for each ``j`` whose box overlaps its own, where ``j`` is inactive or ``i < j``
-    (all active: every pair ``i < j``), with ``skip_shared`` not where the two share a vertex.
+    (all active: every pair ``i < j``), with ``skip_shared`` not where the two share a vertex,
+    with ``across`` only where the two have different ``labels`` (pairs between meshes).
     With ``exact`` 1 only where the two triangles intersect (:func:`triangles_intersect`) on
     ``points``, with ``exact`` 2 where they intersect on ``points`` or on ``points_b`` (the
     boxes then bound the triangle in both), ``hits`` saying where (bit 1: ``points``, bit 2:
@@ -86,6 +89,9 @@ def box_pairs_kernel(
         j = k
         if j == i or (active[i] != 0 and active[j] != 0 and j < i):
             continue
+        if across != 0:
+            if labels[i] == labels[j]:
+                continue
         b = triangles[j]
         skip = False
         if skip_shared != 0:

@@ -410,3 +410,135 @@ def test_a_direct_skin_is_written_as_its_lbs_where_its_ceiling_is_zero():
     out = SurfaceGuard(WrittenMesh("s", tris, rest), ceiling=ceiling, direct=True).apply(physical, lbs)
     np.testing.assert_array_equal(out[:40], _f32(lbs[:40]))
     np.testing.assert_array_equal(out[40:], _f32(physical[40:]))
+
+
+# ---------------------------------------------------------------- pieces written as separate meshes
+def _cross_pairs_brute_force(meshes: list, points: dict) -> set:
+    """Every intersecting pair of triangles from two different meshes (each welded by rest
+    position), by the separating-axis oracle over all pairs of the two meshes stacked."""
+    from oracles import intersecting_pair_list_brute_force
+
+    stacked, tris, label, offset = [], [], [], 0
+    for k, m in enumerate(meshes):
+        w = m.welded(points[m.name])
+        stacked.append(w)
+        tris.append(m.welded_triangles + offset)
+        label.append(np.full(len(m.welded_triangles), k))
+        offset += len(w)
+    tris, label = np.concatenate(tris), np.concatenate(label)
+    pairs = intersecting_pair_list_brute_force(np.concatenate(stacked), tris)
+    return {(int(i), int(j)) for i, j in pairs if label[i] != label[j]}
+
+
+def test_pairs_between_meshes_are_every_crossing_of_two_meshes_and_no_other():
+    from warpskin.quality import CrossPairs
+
+    # two spheres sunk into each other, and a third crossing itself (its own pairs are not between meshes)
+    va, ta = _sphere([0.0, 0.0, 0.0], 1.0, 1, 2)
+    vb, tb = _sphere([1.63, 0.21, -0.12], 0.8, 2, 2)
+    vc, tc = _sphere([-2.9, 0.07, 0.13], 0.7, 3, 2)
+    vc2, tc2 = _sphere([-2.4, 0.11, -0.05], 0.6, 4, 2)  # a second shell in mesh c, through the first
+    a = WrittenMesh("a", ta, va)
+    b = WrittenMesh("b", tb, vb)
+    c = WrittenMesh("c", np.concatenate([tc, tc2 + len(vc)]), np.concatenate([vc, vc2]))
+    cross = CrossPairs([a, b, c])
+    rest = {m.name: m.rest for m in (a, b, c)}
+    t = len(cross.triangles)
+    want_rest = _cross_pairs_brute_force([a, b, c], rest)
+    assert want_rest  # a and b cross at rest; c crosses only itself
+    assert {(int(k // t), int(k % t)) for k in cross.keys(rest)} == want_rest
+    assert cross.rest_counts[0 * 3 + 1] == len(want_rest) and cross.rest_counts.sum() == len(want_rest)
+    # a pose: b pushed deeper into a, c moved onto b's far side
+    pose = dict(rest)
+    pose["b"] = vb + np.array([-0.23, 0.04, 0.02])
+    pose["c"] = np.concatenate([vc, vc2]) + np.array([5.05, 0.16, 0.09])
+    lbs = dict(rest)
+    keys, keys_lbs = cross.keys_of_two(pose, lbs)
+    want = _cross_pairs_brute_force([a, b, c], pose)
+    assert {(int(k // t), int(k % t)) for k in keys} == want
+    assert set(keys_lbs.tolist()) == set(cross.keys(rest).tolist())
+    beyond = cross.beyond_rest(keys)
+    lab = cross.label
+    ab = sum(1 for i, j in want if {lab[i], lab[j]} == {0, 1})
+    bc = sum(1 for i, j in want if {lab[i], lab[j]} == {1, 2})
+    assert bc > 0 and beyond[1 * 3 + 2] == bc and beyond[0 * 3 + 1] == max(ab - len(want_rest), 0)
+    m = cross.measure(keys, keys_lbs)
+    assert m["pairs_across"] == len(want) and m["pairs_across_lbs"] == len(want_rest)
+    assert m["pairs_across_new"] == int(beyond.sum()) and m["pairs_across_new_lbs"] == 0
+    assert m["pairs_across_worst"][:2] in (("a", "b"), ("b", "c"))
+
+
+def _box(centre, size, seed: int):
+    """A generic closed box: subdivided, rotated slightly, jittered."""
+    s = trimesh.creation.box(extents=size)
+    s = s.subdivide().subdivide()
+    rng = np.random.default_rng(seed)
+    v = np.asarray(s.vertices, dtype=np.float64)
+    ang = 0.03
+    rz = np.array([[np.cos(ang), -np.sin(ang), 0.0], [np.sin(ang), np.cos(ang), 0.0], [0.0, 0.0, 1.0]])
+    v = v @ rz.T + 1e-3 * rng.uniform(-1, 1, size=v.shape)
+    return v + np.asarray(centre, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
+
+
+@pytest.mark.parametrize("rigid", [True, False])
+def test_a_piece_pushed_into_by_its_carrier_is_carried_not_held(rigid):
+    """A torso (root joint) sways into a shoulder pad (a child joint) that LBS keeps apart from
+    it: the pad is carried by the torso's motion, as far as needed to cross no more than LBS
+    does; the torso keeps all of its physics; the pad stays within the joint limit where it meets
+    the torso."""
+    from warpskin.guard import CrossGuard
+    from warpskin.quality import CrossPairs
+
+    vt, tt = _box([0.0, 0.0, 0.0], [1.0, 2.0, 0.6], 5)
+    vs, ts = _sphere([0.0, 1.31, 0.02], 0.35, 6, 2)  # sunk into the torso's top at rest
+    torso = WrittenMesh("torso", tt, vt)
+    pad_joints = np.nonzero(vs[:, 1] < 1.1)[0]  # where it meets the torso at rest
+    pad = WrittenMesh("pad", ts, vs, joint_points=pad_joints)
+    prm = GuardParams()
+    guards = {"torso": SurfaceGuard(torso, prm, groups=np.zeros(len(vt), np.int64)),
+              "pad": SurfaceGuard(pad, prm, groups=np.zeros(len(vs), np.int64) if rigid else None)}
+    cross = CrossPairs([torso, pad])
+    limit = 0.2
+    guard = CrossGuard(cross, guards, prm, depth=np.array([0, 3]), joint_limit=limit)
+    lbs = {"torso": vt, "pad": vs}
+    sway = np.array([0.013, 0.147, -0.008])  # the torso's physics: up into the pad
+    physical = {"torso": vt + sway, "pad": vs}
+    guarded = {name: guards[name].apply(physical[name], lbs[name]) for name in guards}
+    before = cross.beyond_rest(cross.keys(guarded))[1]
+    assert before > 0  # the sway sinks the pad in
+    out = guard.apply(guarded, lbs)
+    after = _cross_pairs_brute_force([torso, pad], out)
+    assert len(after) <= cross.rest_counts[1]  # no more than at rest (LBS is the rest here)
+    np.testing.assert_array_equal(out["torso"], guarded["torso"])  # the carrier keeps its physics
+    moved = out["pad"] - vs
+    assert np.linalg.norm(moved, axis=1).max() <= limit * (1 + 1e-6)
+    # carried, not held: the pad rose with the torso by a good share of the sway
+    assert moved.mean(axis=0) @ sway / (sway @ sway) > 0.3
+    if rigid:  # a rigid piece stays rigid
+        d0 = np.linalg.norm(vs[:, None] - vs[None], axis=2)
+        d1 = np.linalg.norm(out["pad"][:, None] - out["pad"][None], axis=2)
+        assert np.abs(d1 - d0).max() < 1e-5
+    assert guard.keys is not None and guard.rounds >= 1
+
+
+def test_crossings_between_meshes_that_only_slide_are_left_alone():
+    """Two meshes that cross at rest and, in the pose, trade crossing pairs one for another as
+    they slide (no more in number than LBS's) are written as the physics gives them."""
+    from warpskin.guard import CrossGuard
+    from warpskin.quality import CrossPairs
+
+    va, ta = _sphere([0.0, 0.0, 0.0], 1.0, 7, 2)
+    vb, tb = _sphere([1.71, 0.13, 0.05], 0.8, 8, 2)
+    a, b = WrittenMesh("a", ta, va), WrittenMesh("b", tb, vb)
+    prm = GuardParams()
+    guards = {"a": SurfaceGuard(a, prm), "b": SurfaceGuard(b, prm)}
+    cross = CrossPairs([a, b])
+    guard = CrossGuard(cross, guards, prm, depth=np.array([0, 1]))
+    lbs = {"a": va, "b": vb}
+    physical = {"a": va, "b": vb + np.array([0.015, -0.03, 0.04])}  # slides along the crossing
+    guarded = {n: guards[n].apply(physical[n], lbs[n]) for n in guards}
+    keys, keys_lbs = cross.keys_of_two(guarded, lbs)
+    assert not np.array_equal(keys, keys_lbs)  # pairs traded ...
+    assert cross.beyond_rest(keys)[1] <= cross.beyond_rest(keys_lbs)[1]  # ... none gained
+    out = guard.apply(guarded, lbs)
+    assert out["b"] is guarded["b"] and out["a"] is guarded["a"] and guard.rounds == 0

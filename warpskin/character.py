@@ -35,8 +35,8 @@ import numpy as np
 
 from .capture import Capture, CaptureParams, capture_points, identity_capture
 from .errors import SceneError
-from .guard import GuardParams, JumpLimit, SurfaceGuard, WornRepair
-from .quality import WrittenMesh
+from .guard import CrossGuard, GuardParams, JumpLimit, SurfaceGuard, WornRepair
+from .quality import CrossPairs, WrittenMesh
 
 __all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices", "is_caged"]
 
@@ -171,6 +171,7 @@ class Character:
         #: and their surface guards.
         self.meshes: dict[str, WrittenMesh] = {}
         self.guards: dict[str, SurfaceGuard] = {}
+        self.cross: CrossGuard | None = None
 
     # ------------------------------------------------------------------ construction
     @property
@@ -372,6 +373,25 @@ class Character:
                                             direct=not self.caged,
                                             intended=None if intended is None else intended[p.start:p.start + p.count])
                        for p in self.parts if p.physics}
+        # pieces written as separate meshes keep apart as their LBS keeps them (after each
+        # mesh's own guard)
+        cross = CrossPairs([self.meshes.get(p.name) or WrittenMesh(self.display_name(p.name), p.triangles, p.rest,
+                                                                   p.file_ids) for p in self.parts])
+        #: :class:`~warpskin.guard.CrossGuard` over every written mesh (``None``: one mesh).
+        self.cross = None
+        if cross.active:
+            parents = np.asarray(self.rig.skeleton.parents)
+            level = np.zeros(len(parents), dtype=np.int64)
+            for j in range(len(parents)):  # parents may come after their children in the file
+                k = parents[j]
+                while k >= 0:
+                    level[j] += 1
+                    k = parents[k]
+            dense = self.soup.dense_weights
+            depth = [level[int(np.argmax(dense[p.start:p.start + p.count].sum(axis=0)))] for p in self.parts]
+            self.cross = CrossGuard(cross, {self.meshes[name].name: g for name, g in self.guards.items()}, params,
+                                    depth=np.asarray(depth),
+                                    joint_limit=(np.inf if self._deformer is None else self._deformer.joint_limit))
         self.build_s += time.perf_counter() - t0
         return cap
 
@@ -548,14 +568,21 @@ class Character:
             _, corners, bary = self.capture_result.wrap[:3]
             whole = np.concatenate([physical[p.name] for p in self.parts])
             carriers = np.einsum("kj,kjc->kc", bary, whole[corners])
+        guarded = {}
         for name, guard in self.guards.items():
             pts = physical[name]
             if name in self.repairs:
                 repair, rows = self.repairs[name]
                 pts = repair.apply(pts, carriers[rows])
-            guarded = guard.apply(pts, lbs_by[name])
-            limited = self.limits[name].apply(guarded, lbs_by[name])
-            out[name] = guard.keep(limited, guarded, lbs_by[name])
+            guarded[name] = guard.apply(pts, lbs_by[name])
+        if self.cross is not None:
+            shown = {p.name: self.display_name(p.name) for p in self.parts}
+            across = self.cross.apply({shown[n]: guarded.get(n, out[n]) for n in shown},
+                                      {shown[n]: lbs_by[n] for n in shown})
+            guarded = {name: across[shown[name]] for name in guarded}
+        for name, guard in self.guards.items():
+            limited = self.limits[name].apply(guarded[name], lbs_by[name])
+            out[name] = guard.keep(limited, guarded[name], lbs_by[name])
             if out[name] is not limited:  # the limit goes on from what is written
                 self.limits[name].written(out[name], lbs_by[name])
         return out

@@ -349,6 +349,14 @@ def cmd_simulate(args) -> int:
               f"{pairs}, edges strained past 1.5x {100 * r['max_strained']:.2f} % (LBS {100 * r['max_strained_lbs']:.2f} %), "
               f"flipped {100 * r['max_flipped']:.2f} %, offset {r['max_offset']:.3g} m{_of_diagonal(r['max_offset'], s, 1)}"
               f"{_joint_text(r, s)}{rigid}")
+    across = s.get("written_across") or {}
+    if across:
+        where = (f", the most at frame {across['max_pairs_across_excess_frame']:g} between "
+                 f"{' and '.join(across['max_pairs_across_excess_meshes'])}" if across["max_pairs_across_excess_meshes"]
+                 else "")
+        print(f"pairs between written meshes beyond the rest pose's (worst frame): warpskin "
+              f"{across['max_pairs_across_new']}, LBS {across['max_pairs_across_new_lbs']}; more than LBS in "
+              f"{across['frames_pairs_across_over']} of {across['frames']} frames{where}")
     surface = s.get("surface", {})
     kind = {"skin": "the skin itself", "pieces": f"its own pieces ({len(surface.get('simulated', []))} simulated, "
             f"{len(surface.get('attached', []))} carried or worn)", "cage": "an automatic cage"}.get(surface.get("kind"), "")

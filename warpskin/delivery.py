@@ -5,9 +5,10 @@ much of the physics reaches it, on the meshes as written (the file's topology), 
 was simulated. Per written mesh, with ``W`` the written points, ``L`` their LBS and ``P`` the
 physical result before the surface guard (all ``[N, 3]`` [m]) and ``o = W - L`` the offset:
 
-* **held**: ``sum |P - W| / sum |P - L|`` over the points and frames, the share of the
-  physical displacement the guard took back (0: all of it written; 1: all held at LBS), and the
-  same share in the worst frame;
+* **held**: ``sum min(|P - W|, |P - L|) / sum |P - L|`` over the points and frames, the share
+  of the physical displacement the guard took back (0: all of it written; 1: all held at LBS; a
+  point written farther from its physical result than its whole displacement, a piece carried
+  by its neighbour, counts that displacement, no more), and the same share in the worst frame;
 * **secondary motion**: ``mean |o(t) - o(t-1)|`` over ``mean |L(t) - L(t-1)|``, summed over the
   frames: how much the skin moves against the animation, as a share of the animation's own
   motion (the jiggle, the lag and the settling after a stop);
@@ -152,8 +153,9 @@ class DeliveryLog:
             o = w - lb
             if physical is not None and name in physical:
                 p = mesh.welded(physical[name])
-                total = float(np.linalg.norm(p - lb, axis=1).sum())
-                held = float(np.linalg.norm(p - w, axis=1).sum())
+                d = np.linalg.norm(p - lb, axis=1)
+                total = float(d.sum())
+                held = float(np.minimum(np.linalg.norm(p - w, axis=1), d).sum())
                 s["held"].append(held / total if total > 0 else 0.0)
                 s["held_sum"].append(held)
                 s["physical_sum"].append(total)

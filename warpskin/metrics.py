@@ -94,16 +94,20 @@ class PairQuery:
     at once (:meth:`of_two`: the tree built over the boxes around each triangle in both), then
     rounds that move a few triangles (:meth:`active`: the tree refitted to the new boxes, queried
     by the moved triangles only), or the pairs of given boxes that overlap (:meth:`overlapping`).
-    Pairs are ``i < j``, sorted; pairs sharing a vertex are skipped with ``exclude_shared``.
-    The device arrays are allocated once per mesh (and per point count)."""
+    Pairs are ``i < j``, sorted; pairs sharing a vertex are skipped with ``exclude_shared``;
+    with ``labels`` (``[T]`` int, a mesh per triangle) only pairs of differently labelled
+    triangles are found (the crossings between meshes written as one). The device arrays are allocated once per mesh (and per point count)."""
 
-    def __init__(self, triangles: np.ndarray, *, exclude_shared: bool = True) -> None:
+    def __init__(self, triangles: np.ndarray, *, exclude_shared: bool = True, labels: np.ndarray | None = None) -> None:
         import warp as wp
 
         self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         self.skip_shared = int(bool(exclude_shared))
         n = len(self.triangles)
         with wp.ScopedDevice("cpu"):
+            self.across = int(labels is not None)
+            self._labels = wp.array(np.zeros(1, np.int32) if labels is None else np.asarray(labels, dtype=np.int32),
+                                    dtype=wp.int32)
             self._tri = wp.array(self.triangles.astype(np.int32), dtype=wp.vec3i)
             self._lo = wp.empty(n, dtype=wp.vec3)
             self._hi = wp.empty(n, dtype=wp.vec3)
@@ -158,7 +162,7 @@ class PairQuery:
             self._count.zero_()
             wp.launch(k.box_pairs_kernel, dim=queries.shape[0],
                       inputs=[self._bvh.id, queries, self._lo, self._hi, self._tri, active, self.skip_shared,
-                              self._p, self._q, exact, wp.float64(self._eps[0]), wp.float64(self._eps[1]), self._capacity],
+                              self._labels, self.across, self._p, self._q, exact, wp.float64(self._eps[0]), wp.float64(self._eps[1]), self._capacity],
                       outputs=[self._count, self._pairs, self._hits], device="cpu")
             c = int(self._count.numpy()[0])
             if c <= self._capacity:

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["STRAIN_LIMIT", "WrittenMesh", "QualityLimits", "QualityLog", "mesh_measures"]
+__all__ = ["STRAIN_LIMIT", "WrittenMesh", "CrossPairs", "QualityLimits", "QualityLog", "mesh_measures"]
 
 #: An edge is strained when it is longer than this times its rest length, or shorter than its
 #: inverse.
@@ -201,6 +201,91 @@ class WrittenMesh:
         return np.bincount(lo * self._pieces + hi, minlength=self._pieces * self._pieces)
 
 
+class CrossPairs:
+    """Intersecting triangle pairs between written meshes: one mesh's triangle through another's
+    (a robot's shin through its foot, a sleeve through the arm when they are separate meshes),
+    each mesh welded by rest position as in :class:`WrittenMesh`. Counted per pair of meshes
+    beyond the pairs that pair has at rest (pieces that sit in each other's sockets in the bind
+    pose), as :meth:`WrittenMesh.pairs_beyond_rest` does for the pieces of one mesh.
+
+    Args:
+        meshes: Every written mesh, in a fixed order (the keys of the dicts passed per frame are
+            their names). Fewer than two: nothing to count.
+
+    Keys of pairs are ``i T + j`` (``i < j`` rows of the meshes' welded triangles stacked in
+    ``meshes`` order, ``T`` their count)."""
+
+    def __init__(self, meshes: list[WrittenMesh]) -> None:
+        self.meshes = list(meshes)
+        m = len(self.meshes)
+        point_offsets = np.concatenate([[0], np.cumsum([w.first.size for w in self.meshes])]).astype(np.int64)
+        self.triangle_offsets = np.concatenate([[0], np.cumsum([len(w.welded_triangles) for w in self.meshes])])
+        tris = [w.welded_triangles + point_offsets[k] for k, w in enumerate(self.meshes)]
+        self.triangles = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+        #: ``[T]`` the mesh (its row in ``meshes``) of every stacked welded triangle.
+        self.label = np.repeat(np.arange(m), np.diff(self.triangle_offsets)).astype(np.int64)
+        self._query = None
+        self.rest_counts = np.zeros(m * m, dtype=np.int64)
+        if m > 1 and len(self.triangles) > 1:
+            from .metrics import PairQuery
+
+            self._query = PairQuery(self.triangles, labels=self.label)
+            self.rest_counts = self.counts(self._keys(self._query.pairs(self._stack({w.name: w.rest for w in self.meshes}))))
+
+    @property
+    def active(self) -> bool:
+        """Whether there are two meshes to cross."""
+        return self._query is not None
+
+    def _stack(self, points: dict) -> np.ndarray:
+        return np.concatenate([w.welded(points[w.name]) for w in self.meshes])
+
+    def _keys(self, pairs: np.ndarray) -> np.ndarray:
+        return np.unique(pairs[:, 0] * len(self.triangles) + pairs[:, 1])
+
+    def keys_of_two(self, points: dict, lbs: dict) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs between meshes of ``points`` and of ``lbs`` (``{name: [N, 3]}`` each, every
+        mesh), as keys, found in one pass."""
+        if self._query is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        a, b = self._query.of_two(self._stack(points), self._stack(lbs))
+        return self._keys(a), self._keys(b)
+
+    def keys(self, points: dict) -> np.ndarray:
+        """The pairs between meshes of ``points`` (``{name: [N, 3]}``), as keys."""
+        if self._query is None:
+            return np.zeros(0, np.int64)
+        return self._keys(self._query.pairs(self._stack(points)))
+
+    def counts(self, keys: np.ndarray) -> np.ndarray:
+        """``[M * M]`` the pairs of ``keys`` per (lower, higher) pair of meshes."""
+        m = len(self.meshes)
+        t = len(self.triangles)
+        k = np.asarray(keys, dtype=np.int64)
+        a, b = self.label[k // t], self.label[k % t]
+        return np.bincount(np.minimum(a, b) * m + np.maximum(a, b), minlength=m * m)
+
+    def beyond_rest(self, keys: np.ndarray) -> np.ndarray:
+        """``[M * M]`` per pair of meshes, how many more pairs ``keys`` has than that pair at rest."""
+        return np.maximum(self.counts(keys) - self.rest_counts, 0)
+
+    def measure(self, keys: np.ndarray, keys_lbs: np.ndarray) -> dict:
+        """One frame's figures from its keys (:meth:`keys_of_two`): ``pairs_across`` and
+        ``pairs_across_lbs`` (all pairs between meshes), ``pairs_across_new`` and
+        ``pairs_across_new_lbs`` (beyond the rest pose's, summed over pairs of meshes), and
+        ``pairs_across_worst``: the two mesh names where the result's excess over LBS's (beyond
+        rest) is largest, with that excess (``None`` where it has none)."""
+        w, lb = self.beyond_rest(keys), self.beyond_rest(keys_lbs)
+        excess = w - lb
+        k = int(np.argmax(excess)) if excess.size else 0
+        m = len(self.meshes)
+        worst = ((self.meshes[k // m].name, self.meshes[k % m].name, int(excess[k]))
+                 if excess.size and excess[k] > 0 else None)
+        return {"pairs_across": int(len(keys)), "pairs_across_lbs": int(len(keys_lbs)),
+                "pairs_across_new": int(w.sum()), "pairs_across_new_lbs": int(lb.sum()),
+                "pairs_across_worst": worst}
+
+
 def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True,
                   pair_keys: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """The measures of one frame of ``mesh`` (see the module docstring) as a dict: ``strained``,
@@ -305,23 +390,37 @@ class QualityLog:
         pairs: Count intersecting pairs (the costliest measure) every frame.
     """
 
+    ACROSS_KEYS = ("pairs_across", "pairs_across_lbs", "pairs_across_new", "pairs_across_new_lbs",
+                   "pairs_across_worst")
     KEYS = ("strained", "strained_lbs", "worst_strain", "flipped", "pairs", "pairs_lbs", "pairs_new", "pairs_new_lbs",
             "offset", "joint_offset", "split", "split_lbs")
 
-    def __init__(self, meshes: list[WrittenMesh], limits: QualityLimits | None = None, *, pairs: bool = True) -> None:
+    def __init__(self, meshes: list[WrittenMesh], limits: QualityLimits | None = None, *, pairs: bool = True,
+                 cross: CrossPairs | None = None) -> None:
         self.meshes = list(meshes)
         self.limits = limits
         self.count_pairs = pairs
+        #: The pairs between written meshes (every written mesh, :class:`CrossPairs`), or ``None``.
+        self.cross = cross if cross is not None and cross.active and pairs else None
+        #: Per frame, the figures of :meth:`CrossPairs.measure` (with ``cross``).
+        self.across: dict[str, list] = {k: [] for k in self.ACROSS_KEYS}
         self.series: dict[str, dict[str, list]] = {m.name: {k: [] for k in self.KEYS} for m in self.meshes}
         self.frames: list[float] = []
 
     def measure(self, frame, points: dict, lbs: dict, *, pairs: dict | None = None,
-                extra: dict | None = None) -> str | None:
+                extra: dict | None = None, every: tuple[dict, dict] | None = None) -> str | None:
         """Measure frame ``frame`` (``points[name]``, ``lbs[name]`` for every mesh); returns the first
         range problem (``"frame F: mesh ...``) or ``None``. The series are kept either way.
         ``pairs``: ``{name: (keys, keys_lbs)}`` found already (see :func:`mesh_measures`);
-        ``extra``: ``{name: {key: value}}`` further per-frame series to keep (the guard's)."""
+        ``extra``: ``{name: {key: value}}`` further per-frame series to keep (the guard's);
+        ``every``: ``(points, lbs)`` of every written mesh (with :attr:`cross`: the pairs
+        between meshes; default ``points``, ``lbs``)."""
         self.frames.append(frame)
+        if self.cross is not None:
+            allp, alll = every if every is not None else (points, lbs)
+            m = self.cross.measure(*self.cross.keys_of_two(allp, alll))
+            for k in self.ACROSS_KEYS:
+                self.across[k].append(m[k])
         problem = None
         for mesh in self.meshes:
             m = mesh_measures(mesh, points[mesh.name], lbs[mesh.name], pairs=self.count_pairs,
@@ -366,6 +465,23 @@ class QualityLog:
                 row["guard_fallback_frames"] = int(np.count_nonzero(s["guard_fallbacks"]))
             out[mesh.name] = row
         return out
+
+    def across_summary(self) -> dict:
+        """The pairs between written meshes over the frames (empty without :attr:`cross`):
+        ``max_pairs_across_new`` and ``..._lbs`` (beyond the rest pose's), ``max_pairs_across_excess``
+        (the largest excess of the first over the second in one frame) with its frame and the two
+        meshes where it is largest, and ``frames_pairs_across_over``: the frames with any excess."""
+        a = self.across
+        if self.cross is None or not a["pairs_across_new"]:
+            return {}
+        new, lbs = np.asarray(a["pairs_across_new"]), np.asarray(a["pairs_across_new_lbs"])
+        excess = new - lbs
+        i = int(np.argmax(excess))
+        worst = a["pairs_across_worst"][i]
+        return {"max_pairs_across_new": int(new.max()), "max_pairs_across_new_lbs": int(lbs.max()),
+                "max_pairs_across_excess": int(max(excess[i], 0)), "max_pairs_across_excess_frame": self.frames[i],
+                "max_pairs_across_excess_meshes": list(worst[:2]) if worst is not None and excess[i] > 0 else None,
+                "frames_pairs_across_over": int(np.count_nonzero(excess > 0)), "frames": len(self.frames)}
 
     def worst(self) -> dict:
         """Over every mesh: the worst strained share, flipped share, pairs excess over LBS and

@@ -248,7 +248,8 @@ class _WrittenQuality:
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.limits = {self.names[name]: lim for name, lim in character.limits.items()}
         self.repairs = {self.names[name]: r for name, r in getattr(character, "repairs", {}).items()}
-        self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped))
+        self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped),
+                              cross=None if character.cross is None else character.cross.cross)
         from ..delivery import DeliveryLog
 
         self.character = character
@@ -278,7 +279,9 @@ class _WrittenQuality:
                                               "jump_limited": self.limits[k].limited,
                                               **({"worn_repaired": self.repairs[k][0].repaired}
                                                  if k in self.repairs else {})}
-                                          for k, g in guards.items()})
+                                          for k, g in guards.items()},
+                                   every=({self.character.display_name(k): v for k, v in written.items()},
+                                          {self.character.display_name(k): v for k, v in lbs.items()}))
         if self.cap is not None:
             st = self.stepper
             v = st.model.vertex_count
@@ -616,6 +619,7 @@ def simulate(
         "physics_weight": character.weight_summary(),
         "written": quality.log.summary(),
         "written_worst": quality.log.worst(),
+        "written_across": quality.log.across_summary(),
         "delivered": quality.delivery.summary(),
         "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
         "refined_vertices_added": model.vertex_count - sim.output_count,
