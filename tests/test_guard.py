@@ -481,9 +481,10 @@ def _box(centre, size, seed: int):
 
 
 @pytest.mark.parametrize("rigid", [True, False])
-def test_a_piece_pushed_into_by_its_carrier_is_carried_not_held(rigid):
-    """A torso (root joint) sways into a shoulder pad (a child joint) that LBS keeps apart from
-    it: the pad is carried by the torso's motion, as far as needed to cross no more than LBS
+@pytest.mark.parametrize("carrier_rigid", [True, False])
+def test_a_piece_pushed_into_by_its_carrier_is_carried_not_held(rigid, carrier_rigid):
+    """A torso (root joint; rigid, or bulging where the pad sits) sways into a shoulder pad (a
+    child joint; rigid or not) that LBS keeps apart from it: the pad is carried by the torso's motion, as far as needed to cross no more than LBS
     does; the torso keeps all of its physics; the pad stays within the joint limit where it meets
     the torso."""
     from warpskin.guard import CrossGuard
@@ -495,14 +496,15 @@ def test_a_piece_pushed_into_by_its_carrier_is_carried_not_held(rigid):
     pad_joints = np.nonzero(vs[:, 1] < 1.1)[0]  # where it meets the torso at rest
     pad = WrittenMesh("pad", ts, vs, joint_points=pad_joints)
     prm = GuardParams()
-    guards = {"torso": SurfaceGuard(torso, prm, groups=np.zeros(len(vt), np.int64)),
+    guards = {"torso": SurfaceGuard(torso, prm, groups=np.zeros(len(vt), np.int64) if carrier_rigid else None),
               "pad": SurfaceGuard(pad, prm, groups=np.zeros(len(vs), np.int64) if rigid else None)}
     cross = CrossPairs([torso, pad])
     limit = 0.2
     guard = CrossGuard(cross, guards, prm, depth=np.array([0, 3]), joint_limit=limit)
     lbs = {"torso": vt, "pad": vs}
     sway = np.array([0.013, 0.147, -0.008])  # the torso's physics: up into the pad
-    physical = {"torso": vt + sway, "pad": vs}
+    bulge = np.zeros(len(vt)) if carrier_rigid else 0.02 * np.exp(-np.linalg.norm(vt - [0.0, 1.0, 0.0], axis=1) ** 2 / 0.1)
+    physical = {"torso": vt + sway + bulge[..., None] * np.array([0.0, 1.0, 0.0]), "pad": vs}
     guarded = {name: guards[name].apply(physical[name], lbs[name]) for name in guards}
     before = cross.beyond_rest(cross.keys(guarded))[1]
     assert before > 0  # the sway sinks the pad in

@@ -686,9 +686,10 @@ class CrossGuard:
 
     def _follow(self, out: dict, lbs: dict, small: int, large: int, allowed: np.ndarray) -> bool:
         """Mesh ``small`` (a row of ``cross.meshes``) placed by the share ``c`` in [0, 1] of the
-        way from ``C`` (its LBS carried by ``large``'s motion away from its own LBS near it: the
-        best rigid fit of ``large``'s points within ``small``'s size of it, LBS to written) to
-        where it is: for one rigid piece along the rigid motion between the two (rotation by
+        way from ``C`` (its LBS carried by ``large``'s motion away from its own LBS near it: for
+        a rigid ``large`` the best rigid fit of its points within ``small``'s size of it, LBS to
+        written; else each point moved as ``large``'s point nearest it at LBS, then, for a rigid
+        ``small``, by the best rigid fit of that) to where it is: for one rigid piece along the rigid motion between the two (rotation by
         slerp), else point by point. ``c`` is the largest (bisection, 10 steps) at which the two
         cross no more than ``allowed`` (per pair of meshes, beyond rest); at ``c = 0`` they sit
         as their LBS has them where ``large`` moves rigidly near ``small``. ``out`` updated;
@@ -702,13 +703,23 @@ class CrossGuard:
             return False
         rigid = guard.group is not None and np.unique(guard.group).size == 1
         ls, ll = np.asarray(lbs[ns], dtype=np.float64), np.asarray(lbs[nl], dtype=np.float64)
-        lo_box, hi_box = ls.min(axis=0), ls.max(axis=0)
-        reach = float(np.linalg.norm(hi_box - lo_box))
-        near = np.all((ll >= lo_box - reach) & (ll <= hi_box + reach), axis=1)
-        if np.count_nonzero(near) < 3:
-            near[:] = True
-        r, t = rigid_fit(ll[near], np.asarray(out[nl], dtype=np.float64)[near])
-        carried = ls @ r.T + t
+        written_l = np.asarray(out[nl], dtype=np.float64)
+        if self._rigid[large]:
+            lo_box, hi_box = ls.min(axis=0), ls.max(axis=0)
+            reach = float(np.linalg.norm(hi_box - lo_box))
+            near = np.all((ll >= lo_box - reach) & (ll <= hi_box + reach), axis=1)
+            if np.count_nonzero(near) < 3:
+                near[:] = True
+            r, t = rigid_fit(ll[near], written_l[near])
+            carried = ls @ r.T + t
+        else:  # a carrier that deforms: the displacement of its nearest point (at LBS)
+            from scipy.spatial import cKDTree
+
+            idx = cKDTree(ll).query(ls)[1]
+            carried = ls + (written_l - ll)[idx]
+            if rigid:  # kept rigid: the best rigid motion onto that
+                r, t = rigid_fit(ls, carried)
+                carried = ls @ r.T + t
         now = np.asarray(out[ns], dtype=np.float64)
         r2, t2 = rigid_fit(carried, now)
         centre = carried.mean(axis=0)
