@@ -688,8 +688,8 @@ class CrossGuard:
         """Mesh ``small`` (a row of ``cross.meshes``) placed by the share ``c`` in [0, 1] of the
         way from ``C`` (its LBS carried by ``large``'s motion away from its own LBS near it: for
         a rigid ``large`` the best rigid fit of its points within ``small``'s size of it, LBS to
-        written; else each point moved as ``large``'s point nearest it at LBS, then, for a rigid
-        ``small``, by the best rigid fit of that) to where it is: for one rigid piece along the rigid motion between the two (rotation by
+        written; else the best rigid fit of its points moved as ``large``'s point nearest each
+        at LBS) to where it is: for one rigid piece along the rigid motion between the two (rotation by
         slerp), else point by point. ``c`` is the largest (bisection, 10 steps) at which the two
         cross no more than ``allowed`` (per pair of meshes, beyond rest); at ``c = 0`` they sit
         as their LBS has them where ``large`` moves rigidly near ``small``. ``out`` updated;
@@ -716,10 +716,9 @@ class CrossGuard:
             from scipy.spatial import cKDTree
 
             idx = cKDTree(ll).query(ls)[1]
-            carried = ls + (written_l - ll)[idx]
-            if rigid:  # kept rigid: the best rigid motion onto that
-                r, t = rigid_fit(ls, carried)
-                carried = ls @ r.T + t
+            # the best rigid motion onto that: a piecewise displacement would strain the mesh
+            r, t = rigid_fit(ls, ls + (written_l - ll)[idx])
+            carried = ls @ r.T + t
         now = np.asarray(out[ns], dtype=np.float64)
         r2, t2 = rigid_fit(carried, now)
         centre = carried.mean(axis=0)
