@@ -380,14 +380,7 @@ class Character:
         #: :class:`~warpskin.guard.CrossGuard` over every written mesh (``None``: one mesh).
         self.cross = None
         if cross.active:
-            parents = np.asarray(self.rig.skeleton.parents)
-            level = np.zeros(len(parents), dtype=np.int64)
-            for j in range(len(parents)):  # parents may come after their children in the file
-                k = parents[j]
-                while k >= 0:
-                    level[j] += 1
-                    k = parents[k]
-            dense = self.soup.dense_weights
+            level, dense = self.rig.skeleton.depth, self.soup.dense_weights
             depth = [level[int(np.argmax(dense[p.start:p.start + p.count].sum(axis=0)))] for p in self.parts]
             self.cross = CrossGuard(cross, {self.meshes[name].name: g for name, g in self.guards.items()}, params,
                                     depth=np.asarray(depth),

@@ -246,6 +246,8 @@ class SurfaceGuard:
         self.pair_counts: tuple[int, int] | None = None
         #: The same pairs as keys (:meth:`~warpskin.quality.WrittenMesh.pair_keys_of_two`), or ``None``.
         self.pair_keys: tuple[np.ndarray, np.ndarray] | None = None
+        # the last apply's physical result and LBS, as written (:meth:`take_back` blends them)
+        self._frame: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ measures
     def _strain(self, x: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
@@ -468,7 +470,7 @@ class SurfaceGuard:
         # their rounding comes or goes with it
         given = p
         lb, p = _as_written(lb), _as_written(p)
-        self._frame = (p, lb)  # what :meth:`take_back` blends from
+        self._frame = (p, lb)
         lw = mesh.welded(lb)
         pw = mesh.welded(p)
         d = pw - lw
@@ -554,7 +556,7 @@ class SurfaceGuard:
         all of it, to their LBS), a group as a whole; points at their LBS are left out. Returns
         the mesh's new written points (``[N, 3]``, file order, rounded as written) after the
         last :meth:`apply`, or ``None`` where no flagged point can move."""
-        frame = getattr(self, "_frame", None)
+        frame = self._frame
         if frame is None or not self.params.enabled or self.count == 0:
             return None
         p, lb = frame
@@ -673,8 +675,8 @@ class CrossGuard:
         self.rounds = 0
         self.keys: tuple[np.ndarray, np.ndarray] | None = None
         self.joint_limit = float(joint_limit)
-        self._index = {m.name: k for k, m in enumerate(cross.meshes)}
-        self._names = {k: name for name, k in self._index.items()}
+        self._names = [mesh.name for mesh in cross.meshes]
+        self._two: dict = {}  # per pair of meshes, the counter of that pair alone (:meth:`_follow`)
         size = np.array([mesh.size for mesh in cross.meshes])
         depth = np.zeros(len(size)) if depth is None else np.asarray(depth, dtype=np.float64)
         #: per mesh, its rank as a carrier: lower carries higher (nearer the skeleton's root,
@@ -689,8 +691,8 @@ class CrossGuard:
         way from ``C`` (its LBS carried by ``large``'s motion away from its own LBS near it: for
         a rigid ``large`` the best rigid fit of its points within ``small``'s size of it, LBS to
         written; else the best rigid fit of its points moved as ``large``'s point nearest each
-        at LBS) to where it is: for one rigid piece along the rigid motion between the two (rotation by
-        slerp), else point by point. ``c`` is the largest (bisection, 10 steps) at which the two
+        at LBS) to where it is: for one rigid piece along the rigid motion between the two
+        (rotation by slerp), else point by point. ``c`` is the largest (bisection, 10 steps) at which the two
         cross no more than ``allowed`` (per pair of meshes, beyond rest); at ``c = 0`` they sit
         as their LBS has them where ``large`` moves rigidly near ``small``. ``out`` updated;
         whether it was placed (``False``: a mesh without a guard, written at its LBS, or one that
@@ -701,7 +703,7 @@ class CrossGuard:
         guard = self.guards.get(ns)
         if guard is None:
             return False
-        rigid = guard.group is not None and np.unique(guard.group).size == 1
+        rigid = bool(self._rigid[small])
         ls, ll = np.asarray(lbs[ns], dtype=np.float64), np.asarray(lbs[nl], dtype=np.float64)
         written_l = np.asarray(out[nl], dtype=np.float64)
         if self._rigid[large]:
@@ -726,6 +728,11 @@ class CrossGuard:
         shift = (centre @ r2.T + t2) - centre
         m = len(cross.meshes)
         pair = min(small, large) * m + max(small, large)
+        two = self._two.get(pair)
+        if two is None:  # the trials count the two meshes alone
+            from .quality import CrossPairs
+
+            two = self._two[pair] = CrossPairs([cross.meshes[min(small, large)], cross.meshes[max(small, large)]])
 
         def place(c: float) -> np.ndarray:
             if not rigid:
@@ -733,9 +740,8 @@ class CrossGuard:
             return _as_written((carried - centre) @ quat_to_matrix(quat_slerp(q0, q1, c)).T + centre + c * shift)
 
         def crosses(c: float) -> bool:
-            trial = dict(out)
-            trial[ns] = place(c)
-            return bool(cross.beyond_rest(cross.keys(trial))[pair] > allowed[pair])
+            trial = {ns: place(c), nl: out[nl]}
+            return bool(two.beyond_rest(two.keys(trial))[1] > allowed[pair])
 
         joints = cross.meshes[small].joint_points
         bound = np.inf
@@ -745,7 +751,9 @@ class CrossGuard:
             bound = max(self.joint_limit, float(np.linalg.norm(now[joints] - ls[joints], axis=1).max()))
 
         def off(c: float) -> bool:
-            return bool(np.isfinite(bound)) and float(np.linalg.norm(place(c)[joints] - ls[joints], axis=1).max()) > bound
+            if not np.isfinite(bound):
+                return False
+            return float(np.linalg.norm(place(c)[joints] - ls[joints], axis=1).max()) > bound
 
         lo = 0.0
         if off(lo):  # the least share that keeps the joints on

@@ -96,7 +96,8 @@ class PairQuery:
     by the moved triangles only), or the pairs of given boxes that overlap (:meth:`overlapping`).
     Pairs are ``i < j``, sorted; pairs sharing a vertex are skipped with ``exclude_shared``;
     with ``labels`` (``[T]`` int, a mesh per triangle) only pairs of differently labelled
-    triangles are found (the crossings between meshes written as one). The device arrays are allocated once per mesh (and per point count)."""
+    triangles are found (the crossings between meshes written as one). The device arrays are
+    allocated once per mesh (and per point count)."""
 
     def __init__(self, triangles: np.ndarray, *, exclude_shared: bool = True, labels: np.ndarray | None = None) -> None:
         import warp as wp
@@ -162,7 +163,8 @@ class PairQuery:
             self._count.zero_()
             wp.launch(k.box_pairs_kernel, dim=queries.shape[0],
                       inputs=[self._bvh.id, queries, self._lo, self._hi, self._tri, active, self.skip_shared,
-                              self._labels, self.across, self._p, self._q, exact, wp.float64(self._eps[0]), wp.float64(self._eps[1]), self._capacity],
+                              self._labels, self.across, self._p, self._q, exact, wp.float64(self._eps[0]),
+                              wp.float64(self._eps[1]), self._capacity],
                       outputs=[self._count, self._pairs, self._hits], device="cpu")
             c = int(self._count.numpy()[0])
             if c <= self._capacity:

@@ -230,7 +230,8 @@ class CrossPairs:
             from .metrics import PairQuery
 
             self._query = PairQuery(self.triangles, labels=self.label)
-            self.rest_counts = self.counts(self._keys(self._query.pairs(self._stack({w.name: w.rest for w in self.meshes}))))
+            rest = self._stack({w.name: w.rest for w in self.meshes})
+            self.rest_counts = self.counts(self._keys(self._query.pairs(rest)))
 
     @property
     def active(self) -> bool:

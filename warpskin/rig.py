@@ -314,7 +314,8 @@ class Skeleton:
         self.root_transform = np.asarray(self.root_transform, dtype=np.float64).reshape(j, 4, 4)
         if self.parents.size != j:
             raise RigError(f"skeleton has {j} joint names but {self.parents.size} parent entries")
-        self._order = self._topological_order()
+        #: ``[J]`` every joint's number of ancestors (0: a root).
+        self._order, self.depth = self._topological_order()
 
     @classmethod
     def from_local_matrices(
@@ -332,7 +333,9 @@ class Skeleton:
     def joint_count(self) -> int:
         return len(self.joint_names)
 
-    def _topological_order(self) -> np.ndarray:
+    def _topological_order(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(order, depth)``: the joints parents first, and each joint's number of ancestors;
+        raises :class:`RigError` on a parent index out of range, a repeated name or a cycle."""
         j = self.joint_count
         bad = np.nonzero((self.parents < -1) | (self.parents >= j))[0]
         if bad.size:
@@ -359,7 +362,7 @@ class Skeleton:
             for c in reversed(chain):
                 base += 1
                 depth[c] = base
-        return np.argsort(depth, kind="stable")
+        return np.argsort(depth, kind="stable"), depth
 
     def index(self, name: str) -> int:
         """Joint index of ``name``; raises :class:`RigError` listing the joints otherwise."""
