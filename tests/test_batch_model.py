@@ -4,6 +4,8 @@ simulated alone (the reference: the same builder's model, stepped by itself)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -135,20 +137,33 @@ def test_a_batch_refuses_what_it_does_not_lay_out_in_one_line():
 
 def test_bench_batch_reports_character_steps_per_second(tmp_path, capsys, device):
     # the JSON record (no timing is asserted: the figures are the performance page's): N
-    # instances in one model against N separate models, on the device asked for
+    # instances in one model against N separate models, on the device asked for. The shipped
+    # arm with dt 0.02: the batch steps as simulate would, no longer than gravity allows its
+    # edges (the limit's closed form, the mean edge from trimesh)
     import json
 
-    from warpskin.cli import main
+    import trimesh
 
+    from warpskin.cli import main
+    from warpskin.scene import resolve_scene
+    from warpskin.solver import GRAVITY_STEP
+
+    text = (Path(__file__).parents[1] / "scenes" / "arm.toml").read_text()
+    assert text.count("\ndt = 0.005\n") == 1
+    scene = tmp_path / "arm.toml"
+    scene.write_text(text.replace("\ndt = 0.005\n", "\ndt = 0.02\n"))
     out = tmp_path / "batch.json"
-    assert main(["bench", "arm", "--batch", "2", "--steps", "1", "--repeat", "1", "--device", str(device),
+    assert main(["bench", str(scene), "--batch", "2", "--steps", "1", "--repeat", "1", "--device", str(device),
                  "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["device"] == str(device) and report["characters"] == 2
     row = report["scenes"]["arm"]
-    from warpskin.scene import resolve_scene
-
-    assert row["characters"] == 2 and row["particles"] == 2 * 4 * resolve_scene("arm").rig().vertex_count
+    rig = resolve_scene("arm").rig()
+    edge = float(trimesh.Trimesh(rig.vertices, rig.triangles, process=False).edges_unique_length.mean())
+    limit = (GRAVITY_STEP * edge / 9.81) ** 0.5
+    assert row["gravity_step_limit_s"] == pytest.approx(limit, rel=1e-6)
+    assert row["dt_s"] == pytest.approx(limit, rel=1e-6) and limit < 0.01
+    assert row["characters"] == 2 and row["particles"] == 2 * 4 * rig.vertex_count
     assert row["separate_step_ms"] > 0 and row["batch_step_ms"] > 0
     assert row["speedup"] == pytest.approx(row["separate_step_ms"] / row["batch_step_ms"])
     assert row["batch_character_steps_per_s"] == pytest.approx(2e3 / row["batch_step_ms"])

@@ -7,6 +7,7 @@ assert timings; this is the performance record.
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import time
@@ -189,7 +190,9 @@ def _cage_build(rig) -> dict:
 def run_solver_bench(targets: list[str], *, device: str | None = None, steps: int = 10, repeat: int = 3) -> dict:
     """Milliseconds per solver step, split as the paper's Table 1, per scene.
 
-    Per scene: ``particles``, ``iterations``; ``elasticity_ms`` (the elasticity loop: region fit
+    Per scene: ``particles``, ``iterations``; ``dt_s`` (the step timed: the scene's ``dt``,
+    shortened to ``gravity_step_limit_s`` where that is shorter, as ``simulate`` does);
+    ``elasticity_ms`` (the elasticity loop: region fit
     and goal blend with coupling and joint constraints, direct gather); ``collision_ms`` (skin
     self-collision: detection plus the contact passes of every iteration; ``collision_detect_ms``
     the detection alone, ``contacts`` the candidates found, point-triangle and edge-edge) and
@@ -203,7 +206,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     from .model import SkinModelBuilder
     from .run.physics import PhysicsStepper, initial_state
     from .run.plan import FramePlan
-    from .solver import SkinSolver
+    from .solver import SkinSolver, skin_step_limit
 
     dev = resolve_device(device)
     out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
@@ -227,7 +230,8 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         t_mid = clip.start + 0.4 * clip.duration  # the arm: 2 s, flexed, forearm pressing
         initial_state(builder, a, rig.skinning_matrices(clip, t_mid))
         c.set_pose(rig.skinning_matrices(clip, t_mid + 0.01))
-        dt = params.dt
+        limit = skin_step_limit([builder], model, params)
+        dt = min(params.dt, limit)  # the step simulate takes
         solver.step(a, b, c, contacts, dt)  # compile / load outside the timed regions
         solver.step(b, a, c, contacts, dt)
 
@@ -246,7 +250,8 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
 
         fast0 = params.fast_summation
         row = {"particles": model.particle_count, "vertices": model.vertex_count, "iterations": params.iterations,
-               "volume_iterations": params.volume_iterations}
+               "volume_iterations": params.volume_iterations, "dt_s": dt,
+               "gravity_step_limit_s": limit if math.isfinite(limit) else None}
         row["elasticity_ms"] = _best_ms(lambda f: elasticity(False), steps, repeat, dev)
         if col is not None:
             collisions()
@@ -354,7 +359,9 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
     (:func:`~warpskin.batch_model.batch_model`: one launch per kernel steps them all) against
     the same instances as ``count`` separate models stepped one after another, on one device.
 
-    Per scene: ``characters``, ``particles`` (the batch's); ``batch_step_ms`` (one step of the
+    Per scene: ``characters``, ``particles`` (the batch's); ``dt_s`` (the step timed: the scene's
+    ``dt``, shortened to ``gravity_step_limit_s`` where that is shorter, as ``simulate`` does);
+    ``batch_step_ms`` (one step of the
     batch, collisions included, each instance at its own moment of the clip);
     ``separate_step_ms`` (the same instances as separate models, one step each, one after
     another: ``count`` separate runs) and ``single_step_ms`` (its mean per instance); ``batch_character_steps_per_s`` and
@@ -366,7 +373,7 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
     from .errors import WarpskinError
     from .model import SkinModelBuilder
     from .run.physics import initial_state
-    from .solver import SkinSolver
+    from .solver import SkinSolver, skin_step_limit
 
     if not (isinstance(count, int) and count >= 1):
         raise ValueError(f"--batch needs a positive number of characters, got {count!r}")
@@ -386,6 +393,8 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
         except (WarpskinError, OSError) as exc:  # a scene without its assets, a model the batch refuses
             out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
+        limit = skin_step_limit([builder] * count, batch, params)
+        dt = min(params.dt, limit)  # the step simulate takes: gravity's limit applies to a batch as well
         clip = rig.clip(scene.clip)
         times = [clip.start + (0.3 + 0.4 * k / max(count, 1)) * clip.duration for k in range(count)]
         poses = [rig.skinning_matrices(clip, t) for t in times]
@@ -401,17 +410,18 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
             c.set_pose(np.concatenate(mats))
             states = [a, b]
             for k in range(4):  # compile, and grow the contact buffers, outside the timed region
-                solver.step(states[k % 2], states[(k + 1) % 2], c, contacts, params.dt)
+                solver.step(states[k % 2], states[(k + 1) % 2], c, contacts, dt)
                 if contacts is not None and contacts.overflowed():
                     contacts.grow()
-            return lambda f: solver.step(states[f % 2], states[(f + 1) % 2], c, contacts, params.dt)
+            return lambda f: solver.step(states[f % 2], states[(f + 1) % 2], c, contacts, dt)
 
         batch_ms = _best_ms(stepper(batch, poses), steps, repeat, dev)
         alone = builder.finalize(dev)
         singles = [_best_ms(stepper(alone, [m]), steps, repeat, dev) for m in poses]  # each at its own moment
         separate_ms = float(sum(singles))
         out["scenes"][scene.name] = {
-            "characters": count, "particles": batch.particle_count, "batch_step_ms": batch_ms,
+            "characters": count, "particles": batch.particle_count, "dt_s": dt,
+            "gravity_step_limit_s": limit if math.isfinite(limit) else None, "batch_step_ms": batch_ms,
             "single_step_ms": separate_ms / count, "separate_step_ms": separate_ms,
             "batch_character_steps_per_s": 1e3 * count / batch_ms if batch_ms > 0 else None,
             "separate_character_steps_per_s": 1e3 * count / separate_ms if separate_ms > 0 else None,

@@ -26,7 +26,7 @@ from .model import Contacts, Control, SkinModel, State
 from .units import UNITS, metres_per_unit
 
 __all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
-           "gravity_step_limit"]
+           "gravity_step_limit", "skin_step_limit"]
 
 #: The most a step may let gravity move a free particle (``g dt^2``), as a share of the skin's
 #: mean rest edge: :func:`gravity_step_limit`.
@@ -63,6 +63,20 @@ def gravity_step_limit(mean_edge: float, gravity, unit: float) -> float:
     if not (g > 0.0 and mean_edge > 0.0 and math.isfinite(g)):
         return math.inf
     return math.sqrt(GRAVITY_STEP * float(mean_edge) / g)
+
+
+def skin_step_limit(builders, model: SkinModel, params: SolverParams) -> float:
+    """The longest step [s] :func:`gravity_step_limit` allows ``model`` (one character, or a
+    batch of ``builders`` in its order): the smallest over its characters, each from its own
+    simulated skin's mean rest edge and file unit (:func:`length_units` with ``params.units``);
+    ``inf`` without gravity. Every driver that steps a model (``simulate``, ``bench``) splits its
+    steps to this."""
+    from .collision import mean_edge
+
+    units = length_units(model, params.units)
+    limits = [gravity_step_limit(mean_edge(b.rig.vertices, b.rig.triangles), params.gravity, u)
+              for b, u in zip(builders, units)]
+    return min(limits, default=math.inf)
 
 
 def particle_gravity(model: SkinModel, gravity, units: list[float]) -> np.ndarray:

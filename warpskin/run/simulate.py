@@ -370,11 +370,9 @@ def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: Fra
     ``params.dt`` asked; unchanged where it does not."""
     from dataclasses import replace
 
-    from ..collision import mean_edge
-    from ..solver import GRAVITY_STEP, gravity_step_limit, length_units
+    from ..solver import GRAVITY_STEP, skin_step_limit
 
-    edge = mean_edge(builder.rig.vertices, builder.rig.triangles)
-    limit = gravity_step_limit(edge, params.gravity, length_units(model, params.units)[0])
+    limit = skin_step_limit([builder], model, params)
     if not limit < params.dt:
         return params, plan, limit
     asked = plan
