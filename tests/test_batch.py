@@ -40,6 +40,7 @@ def _manifest(out) -> dict:
     return json.loads((out / "manifest.json").read_text())["jobs"]
 
 
+@pytest.mark.slow
 def test_a_batch_bakes_what_its_commands_bake_and_a_rerun_does_no_work(tmp_path, capsys):
     bad = tmp_path / "broken.glb"
     bad.write_bytes(b"not a glTF file")
@@ -117,6 +118,7 @@ rig = "{bad.name}"
     assert "1 ran, 2 up to date, 1 failed" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_killed_worker_is_run_again(tmp_path, capsys):
     jobs = tmp_path / "jobs.toml"
     jobs.write_text('[[job]]\nrig = "arm"\nframes = "0:24"\n')
@@ -181,6 +183,7 @@ def test_rig_files_with_every_clip(tmp_path, capsys):
         _same_bake(out / "box" / f"{clip}.usdc", alone)
 
 
+@pytest.mark.slow
 def test_the_same_bakes_through_a_ray_cluster(tmp_path, capsys, monkeypatch):
     # a local Ray cluster started here (`ray start --head`, without token authentication: a
     # test cluster of one machine), the batch connecting to its address: every job a Ray

@@ -73,6 +73,7 @@ def _broken_cesium_man(assets):
     return points, faces, int(near.sum())
 
 
+@pytest.mark.slow
 def test_a_cage_closes_holes_pieces_and_split_seams(assets, device):
     points, faces, cut = _broken_cesium_man(assets)
     assert cut > 0 and not trimesh.Trimesh(points, faces, process=True).is_watertight  # really broken
@@ -82,6 +83,7 @@ def test_a_cage_closes_holes_pieces_and_split_seams(assets, device):
     assert 1500 < len(cage.vertices) < 8000 and cage.build_s > 0
 
 
+@pytest.mark.slow
 def test_robot_expressive_gets_one_cage_around_its_14_meshes(assets, device):
     from warpskin.io import load_rig
     from warpskin.rig import Clip
@@ -136,6 +138,7 @@ def test_weights_are_transferred_and_inpainted_against_numpy(device):
     np.testing.assert_allclose(jw.sum(axis=1), 1.0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_broken_character_simulates_through_its_cage(assets, tmp_path, device):
     # CesiumMan with 8 holes cut, split in two at the waist, every seam split, and a floating eye
     # sphere skinned to the head, as a rig (its UVs kept per corner): simulate with the defaults
@@ -226,6 +229,7 @@ def test_bench_build_reports_the_cage():
     assert cage["guard_ms"] > 0 and cage["guard_acting_ms"] > 0
 
 
+@pytest.mark.slow
 def test_robot_expressive_walks_through_its_cage(assets, tmp_path):
     # --cage always: the 14 meshes (the skinned hands, 12 rigid parts) in one cage, simulated;
     # every mesh written with its own vertices, finite, the rigid parts rigid (the cage bound at the rest pose: in the
@@ -338,6 +342,7 @@ def test_a_bad_rigid_pieces_choice_is_refused_before_any_work(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_robot_pieces_cross_each_other_no_more_than_in_lbs(assets, tmp_path):
     # RobotExpressive dancing through its cage: the torso sways into its right shoulder pad
     # (frames 18-22: 24-46 pairs between the two meshes beyond the rest pose's, where LBS has none),

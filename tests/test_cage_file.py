@@ -168,6 +168,7 @@ def test_a_malformed_cage_is_refused_with_the_files_vertex_numbers(cesium, tmp_p
         cage_from_mesh(load("cm.obj", 100.0 * v, f), rig, device=device)
 
 
+@pytest.mark.slow
 def test_cesium_man_simulates_through_a_cage_file(cesium, tmp_path, device):
     from pxr import Usd, UsdGeom
 

@@ -117,6 +117,7 @@ def _assert_keeps_its_surface(quality: dict, frames: int, sliding: bool = False)
 
 
 @pytest.mark.parametrize("clip, frames", [("walk", (30, 44)), ("run", (2, 16)), ("kick", (16, 30))])
+@pytest.mark.slow
 def test_an_open_mannequin_with_shoes_and_fists_keeps_its_surface(tmp_path, clip, frames):
     glb = mannequin_file(tmp_path)
     out = tmp_path / f"{clip}.usdc"
@@ -128,6 +129,7 @@ def test_an_open_mannequin_with_shoes_and_fists_keeps_its_surface(tmp_path, clip
     _assert_keeps_its_surface(q, frames[1] - frames[0] + 1, sliding=True)
 
 
+@pytest.mark.slow
 def test_robot_expressive_through_its_cage_keeps_its_surface(tmp_path, assets):
     out = tmp_path / "robot.usdc"
     code = main(["simulate", str(assets / "RobotExpressive" / "RobotExpressive.glb"), "--cage", "always", "--clip",
@@ -168,6 +170,7 @@ def _assert_keeps_its_joints(path, share: float) -> None:
     assert max(worst.values()) <= share * diagonal * (1.0 + 1e-3)  # a float32 band at the limit itself
 
 
+@pytest.mark.slow
 def test_cesium_man_cut_into_pieces_with_shoes_and_fists_keeps_its_surface(tmp_path, assets):
     glb = write_rig_glb(cut_cesium_man(assets), tmp_path / "cut.glb")
     out = tmp_path / "cut.usdc"
@@ -178,6 +181,7 @@ def test_cesium_man_cut_into_pieces_with_shoes_and_fists_keeps_its_surface(tmp_p
     _assert_keeps_its_surface(q, 21)
 
 
+@pytest.mark.slow
 def test_the_fox_run_simulated_directly_keeps_its_surface(tmp_path, assets):
     # a low-poly skin (290 vertices) whose physics folds its legs where LBS sinks them into the
     # body: from that frame on the surface guard holds it to its LBS
@@ -190,6 +194,7 @@ def test_the_fox_run_simulated_directly_keeps_its_surface(tmp_path, assets):
     assert q["fox"]["frames"] == 35
 
 
+@pytest.mark.slow
 def test_cesium_man_simulated_directly_is_written_as_simulated(tmp_path, assets):
     # its physics keeps the surface: written untouched by the guard (no intersecting pair over
     # the frames, where LBS has many; the written volume as the simulated one)

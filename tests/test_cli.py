@@ -144,6 +144,7 @@ def test_projection_option_sets_the_layer_depths(tmp_path, capsys):
     assert "need 0 < FAT < MUSCLE < BONE < 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_warnings_are_one_plain_line_and_no_native_cuda_notice(tmp_path, assets):
     # a separate process: the "no CUDA driver" notice is printed by Warp's C library on its
     # stderr file descriptor at start-up, and Python's warnings carry file paths and source
@@ -207,6 +208,7 @@ def test_json_summaries(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("signame, code, wait", [("SIGTERM", 143, 0.0), ("SIGHUP", 129, 0.0), ("SIGTERM", 143, 4.0)])
+@pytest.mark.slow
 def test_a_stopped_run_keeps_its_finished_frames_and_no_temp_file(tmp_path, signame, code, wait):
     # a stop signal as soon as the output is opened, or seconds into the run: no temporary file
     # is left, and the frames finished before the signal are kept in a valid file (as a failed
@@ -252,6 +254,7 @@ def test_a_stopped_run_keeps_its_finished_frames_and_no_temp_file(tmp_path, sign
         assert kept is not None and int(kept.group(1)) < 151  # stopped mid-run, frames kept
 
 
+@pytest.mark.slow
 def test_info_reports_pieces_loops_and_the_simulation_path(assets, capsys):
     # an open strip (SimpleSkin: one piece, one boundary loop, trimesh agrees) goes through the
     # cage; the closed arm directly; RobotExpressive lists its other meshes

@@ -612,6 +612,7 @@ def test_fail_safe_off_keeps_the_step(device):
     assert int(col.fail_safe_pairs.numpy()[0]) == 0
 
 
+@pytest.mark.slow
 def test_arm_at_150_degrees_has_no_intersections_where_lbs_has_many(tmp_path, device):
     # the shipped arm scene at its full resolution (2918 vertices, the paper's 2916), with its
     # own solver settings: flexed to 150 degrees (frame 45) and held (to frame 60); every frame
@@ -879,6 +880,7 @@ def test_preroll_reaches_a_self_intersecting_first_pose_by_collision(tmp_path, d
         simulate(scene, tmp_path / "bad.usdc", preroll=-1.0, **kw)
 
 
+@pytest.mark.slow
 def test_cesium_man_walk_starts_clean_after_the_preroll(tmp_path, assets, device):
     # CesiumMan's first walk pose passes the skin through itself under LBS; the scene's 0.5 s
     # pre-roll from the (clean) bind pose reaches it by collision. Frames 7-12 bend the knees:
@@ -921,6 +923,7 @@ def test_preroll_from_a_self_intersecting_bind_pose_warns(tmp_path):
         simulate(scene, tmp_path / "w.usdc", device="cpu", frames=(0, 0), preroll=0.01, progress=False)
 
 
+@pytest.mark.slow
 def test_detected_edge_edge_pairs_match_brute_force(device):
     # every pair of skin edges (no shared vertex, from different patches, not all four vertices
     # rigid on one bone, not coplanar at the start) whose predicted segments come nearer than the

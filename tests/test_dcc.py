@@ -115,6 +115,7 @@ def _usd_y_up(blender_points) -> np.ndarray:
 
 
 @pytest.mark.parametrize("kind", ["cesium_skin", "arm_simulate"])
+@pytest.mark.slow
 def test_blender_imports_a_bake_as_written(kind, tmp_path, request):
     if kind == "cesium_skin":
         assets = request.getfixturevalue("assets")
@@ -150,6 +151,7 @@ def test_blender_imports_a_bake_as_written(kind, tmp_path, request):
         assert not st  # a procedural arm has no UVs
 
 
+@pytest.mark.slow
 def test_a_caged_bake_with_its_guides_imports_into_blender(tmp_path, assets):
     # RobotExpressive through its cage with every mesh's LBS guide and the cage: Blender imports
     # it with guides on (a segfault was reported here), reports no invalid face data (the file's

@@ -749,6 +749,7 @@ def test_bad_animation_keys(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------------
 # Nested skeletons: a joint's world transform includes every animated ancestor (glTF spec)
 # --------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_every_nested_skeleton_follows_its_animated_ancestors(assets: Path) -> None:
     # RecursiveSkeletons: 84 skins whose chains hang off joints of other skins, which are
     # animated; each instance's LBS against the spec's own evaluation at generic times

@@ -388,6 +388,7 @@ def test_adaptive_depths_unfold_a_bad_setting_locally():
 
 
 @pytest.mark.parametrize("rel", ["CesiumMan/CesiumMan.glb", "RiggedFigure/RiggedFigure.glb", "Fox/Fox.glb"])
+@pytest.mark.slow
 def test_adaptive_depths_keep_every_layer_inside_the_body(assets, rel):
     # real rigs whose bones run close to or outside the skin: the paper's construction puts
     # inner-layer points outside the body (independent witness: the generalised winding

@@ -32,6 +32,7 @@ keys = [[0.3, 0.0], [0.35, 1.0], [0.9, 1.0], [0.95, 0.0]]
 """
 
 
+@pytest.mark.slow
 def test_layered_mode_pops_the_skin_and_keeps_the_volume(tmp_path, device):
     path = tmp_path / "pop.toml"
     path.write_text(SCENE)

@@ -140,6 +140,7 @@ def _outward(path, rig, field: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("pop_on, cage", [("layers", "auto"), ("layers", "always"), ("surface", "auto")])
+@pytest.mark.slow
 def test_cli_pops_a_rig_without_examples_on_the_beat(tmp_path, capsys, device, arm_builder, pop_on, cage):
     # the shipped arm has no popping examples: layered mode, its two muscles found (on its own
     # skin, or on its cage whose pop the written skin takes on; or on the written skin itself),
@@ -176,6 +177,7 @@ def test_a_rig_without_a_timeline_is_told_what_to_pass(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_cesium_man_pops_on_the_beat(tmp_path, capsys, assets):
     # a real closed rig, no scene: its long bones found (arms, legs, chest), popping at 0.2 s
     # (frame 4.8 at 24 fps) over its walk
@@ -224,6 +226,7 @@ def test_python_pop_takes_a_rig_or_a_scene(tmp_path, device):
     assert run.summary["mode"] == "layered" and run.summary["groups"] == ["shoulder", "elbow"] and run.frames == 9
 
 
+@pytest.mark.slow
 def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, capsys):
     from warpskin.popping.report import belly_of_bones
 

@@ -268,6 +268,7 @@ def _meshes(stage):
     return {p.GetName(): UsdGeom.Mesh(p) for p in root.GetChildren() if p.IsA(UsdGeom.Mesh)}
 
 
+@pytest.mark.slow
 def test_an_open_character_pops_on_its_written_surface(tmp_path, capsys, device):
     # the open mannequin (37 pieces, shoes and fists) on its own pieces: the beat at 0.2037 s
     # (between frames 6 and 7 at 30 fps, off every step), held 0.25 s

@@ -13,6 +13,9 @@ import trimesh
 
 from characters import dancer_file
 
+# one module fixture bakes the dancer: every test here is an end-to-end run
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def dancer_bake(tmp_path_factory):

@@ -128,6 +128,7 @@ def test_copies_written_apart_are_a_crack_the_limits_name():
     assert QualityLimits().problem(mesh, mesh_measures(mesh, tiny, lbs, pairs=False)) is None
 
 
+@pytest.mark.slow
 def test_a_run_reports_what_it_wrote_and_the_usd_agrees(tmp_path):
     # the coarse arm: the summary's per-mesh figures are the worst over the frames of the
     # written USD, measured there with the plain-loop reference and the brute-force pair count

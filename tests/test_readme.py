@@ -42,6 +42,7 @@ def test_the_readme_is_short_and_starts_with_the_two_set_up_commands():
 
 
 @pytest.mark.parametrize("page,number,code", BLOCKS, ids=[f"{p.name}-{n}" for p, n, _ in BLOCKS])
+@pytest.mark.slow
 def test_snippet_runs(page, number, code, tmp_path, monkeypatch, request):
     monkeypatch.chdir(tmp_path)
     if "CesiumMan.glb" in code:

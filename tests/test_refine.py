@@ -228,6 +228,7 @@ def test_the_written_volume_is_restored_on_the_loaded_vertices_and_the_sub_volum
     ("CesiumMan/CesiumMan.glb", (1, 7), False),  # the walk is frames 1-48 at 24 fps
     ("usd/CesiumMan/CesiumMan.usdz", (1, 7), False),
 ])
+@pytest.mark.slow
 def test_assets_simulate_with_defaults_no_worse_than_lbs(tmp_path, assets, device, rel, frames, coarse):
     from pxr import Usd, UsdGeom
 
@@ -295,6 +296,7 @@ def test_a_convex_rim_is_not_a_fold(assets, device):
     np.testing.assert_array_equal(b.x.numpy(), before)
 
 
+@pytest.mark.slow
 def test_fox_walk_with_defaults_keeps_its_paws(tmp_path, assets, device):
     """The Fox (290 vertices, refined; 155 units read as metres), its Walk's first frames with
     the defaults at 30 fps: collisions on; its front paws, whose whole skin is in contact where
@@ -331,6 +333,7 @@ def test_fox_walk_with_defaults_keeps_its_paws(tmp_path, assets, device):
     assert max(m["max_offset_from_lbs"]) <= 0.05 * 1.0001 * s["body_diagonal_m"]
 
 
+@pytest.mark.slow
 def test_fox_run_with_defaults_is_no_worse_than_lbs(tmp_path, assets, device):
     """The Fox's Run, its first 10 frames (30 fps) with the defaults: the legs pass close and
     LBS drives them through each other (70 pairs at frame 0, 10-26 later). The volume loop

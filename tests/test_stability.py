@@ -130,6 +130,7 @@ def test_with_the_volume_loop_no_skin_particle_ends_a_step_beyond_the_cap(device
     ("gravity", "", "gravity = [0.0, -1000.0, 0.0]\n", "", []),
     ("fast_flex", "flex_time = 0.02\nhold_time = 1.0\n", "", "", []),
 ])
+@pytest.mark.slow
 def test_a_setting_a_user_may_pick_ends_bounded_or_stops_with_exit_3(tmp_path, capsys, name, params, solver, extra, cli):
     # each ends with the skin within 10 % of the body's diagonal of LBS in every written frame,
     # or stops with exit 3 naming the frame, the frames before it kept; never an explosion
@@ -201,6 +202,7 @@ def _robot_clip_runs_to_the_end(tmp_path, assets, clip: str):
     return result
 
 
+@pytest.mark.slow
 def test_a_fast_clip_is_not_taken_for_an_explosion(tmp_path, assets):
     # RobotExpressive's Jump: the hand's animation changes its velocity by several body
     # diagonals per second within a frame, and the skin, lagging it, moves relative to it faster
@@ -238,6 +240,7 @@ def test_a_share_held_at_the_cap_stops_the_run_once_it_lasts_capped_time(tmp_pat
         simulate(scene, tmp_path / "b.usdc", progress=False, frames=(0, 10), solver_params=params)
 
 
+@pytest.mark.slow
 def test_a_punch_is_not_taken_for_an_explosion_the_cap_hides(tmp_path, assets):
     # RobotExpressive's Punch: within one frame the punch holds more than max_capped of the
     # hand at the tether's cap, and the next frame it is back under: a lag, not an explosion;
@@ -258,6 +261,7 @@ def test_allow_unstable_goes_on_with_one_warning(tmp_path):
     assert sum("plausible range" in str(w.message) for w in record) == 1
 
 
+@pytest.mark.slow
 def test_the_arm_is_never_tethered(tmp_path):
     # the physics stays alive: on the shipped arm's flex (frames 0-60, forearm pressing) the
     # tether never acts, so the contact bulge and the jiggle are the solver's alone
@@ -321,6 +325,7 @@ def test_the_volume_check_stops_where_the_physics_is_worse_than_lbs_ever_was(tmp
         simulate(scene, tmp_path / "stopped.usdc", progress=False, solver_params=params)
 
 
+@pytest.mark.slow
 def test_a_head_folding_down_is_not_taken_for_a_volume_error(tmp_path, assets):
     # RobotExpressive's Death through its cage: as the head folds onto the chest, LBS loses up
     # to 70 % of the neck's volume; the physics holds it far better but, as LBS recovers, lags it
@@ -341,6 +346,7 @@ def test_a_head_folding_down_is_not_taken_for_a_volume_error(tmp_path, assets):
     assert s["max_subvolume_deviation"] < s["max_subvolume_deviation_lbs"]
 
 
+@pytest.mark.slow
 def test_a_small_sub_volume_is_measured_against_a_hundredth_of_the_body(tmp_path, assets):
     # RobotExpressive's Running through its cage: the right foot's sub-volume of the cage holds
     # about 0.01 % of the body; cut from the shin by the ankle's plane, a change of a few

@@ -81,6 +81,7 @@ def arm_at_human_scale(tmp_path_factory):
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
+@pytest.mark.slow
 def test_the_same_arm_at_another_scale_moves_alike(tmp_path, device, arm_at_human_scale, scale):
     # the arm 0.6 mm or 600 m long in its file (lengths times 1e-3 or 1e3; gravity acts in the
     # unit physics takes the file in): every written point, divided by the scale, where the arm
