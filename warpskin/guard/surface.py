@@ -51,103 +51,17 @@ result turns bad at once (it rises back over frames). How much it held is report
 (:attr:`SurfaceGuard.guarded`, :attr:`SurfaceGuard.held`).
 """
 
-from __future__ import annotations
 
-from dataclasses import dataclass
+from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
 
-from .metrics import PairQuery
-from .quality import STRAIN_LIMIT, WrittenMesh
-from .settings import check_settings, setting
-from .transforms import matrix_to_quat, quat_slerp, quat_to_matrix, rigid_fit
+from ..metrics import PairQuery
+from ..quality import STRAIN_LIMIT, WrittenMesh
+from .params import GuardParams, WRITTEN_FLIPPED, WRITTEN_STRAINED, as_written, blend, pair_keys
 
-__all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WRITTEN_STRAINED", "WRITTEN_FLIPPED"]
-
-#: The bounds the quality checks ask of a written mesh: at most this share of its edges past
-#: :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's ...
-WRITTEN_STRAINED = 0.005
-#: ... and at most this share of its triangles turned over against LBS. A directly simulated
-#: skin kept trusted where it bunches around LBS's own crossings
-#: (:meth:`SurfaceGuard._kept_apart`) stays within the first; the jump limit's cut is taken back
-#: to the guard's result only where it would leave either (:meth:`SurfaceGuard.keep`).
-WRITTEN_FLIPPED = 0.01
-
-
-@dataclass
-class GuardParams:
-    """Settings of :class:`SurfaceGuard` (a scene's ``[guard]``). Each field's kind, default,
-    range, unit and help are declared with it (:mod:`warpskin.settings`). Notes beyond the help:
-
-    * ``strain`` stays below :data:`~warpskin.quality.STRAIN_LIMIT`, so the guard acts before
-      the quality measure counts an edge.
-    * ``trust_flipped``: a skin simulated directly is written as simulated until a frame's
-      physical result turns more than this share of its triangles over against LBS (1.5 x the
-      1 % the quality checks ask: a margin for a crease at the bound); from then on it is guarded.
-    * ``trust_strained``: the same for the share of edges strained past the limit beyond LBS's
-      (just under the 0.5 % the quality checks ask: a pop's swelling strains edges on purpose).
-    """
-
-    _section = "guard"
-
-    enabled: bool = setting(True, "bool", "guard the written meshes (off: written as the physics gives them)",
-                            cli="--no-guard",
-                            cli_help="write the meshes as the physics gives them, without the surface guard that takes "
-                                     "back, smoothly, what would leave a mesh worse than its LBS (strained edges, "
-                                     "flipped triangles, intersecting pairs)")
-    strain: float = setting(1.45, "number", "edge strain (ratio to rest, either way) from which an edge is flagged",
-                            low=1.0, open_low=True, high=STRAIN_LIMIT, must=f"in (1, {STRAIN_LIMIT:g}]")
-    flip_degrees: float = setting(80.0, "number", "a triangle is flagged when its normal turns by more than this "
-                                  "against LBS", unit="degrees", low=0.0, open_low=True, high=90.0, must="in (0, 90]")
-    pairs: bool = setting(True, "bool", "flag intersecting triangle pairs that LBS does not have")
-    match: float = setting(3.0, "number", "a new intersecting pair within this many median edges of a pair the "
-                           "result lost is a crossing that slid", unit="median edges", low=0.0, high=100.0,
-                           must="in [0, 100]")
-    rounds: int = setting(12, "integer", "back-off rounds per frame before what is still flagged is set to its LBS",
-                          low=0, high=64, must="an integer in [0, 64]")
-    back_off: float = setting(0.25, "number", "share of a flagged point's weight taken away per round", low=0.0,
-                              open_low=True, high=1.0, must="in (0, 1]")
-    recover: float = setting(0.1, "number", "rise of the weight per frame where it is safe", low=0.0, high=1.0,
-                             must="in [0, 1]")
-    spread: float = setting(4.0, "number", "the weight changes over this many times the displacement it takes back "
-                            "(along the surface)", low=0.0, open_low=True, high=100.0, must="in (0, 100]")
-    trust_flipped: float = setting(0.015, "number", "a directly simulated skin is written as simulated until this "
-                                   "share of its triangles turns over", low=0.0, high=1.0, must="in [0, 1]")
-    trust_strained: float = setting(0.0045, "number", "... or this share of its edges strains past the limit "
-                                    "beyond LBS's", low=0.0, high=1.0, must="in [0, 1]")
-    joint_gap: float = setting(0.01, "number", "a piece moved as a whole (a rigid shoe, a robot's shin) moves the "
-                               "points where it meets other pieces at rest by at most this share of the diagonal from "
-                               "their LBS (0: no limit)", low=0.0, high=1.0, must="in [0, 1]")
-    max_jump: float = setting(0.015, "number", "a written point's offset from LBS changes by at most this share of "
-                              "the character's height from one frame to the next (0: no limit)", low=0.0, high=1.0,
-                              must="in [0, 1]")
-
-    def check(self, where: str = "guard") -> None:
-        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
-
-        Raises:
-            SceneError: ``"<where>: [guard] <key> must be <range>, got <value>"``.
-        """
-        check_settings(self, where, "guard")
-
-
-def _as_written(x: np.ndarray) -> np.ndarray:
-    """``x`` rounded to float32 (as USD stores points), in float64."""
-    return np.asarray(x, dtype=np.float32).astype(np.float64)
-
-
-def _blend(p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """``L + g (P - L)`` per row (``g`` per row): exactly ``P`` where ``g`` is 1, exactly ``L``
-    where it is 0."""
-    gw = np.asarray(g, dtype=np.float64)[:, None]
-    return np.where(gw >= 1.0, p, np.where(gw <= 0.0, lb, lb + gw * (p - lb)))
-
-
-def _keys(pairs: np.ndarray, count: int) -> np.ndarray:
-    """Sorted unique int64 keys ``i * count + j`` of pairs ``[P, 2]`` with ``i < j``."""
-    p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    return np.unique(p[:, 0] * count + p[:, 1])
+__all__ = ["SurfaceGuard"]
 
 
 class SurfaceGuard:
@@ -290,13 +204,13 @@ class SurfaceGuard:
         """Keys of the intersecting pairs of ``x`` (with ``active``: those with an active
         triangle, on the tree of the frame's :meth:`_pairs_of_two`, refitted)."""
         found = self._query.pairs(x) if active is None else self._query.active(x, active)
-        return _keys(found, len(self._all_tri))
+        return pair_keys(found, len(self._all_tri))
 
     def _pairs_of_two(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keys of the intersecting pairs of ``x`` and of ``y``, in one pass."""
         n = len(self._all_tri)
         a, b = self._query.of_two(x, y)
-        return _keys(a, n), _keys(b, n)
+        return pair_keys(a, n), pair_keys(b, n)
 
     def _min_in_groups(self, g: np.ndarray) -> np.ndarray:
         if self.group is None:
@@ -465,11 +379,11 @@ class SurfaceGuard:
             self.pair_counts = self.pair_keys = None
             if np.all(self.ceiling >= 1.0):
                 return p
-            return self._blend(p, lb, self.ceiling)
+            return self.blend(p, lb, self.ceiling)
         # judged as it is written: USD points are float32, and a pair that touches to within
         # their rounding comes or goes with it
         given = p
-        lb, p = _as_written(lb), _as_written(p)
+        lb, p = as_written(lb), as_written(p)
         self._frame = (p, lb)
         lw = mesh.welded(lb)
         pw = mesh.welded(p)
@@ -490,7 +404,7 @@ class SurfaceGuard:
             self.pair_counts = self.pair_keys = None
             if np.all(g >= 1.0):
                 return given
-            return self._blend(p, lb, g)
+            return self.blend(p, lb, g)
         shape = True
         pairs_lbs, pairs_w, active = np.zeros(0, dtype=np.int64), None, None
         converged = False
@@ -498,7 +412,7 @@ class SurfaceGuard:
         r = 0
         changed = None  # the points whose weight the last round changed (None: every point)
         while r <= last:
-            w = _as_written(_blend(pw, lw, g))
+            w = as_written(blend(pw, lw, g))
             flag = np.zeros(self.count, dtype=bool)
             if changed is None:
                 s, cos = self._strain(w), self._cosines(w, n_lbs, len_lbs)
@@ -547,7 +461,7 @@ class SurfaceGuard:
         self.pair_keys = (pairs_w, pairs_lbs) if prm.pairs and converged else None
         if np.all(g >= 1.0):
             return given
-        return self._blend(p, lb, g)
+        return self.blend(p, lb, g)
 
     def take_back(self, flag: np.ndarray, fallback: bool = False) -> np.ndarray | None:
         """One more round of this frame's back-off, asked for from outside the mesh (its pieces
@@ -571,7 +485,7 @@ class SurfaceGuard:
             self.fallbacks += 1
         self.g = g
         self.pair_counts = self.pair_keys = None  # the mesh's own pairs are counted again
-        return self._blend(p, lb, g)
+        return self.blend(p, lb, g)
 
     def keep(self, limited: np.ndarray, guarded: np.ndarray, lbs: np.ndarray) -> np.ndarray:
         """``limited`` (the guarded points after the :class:`JumpLimit`, ``[N, 3]`` [m], file
@@ -587,8 +501,8 @@ class SurfaceGuard:
         if not self.params.enabled or self.count == 0 or limited is guarded:
             return limited
         mesh = self.mesh
-        lw = mesh.welded(_as_written(lbs))
-        xw, gw = mesh.welded(_as_written(limited)), mesh.welded(_as_written(guarded))
+        lw = mesh.welded(as_written(lbs))
+        xw, gw = mesh.welded(as_written(limited)), mesh.welded(as_written(guarded))
         e, t = mesh.edges, self._tri
         lbs_over = self._strain(lw) > STRAIN_LIMIT
         x_over, g_over = self._strain(xw) > STRAIN_LIMIT, self._strain(gw) > STRAIN_LIMIT
@@ -614,11 +528,11 @@ class SurfaceGuard:
             np.maximum.at(high, self.group, ramp)
             ramp = high[self.group]
         out = xw + ramp[:, None] * (gw - xw)
-        return _as_written(out[mesh.weld])
+        return as_written(out[mesh.weld])
 
-    def _blend(self, p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """:func:`_blend` per file point (``g`` per welded point), rounded as it is written."""
-        return _as_written(_blend(p, lb, g[self.mesh.weld]))
+    def blend(self, p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """:func:`blend` per file point (``g`` per welded point), rounded as it is written."""
+        return as_written(blend(p, lb, g[self.mesh.weld]))
 
     @property
     def guarded(self) -> float:
@@ -632,457 +546,3 @@ class SurfaceGuard:
         nothing held, 1: all written as LBS where it would be all physical): what the guard took
         back, not what the physics weight leaves to LBS."""
         return float(np.mean(np.maximum(self.ceiling - self.g, 0.0))) if self.count else 0.0
-
-
-class CrossGuard:
-    """Written meshes keep apart as their LBS keeps them: where, after every mesh's own
-    :class:`SurfaceGuard`, the triangles of two written meshes cross each other more than the
-    same two meshes do under LBS (:class:`~warpskin.quality.CrossPairs`, beyond the pairs they
-    cross in at rest: a robot's shin sits in its knee's socket), one of them gives way: the mesh
-    of the deeper joint (then the smaller) is carried by the other's motion near it, as far as
-    it must and with its joint points within ``joint_limit`` of their LBS (:meth:`_follow`);
-    where it cannot be, it takes back part of its physical displacement around the crossing
-    triangles through its guard's weight (:meth:`SurfaceGuard.take_back`: a smooth ramp over
-    the surface, a rigid piece as a whole), and where it can give no more the other does if it
-    is one rigid piece; ``rounds`` rounds of ``back_off``, then up to
-    :attr:`SurfaceGuard.FALLBACK_ROUNDS` rounds to LBS. A pair of meshes is judged by its count:
-    crossings that slide (a pair traded for its neighbour) are not taken back, only a net gain
-    is; and then only the crossing pairs LBS does not have are flagged.
-
-    Args:
-        cross: The pair counter over every written mesh.
-        guards: ``{mesh name: SurfaceGuard}`` of the meshes written with physics (the others
-            are at their LBS and cannot help).
-        params: :class:`GuardParams` (``enabled``, ``pairs``, ``rounds``, ``back_off``).
-        depth: ``[M]`` per mesh, the depth in the skeleton of the joint that moves most of it
-            (0: the root): of two meshes that cross, the deeper one moves (a hand off the arm,
-            a shoulder pad off the torso), of equal depth the smaller (rest diagonal).
-        joint_limit: How far [m] a mesh's points where it meets other pieces at rest
-            (:attr:`~warpskin.quality.WrittenMesh.joint_points`) may be carried from their
-            LBS (the ``joint_gap`` share of the diagonal).
-
-    Attributes:
-        rounds: The rounds the last frame took (0: nothing crossed beyond LBS).
-        keys: ``(keys, keys_lbs)`` of the last frame's result and LBS
-            (:meth:`~warpskin.quality.CrossPairs.keys_of_two`), for its measures.
-    """
-
-    def __init__(self, cross, guards: dict, params: GuardParams | None = None,
-                 depth: np.ndarray | None = None, joint_limit: float = np.inf) -> None:
-        self.cross = cross
-        self.guards = guards
-        self.params = params or GuardParams()
-        self.rounds = 0
-        self.keys: tuple[np.ndarray, np.ndarray] | None = None
-        self.joint_limit = float(joint_limit)
-        self._names = [mesh.name for mesh in cross.meshes]
-        self._two: dict = {}  # per pair of meshes, the counter of that pair alone (:meth:`_follow`)
-        size = np.array([mesh.size for mesh in cross.meshes])
-        depth = np.zeros(len(size)) if depth is None else np.asarray(depth, dtype=np.float64)
-        #: per mesh, its rank as a carrier: lower carries higher (nearer the skeleton's root,
-        #: then larger)
-        self._rank = np.lexsort((-size, depth)).argsort()
-        #: per mesh, whether it is written as one rigid piece (its guard's one group)
-        self._rigid = np.array([(g := guards.get(self._names[k])) is not None and g.group is not None
-                                and np.unique(g.group).size == 1 for k in range(len(size))], dtype=bool)
-
-    def _follow(self, out: dict, lbs: dict, small: int, large: int, allowed: np.ndarray) -> bool:
-        """Mesh ``small`` (a row of ``cross.meshes``) placed by the share ``c`` in [0, 1] of the
-        way from ``C`` (its LBS carried by ``large``'s motion away from its own LBS near it: for
-        a rigid ``large`` the best rigid fit of its points within ``small``'s size of it, LBS to
-        written; else the best rigid fit of its points moved as ``large``'s point nearest each
-        at LBS) to where it is: for one rigid piece along the rigid motion between the two
-        (rotation by slerp), else point by point. ``c`` is the largest (bisection, 10 steps) at which the two
-        cross no more than ``allowed`` (per pair of meshes, beyond rest); at ``c = 0`` they sit
-        as their LBS has them where ``large`` moves rigidly near ``small``. ``out`` updated;
-        whether it was placed (``False``: a mesh without a guard, written at its LBS, or one that
-        would still cross at the least ``c`` that keeps its joint points within ``joint_limit``
-        [m] of their LBS, or no farther than they are)."""
-        cross = self.cross
-        ns, nl = self._names[small], self._names[large]
-        guard = self.guards.get(ns)
-        if guard is None:
-            return False
-        rigid = bool(self._rigid[small])
-        ls, ll = np.asarray(lbs[ns], dtype=np.float64), np.asarray(lbs[nl], dtype=np.float64)
-        written_l = np.asarray(out[nl], dtype=np.float64)
-        if self._rigid[large]:
-            lo_box, hi_box = ls.min(axis=0), ls.max(axis=0)
-            reach = float(np.linalg.norm(hi_box - lo_box))
-            near = np.all((ll >= lo_box - reach) & (ll <= hi_box + reach), axis=1)
-            if np.count_nonzero(near) < 3:
-                near[:] = True
-            r, t = rigid_fit(ll[near], written_l[near])
-            carried = ls @ r.T + t
-        else:  # a carrier that deforms: the displacement of its nearest point (at LBS)
-            from scipy.spatial import cKDTree
-
-            idx = cKDTree(ll).query(ls)[1]
-            # the best rigid motion onto that: a piecewise displacement would strain the mesh
-            r, t = rigid_fit(ls, ls + (written_l - ll)[idx])
-            carried = ls @ r.T + t
-        now = np.asarray(out[ns], dtype=np.float64)
-        r2, t2 = rigid_fit(carried, now)
-        centre = carried.mean(axis=0)
-        q0, q1 = np.array([0.0, 0.0, 0.0, 1.0]), matrix_to_quat(r2)
-        shift = (centre @ r2.T + t2) - centre
-        m = len(cross.meshes)
-        pair = min(small, large) * m + max(small, large)
-        two = self._two.get(pair)
-        if two is None:  # the trials count the two meshes alone
-            from .quality import CrossPairs
-
-            two = self._two[pair] = CrossPairs([cross.meshes[min(small, large)], cross.meshes[max(small, large)]])
-
-        def place(c: float) -> np.ndarray:
-            if not rigid:
-                return _as_written(carried + c * (now - carried))
-            return _as_written((carried - centre) @ quat_to_matrix(quat_slerp(q0, q1, c)).T + centre + c * shift)
-
-        def crosses(c: float) -> bool:
-            trial = {ns: place(c), nl: out[nl]}
-            return bool(two.beyond_rest(two.keys(trial))[1] > allowed[pair])
-
-        joints = cross.meshes[small].joint_points
-        bound = np.inf
-        if joints is not None and joints.size and np.isfinite(self.joint_limit):
-            # the piece stays on at its joints: within the joint limit of their LBS there (or
-            # no farther than they are)
-            bound = max(self.joint_limit, float(np.linalg.norm(now[joints] - ls[joints], axis=1).max()))
-
-        def off(c: float) -> bool:
-            if not np.isfinite(bound):
-                return False
-            return float(np.linalg.norm(place(c)[joints] - ls[joints], axis=1).max()) > bound
-
-        lo = 0.0
-        if off(lo):  # the least share that keeps the joints on
-            hi = 1.0
-            for _ in range(10):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if off(mid) else (lo, mid)
-            lo = hi
-        if crosses(lo) or off(lo):
-            return False
-        hi = 1.0
-        for _ in range(10):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if not (crosses(mid) or off(mid)) else (lo, mid)
-        out[ns] = place(lo)
-        return True
-
-    def _take_back(self, out: dict, new: np.ndarray, mover: np.ndarray, fallback: bool) -> list[int]:
-        """One round of :meth:`SurfaceGuard.take_back` on the meshes ``mover`` (``[K]``, per
-        crossing pair ``new``: the mesh of it that moves), their triangles of those pairs
-        flagged; ``out`` updated. The meshes (their rows) in which a point moved."""
-        cross = self.cross
-        t = len(cross.triangles)
-        tri = np.concatenate([new // t, new % t])
-        tri = tri[cross.label[tri] == np.concatenate([mover, mover])]
-        moved = []
-        for k in np.unique(cross.label[tri]):
-            guard = self.guards.get(self._names[int(k)])
-            if guard is None:
-                continue
-            own = tri[cross.label[tri] == k] - cross.triangle_offsets[k]
-            flag = np.zeros(guard.count, dtype=bool)
-            flag[guard.mesh.welded_triangles[own].ravel()] = True
-            pts = guard.take_back(flag, fallback=fallback)
-            if pts is not None:
-                out[self._names[int(k)]] = pts
-                moved.append(int(k))
-        return moved
-
-    def apply(self, written: dict, lbs: dict) -> dict:
-        """``written`` (``{mesh name: [N, 3]}``, every mesh of ``cross``, each after its guard)
-        with the crossings between meshes beyond LBS's taken back; ``lbs`` the same meshes'
-        LBS. Returns a new dict (the meshes not changed are the same arrays)."""
-        self.rounds = 0
-        out = dict(written)
-        cross = self.cross
-        if not cross.active or not self.params.enabled or not self.params.pairs:
-            self.keys = None
-            return out
-        keys, keys_lbs = cross.keys_of_two(out, lbs)
-        allowed = cross.beyond_rest(keys_lbs)
-        lbs_set = keys_lbs
-        t = len(cross.triangles)
-        m = len(cross.meshes)
-        last = self.params.rounds + SurfaceGuard.FALLBACK_ROUNDS
-        while self.rounds <= last:
-            over = cross.beyond_rest(keys) > allowed
-            if not over.any():
-                break
-            new = keys[~np.isin(keys, lbs_set)]
-            a, b = cross.label[new // t], cross.label[new % t]
-            pick = over[np.minimum(a, b) * m + np.maximum(a, b)]
-            new, a, b = new[pick], a[pick], b[pick]
-            fallback = self.rounds >= self.params.rounds
-            # of each pair the mesh farther from the skeleton's root (then the smaller) moves: a
-            # rigid piece is carried by its neighbour's motion (a shoulder pad on the torso it
-            # sits on), as far as needed; a mesh that deforms takes back its displacement there,
-            # the other where it can no longer move
-            small = np.where(self._rank[a] > self._rank[b], a, b)
-            large = np.where(small == a, b, a)
-            moved = []
-            carried = np.zeros(new.size, dtype=bool)
-            for s_, l_ in {(int(u), int(v)) for u, v in zip(small, large)}:
-                if self._follow(out, lbs, s_, l_, allowed):
-                    moved.append(s_)
-                    carried |= (small == s_) & (large == l_)
-            rest = ~carried
-            if rest.any():
-                moved += self._take_back(out, new[rest], small[rest], fallback)
-                # where that mesh can give no more, the other, if it moves as one rigid piece
-                # (a mesh that deforms could cross itself where only part of it gives way)
-                stuck = rest & ~np.isin(small, moved) & self._rigid[large]
-                if stuck.any():
-                    moved += self._take_back(out, new[stuck], large[stuck], fallback)
-            if not moved:
-                break
-            self.rounds += 1
-            keys = cross.keys(out)
-        self.keys = (keys, keys_lbs)
-        return out
-
-
-class JumpLimit:
-    """No chatter: the offset from LBS of a written point, ``o = W - L``, changes by at most
-    ``max_jump`` (:class:`GuardParams`) x the character's ``height`` [m] from one frame to the
-    next. Where the result of a frame would move it farther (contacts that hold two parts of
-    the body apart in one frame and let them through in the next), the change is cut to that
-    length, so the point gets there over the next frames (a smooth path through the flicker):
-    ``o(t) = o(t-1) + d min(1, r / |d|)``, ``d = o_guarded(t) - o(t-1)``. The first frame is
-    taken as it is. Applied after the surface guard, to what is written only; where the cut
-    would leave the mesh worse than the guard's result, :meth:`SurfaceGuard.keep` takes those
-    points back to it (and :meth:`written` tells the limit what was written).
-
-    A group (``groups[i] >= 0``: a piece written by one rigid motion, a shoe, a fist, a hair
-    cap) is cut as a whole and stays rigid: a blend of two frames' offsets is not rigid, so its
-    new placement ``W`` is reached from ``H`` (the last frame's placement carried by the group's
-    own LBS motion, the best rigid fit of ``L(t-1) -> L(t)``) by the share ``c`` of the rigid
-    motion ``H -> W`` (rotation by slerp), ``c`` the largest in [0, 1] (bisection, 12 steps)
-    at which no point of the group jumps by more than the limit; ``c = 0`` where even ``H``
-    does (the group then moves with its LBS).
-
-    Attributes:
-        limited: The share of the mesh's points cut in the last frame.
-    """
-
-    def __init__(self, height: float, params: GuardParams | None = None,
-                 groups: np.ndarray | None = None) -> None:
-        prm = params or GuardParams()
-        self.step = float(prm.max_jump) * float(height) if prm.enabled else 0.0
-        self._last: np.ndarray | None = None
-        self._free = None if groups is None else np.asarray(groups) < 0
-        self._groups = [] if groups is None else [np.nonzero(np.asarray(groups) == g)[0]
-                                                  for g in np.unique(np.asarray(groups)[np.asarray(groups) >= 0])]
-        self._last_lbs: np.ndarray | None = None
-        self.limited = 0.0
-
-    def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
-        """The limited points of one frame, ``[N, 3]`` (``points``: after the guard; ``lbs``:
-        the mesh's LBS), rounded to float32 where a point was cut; ``points`` itself where
-        none was."""
-        p = np.asarray(points, dtype=np.float64)
-        lb = np.asarray(lbs, dtype=np.float64)
-        o = p - lb
-        self.limited = 0.0
-        if self._last is None or self.step <= 0.0:
-            self._last, self._last_lbs = o, lb
-            return points
-        d = o - self._last
-        length = np.linalg.norm(d, axis=1)
-        cut = length > self.step
-        if self._free is not None:
-            cut &= self._free
-        groups = [g for g in self._groups if length[g].max() > self.step]
-        if not cut.any() and not groups:
-            self._last, self._last_lbs = o, lb
-            return points
-        o = self._last + d * np.where(cut, self.step / np.maximum(length, 1e-300), 1.0)[:, None]
-        for g in groups:
-            o[g] = self._group(g, p[g], lb[g]) - lb[g]
-            cut[g] = True
-        self.limited = float(cut.mean())
-        self._last, self._last_lbs = o, lb
-        return _as_written(lb + o)
-
-    def written(self, points: np.ndarray, lbs: np.ndarray) -> None:
-        """What was written of this frame after :meth:`apply` (``points``, ``lbs``: ``[N, 3]``
-        [m]), where it differs from what :meth:`apply` returned: the next frame's limit counts
-        from it."""
-        self._last = np.asarray(points, dtype=np.float64) - np.asarray(lbs, dtype=np.float64)
-
-    def _group(self, g: np.ndarray, target: np.ndarray, lbs: np.ndarray) -> np.ndarray:
-        """The placement ``[n, 3]`` of group ``g`` this frame (see the class docstring):
-        ``target`` its unlimited placement, ``lbs`` its LBS."""
-        last_lbs = self._last_lbs[g]
-        last = last_lbs + self._last[g]
-        r, t = rigid_fit(last_lbs, lbs)
-        hold = last @ r.T + t
-        r2, t2 = rigid_fit(hold, target)
-        centre = hold.mean(axis=0)
-        q0, q1 = np.array([0.0, 0.0, 0.0, 1.0]), matrix_to_quat(r2)
-        moved = (centre @ r2.T + t2) - centre  # where the fit takes the held centre
-
-        def place(c: float) -> np.ndarray:
-            rc = quat_to_matrix(quat_slerp(q0, q1, c))
-            return (hold - centre) @ rc.T + centre + c * moved
-
-        def jump(x: np.ndarray) -> float:
-            return float(np.linalg.norm((x - lbs) - self._last[g], axis=1).max())
-
-        lo, hi = 0.0, 1.0
-        if jump(place(0.0)) > self.step:
-            return place(0.0)
-        for _ in range(12):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if jump(place(mid)) <= self.step else (lo, mid)
-        return place(lo)
-
-
-class WornRepair:
-    """Worn pieces that cross themselves or each other, repaired where they cross: a garment
-    layer is brought nearer the surface it is worn on there, keeping its shape elsewhere.
-
-    A worn point (:mod:`warpskin.kernels.deform`'s wrap: trousers, a shirt, a hair cap) is
-    written at ``P``, its rest offset from its carrier point ``C`` (the point of the simulated
-    surface it rides on, at the written surface as it is now). Where the body folds (the back of
-    a bent knee, an armpit), two layers of a garment, each at its own offset from its own part
-    of the body, can pass through each other: a cloth would bunch up, a wrapped garment has no
-    cloth of its own. Per frame, per mesh with worn points (on the host):
-
-        W = C + s (P - C),     s = max(floor, E(E(r))),     E(r)_i = min(r_i, mean of r over i's ring)
-
-    with ``r`` in [floor, 1] a raw share per worn point kept from frame to frame (``E`` eases
-    the fold's edge over two rings of neighbours into the rest of the garment):
-
-    1. ``r`` rises by ``recover`` (:class:`GuardParams`) from the last frame's, up to 1;
-    2. the pairs of the worn triangles (every point worn) that intersect and did not at rest are
-       found (the exact test of :class:`~warpskin.metrics.PairQuery`, on the welded mesh);
-    3. where a point that rose this frame lies within two rings of a crossing pair's point, it
-       goes back to the last frame's ``r`` (a crossing that stays settles where it was clear,
-       instead of cycling between recovery and halving: a flicker); a crossing pair's point with
-       none such nearby gets ``r x SHRINK``; only the triangles that moved are tested again; up
-       to ``ROUNDS`` rounds.
-
-    The floor keeps a garment off the body it is worn on: a point's rest clearance over its rest
-    offset (:func:`~warpskin.character._clearance`), so that ``W`` stays that far above the
-    carrier surface; a point at or under the surface at rest (a hair cap through a bun, a sheet
-    sunk into its neighbour) has floor 1 and is never moved.
-
-    Invariants: with no new pair ``W = P`` exactly (where ``r`` is 1 about a point); every
-    written copy of a welded point gets the same ``s``; ``floor <= s <= r``; over frames of one
-    pose ``r`` only rises where the result stays clear, so the written points settle. Limits:
-    the repair takes the layers towards the body, it does not model the fold; a crossing that
-    remains after ``ROUNDS`` rounds, or at the floor, is left (and counted by the quality
-    measures). How much it took is :attr:`repaired` (mean of ``1 - s`` over the worn points)
-    and :attr:`repaired_max`.
-
-    Args:
-        mesh: The written mesh (its welded topology).
-        worn: ``[K]`` the mesh's own point indices that are worn (a garment's).
-        floor: ``[K]`` the least ``s`` of each, in [0, 1] (``None``: 0).
-        params: :class:`GuardParams` (``recover``; ``enabled`` false: no repair).
-    """
-
-    #: Rounds per frame.
-    ROUNDS = 6
-    #: The share of its offset a worn point of a crossing pair keeps per round.
-    SHRINK = 0.5
-
-    def __init__(self, mesh: WrittenMesh, worn: np.ndarray, floor: np.ndarray | None = None,
-                 params: GuardParams | None = None) -> None:
-        prm = params or GuardParams()
-        self.recover = float(prm.recover)
-        self.mesh = mesh
-        n = mesh.first.size
-        worn = np.asarray(worn, dtype=np.int64)
-        self.worn = worn
-        welded_worn = np.zeros(n, dtype=bool)
-        welded_worn[mesh.weld[worn]] = True
-        #: ``[n]`` the least ``s`` per welded point (the largest over its written copies).
-        self.floor = np.ones(n)
-        self.floor[mesh.weld[worn]] = 0.0
-        f = np.zeros(worn.size) if floor is None else np.clip(np.asarray(floor, dtype=np.float64), 0.0, 1.0)
-        np.maximum.at(self.floor, mesh.weld[worn], f)
-        wt = mesh.welded_triangles
-        self.triangles = wt[welded_worn[wt].all(axis=1)]
-        self.enabled = bool(prm.enabled) and len(self.triangles) > 1
-        self.r = np.ones(n)
-        self.repaired = self.repaired_max = 0.0
-        if not self.enabled:
-            return
-        self.query = PairQuery(self.triangles)
-        # the mean over each welded point and its neighbours on the worn triangles
-        e = np.concatenate([self.triangles[:, [0, 1]], self.triangles[:, [1, 2]], self.triangles[:, [2, 0]]])
-        e = np.concatenate([e, e[:, ::-1], np.repeat(np.unique(self.triangles)[:, None], 2, axis=1)])
-        e = np.unique(e, axis=0)
-        adj = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-        deg = np.asarray(adj.sum(axis=1)).ravel()
-        self._adj, self._deg = adj, np.maximum(deg, 1.0)  # the mean: a sum over a count (exact for ones)
-        self._has = deg > 0
-        ring = (adj > 0).astype(np.int32)
-        self._rings2 = ((ring @ ring) > 0).astype(np.int32).tocsr()  # within two rings
-        count = len(self.triangles)
-        self._count = count
-        self._rest = _keys(self.query.pairs(mesh.welded(mesh.rest)), count)
-
-    def _new(self, pairs: np.ndarray) -> np.ndarray:
-        """The rows of ``pairs`` not crossing at rest."""
-        if pairs.size == 0:
-            return pairs.reshape(0, 2)
-        keys = pairs[:, 0] * self._count + pairs[:, 1]
-        return pairs[~np.isin(keys, self._rest)]
-
-    def share(self, r: np.ndarray) -> np.ndarray:
-        """``[n]`` the written share ``s`` of the raw shares ``r`` (welded points)."""
-        for _ in range(2):
-            r = np.where(self._has, np.minimum(r, (self._adj @ r) / self._deg), r)
-        return np.maximum(r, self.floor)
-
-    def apply(self, points: np.ndarray, carriers: np.ndarray) -> np.ndarray:
-        """The repaired points of one frame, ``[N, 3]`` (``points``: the mesh's written points;
-        ``carriers``: ``[K, 3]`` the carrier point of each of ``worn``, in its order);
-        ``points`` itself where nothing was taken."""
-        self.repaired = self.repaired_max = 0.0
-        if not self.enabled:
-            return points
-        m = self.mesh
-        p = np.asarray(points, dtype=np.float64)
-        welded_worn = m.weld[self.worn]
-        offset = p[self.worn] - np.asarray(carriers, dtype=np.float64)
-        last = self.r
-        r = np.minimum(last + self.recover, 1.0)
-        s = self.share(r)
-        out = p.copy()
-
-        def place() -> np.ndarray:
-            out[self.worn] = carriers + s[welded_worn][:, None] * offset
-            return out[m.first]
-
-        pairs = self._new(self.query.pairs(place()))
-        for _ in range(self.ROUNDS):
-            if pairs.size == 0:
-                break
-            hit = np.zeros(r.size, dtype=bool)
-            hit[self.triangles[pairs.ravel()].ravel()] = True
-            rose = r > last
-            back = rose & ((self._rings2 @ hit.astype(np.int32)) > 0)  # rose near a crossing
-            halve = hit & ((self._rings2 @ back.astype(np.int32)) == 0)  # crossing with no such
-            r = np.where(back, last, np.where(halve, np.maximum(r * self.SHRINK, self.floor), r))
-            before = s
-            s = self.share(r)
-            moved = s != before
-            if not moved.any():
-                break
-            pairs = self._new(self.query.active(place(), moved[self.triangles].any(axis=1)))
-        self.r = r
-        taken = 1.0 - s[np.unique(welded_worn)]
-        self.repaired = float(taken.mean()) if taken.size else 0.0
-        self.repaired_max = float(taken.max()) if taken.size else 0.0
-        if self.repaired_max <= 0.0:
-            return points
-        place()
-        return _as_written(out)

@@ -1,0 +1,23 @@
+"""The guards of what is written, applied per frame after the physics (on the host):
+
+* :class:`SurfaceGuard` (:mod:`warpskin.guard.surface`): every written mesh keeps the surface its
+  LBS has;
+* :class:`CrossGuard` (:mod:`warpskin.guard.cross`): written meshes keep apart as their LBS keeps
+  them;
+* :class:`WornRepair` (:mod:`warpskin.guard.worn`): garments worn over the simulated surface are
+  repaired where they cross;
+* :class:`JumpLimit` (:mod:`warpskin.guard.jump`): no written point's offset from LBS jumps from
+  one frame to the next;
+* :class:`GuardParams` (:mod:`warpskin.guard.params`): their settings, a scene's ``[guard]``.
+
+None of them changes the simulation, only what is written.
+"""
+
+from .cross import CrossGuard
+from .jump import JumpLimit
+from .params import WRITTEN_FLIPPED, WRITTEN_STRAINED, GuardParams
+from .surface import SurfaceGuard
+from .worn import WornRepair
+
+__all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WornRepair", "WRITTEN_STRAINED",
+           "WRITTEN_FLIPPED"]
