@@ -12,6 +12,8 @@ from pxr import Usd, UsdGeom
 
 from oracles import coarse_arm, prim
 from warpskin.kernels import collision as k
+from warpskin.kernels import contact_detection as kd
+from warpskin.kernels import contact_projection as kp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -19,7 +21,7 @@ wp.set_module_options({"enable_backward": False})
 @wp.kernel
 def _edge_edge_eval(p: wp.array(dtype=wp.vec3), sgn: float, h: float, violated_only: int, out_c: wp.array(dtype=float),
                     out_g: wp.array(dtype=wp.vec3)):
-    c, g1, g2, g3, g4 = k.edge_edge_constraint(p[0], p[1], p[2], p[3], sgn, h, violated_only != 0)
+    c, g1, g2, g3, g4 = kp.edge_edge_constraint(p[0], p[1], p[2], p[3], sgn, h, violated_only != 0)
     out_c[0] = c
     out_g[0] = g1
     out_g[1] = g2
@@ -171,19 +173,19 @@ def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h
     params, tree = _contact_scalars(device, n, thickness=h)
     if pt is not None:
         cnt = wp.array([len(pt) if counted is None else counted], dtype=wp.int32, device=device)
-        wp.launch(k.project_point_triangle_kernel, dim=threads,
+        wp.launch(kp.project_point_triangle_kernel, dim=threads,
                   inputs=[x, w, tris, cnt, wp.array([v for v, _ in pt], dtype=wp.int32, device=device),
                           wp.array([t for _, t in pt], dtype=wp.int32, device=device), params, tree, chunk],
                   outputs=[delta, count, active], device=device)
     if ee is not None:
         cnt = wp.array([len(ee) if counted is None else counted], dtype=wp.int32, device=device)
         e = wp.array(np.asarray(edges, dtype=np.int32), dtype=wp.int32, device=device)
-        wp.launch(k.project_edge_edge_kernel, dim=threads,
+        wp.launch(kp.project_edge_edge_kernel, dim=threads,
                   inputs=[x, w, e, cnt, wp.array([a for a, _, _ in ee], dtype=wp.int32, device=device),
                           wp.array([b for _, b, _ in ee], dtype=wp.int32, device=device),
                           wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), params, tree, chunk],
                   outputs=[delta, count, active], device=device)
-    wp.launch(k.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
+    wp.launch(kp.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
     return x.numpy().astype(np.float64), int(active.numpy()[0])
 
 
@@ -256,13 +258,13 @@ def test_contact_kernels_take_the_counted_contacts_in_chunks(device):
         arr = lambda a, dt: wp.array(np.asarray(a), dtype=dt, device=device)  # noqa: E731
         v, dv = arr(v0.astype(np.float32), wp.vec3), wp.zeros(n, dtype=wp.vec3, device=device)
         dv_count = wp.zeros(n, dtype=wp.int32, device=device)
-        wp.launch(k.friction_restitution_kernel, dim=-(-len(pt) // chunk),
+        wp.launch(kp.friction_restitution_kernel, dim=-(-len(pt) // chunk),
                   inputs=[arr(points.astype(np.float32), wp.vec3), v, arr(inv_mass.astype(np.float32), wp.float32),
                           arr(np.asarray(tri, dtype=np.int32), wp.int32), arr([counted], wp.int32),
                           arr([p for p, _ in pt], wp.int32), arr([t for _, t in pt], wp.int32),
                           *_contact_scalars(device, n, friction=0.4, restitution=0.3), chunk],
                   outputs=[dv, dv_count], device=device)
-        wp.launch(k.apply_deltas_kernel, dim=n, inputs=[dv, dv_count], outputs=[v], device=device)
+        wp.launch(kp.apply_deltas_kernel, dim=n, inputs=[dv, dv_count], outputs=[v], device=device)
         return v.numpy()
 
     ref_v = velocities(pt_all[:count], count, 1)
@@ -728,15 +730,15 @@ def _detect_pt(x, tris, fold_cos, h, radius, device):
         tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
         lo = wp.zeros(len(tris), dtype=wp.vec3)
         hi = wp.zeros(len(tris), dtype=wp.vec3)
-        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
+        wp.launch(kd.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
                                                                   wp.zeros(n, dtype=wp.int32)], outputs=[lo, hi])
         bvh = wp.Bvh(lo, hi)
         vn = wp.zeros(n, dtype=wp.vec3)
-        wp.launch(k.vertex_normals_kernel, dim=len(tris), inputs=[xw, tw], outputs=[vn])
+        wp.launch(kd.vertex_normals_kernel, dim=len(tris), inputs=[xw, tw], outputs=[vn])
         count = wp.zeros(1, dtype=wp.int32)
         pv = wp.zeros(256, dtype=wp.int32)
         pt = wp.zeros(256, dtype=wp.int32)
-        wp.launch(k.detect_point_triangle_kernel, dim=n,
+        wp.launch(kd.detect_point_triangle_kernel, dim=n,
                   inputs=[bvh.id, xw, xw, tw, _no_filter(n), wp.array(rest.astype(np.float32), dtype=wp.vec3),
                           100.0, vn, fold_cos, h, radius, 256],
                   outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)])
@@ -787,12 +789,12 @@ def _edge_pairs_detected(points, tris, x_tri, device, h=0.1, radius=0.3):
         xw = wp.array(x, dtype=wp.vec3)
         tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
         lo, hi = wp.zeros(len(tris), dtype=wp.vec3), wp.zeros(len(tris), dtype=wp.vec3)
-        wp.launch(k.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
+        wp.launch(kd.triangle_bounds_kernel, dim=len(tris), inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
                                                                   wp.zeros(n, dtype=wp.int32)], outputs=[lo, hi])
         bvh = wp.Bvh(lo, hi)
         cap = 4 * len(points) * len(tris)
         count, pv, pt = wp.zeros(1, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32), wp.zeros(cap, dtype=wp.int32)
-        wp.launch(k.detect_point_triangle_kernel, dim=n,
+        wp.launch(kd.detect_point_triangle_kernel, dim=n,
                   inputs=[bvh.id, xw, xw, tw, _no_filter(n), xw, 0.0, wp.zeros(n, dtype=wp.vec3), 0.0, h,
                           radius, cap],
                   outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)])
@@ -977,7 +979,7 @@ def test_groups_that_never_collide_are_filtered_and_the_others_are_not(device):
         xw = wp.array(x.astype(np.float32), dtype=wp.vec3)
         tw = wp.array(tris.astype(np.int32), dtype=wp.int32)
         lo, hi = wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3)
-        wp.launch(k.triangle_bounds_kernel, dim=1, inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
+        wp.launch(kd.triangle_bounds_kernel, dim=1, inputs=[xw, xw, tw, wp.array([radius], dtype=wp.float32),
                                                            wp.zeros(4, dtype=wp.int32)], outputs=[lo, hi])
         bvh = wp.Bvh(lo, hi)
 
@@ -989,7 +991,7 @@ def test_groups_that_never_collide_are_filtered_and_the_others_are_not(device):
             f.fail_safe_pairs = wp.zeros((1, 1), dtype=wp.int32)
             count = wp.zeros(1, dtype=wp.int32)
             pv, pt = wp.zeros(8, dtype=wp.int32), wp.zeros(8, dtype=wp.int32)
-            wp.launch(k.detect_point_triangle_kernel, dim=4,
+            wp.launch(kd.detect_point_triangle_kernel, dim=4,
                       inputs=[bvh.id, xw, xw, tw, f, xw, 0.0, wp.zeros(4, dtype=wp.vec3), 0.0, h, radius, 8],
                       outputs=[count, pv, pt, wp.zeros(1, dtype=wp.int32), wp.zeros(4, dtype=wp.int32)])
             return int(count.numpy()[0])

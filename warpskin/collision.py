@@ -1,4 +1,7 @@
-"""Self-collision of the skin layer: the launch wrappers of :mod:`warpskin.kernels.collision`.
+"""Self-collision of the skin layer: the launch wrappers of its kernels (detection,
+:mod:`warpskin.kernels.contact_detection`; projection, friction and restitution,
+:mod:`warpskin.kernels.contact_projection`; the fail-safe, :mod:`warpskin.kernels.fail_safe`;
+what they share, :mod:`warpskin.kernels.collision`).
 
 Only the skin layer collides with itself, as in the paper: the inner layers follow the skin by
 shape matching (their regions contain the skin particles' siblings), so they are kept apart
@@ -30,6 +33,9 @@ import warp as wp
 from .errors import InputError
 from .params import CollisionParams
 from .kernels import collision as k
+from .kernels import contact_detection as kd
+from .kernels import contact_projection as kp
+from .kernels import fail_safe as kf
 
 __all__ = ["CollisionParams", "CollisionTopology", "collision_topology", "upload_collision", "SelfCollision", "skin_edges",
            "mean_edge", "triangle_ownership"]
@@ -316,7 +322,7 @@ class SelfCollision:
             self._fs_lowers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
             self._fs_uppers = wp.zeros(c.output_triangle_count, dtype=wp.vec3)
             self.escaped = wp.zeros(c.output_triangle_count, dtype=wp.int32)
-            wp.launch(k.triangle_bounds_kernel, dim=c.output_triangle_count,
+            wp.launch(kd.triangle_bounds_kernel, dim=c.output_triangle_count,
                       inputs=[model.particle_q0, model.particle_q0, self._fs_tris, thickness_pads, self.vertex_tree],
                       outputs=[self._fs_lowers, self._fs_uppers])
             # one tree per character over its written triangles
@@ -348,18 +354,18 @@ class SelfCollision:
         dev = self.device
         c = self.data
         m = self.model
-        wp.launch(k.reset_collision_kernel, dim=contacts.colliding.shape[0], outputs=[contacts.colliding], device=dev)
-        wp.launch(k.triangle_bounds_kernel, dim=c.triangle_count,
+        wp.launch(kd.reset_collision_kernel, dim=contacts.colliding.shape[0], outputs=[contacts.colliding], device=dev)
+        wp.launch(kd.triangle_bounds_kernel, dim=c.triangle_count,
                   inputs=[x_old, x_pred, m.tri_indices, self._radius_pads, self.vertex_tree],
                   outputs=[self.lowers, self.uppers], device=dev)
         for tree in self.bvhs:
             tree.refit()
         self.vertex_normals.zero_()
-        wp.launch(k.vertex_normals_kernel, dim=c.triangle_count, inputs=[x_pred, m.tri_indices],
+        wp.launch(kd.vertex_normals_kernel, dim=c.triangle_count, inputs=[x_pred, m.tri_indices],
                   outputs=[self.vertex_normals], device=dev)
         # zero the two counters, keep the overflow flag (cleared by the caller after checking)
-        wp.launch(k.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
-        wp.launch(k.detect_kernel, dim=c.triangle_count,
+        wp.launch(kd.zero_counts_kernel, dim=1, outputs=[contacts.counts], device=dev)
+        wp.launch(kd.detect_kernel, dim=c.triangle_count,
                   inputs=[self.trees, self.tri_tree, self.tree_start, x_old, x_pred, m.tri_indices, c.tri_owns, c.edge_indices, c.tri_edges,
                           c.edge_owner, self.lowers, self.uppers, self.filter, m.particle_q0,
                           self.vertex_normals, self.params, contacts.capacity],
@@ -385,15 +391,15 @@ class SelfCollision:
         m = self.model
         contacts.active.zero_()
         dim = self._threads(contacts.capacity)
-        wp.launch(k.project_point_triangle_kernel, dim=dim,
+        wp.launch(kp.project_point_triangle_kernel, dim=dim,
                   inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
                           self.params, self.vertex_tree, self.chunk],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
-        wp.launch(k.project_edge_edge_kernel, dim=dim,
+        wp.launch(kp.project_edge_edge_kernel, dim=dim,
                   inputs=[x, inv_mass, c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
                           self.params, self.vertex_tree, self.chunk],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
-        wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
+        wp.launch(kp.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
     def fail_safe(self, x_old: wp.array, x: wp.array, skin_matrices: wp.array, carry: bool = True,
                   min_move=None, contacts=None) -> None:
@@ -401,7 +407,7 @@ class SelfCollision:
         ``x``, did not at ``x_old`` and does not under LBS (``skin_matrices``, this step's
         pose): to ``x_old`` plus the step's motion of their bone-layer particles, and where
         that still intersects, to ``x_old``; in ``fail_safe_rounds`` rounds (see
-        :func:`warpskin.kernels.collision.new_intersections_kernel`). Adds the pairs found to
+        :func:`warpskin.kernels.fail_safe.new_intersections_kernel`). Adds the pairs found to
         :attr:`fail_safe_pairs`. Pairs that already intersected at ``x_old``, or under LBS,
         are left to the constraints. Without ``carry`` the vertices are held at ``x_old``
         (the pass after the volume loop, whose ``x_old`` is this step's positions before it:
@@ -432,17 +438,17 @@ class SelfCollision:
         # boxes over the step's, the start's and the carried positions (padded by a thousandth of
         # the thickness against float rounding): one refit for all rounds
         tri_threads = self._threads(count)
-        wp.launch(k.fail_safe_bounds_kernel, dim=tri_threads,
+        wp.launch(kf.fail_safe_bounds_kernel, dim=tri_threads,
                   inputs=[x_old, x, tris, carry_offset, self.params, self.vertex_tree, self.chunk],
                   outputs=[lowers, uppers], device=dev)
         for tree in self._fs_bvhs:
             tree.refit()
         if listed:
-            wp.launch(k.escaped_kernel, dim=tri_threads,
+            wp.launch(kf.escaped_kernel, dim=tri_threads,
                       inputs=[x, tris, self.params, self.vertex_tree, self.lowers, self.uppers, contacts.pair_count,
                               contacts.pair_capacity, self.chunk], outputs=[self.escaped], device=dev)
         if min_move is not None:
-            wp.launch(k.moved_farther_kernel, dim=m.vertex_count,
+            wp.launch(kf.moved_farther_kernel, dim=m.vertex_count,
                       inputs=[x_old, x, self._min_move_array(min_move), self.vertex_tree], outputs=[self.moved],
                       device=dev)
         lbs = [m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, skin_matrices]
@@ -450,17 +456,17 @@ class SelfCollision:
             only_moved = int(r > 0 or min_move is not None)
             only_escaped = int(listed and r == 0)
             if only_escaped:
-                wp.launch(k.listed_new_intersections_kernel, dim=self._threads(contacts.pair_capacity),
+                wp.launch(kf.listed_new_intersections_kernel, dim=self._threads(contacts.pair_capacity),
                           inputs=[contacts.tri_pairs, contacts.pair_count, x_old, x, tris, lowers, uppers, 1.0e-4,
                                   self.moved, only_moved, self.escaped, *lbs, self.filter, self.chunk],
                           outputs=[self.revert, self.fail_safe_pairs], device=dev)
             # a round after one that put nothing back is skipped (its kernels return at once)
-            wp.launch(k.new_intersections_kernel, dim=tri_threads,
+            wp.launch(kf.new_intersections_kernel, dim=tri_threads,
                       inputs=[self._fs_trees, self._fs_tri_tree, self._fs_tree_start, x_old, x, tris, self.params,
                               self.vertex_tree, 1.0e-4, self.moved, only_moved, self.escaped,
                               only_escaped, *lbs, self.filter, self.reverted, r - 1, self.chunk],
                       outputs=[self.revert, self.fail_safe_pairs], device=dev)
-            wp.launch(k.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
+            wp.launch(kf.revert_kernel, dim=m.vertex_count, inputs=[x_old, carry_offset, r - 1, r],
                       outputs=[self.revert, self.carried, self.moved, x, self.reverted], device=dev)
 
     def _min_move_array(self, min_move) -> wp.array:
@@ -475,11 +481,11 @@ class SelfCollision:
 
     def pin_reverted(self, weight_scale: wp.array) -> None:
         """Pin (``weight_scale`` 0) the vertices the last :meth:`fail_safe` put back."""
-        wp.launch(k.pin_reverted_kernel, dim=self.model.vertex_count, inputs=[self.carried], outputs=[weight_scale],
+        wp.launch(kf.pin_reverted_kernel, dim=self.model.vertex_count, inputs=[self.carried], outputs=[weight_scale],
                   device=self.device)
 
     def volume_weights(self, contacts, weight_scale: wp.array) -> None:
-        wp.launch(k.volume_weights_kernel, dim=weight_scale.shape[0],
+        wp.launch(kp.volume_weights_kernel, dim=weight_scale.shape[0],
                   inputs=[contacts.colliding, self.params, self.vertex_tree, self.model.vertex_count],
                   outputs=[weight_scale],
                   device=self.device)
@@ -487,8 +493,8 @@ class SelfCollision:
     def friction_restitution(self, x: wp.array, v: wp.array, inv_mass: wp.array, contacts) -> None:
         dev = self.device
         m = self.model
-        wp.launch(k.friction_restitution_kernel, dim=self._threads(contacts.capacity),
+        wp.launch(kp.friction_restitution_kernel, dim=self._threads(contacts.capacity),
                   inputs=[x, v, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
                           self.params, self.vertex_tree, self.chunk],
                   outputs=[self.delta, self.delta_count], device=dev)
-        wp.launch(k.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[v], device=dev)
+        wp.launch(kp.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[v], device=dev)
