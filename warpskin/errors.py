@@ -21,8 +21,10 @@ any other exception         1     a bug: ``warpskin --debug ...`` shows the trac
 
 from __future__ import annotations
 
+import numpy as np
+
 __all__ = ["WarpskinError", "InputError", "RigError", "SceneError", "OutputError", "SimulationError", "RigWarning",
-           "Stopped"]
+           "Stopped", "index_list"]
 
 
 class WarpskinError(Exception):
@@ -70,3 +72,12 @@ class Stopped(BaseException):
 
 class RigWarning(UserWarning):
     """A rig problem that warpskin repaired (for example weights normalised)."""
+
+
+def index_list(idx, limit: int = 8) -> str:
+    """Indices for a message: the first ``limit`` of ``idx`` (any shape, flattened), comma
+    separated, then ``", ... (N in all)"`` where there are more."""
+    idx = np.asarray(idx).ravel()
+    head = ", ".join(str(int(i)) for i in idx[:limit])
+    more = f", ... ({idx.size} in all)" if idx.size > limit else ""
+    return head + more

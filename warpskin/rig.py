@@ -21,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import RigError, RigWarning
+from .animation import Clip, Track, key_rate
+from .errors import RigError, RigWarning, index_list
+from .mesh import mesh_edge_report, weld_by_position
 
 from .transforms import compose_trs, decompose_trs, quat_normalize, quat_slerp
 from .units import PLAUSIBLE, describe, extent, metres_per_unit
@@ -39,197 +41,6 @@ __all__ = [
     "key_rate",
     "Attachment",
 ]
-
-INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
-PATHS = {"translation": 3, "rotation": 4, "scale": 3}
-
-
-def _fmt_indices(idx: np.ndarray, limit: int = 8) -> str:
-    idx = np.asarray(idx).ravel()
-    head = ", ".join(str(int(i)) for i in idx[:limit])
-    more = f", ... ({idx.size} in all)" if idx.size > limit else ""
-    return head + more
-
-
-# --------------------------------------------------------------------------------------------
-# Animation
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Track:
-    """One animated property of one joint: keyframes and how to interpolate between them.
-
-    Attributes:
-        path: ``"translation"`` [m], ``"rotation"`` (quaternion x, y, z, w) or ``"scale"``.
-        times: Key times [s], shape ``[key_count]``, strictly increasing.
-        values: Key values, shape ``[key_count, C]`` for ``LINEAR``/``STEP`` and
-            ``[key_count, 3, C]`` (in-tangent, value, out-tangent) for ``CUBICSPLINE``;
-            ``C`` is 3 or 4.
-        interpolation: ``"LINEAR"`` (rotations slerped), ``"STEP"`` or ``"CUBICSPLINE"``
-            (cubic Hermite, the glTF 2.0 rule; rotations renormalised).
-    """
-
-    path: str
-    times: np.ndarray
-    values: np.ndarray
-    interpolation: str = "LINEAR"
-
-    def __post_init__(self) -> None:
-        if self.path not in PATHS:
-            raise RigError(f"track path {self.path!r} is not one of {sorted(PATHS)}")
-        if self.interpolation not in INTERPOLATIONS:
-            raise RigError(f"interpolation {self.interpolation!r} is not one of {INTERPOLATIONS}")
-        self.times = np.asarray(self.times, dtype=np.float64).ravel()
-        c = PATHS[self.path]
-        values = np.asarray(self.values, dtype=np.float64)
-        k = self.times.size
-        if k == 0:
-            raise RigError(f"{self.path} track has no keys")
-        shape = (k, 3, c) if self.interpolation == "CUBICSPLINE" else (k, c)
-        if values.size != int(np.prod(shape)):
-            raise RigError(
-                f"{self.path} track: {k} key times but {values.size} values; expected shape {shape}"
-            )
-        self.values = values.reshape(shape)
-        if not np.all(np.isfinite(self.times)) or not np.all(np.isfinite(self.values)):
-            raise RigError(f"{self.path} track holds NaN or inf keys")
-        if k > 1 and np.any(np.diff(self.times) <= 0.0):
-            raise RigError(f"{self.path} track key times are not strictly increasing")
-
-    @property
-    def start(self) -> float:
-        return float(self.times[0])
-
-    @property
-    def end(self) -> float:
-        return float(self.times[-1])
-
-    def sample(self, t: float) -> np.ndarray:
-        """Value at time ``t`` [s]; clamped to the first/last key outside the key range."""
-        times, cubic = self.times, self.interpolation == "CUBICSPLINE"
-        vals = self.values[:, 1] if cubic else self.values
-        if t <= times[0] or times.size == 1:
-            out = vals[0].copy()
-        elif t >= times[-1]:
-            out = vals[-1].copy()
-        else:
-            k = int(np.searchsorted(times, t, side="right")) - 1
-            t0, t1 = times[k], times[k + 1]
-            dt = t1 - t0
-            u = (t - t0) / dt
-            if self.interpolation == "STEP":
-                out = vals[k].copy()
-            elif self.interpolation == "LINEAR":
-                if self.path == "rotation":
-                    out = quat_slerp(vals[k], vals[k + 1], u)
-                else:
-                    out = (1.0 - u) * vals[k] + u * vals[k + 1]
-            else:
-                # glTF 2.0 Appendix C: Hermite with tangents scaled by the key interval.
-                p0, m0 = self.values[k, 1], dt * self.values[k, 2]
-                p1, m1 = self.values[k + 1, 1], dt * self.values[k + 1, 0]
-                u2, u3 = u * u, u * u * u
-                out = (
-                    (2 * u3 - 3 * u2 + 1) * p0
-                    + (u3 - 2 * u2 + u) * m0
-                    + (-2 * u3 + 3 * u2) * p1
-                    + (u3 - u2) * m1
-                )
-        if self.path == "rotation":
-            out = quat_normalize(out)
-        return out
-
-
-@dataclass
-class Clip:
-    """A named animation: tracks keyed by ``(joint index, path)``.
-
-    Joints or properties without a track keep the skeleton's rest value.
-    """
-
-    name: str
-    tracks: dict[tuple[int, str], Track] = field(default_factory=dict)
-    #: The source's frame rate [frames/s]: a USD stage's timeCodesPerSecond, the spacing of a
-    #: glTF clip's keys where it is a frame rate (:func:`key_rate`), else ``None``.
-    rate: float | None = None
-    #: Tracks of non-joint nodes above root joints (:attr:`Skeleton.root_chains`), keyed by
-    #: ``(node, path)``: a skeleton nested under animated nodes (RecursiveSkeletons).
-    ancestor_tracks: dict[tuple[int, str], Track] = field(default_factory=dict)
-
-    @property
-    def start(self) -> float:
-        """First key time over all tracks [s] (0 for an empty clip)."""
-        return min((tr.start for tr in self._all_tracks()), default=0.0)
-
-    @property
-    def end(self) -> float:
-        """Last key time over all tracks [s] (0 for an empty clip)."""
-        return max((tr.end for tr in self._all_tracks()), default=0.0)
-
-    def _all_tracks(self):
-        return list(self.tracks.values()) + list(self.ancestor_tracks.values())
-
-    def root_transforms(self, skeleton: Skeleton, t: float) -> np.ndarray:
-        """World transform of every root joint's non-joint ancestors at time ``t``, ``[J, 4, 4]``:
-        the skeleton's static :attr:`~Skeleton.root_transform`, with every chain that holds an
-        animated node evaluated node by node at ``t`` (glTF: a node's world transform is its
-        parent's times its own local one)."""
-        root = skeleton.root_transform
-        if not self.ancestor_tracks or not skeleton.root_chains:
-            return root
-        root = root.copy()
-        for j, chain in skeleton.root_chains.items():
-            if not any((node, p) in self.ancestor_tracks for node, _ in chain for p in PATHS):
-                continue
-            m = np.eye(4)
-            for node, rest in chain:
-                keyed = [p for p in PATHS if (node, p) in self.ancestor_tracks]
-                if keyed:
-                    trs = list(decompose_trs(rest))
-                    for p in keyed:
-                        trs[list(PATHS).index(p)] = self.ancestor_tracks[(node, p)].sample(t)
-                    rest = compose_trs(*trs)
-                m = m @ rest
-            root[j] = m
-        return root
-
-    @property
-    def duration(self) -> float:
-        return self.end - self.start
-
-    def sample_local_trs(self, skeleton: Skeleton, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Local translation ``[J, 3]``, rotation ``[J, 4]`` and scale ``[J, 3]`` at time ``t``."""
-        tr = skeleton.rest_translation.copy()
-        rot = skeleton.rest_rotation.copy()
-        sc = skeleton.rest_scale.copy()
-        for (j, path), track in self.tracks.items():
-            value = track.sample(t)
-            if path == "translation":
-                tr[j] = value
-            elif path == "rotation":
-                rot[j] = value
-            else:
-                sc[j] = value
-        return tr, rot, sc
-
-
-def key_rate(times: np.ndarray, *, lowest: float = 12.0, highest: float = 240.0, tolerance: float = 1e-3) -> float | None:
-    """The frame rate a clip's key times were sampled at, where one is evident: the inverse
-    of the median spacing, rounded to a whole rate in ``[lowest, highest]`` frames/s, with
-    every key within ``tolerance`` frames of that grid. ``None`` for sparse or irregular keys
-    (RiggedFigure's two keys 1.25 s apart), so that the caller falls back to a default."""
-    t = np.unique(np.asarray(times, dtype=np.float64))
-    if t.size < 3:
-        return None
-    spacing = float(np.median(np.diff(t)))
-    if spacing <= 0:
-        return None
-    rate = round(1.0 / spacing)
-    if not (lowest <= rate <= highest) or abs(rate * spacing - 1.0) > 1e-2:
-        return None
-    off_grid = np.abs(t * rate - np.round(t * rate))
-    return float(rate) if float(off_grid.max()) <= tolerance else None
 
 
 @dataclass
@@ -390,72 +201,6 @@ class Skeleton:
 
 
 # --------------------------------------------------------------------------------------------
-# Mesh helpers
-# --------------------------------------------------------------------------------------------
-
-
-def weld_by_position(points: np.ndarray, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices that share a position (glTF splits them at UV/normal seams).
-
-    Args:
-        points: File vertex positions, ``[N, 3]``.
-        tolerance: Positions closer than this (per axis, after quantisation) merge. 0 merges
-            exactly equal positions only.
-
-    Returns:
-        ``(first, weld_map)``: ``first[k]`` is the file index of the first vertex of welded
-        vertex ``k`` (``[V]``, in order of first appearance); ``weld_map[i]`` is the welded index
-        of file vertex ``i`` (``[N]``).
-    """
-    p = np.asarray(points, dtype=np.float64)
-    key = np.round(p / tolerance).astype(np.int64) if tolerance > 0.0 else p
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.ravel()
-    # renumber by first appearance so a mesh without seams keeps its vertex order
-    order = np.argsort(first, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    return first[order], rank[inverse]
-
-
-def mesh_edge_report(triangles: np.ndarray, vertex_count: int) -> dict:
-    """Closedness and manifoldness of a triangle mesh.
-
-    Returns a dict with ``boundary_edges`` ``[E, 2]`` (edges used by one triangle),
-    ``nonmanifold_edges`` (used by more than two), ``inconsistent_edges`` (two triangles that
-    traverse the edge in the same direction: flipped winding), ``nonmanifold_vertices`` (whose
-    triangle fan is not a single disc), ``unused_vertices``, ``closed`` and ``manifold``.
-    """
-    tri = np.asarray(triangles, dtype=np.int64)
-    directed = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    undirected = np.sort(directed, axis=1)
-    uniq, counts = np.unique(undirected, axis=0, return_counts=True)
-    boundary = uniq[counts == 1]
-    nonmanifold = uniq[counts > 2]
-    # winding: for an edge shared by two triangles, the directed copies must be opposite
-    dir_uniq, dir_counts = np.unique(directed, axis=0, return_counts=True)
-    inconsistent = np.unique(np.sort(dir_uniq[dir_counts > 1], axis=1), axis=0)
-    used = np.zeros(vertex_count, dtype=bool)
-    used[tri.ravel()] = True
-    # vertex manifoldness: around an interior vertex, #incident edges == #incident triangles
-    # (a single closed fan); a boundary vertex has one more edge than triangles.
-    edge_deg = np.bincount(uniq.ravel(), minlength=vertex_count)
-    tri_deg = np.bincount(tri.ravel(), minlength=vertex_count)
-    bnd_deg = np.bincount(boundary.ravel(), minlength=vertex_count)
-    expected = tri_deg + bnd_deg // 2
-    bad_vertices = np.nonzero(used & (edge_deg != expected))[0]
-    return {
-        "boundary_edges": boundary,
-        "nonmanifold_edges": nonmanifold,
-        "inconsistent_edges": inconsistent,
-        "nonmanifold_vertices": bad_vertices,
-        "unused_vertices": np.nonzero(~used)[0],
-        "closed": boundary.shape[0] == 0 and nonmanifold.shape[0] == 0,
-        "manifold": nonmanifold.shape[0] == 0 and inconsistent.shape[0] == 0 and bad_vertices.size == 0,
-    }
-
-
-# --------------------------------------------------------------------------------------------
 # Rig
 # --------------------------------------------------------------------------------------------
 
@@ -588,13 +333,13 @@ class Rig:
         if triangles.size and (triangles.min() < 0 or triangles.max() >= n):
             bad = np.nonzero((triangles < 0).any(1) | (triangles >= n).any(1))[0]
             raise RigError(
-                f"{source or name}: triangles {_fmt_indices(bad)} index vertices outside [0, {n - 1}]"
+                f"{source or name}: triangles {index_list(bad)} index vertices outside [0, {n - 1}]"
             )
         if weld and n:
             finite = np.all(np.isfinite(points), axis=1)
             if not finite.all():
                 bad = np.nonzero(~finite)[0]
-                raise RigError(f"{source or name}: vertices {_fmt_indices(bad)} have NaN or inf positions")
+                raise RigError(f"{source or name}: vertices {index_list(bad)} have NaN or inf positions")
             first, wmap = weld_by_position(points, weld_tolerance)
         else:
             first, wmap = np.arange(n), np.arange(n)
@@ -605,7 +350,7 @@ class Rig:
             w = jw[dropped]
             bad = dropped[~np.all(np.isfinite(w), axis=1) | (w < 0).any(axis=1) | ~(w.sum(axis=1) > 1e-12)]
             if bad.size:
-                raise RigError(f"{source or name}: file vertices {_fmt_indices(bad)} (welded into others) have NaN, inf, "
+                raise RigError(f"{source or name}: file vertices {index_list(bad)} (welded into others) have NaN, inf, "
                                "negative or all-zero joint weights")
         rig = cls(
             name=name,
@@ -634,7 +379,7 @@ class Rig:
             if split.size:
                 rig._warn(
                     f"{split.size} file vertices share a position with a vertex of different "
-                    f"weights (file vertices {_fmt_indices(split)}); the welded vertex keeps the "
+                    f"weights (file vertices {index_list(split)}); the welded vertex keeps the "
                     "weights of the first"
                 )
         if validate:
@@ -829,10 +574,10 @@ class Rig:
             return self._finish(rep, raise_on_error)
         bad = np.nonzero(~np.all(np.isfinite(v), axis=1))[0]
         if bad.size:
-            errors.append(f"vertices {_fmt_indices(bad)} have NaN or inf positions")
+            errors.append(f"vertices {index_list(bad)} have NaN or inf positions")
         if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= v.shape[0]):
             badt = np.nonzero((self.triangles < 0).any(1) | (self.triangles >= v.shape[0]).any(1))[0]
-            errors.append(f"triangles {_fmt_indices(badt)} index vertices outside [0, {v.shape[0] - 1}]")
+            errors.append(f"triangles {index_list(badt)} index vertices outside [0, {v.shape[0] - 1}]")
             return self._finish(rep, raise_on_error)
         if self.inverse_bind.shape != (j, 4, 4):
             errors.append(
@@ -865,7 +610,7 @@ class Rig:
             return self._finish(rep, raise_on_error)
         badw = np.nonzero(~np.all(np.isfinite(jw), axis=1))[0]
         if badw.size:
-            errors.append(f"vertices {_fmt_indices(badw)} have NaN or inf weights")
+            errors.append(f"vertices {index_list(badw)} have NaN or inf weights")
             return self._finish(rep, raise_on_error)
         used = jw != 0.0
         oob = used & ((ji < 0) | (ji >= j))
@@ -873,16 +618,16 @@ class Rig:
             rows = np.nonzero(oob.any(axis=1))[0]
             vals = np.unique(ji[oob])
             errors.append(
-                f"vertices {_fmt_indices(rows)} reference joint indices {_fmt_indices(vals)}, "
+                f"vertices {index_list(rows)} reference joint indices {index_list(vals)}, "
                 f"outside [0, {j - 1}] (the skeleton has {j} joints)"
             )
         neg = np.nonzero((jw < 0.0).any(axis=1))[0]
         if neg.size:
-            errors.append(f"vertices {_fmt_indices(neg)} have negative weights")
+            errors.append(f"vertices {index_list(neg)} have negative weights")
         sums = jw.sum(axis=1)
         zero = np.nonzero(sums <= 1e-12)[0]
         if zero.size:
-            errors.append(f"vertices {_fmt_indices(zero)} have no weight (all weights are zero)")
+            errors.append(f"vertices {index_list(zero)} have no weight (all weights are zero)")
         if not errors:
             off = np.abs(sums - 1.0)
             if off.max() > 1e-6:
@@ -924,7 +669,7 @@ class Rig:
             degenerate = np.nonzero(repeated | (area2 <= 1e-12 * scale * scale))[0]
             rep.degenerate_triangles = degenerate
             if degenerate.size:
-                rep.warnings.append(f"degenerate (zero-area) triangles {_fmt_indices(degenerate)}")
+                rep.warnings.append(f"degenerate (zero-area) triangles {index_list(degenerate)}")
             edges = mesh_edge_report(t, v.shape[0])
             rep.closed = bool(edges["closed"])
             rep.manifold = bool(edges["manifold"])
@@ -971,7 +716,7 @@ class Rig:
                 + ", ".join(f"{a}-{b}" for a, b in e["inconsistent_edges"][:4])
             )
         if e["nonmanifold_vertices"].size:
-            problems.append(f"non-manifold vertices {_fmt_indices(e['nonmanifold_vertices'])}")
+            problems.append(f"non-manifold vertices {index_list(e['nonmanifold_vertices'])}")
         if problems:
             raise RigError(f"{where}: mesh {self.mesh_name!r} is not a closed manifold surface: " + "; ".join(problems))
 

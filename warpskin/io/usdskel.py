@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from ..rig import Clip, Rig, RigError, RigWarning, Skeleton, Track, _fmt_indices
+from ..errors import index_list
+from ..rig import Clip, Rig, RigError, RigWarning, Skeleton, Track
 from .render import Material, RenderAttributes, read_asset_bytes
 
 __all__ = ["load_usd", "list_usd_meshes", "USD_EXTENSIONS"]
@@ -372,7 +373,7 @@ def _read_mesh(pxr: Any, tg: _Target, where: _Where, t0: Any) -> tuple[np.ndarra
     n = points.shape[0]
     bad = np.nonzero(~np.all(np.isfinite(points), axis=1))[0]
     if bad.size:
-        raise where.error(f"points {_fmt_indices(bad)} are NaN or inf")
+        raise where.error(f"points {index_list(bad)} are NaN or inf")
     counts, indices, holes = _face_counts(pxr, tg.prim, t0)
     if counts.size == 0:
         raise where.error("has no faces (faceVertexCounts is empty)")
@@ -384,13 +385,13 @@ def _read_mesh(pxr: Any, tg: _Target, where: _Where, t0: Any) -> tuple[np.ndarra
     oob = np.nonzero((indices < 0) | (indices >= n))[0]
     if oob.size:
         raise where.error(
-            f"faceVertexIndices entries {_fmt_indices(oob)} are outside [0, {n - 1}] "
-            f"(values {_fmt_indices(np.unique(indices[oob]))})"
+            f"faceVertexIndices entries {index_list(oob)} are outside [0, {n - 1}] "
+            f"(values {index_list(np.unique(indices[oob]))})"
         )
     tri, skipped = triangulate_faces(counts, indices, holes)
     corners, _ = triangulate_faces(counts, np.arange(indices.size), holes)
     if skipped.size:
-        where.warn(f"faces {_fmt_indices(skipped)} have fewer than 3 vertices; skipped")
+        where.warn(f"faces {index_list(skipped)} have fewer than 3 vertices; skipped")
     if tri.shape[0] == 0:
         raise where.error("has no polygon with 3 or more vertices")
     if mesh.GetOrientationAttr().Get(t0) == pxr.UsdGeom.Tokens.leftHanded:
@@ -560,20 +561,20 @@ def _read_influences(
     order = list(mesh_joints) if mesh_joints else list(skel_joints)
     bad_w = np.nonzero(~np.all(np.isfinite(jw), axis=1))[0]
     if bad_w.size:
-        raise where.error(f"vertices {_fmt_indices(bad_w)} have NaN or inf joint weights")
+        raise where.error(f"vertices {index_list(bad_w)} have NaN or inf joint weights")
     neg = np.nonzero((jw < 0.0).any(axis=1))[0]
     if neg.size:
-        raise where.error(f"vertices {_fmt_indices(neg)} have negative joint weights")
+        raise where.error(f"vertices {index_list(neg)} have negative joint weights")
     zero = np.nonzero(jw.sum(axis=1) <= 1e-12)[0]
     if zero.size:
-        raise where.error(f"vertices {_fmt_indices(zero)} have no joint weight (all weights are zero)")
+        raise where.error(f"vertices {index_list(zero)} have no joint weight (all weights are zero)")
     used = jw != 0.0
     oob = used & ((ji < 0) | (ji >= len(order)))
     if oob.any():
         rows = np.nonzero(oob.any(axis=1))[0]
         src = "skel:joints" if mesh_joints else "the skeleton's joints"
         raise where.error(
-            f"vertices {_fmt_indices(rows)} use joint indices {_fmt_indices(np.unique(ji[oob]))}, outside "
+            f"vertices {index_list(rows)} use joint indices {index_list(np.unique(ji[oob]))}, outside "
             f"[0, {len(order) - 1}] ({src} has {len(order)} entries)"
         )
     ji = np.where(used, ji, 0)

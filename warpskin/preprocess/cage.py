@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..mesh import mesh_edge_report
 from ..rig import RigError
 
 __all__ = ["Cage", "closest_faces", "build_cage", "separable_parts", "character_parts", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
@@ -145,7 +146,6 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
 
     f = flip_flat_edges(v, f)
     timings["clean_up"] = time.perf_counter() - t0
-    from ..rig import mesh_edge_report
 
     rep = mesh_edge_report(f, v.shape[0])
     if not (rep["closed"] and rep["manifold"]):
@@ -172,7 +172,6 @@ def cage_from_mesh(mesh, rig, *, device=None, min_inside: float = 0.5, soup: Cha
     from ..errors import RigWarning
     from ..kernels import cage as k_cage
     from ..metrics import signed_volume
-    from ..rig import mesh_edge_report
 
     t0 = time.perf_counter()
     src = mesh.source

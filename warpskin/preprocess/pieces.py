@@ -41,6 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..mesh import mesh_edge_report
+
 __all__ = ["PieceSurface", "SurfaceGroups", "piece_surface", "cap_loop", "boundary_loops", "PieceParams"]
 
 
@@ -463,7 +465,6 @@ def _close(local: _Local, prm: PieceParams) -> tuple[bool, dict]:
         if made and _caps_cross(pts, tris, len(local.triangles)):
             made = None
             continue
-        from ..rig import mesh_edge_report
 
         rep = mesh_edge_report(tris, len(pts))
         if not (rep["closed"] and rep["manifold"]):  # a strip's diagonal that the piece has already
@@ -517,7 +518,6 @@ def _decimated(local: _Local, target: int, prm: PieceParams, device, unit: float
     exactly alike where its sizes differ by a power of two."""
     import fast_simplification
 
-    from ..rig import mesh_edge_report
 
     f = local.triangles
     goal = int(round(len(f) * target / max(len(local.points), 1)))

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import SceneError
 from ..io.render import smoothing_groups
+from ..mesh import weld_by_position
 from ..transforms import linear_blend_skin
 
 __all__ = ["CharacterOutput", "TOPOLOGIES", "rest_pose_points", "attachment_kwargs"]
@@ -36,7 +37,6 @@ def rest_pose_points(rig) -> np.ndarray:
 def attachment_kwargs(attachment) -> dict:
     """How an attachment is declared (:meth:`CharacterOutput.declare`): smoothing groups over
     its own seams, and its render attributes."""
-    from ..rig import weld_by_position
 
     render = attachment.render
     kw = {"normal_groups": smoothing_groups(weld_by_position(attachment.vertices)[1],

@@ -6,7 +6,8 @@ import warnings
 
 import numpy as np
 
-from ...rig import PATHS, Clip, RigError, RigWarning, Skeleton, Track, key_rate
+from ...animation import PATHS, Clip, Track, key_rate
+from ...rig import RigError, RigWarning, Skeleton
 from ...transforms import compose_trs, decompose_trs, quat_multiply
 from .document import _Document
 

@@ -1,0 +1,69 @@
+"""Mesh topology helpers on the host (NumPy): welding the copies a file splits at seams, and the
+closedness and manifoldness of a triangle mesh. Indices are int64; positions float64."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["weld_by_position", "mesh_edge_report"]
+
+
+def weld_by_position(points: np.ndarray, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Merge vertices that share a position (glTF splits them at UV/normal seams).
+
+    Args:
+        points: File vertex positions, ``[N, 3]``.
+        tolerance: Positions closer than this (per axis, after quantisation) merge. 0 merges
+            exactly equal positions only.
+
+    Returns:
+        ``(first, weld_map)``: ``first[k]`` is the file index of the first vertex of welded
+        vertex ``k`` (``[V]``, in order of first appearance); ``weld_map[i]`` is the welded index
+        of file vertex ``i`` (``[N]``).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    key = np.round(p / tolerance).astype(np.int64) if tolerance > 0.0 else p
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    # renumber by first appearance so a mesh without seams keeps its vertex order
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return first[order], rank[inverse]
+
+
+def mesh_edge_report(triangles: np.ndarray, vertex_count: int) -> dict:
+    """Closedness and manifoldness of a triangle mesh.
+
+    Returns a dict with ``boundary_edges`` ``[E, 2]`` (edges used by one triangle),
+    ``nonmanifold_edges`` (used by more than two), ``inconsistent_edges`` (two triangles that
+    traverse the edge in the same direction: flipped winding), ``nonmanifold_vertices`` (whose
+    triangle fan is not a single disc), ``unused_vertices``, ``closed`` and ``manifold``.
+    """
+    tri = np.asarray(triangles, dtype=np.int64)
+    directed = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    undirected = np.sort(directed, axis=1)
+    uniq, counts = np.unique(undirected, axis=0, return_counts=True)
+    boundary = uniq[counts == 1]
+    nonmanifold = uniq[counts > 2]
+    # winding: for an edge shared by two triangles, the directed copies must be opposite
+    dir_uniq, dir_counts = np.unique(directed, axis=0, return_counts=True)
+    inconsistent = np.unique(np.sort(dir_uniq[dir_counts > 1], axis=1), axis=0)
+    used = np.zeros(vertex_count, dtype=bool)
+    used[tri.ravel()] = True
+    # vertex manifoldness: around an interior vertex, #incident edges == #incident triangles
+    # (a single closed fan); a boundary vertex has one more edge than triangles.
+    edge_deg = np.bincount(uniq.ravel(), minlength=vertex_count)
+    tri_deg = np.bincount(tri.ravel(), minlength=vertex_count)
+    bnd_deg = np.bincount(boundary.ravel(), minlength=vertex_count)
+    expected = tri_deg + bnd_deg // 2
+    bad_vertices = np.nonzero(used & (edge_deg != expected))[0]
+    return {
+        "boundary_edges": boundary,
+        "nonmanifold_edges": nonmanifold,
+        "inconsistent_edges": inconsistent,
+        "nonmanifold_vertices": bad_vertices,
+        "unused_vertices": np.nonzero(~used)[0],
+        "closed": boundary.shape[0] == 0 and nonmanifold.shape[0] == 0,
+        "manifold": nonmanifold.shape[0] == 0 and inconsistent.shape[0] == 0 and bad_vertices.size == 0,
+    }
