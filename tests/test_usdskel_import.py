@@ -15,7 +15,8 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: E402
 
 from oracles import rig_lbs, usd_skinned_world
 from warpskin.io import usdskel  # noqa: E402
-from warpskin.io.usdskel import list_usd_meshes, load_usd, triangulate_faces  # noqa: E402
+from warpskin.io.usdskel import list_usd_meshes, load_usd  # noqa: E402
+from warpskin.mesh import triangulate_faces  # noqa: E402
 from warpskin.rig import Rig, RigError, RigWarning  # noqa: E402
 
 ASSET_TIMES = (1.0, 10.5, 24.0, 37.25, 48.0)

@@ -1,11 +1,12 @@
-"""Mesh topology helpers on the host (NumPy): welding the copies a file splits at seams, and the
-closedness and manifoldness of a triangle mesh. Indices are int64; positions float64."""
+"""Mesh topology helpers on the host (NumPy): welding the copies a file splits at seams, the
+closedness and manifoldness of a triangle mesh, and polygons fanned into triangles. Indices are
+int64; positions float64."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["weld_by_position", "mesh_edge_report"]
+__all__ = ["weld_by_position", "mesh_edge_report", "triangulate_faces", "polygon_triangle_count"]
 
 
 def weld_by_position(points: np.ndarray, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -67,3 +68,48 @@ def mesh_edge_report(triangles: np.ndarray, vertex_count: int) -> dict:
         "closed": boundary.shape[0] == 0 and nonmanifold.shape[0] == 0,
         "manifold": nonmanifold.shape[0] == 0 and inconsistent.shape[0] == 0 and bad_vertices.size == 0,
     }
+
+
+def polygon_triangle_count(counts: np.ndarray, holes: np.ndarray) -> int:
+    """How many triangles :func:`triangulate_faces` makes of polygons with ``counts`` vertices
+    (``[F]``), skipping the faces ``holes`` (``[H]``) and those with fewer than three vertices."""
+    keep = counts >= 3
+    if holes.size:
+        ok = holes[(holes >= 0) & (holes < counts.size)]
+        keep[ok] = False
+    return int((counts[keep] - 2).sum())
+
+
+def triangulate_faces(
+    counts: np.ndarray, indices: np.ndarray, holes: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fan-triangulate polygons ``(v0, v1, ..., vn-1)`` into ``(v0, vk, vk+1)``.
+
+    Args:
+        counts: ``faceVertexCounts``, ``[F]``.
+        indices: ``faceVertexIndices``, ``[sum(counts)]``.
+        holes: ``holeIndices`` (faces to skip), ``[H]``.
+
+    Returns:
+        ``(triangles [T, 3], skipped)``: the triangles, in the faces' own winding, and the
+        indices of faces with fewer than three vertices (dropped).
+    """
+    counts = np.asarray(counts, dtype=np.int64).ravel()
+    indices = np.asarray(indices, dtype=np.int64).ravel()
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]) if counts.size else counts
+    keep = counts >= 3
+    skipped = np.nonzero(~keep)[0]
+    if holes is not None and np.size(holes):
+        h = np.asarray(holes, dtype=np.int64).ravel()
+        keep[h[(h >= 0) & (h < counts.size)]] = False
+    faces = np.nonzero(keep)[0]
+    per_face = counts[faces] - 2
+    total = int(per_face.sum())
+    if total == 0:
+        return np.zeros((0, 3), dtype=np.int64), skipped
+    face_of_tri = np.repeat(faces, per_face)
+    first_tri = np.repeat(np.cumsum(per_face) - per_face, per_face)
+    k = np.arange(total) - first_tri
+    base = offsets[face_of_tri]
+    tri = np.stack([indices[base], indices[base + k + 1], indices[base + k + 2]], axis=1)
+    return tri, skipped

@@ -27,6 +27,7 @@ __all__ = [
     "blend_skinning_matrices",
     "linear_blend_skin",
     "rigid_fit",
+    "local_from_bind",
 ]
 
 
@@ -185,3 +186,13 @@ def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sign = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
     r = vt.T @ np.diag([1.0, 1.0, sign]) @ u.T
     return r, cb - r @ ca
+
+
+def local_from_bind(bind: np.ndarray, parents: np.ndarray) -> np.ndarray:
+    """Local transforms ``[J, 4, 4]`` from skeleton-space ones ``bind`` ``[J, 4, 4]`` (``parents``
+    ``[J]``, -1 for a root): ``inv(bind[parent]) @ bind[j]``, a root's its own."""
+    local = bind.copy()
+    child = np.nonzero(parents >= 0)[0]
+    if child.size:
+        local[child] = np.linalg.inv(bind[parents[child]]) @ bind[child]
+    return local

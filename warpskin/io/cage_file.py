@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import RigError
+from ..mesh import triangulate_faces
 
 __all__ = ["CAGE_EXTENSIONS", "CageMesh", "read_cage_mesh"]
 
@@ -99,7 +100,6 @@ def _read_gltf(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
 def _read_usd(path: Path) -> tuple[np.ndarray, np.ndarray, int, str]:
     from pxr import Usd, UsdGeom
 
-    from .usdskel import triangulate_faces
 
     stage = Usd.Stage.Open(str(path))
     if stage is None:

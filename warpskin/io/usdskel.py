@@ -30,7 +30,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import index_list
+from ..mesh import polygon_triangle_count, triangulate_faces
 from ..rig import Clip, Rig, RigError, RigWarning, Skeleton, Track
+from ..transforms import local_from_bind
 from .render import Material, RenderAttributes, read_asset_bytes
 
 __all__ = ["load_usd", "list_usd_meshes", "USD_EXTENSIONS"]
@@ -196,7 +198,7 @@ def list_usd_meshes(path: str | Path) -> list[dict]:
                 "name": str(tg.prim.GetPath()),
                 "skinned": True,
                 "vertices": _point_count(pxr, tg.prim, t0),
-                "triangles": _triangle_count(counts, holes),
+                "triangles": polygon_triangle_count(counts, holes),
                 "joints": len(tg.skel_query.GetJointOrder()) if tg.skel_query else 0,
                 "skeleton": str(tg.skeleton.GetPrim().GetPath()),
                 "animation": _anim_path(tg),
@@ -210,7 +212,7 @@ def list_usd_meshes(path: str | Path) -> list[dict]:
                 "name": str(prim.GetPath()),
                 "skinned": False,
                 "vertices": _point_count(pxr, prim, t0),
-                "triangles": _triangle_count(counts, holes),
+                "triangles": polygon_triangle_count(counts, holes),
                 "joints": 0,
                 "skeleton": None,
                 "animation": None,
@@ -218,54 +220,6 @@ def list_usd_meshes(path: str | Path) -> list[dict]:
             }
         )
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# Topology
-# --------------------------------------------------------------------------------------------
-
-
-def _triangle_count(counts: np.ndarray, holes: np.ndarray) -> int:
-    keep = counts >= 3
-    if holes.size:
-        ok = holes[(holes >= 0) & (holes < counts.size)]
-        keep[ok] = False
-    return int((counts[keep] - 2).sum())
-
-
-def triangulate_faces(
-    counts: np.ndarray, indices: np.ndarray, holes: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fan-triangulate polygons ``(v0, v1, ..., vn-1)`` into ``(v0, vk, vk+1)``.
-
-    Args:
-        counts: ``faceVertexCounts``, ``[F]``.
-        indices: ``faceVertexIndices``, ``[sum(counts)]``.
-        holes: ``holeIndices`` (faces to skip), ``[H]``.
-
-    Returns:
-        ``(triangles [T, 3], skipped)``: the triangles, in the faces' own winding, and the
-        indices of faces with fewer than three vertices (dropped).
-    """
-    counts = np.asarray(counts, dtype=np.int64).ravel()
-    indices = np.asarray(indices, dtype=np.int64).ravel()
-    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]) if counts.size else counts
-    keep = counts >= 3
-    skipped = np.nonzero(~keep)[0]
-    if holes is not None and np.size(holes):
-        h = np.asarray(holes, dtype=np.int64).ravel()
-        keep[h[(h >= 0) & (h < counts.size)]] = False
-    faces = np.nonzero(keep)[0]
-    per_face = counts[faces] - 2
-    total = int(per_face.sum())
-    if total == 0:
-        return np.zeros((0, 3), dtype=np.int64), skipped
-    face_of_tri = np.repeat(faces, per_face)
-    first_tri = np.repeat(np.cumsum(per_face) - per_face, per_face)
-    k = np.arange(total) - first_tri
-    base = offsets[face_of_tri]
-    tri = np.stack([indices[base], indices[base + k + 1], indices[base + k + 2]], axis=1)
-    return tri, skipped
 
 
 # --------------------------------------------------------------------------------------------
@@ -293,15 +247,6 @@ def _quats_xyzw(pxr: Any, arr: Any) -> np.ndarray:
     return np.array(  # pragma: no cover - older Vt without the (imaginary, real) buffer layout
         [(*q.GetImaginary(), q.GetReal()) for q in arr], dtype=np.float64
     ).reshape(-1, 4)
-
-
-def _local_from_bind(bind: np.ndarray, parents: np.ndarray) -> np.ndarray:
-    """Local rest transforms from skeleton-space bind transforms, ``[J, 4, 4]``."""
-    local = bind.copy()
-    child = np.nonzero(parents >= 0)[0]
-    if child.size:
-        local[child] = np.linalg.inv(bind[parents[child]]) @ bind[child]
-    return local
 
 
 class _Where:
@@ -637,7 +582,7 @@ def _read_skeleton(pxr: Any, tg: _Target, where: _Where, t0: Any) -> tuple[Skele
                 f"skeleton <{sk_path}> has {len(rest_raw)} restTransforms for {j} joints; "
                 "using the rest pose implied by bindTransforms"
             )
-        rest_local = _local_from_bind(bind, parents)
+        rest_local = local_from_bind(bind, parents)
     xformable = pxr.UsdGeom.Xformable(sk_prim)
     root = np.array(xformable.ComputeLocalToWorldTransform(t0), dtype=np.float64).T
     if _xform_might_vary(pxr, sk_prim):
