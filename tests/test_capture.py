@@ -362,7 +362,7 @@ def test_joint_points_are_where_pieces_meet_as_brute_force_finds():
     # three dense strips (triangles of their own), two of them one rigid group: a point is a joint
     # point where a point of another piece (not its own strip, not its own group) lies within 2 %
     # of the diagonal; checked against all pairs, with pieces denser than the first search's 32
-    from warpskin.character import joint_points
+    from warpskin.deformer import joint_points
 
     rng = np.random.default_rng(3)
     strips, tris = [], []
