@@ -10,6 +10,8 @@ have (nothing is written to the repo):
   that no importer welds them back), with a rounded shoe around each
   foot (a mesh of its own, bending at the toe) and a fist block on each hand (a mesh of its own
   on the hand joint).
+* :func:`pressed_arm`: the coarse procedural arm's skin at LBS 150 degrees, the forearm pressed
+  into the upper arm, with one detection run on it (the contacts and fail-safe tests' scene).
 """
 
 from __future__ import annotations
@@ -111,3 +113,24 @@ def cut_cesium_man(assets: Path):
                                       np.ones((len(fist_v), 1)), np.asarray(src.inverse_bind).copy()))
     rig.attachments = attachments
     return rig
+
+
+def pressed_arm(device, capacity: int, pair_capacity: int | None = None):
+    """The coarse arm's skin at LBS 150 degrees (forearm pressed into the upper arm): the
+    rig, the detection, its contacts and the two states it ran on."""
+    from oracles import coarse_arm
+
+    from warpskin.collision import SelfCollision
+    from warpskin.model import ModelParams, SkinModelBuilder
+    from warpskin.run import initial_state
+
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig, ModelParams(volume=False))
+    model = builder.finalize(device)
+    col = SelfCollision(model)
+    contacts = model.contacts(capacity, pair_capacity)
+    a, b = model.state(), model.state()
+    initial_state(builder, a, rig.skinning_matrices("flex", 1.2))
+    initial_state(builder, b, rig.skinning_matrices("flex", 1.5))
+    col.detect(a.x, b.x, contacts)
+    return rig, col, contacts, a, b
