@@ -174,6 +174,27 @@ def test_a_caged_bake_with_its_guides_imports_into_blender(tmp_path, assets):
         assert np.all((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])), name
 
 
+def test_render_captions_give_the_offset_as_a_share_of_the_height(tmp_path):
+    # the caption's offset is a share of the character's height, so a file in centimetres (the
+    # Fox: 155 units tall, offsets of a few units) reads as one in metres does; the height is
+    # the largest extent of the physical meshes' rest points, found from the bake itself
+    from warpskin.render import _captions, _height, bake_pairs
+
+    series = {"fox": {"strained": [0.0, 0.01], "strained_lbs": [0.0, 0.02], "flipped": [0.0, 0.003],
+                      "offset": [0.0, 5.479]}}
+    caps = _captions("fox", 1.0, 1, series, True, 155.0)
+    assert caps[0][1].endswith(f"offset {100 * 5.479 / 155.0:.1f} % of the height")
+    small = {"fox": dict(series["fox"], offset=[0.0, 0.05479])}
+    assert _captions("fox", 1.0, 1, small, True, 1.55) == caps
+
+    bake = tmp_path / "arm.usdc"
+    assert main(["simulate", "arm", "-o", str(bake), "--frames", "0:1", "--lbs", "--quiet"]) == 0
+    stage = Usd.Stage.Open(str(bake))
+    (pair,) = bake_pairs(stage)
+    rest = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath(pair.physical)).GetPointsAttr().Get(), dtype=np.float64)
+    assert _height(stage, [pair]) == pytest.approx(float((rest.max(axis=0) - rest.min(axis=0)).max()))
+
+
 def test_the_render_script_draws_physical_beside_lbs(tmp_path):
     # a short bake of the coarse arm, rendered by warpskin render in Blender: the worst frame
     # and one more, and a close-up; each picture has two panels of the same size that differ

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .mesh import triangulate_faces
 
 __all__ = ["BakePair", "bake_pairs", "bake_quality", "find_blender_python", "render_bake"]
 
@@ -71,7 +72,7 @@ def bake_quality(path, pairs: list[BakePair] | None = None) -> tuple[list[float]
         guide = UsdGeom.Mesh(stage.GetPrimAtPath(pair.lbs))
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
         idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
-        tris = _triangulate(counts, idx)
+        tris = triangulate_faces(counts, idx)[0]
         attr = mesh.GetPointsAttr()
         rest = np.asarray(attr.Get(Usd.TimeCode.Default()) or attr.Get(Usd.TimeCode.EarliestTime()), dtype=np.float64)
         wm = WrittenMesh(pair.name, tris, rest)
@@ -83,17 +84,6 @@ def bake_quality(path, pairs: list[BakePair] | None = None) -> tuple[list[float]
             for k in ("strained", "strained_lbs", "flipped", "offset"):
                 s.setdefault(k, []).append(m[k])
     return times, series
-
-
-def _triangulate(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Fan triangles of USD faces."""
-    tris = []
-    start = 0
-    for c in counts.tolist():
-        for k in range(1, c - 1):
-            tris.append((idx[start], idx[start + k], idx[start + k + 1]))
-        start += c
-    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
 
 
 def find_blender_python(python: str | None = None) -> str:
@@ -134,7 +124,7 @@ def _where_worst(stage, pair: BakePair, tc: float) -> list[int]:
     guide = UsdGeom.Mesh(stage.GetPrimAtPath(pair.lbs))
     attr = mesh.GetPointsAttr()
     rest = np.asarray(attr.Get(Usd.TimeCode.Default()) or attr.Get(Usd.TimeCode.EarliestTime()), dtype=np.float64)
-    tris = _triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get()), np.asarray(mesh.GetFaceVertexIndicesAttr().Get()))
+    tris = triangulate_faces(mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get())[0]
     wm = WrittenMesh(pair.name, tris, rest)
     x = np.asarray(attr.Get(tc), dtype=np.float64)
     lb = np.asarray(guide.GetPointsAttr().Get(tc), dtype=np.float64)
@@ -144,6 +134,20 @@ def _where_worst(stage, pair: BakePair, tc: float) -> list[int]:
         return np.nonzero(np.isin(wm.weld, welded))[0].tolist()
     d = np.linalg.norm(x - lb, axis=1)
     return np.nonzero(d >= 0.5 * d.max())[0].tolist() if d.max() > 0 else list(range(len(x)))
+
+
+def _height(stage, pairs: list[BakePair]) -> float:
+    """The character's height in the bake's unit: the largest extent of its physical meshes'
+    rest points together (as the run's chatter measure takes it)."""
+    from pxr import Usd, UsdGeom
+
+    rest = []
+    for pair in pairs:
+        attr = UsdGeom.Mesh(stage.GetPrimAtPath(pair.physical)).GetPointsAttr()
+        x = attr.Get(Usd.TimeCode.Default()) or attr.Get(Usd.TimeCode.EarliestTime())
+        if x is not None and len(x):
+            rest.append(np.asarray(x, dtype=np.float64))
+    return float(np.ptp(np.concatenate(rest), axis=0).max()) if rest else 0.0
 
 
 def _pct(x: float) -> str:
@@ -179,6 +183,7 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
     if not times:
         raise InputError(f"render: {bake}: no time samples")
     n = len(times)
+    height = _height(stage, pairs)
     excess = np.max([np.asarray(s["strained"]) - np.asarray(s["strained_lbs"]) for s in series.values()], axis=0)
     offset = np.max([np.asarray(s["offset"]) for s in series.values()], axis=0)
     worst = int(np.lexsort((offset, excess))[-1])
@@ -198,13 +203,13 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
     views = []
     for i in chosen:
         views.append({"frame": times[i], "out": str(out_dir / f"{stem}_{times[i]:g}.png"),
-                      "captions": _captions(stem, times[i], i, series, i == worst), "focus": None})
+                      "captions": _captions(stem, times[i], i, series, i == worst, height), "focus": None})
     if close_up:
         name = max(series, key=lambda k: (series[k]["strained"][worst] - series[k]["strained_lbs"][worst],
                                           series[k]["offset"][worst]))
         pair = next(p for p in pairs if p.name == name)
         views.append({"frame": times[worst], "out": str(out_dir / f"{stem}_{times[worst]:g}_{name}.png"),
-                      "captions": _captions(stem, times[worst], worst, {name: series[name]}, True, close=name),
+                      "captions": _captions(stem, times[worst], worst, {name: series[name]}, True, height, close=name),
                       "focus": [pair.physical], "focus_points": _where_worst(stage, pair, times[worst])})
     job = {"bake": str(bake.resolve()), "views": views, "physical": [p.physical for p in pairs],
            "lbs": [p.lbs for p in pairs], "resolution": list(resolution), "yaw": float(yaw)}
@@ -223,8 +228,11 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
     return paths
 
 
-def _captions(stem: str, t: float, i: int, series: dict, worst: bool, close: str | None = None) -> list[list[str]]:
-    """Two caption blocks (physical, LBS) for frame index ``i``: the worst mesh's figures."""
+def _captions(stem: str, t: float, i: int, series: dict, worst: bool, height: float,
+              close: str | None = None) -> list[list[str]]:
+    """Two caption blocks (physical, LBS) for frame index ``i``: the worst mesh's figures; the
+    largest offset from LBS as a share of ``height`` (the character's, in the bake's unit), which
+    reads the same whatever unit the file is in."""
     name = max(series, key=lambda k: series[k]["strained"][i] - series[k]["strained_lbs"][i])
     s = series[name]
     where = f"{close} close-up, " if close else ""
@@ -233,6 +241,7 @@ def _captions(stem: str, t: float, i: int, series: dict, worst: bool, close: str
     offset = max(series[k]["offset"][i] for k in series)
     return [
         [f"warpskin  {stem}  {where}frame {t:g}{tag}",
-         f"strained edges {_pct(s['strained'][i])} ({name}), flipped {_pct(flipped)}, offset {100 * offset:.1f} cm"],
+         f"strained edges {_pct(s['strained'][i])} ({name}), flipped {_pct(flipped)}, offset "
+         f"{_pct(offset / height if height > 0 else 0.0)} of the height"],
         ["LBS", f"strained edges {_pct(s['strained_lbs'][i])} ({name})"],
     ]
