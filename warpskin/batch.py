@@ -37,8 +37,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
+from .cli import build_parser
 from .errors import InputError
+from .scene import list_scenes, resolve_scene
 from .settings import add_option, setting
+from .thumbnail import write_thumbnail
 
 try:
     import tomllib
@@ -139,7 +142,6 @@ def _file_hash(path: Path) -> str:
 
 def _input_files(rig: str) -> list[Path]:
     """The files a job's rig reads (its file; a scene's TOML and the rig file it names)."""
-    from .scene import resolve_scene
 
     try:
         paths = resolve_scene(rig).input_paths()
@@ -150,7 +152,6 @@ def _input_files(rig: str) -> list[Path]:
 
 def _check_rig(rig: str, where: str) -> None:
     """A rig that exists: a file, or a shipped scene name."""
-    from .scene import list_scenes
 
     names = [s["name"] for s in list_scenes()]
     if Path(rig).is_file() or rig in names:
@@ -161,7 +162,6 @@ def _check_rig(rig: str, where: str) -> None:
 def _check_args(command: str, rig: str, args: list[str], where: str) -> None:
     """Parse the job's command line as the command would, so that a bad option fails the batch
     before anything runs (argparse's own message, its error line)."""
-    from .cli import build_parser
 
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
@@ -183,7 +183,6 @@ def _clips_of(rig: str) -> list[str | None]:
     does not load: its one job fails when run, with the command's own message)."""
     import warnings
 
-    from .scene import resolve_scene
 
     try:
         with warnings.catch_warnings():
@@ -714,7 +713,6 @@ def _thumbnail(out: Path, job: Job) -> str:
     """The index's picture of a finished job (``thumbs/<job>.png``, drawn by
     :func:`~warpskin.thumbnail.write_thumbnail` unless newer than the bake), as Markdown;
     empty where it cannot be drawn (no matplotlib, no mesh)."""
-    from .thumbnail import write_thumbnail
 
     target = out / "thumbs" / f"{_log_name(job.id)}.png"
     try:

@@ -46,7 +46,13 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .collision import CollisionTopology, contact_scalars, upload_collision
+from .device import resolve_device
 from .errors import InputError
+from .model import SkinModel, SkinModelBuilder, model_host_arrays
+from .preprocess.sub_volumes import SubVolumes
+from .run.physics import linear_blend_skin_layers
+from .volume import VolumeLayout
 
 __all__ = ["CharacterRange", "CharacterControl", "batch_host_arrays", "batch_initial_state", "batch_model", "character_controls"]
 
@@ -228,7 +234,6 @@ class _Centres:
 def _batch_volume(parts, v0, j0, total: int):
     """The volume layouts of ``parts`` side by side, encoded points re-encoded for the batch
     (``k < V``: skin vertex, else fan centre ``k - V``)."""
-    from .volume import VolumeLayout
 
     lays = [p["volume_layout"] for p in parts]
     cs = np.array([lay.center_count for lay in lays], dtype=np.int64)
@@ -282,10 +287,7 @@ def batch_model(builders: Sequence, device=None):
             self-collision on or off, its passes or fail-safe rounds, or on having volume
             (module docstring); each names the character.
     """
-    from .device import resolve_device
-    from .model import SkinModel, model_host_arrays
 
-    from .model import SkinModelBuilder
 
     builders = list(builders)
     names = []
@@ -317,7 +319,6 @@ def _batch_collision(builders, names, ranges, device):
     ``fail_safe_rounds``: the solver runs them for all)."""
     from types import SimpleNamespace
 
-    from .collision import CollisionTopology, contact_scalars, upload_collision
 
     for name, b in zip(names, builders):
         b.params.collision.check(name)
@@ -357,7 +358,6 @@ def _batch_written_surface(parts, v0, total: int):
     """The refined characters' written surfaces (each one closed "sub-volume" without fans,
     :func:`~warpskin.model.written_surface`) as one :class:`SubVolumes` over the batch's
     vertices, in character order; ``None`` where no character has one."""
-    from .preprocess.sub_volumes import SubVolumes
 
     have = [(c, p["written_surface"]) for c, p in enumerate(parts) if p.get("written_surface") is not None]
     if not have:
@@ -378,7 +378,6 @@ def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.nda
     """Put a batched ``model``'s ``state`` at each character's pose (``poses[c]``
     ``[J_c, 4, 4]``), every character as :func:`~warpskin.run.physics.initial_state` puts it
     alone (LBS of its layers in float64 on the host, at rest, oriented like its bones)."""
-    from .run.physics import linear_blend_skin_layers
 
     if len(builders) != len(model.characters) or len(poses) != len(model.characters):
         raise InputError(f"a batch of {len(model.characters)} characters needs as many builders and poses, "

@@ -15,9 +15,21 @@ import time
 import numpy as np
 import warp as wp
 
+from .batch_model import batch_initial_state, batch_model
+from .character import Character
 from .device import resolve_device
+from .errors import WarpskinError
+from .guard import SurfaceGuard
+from .model import SkinModelBuilder
+from .popping.dynamics import PoppingDynamics
+from .popping.pose_space import PoseSpaceDeformer
+from .preprocess.cage import build_cage, character_soup
+from .rig import Clip
+from .run.physics import PhysicsStepper, initial_state
+from .run.plan import FramePlan
 from .skinning import Skinner
 from .scene import resolve_scene
+from .solver import SkinSolver, skin_step_limit
 
 __all__ = ["run_skinning_bench", "run_build_bench", "run_solver_bench", "run_popping_bench", "run_batch_bench"]
 
@@ -88,7 +100,6 @@ def run_build_bench(targets: list[str]) -> dict:
     ``arm35k`` is the procedural arm at 35k vertices (190 rings of 184). A scene whose rig
     cannot be found (``cesium_man`` without the assets folder) is reported with its error.
     """
-    from .model import SkinModelBuilder
     from .scenes.arm import make_arm
 
     out = {"machine": platform.machine(), "cpu_count": os.cpu_count(), "scenes": {}}
@@ -117,7 +128,6 @@ def _cage_build(rig) -> dict:
     capture (``capture_s``), the written points' deformation per frame against the render
     skin's LBS kernel, and the surface guard of the written meshes per frame (``guard_ms`` on a
     frame it lets through, ``guard_acting_ms`` on one where it takes a crumpled patch back)."""
-    from .preprocess.cage import build_cage, character_soup
 
     soup = character_soup(rig)
     tetra = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
@@ -128,9 +138,6 @@ def _cage_build(rig) -> dict:
     # per frame: the written points through the cage (the displacement and deformation
     # launches of warpskin.character) against the LBS kernel of the render skin, both on the
     # CPU device and on device-resident inputs
-    from .character import Character
-    from .rig import Clip
-    from .skinning import Skinner
 
     dev = wp.get_device("cpu")
     t0 = time.perf_counter()
@@ -164,7 +171,6 @@ def _cage_build(rig) -> dict:
     # the surface guard of every written mesh, per frame on the host: on a frame it lets
     # through (a small smooth displacement: its checks and the two exact pair counts), and on
     # a frame where it acts (a patch of the first mesh crumpled)
-    from .guard import SurfaceGuard
 
     physical = deformer.launch(x, targets).numpy().astype(np.float64)
     lbs_host = character.lbs(rest, 0.0)
@@ -203,10 +209,6 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     overflow check, per substep); ``lbs_ms`` (the LBS kernel on the skin vertices, the
     kinematic baseline) and ``total_over_lbs``.
     """
-    from .model import SkinModelBuilder
-    from .run.physics import PhysicsStepper, initial_state
-    from .run.plan import FramePlan
-    from .solver import SkinSolver, skin_step_limit
 
     dev = resolve_device(device)
     out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
@@ -307,8 +309,6 @@ def run_popping_bench(device=None, steps: int = 200, repeat: int = 3, *, rings: 
         paper's per-frame work) and ``fps``; ``lbs_ms`` (the LBS Skinner: upload plus kernel)
         and ``lbs_kernel_ms``; ``frame_over_lbs`` and ``step_over_lbs_kernel`` ratios.
     """
-    from .popping.dynamics import PoppingDynamics
-    from .popping.pose_space import PoseSpaceDeformer
     from .scenes.popping_arm import elbow_pose, make_popping_arm, popping_arm_examples
 
     if steps < 1 or repeat < 1:
@@ -369,11 +369,6 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
     run). A scene that cannot be loaded or batched (its assets absent, a rest-shape drive)
     reports its ``error``.
     """
-    from .batch_model import batch_initial_state, batch_model
-    from .errors import WarpskinError
-    from .model import SkinModelBuilder
-    from .run.physics import initial_state
-    from .solver import SkinSolver, skin_step_limit
 
     if not (isinstance(count, int) and count >= 1):
         raise ValueError(f"--batch needs a positive number of characters, got {count!r}")

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
+from .preprocess.cage import closest_faces
 
 __all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "point_normals", "shape_diameter",
            "welded_pieces", "wrap_points"]
@@ -412,7 +413,6 @@ def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, 
     gamma n`` in that triangle's edges and the unit normal blended from the vertex normals of
     ``all_triangles`` (the whole closed surface, as the kernel computes them). Returns
     ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
-    from .preprocess.cage import closest_faces
 
     p = np.asarray(points, dtype=np.float64)
     x = np.asarray(surface, dtype=np.float64)

@@ -33,11 +33,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture import Capture, CaptureParams, capture_points, identity_capture
+from .capture import (
+    Capture, CaptureParams, _smoothstep, capture_points, identity_capture, point_normals, shape_diameter,
+    welded_pieces, wrap_points,
+)
 from .deformer import WrittenDeformer, joint_points
-from .errors import SceneError
+from .errors import RigWarning, SceneError
 from .guard import CrossGuard, GuardParams, JumpLimit, SurfaceGuard, WornRepair
+from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
+from .io.usd_export import _prim_name
+from .preprocess.cage import _pick, build_cage, cage_from_mesh, cage_rig, character_parts
+from .preprocess.pieces import PieceParams, piece_surface
 from .quality import CrossPairs, WrittenMesh
+from .rig import Clip, Rig
+from .transforms import linear_blend_skin
 
 __all__ = ["Character", "WrittenPart", "CAGE_MODES", "RIGID_MODES", "check_choices", "is_caged"]
 
@@ -51,7 +60,6 @@ def check_choices(cage, rigid_pieces: str) -> Path | None:
     if rigid_pieces not in RIGID_MODES:
         raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {rigid_pieces!r}")
     if isinstance(cage, Path) or cage not in CAGE_MODES:
-        from .io.cage_file import CAGE_EXTENSIONS
 
         if not isinstance(cage, (str, Path)) or Path(cage).suffix.lower() not in CAGE_EXTENSIONS:
             raise SceneError(f"cage must be 'auto', 'always', 'none' or a mesh file ({', '.join(CAGE_EXTENSIONS)}), "
@@ -184,14 +192,12 @@ class Character:
     @property
     def pieces_params(self):
         """The :class:`~warpskin.preprocess.pieces.PieceParams` of the character's own pieces."""
-        from .preprocess.pieces import PieceParams
 
         return PieceParams()
 
     def _piece_surface(self):
         """The character's own pieces made closed (:func:`~warpskin.preprocess.pieces.piece_surface`),
         or ``None`` where too few of its points lie on pieces that can be (see ``cage``)."""
-        from .preprocess.pieces import piece_surface
 
         soup = self.soup
         names = [self.display_name(name) for name, _, _ in soup.pieces]
@@ -213,8 +219,6 @@ class Character:
     def _pieces_rig(self):
         """The pieces' closed surface as a rig to simulate, bound at the rest pose in stage space
         (as a cage is: :func:`~warpskin.preprocess.cage.cage_rig`), with its collision groups."""
-        from .preprocess.cage import _pick
-        from .rig import Clip, Rig
 
         rig, ps = self.rig, self.pieces
         ji, jw = _pick(ps.dense_weights, 4)
@@ -235,11 +239,9 @@ class Character:
         return sim
 
     def _build_cage(self, cage_file) -> None:
-        from .preprocess.cage import build_cage, cage_from_mesh, cage_rig, character_parts
 
         rig, soup = self.rig, self.soup
         if cage_file is not None:  # the user's own
-            from .io.cage_file import read_cage_mesh
 
             cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=self.device, soup=soup)
         else:
@@ -323,7 +325,6 @@ class Character:
         if not np.any(cap.physics_weight > 0):
             import warnings
 
-            from .errors import RigWarning
 
             warnings.warn(f"{self.rig.source or self.rig.name}: no written point is resolved by the simulation (a sheet "
                           "that encloses no volume, or parts thinner than about two cage cells): what is written is "
@@ -398,7 +399,6 @@ class Character:
         the body's deformation; the other points (sheets, small rigid pieces) by the simulated
         surface near them, each rigid piece as a whole. A captured point's physics weight is the capture's confidence (its
         skinning similarity, :class:`~warpskin.capture.CaptureParams` ``confidence``)."""
-        from .capture import _smoothstep
 
         ps, soup = self.pieces, self.soup
         prm = self.capture or CaptureParams()
@@ -446,7 +446,6 @@ class Character:
         worn = np.zeros(n, dtype=bool)
         wrap = None
         if candidates.size:
-            from .capture import wrap_points
 
             # on the written surface of the simulated pieces (what shows beneath a garment)
             body = soup.triangles[ps.simulated[piece[soup.triangles[:, 0]]]]
@@ -515,7 +514,6 @@ class Character:
         # fingers of a piece that was kept): their physics weight ramps down with the thickness
         # (the shape diameter, CaptureParams thin and thick, in the surface's edges), smoothed
         # over the written surface
-        from .capture import point_normals, shape_diameter, welded_pieces
 
         sim_points = np.nonzero(ps.simulated[piece])[0]
         if sim_points.size:
@@ -625,7 +623,6 @@ class Character:
     # ------------------------------------------------------------------ per frame
     def lbs(self, clip, t: float) -> np.ndarray:
         """Every written point under LBS at clip time ``t`` [s], ``[N, 3]`` (host, float64)."""
-        from .transforms import linear_blend_skin
 
         rig = self.rig
         n = rig.output_count
@@ -677,7 +674,6 @@ class Character:
 
     def display_name(self, name: str) -> str:
         """The name a written mesh has in the output (the skin: its file's mesh name)."""
-        from .io.usd_export import _prim_name
 
         if name == "skin":
             return _prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"

@@ -20,12 +20,25 @@ import warnings
 
 import numpy as np
 from pathlib import Path
+from .errors import InputError, SceneError, SimulationError, Stopped
+from .io import list_meshes
+from .options import (
+    BenchOptions, CommonOptions, GlobalOptions, InfoOptions, LayersOptions, PopOptions, RenderOptions,
+    SimulateOptions, SkinOptions,
+)
+from .params import CollisionParams, PoppingSettings, SolverParams
+from .render import render_bake
+from .scene import (
+    AnimationSpec, DEFAULT_FPS, RigSpec, Scene, clip_frame_span, find_assets_dir, is_rig_file, list_scenes,
+    load_scene,
+)
+from .settings import add_option as opt
+from .units import describe, extent, file_unit
 
 __all__ = ["main"]
 
 
 def _scene_of(args):
-    from .scene import Scene, is_rig_file, load_scene
 
     if is_rig_file(args.target):
         scene = Scene.from_rig_file(
@@ -58,7 +71,6 @@ def _with_projection(scene, args):
 
 # ------------------------------------------------------------------------------------ commands
 def cmd_scenes(args) -> int:
-    from .scene import list_scenes
 
     for s in list_scenes():
         print(f"{s['name']:<14} {s['rig']:<34} {s['description']}")
@@ -70,7 +82,6 @@ def _muscle_summary(scene, character):
     of what is simulated (the skin, or the cage), swelling the written meshes, as the pop
     summary lists them, or the one line why none are found; and the lines naming those left
     out (too coarse to show)."""
-    from .errors import InputError
     from .model import SkinModelBuilder
     from .popping.examples import has_examples
     from .run.pop import LEFT_OUT, surface_muscles
@@ -90,12 +101,9 @@ def _muscle_summary(scene, character):
 
 
 def cmd_info(args) -> int:
-    from .errors import InputError
-    from .scene import is_rig_file
 
     out: dict = {}
     if is_rig_file(args.target):
-        from .io import list_meshes
 
         out["meshes"] = list_meshes(args.target)
     scene = _scene_of(args)
@@ -116,7 +124,6 @@ def cmd_info(args) -> int:
     pieces = rigid_pieces(character_soup(rig))
     out["rigid_pieces"] = int(pieces.max()) + 1 if pieces.size else 0
     out["joint_names"] = rig.skeleton.joint_names
-    from .units import file_unit
 
     out["length_unit_m"] = file_unit(scene.solver_params().units, rig.vertices)
     out["parents"] = rig.skeleton.parents.tolist()
@@ -179,7 +186,6 @@ def cmd_info(args) -> int:
         print(f"  {j:3d} {n}  <- {names[p] if p >= 0 else '(root)'}")
     print("clips:" if summary["clips"] else "clips: none (rest pose only; a scene file keys its joints in "
           "[animation.keys], see the docs' scenes page)")
-    from .scene import DEFAULT_FPS, clip_frame_span
 
     for n, c in summary["clips"].items():
         rate = scene.fps or rig.clip(n).rate or DEFAULT_FPS
@@ -209,7 +215,6 @@ def _joint_text(row: dict, summary: dict) -> str:
 
 def _unit_line(scene, rig) -> str:
     """One line: the character's size and the length unit physics takes it in."""
-    from .units import describe, extent, file_unit
 
     unit = file_unit(scene.solver_params().units, rig.vertices)
     size = extent(rig.vertices)
@@ -383,7 +388,6 @@ def cmd_bench(args) -> int:
         result = run_build_bench(args.scenes or ["arm", "cesium_man", "arm35k"])
     elif args.batch is not None:
         from .bench import run_batch_bench
-        from .errors import InputError
 
         if args.batch < 1:
             raise InputError(f"--batch needs a positive number of characters, got {args.batch}")
@@ -413,7 +417,6 @@ def _emit_json(result: dict, path: str | None) -> int:
 
 
 def _missing_asset(target: str) -> bool:
-    from .scene import find_assets_dir, is_rig_file, load_scene
 
     if is_rig_file(target):
         return False
@@ -426,7 +429,6 @@ def _missing_asset(target: str) -> bool:
 def cmd_pop(args) -> int:
     from .bench import run_popping_bench
     from .run import run_popping
-    from .errors import SceneError
 
     if args.bench:
         return _emit_json(run_popping_bench(args.device, steps=args.steps, repeat=args.repeat), args.json)
@@ -500,7 +502,6 @@ def _group_entries(args) -> list[str] | None:
 def _beat_spec(args):
     """The pops on the beat the ``pop`` command's flags ask for (``None``: the scene's own
     activation)."""
-    from .errors import SceneError
     from .popping.activation import BeatSpec, read_beats
 
     entries = _group_entries(args)
@@ -524,7 +525,6 @@ def _beat_spec(args):
 
 
 def cmd_render(args) -> int:
-    from .render import render_bake
 
     render_bake(args.bake, args.output, frames=args.frames, extra=args.extra, close_up=not args.no_close_up,
                 resolution=args.resolution, python=args.python, progress=not args.quiet, yaw=args.yaw)
@@ -564,11 +564,6 @@ def build_parser() -> argparse.ArgumentParser:
     is ``--iterations``) or a command's own (:mod:`warpskin.options`)."""
     from . import __version__
     from .guard import GuardParams
-    from .options import (BenchOptions, CommonOptions, GlobalOptions, InfoOptions, LayersOptions, PopOptions,
-                          RenderOptions, SimulateOptions, SkinOptions)
-    from .params import CollisionParams, PoppingSettings, SolverParams
-    from .scene import AnimationSpec, RigSpec
-    from .settings import add_option as opt
 
     C = CommonOptions
     p = _Parser(prog="warpskin", description="Physically-based character skinning on NVIDIA Warp.")
@@ -722,7 +717,6 @@ def _init_warp_quietly() -> None:
 
 
 def _on_signal(signum, frame):
-    from .errors import Stopped
 
     raise Stopped(signum)
 
@@ -762,7 +756,6 @@ def main(argv: list[str] | None = None) -> int:
         wp.config.log_level = wp.LOG_ERROR  # no banner
         if not str(getattr(args, "device", None) or "").startswith("cuda"):
             _init_warp_quietly()
-    from .errors import InputError, SimulationError, Stopped
 
     def one_line(message, category, filename, lineno, file=None, line=None):  # no file paths or source lines
         print(f"warpskin: warning: {message}", file=sys.stderr if file is None else file)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from .kernels import deform as kd
 
 if TYPE_CHECKING:
     from .capture import Capture
@@ -221,7 +222,6 @@ class WrittenDeformer:
                 self.body_normals = wp.zeros(n, dtype=wp.vec3)
                 self.body_mesh = wp.Mesh(points=self.out, indices=self.body_triangles)
                 # the room along each worn point's normal at rest, on the rest surface
-                from .kernels import deform as kd
 
                 rest_pts = wp.array(character.soup.points.astype(np.float32), dtype=wp.vec3)
                 rest_mesh = wp.Mesh(points=rest_pts, indices=self.body_triangles)

@@ -19,17 +19,22 @@ import numpy as np
 import warp as wp
 
 from .errors import InputError, SceneError
-from .collision import CollisionParams
+from .collision import CollisionParams, collision_topology, mean_edge, upload_collision
+from .metrics import signed_volume
 from .preprocess.bones import Bones, bone_segments
+from .preprocess.fast_summation import build_path_layout, region_runs
 from .preprocess.joint_constraints import JointConstraints, JointParams, build_joint_constraints
 from .preprocess.kinematic_coupling import KinematicCoupling, build_kinematic_coupling
 from .preprocess.layers import LAYER_NAMES, LayerParams, Layers, build_layers, check_layer_folds, fit_piece_depths
 from .preprocess.masses import particle_masses
+from .preprocess.refine import default_max_edge
 from .preprocess.regions import Regions, build_regions, particle_radii
 from .device import resolve_device
+from .preprocess.sub_volumes import SubVolumes, build_subvolumes
 from .settings import check_settings, setting
 from .rig import Rig
 from .units import extent
+from .volume import upload_volume_layout, volume_layout
 
 __all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts", "model_host_arrays"]
 
@@ -113,8 +118,6 @@ def written_surface(rig: Rig):
     """The loaded mesh of a refined ``rig`` as one closed "sub-volume" without fans
     (:class:`~warpskin.preprocess.sub_volumes.SubVolumes`), for a volume constraint on what is
     written."""
-    from .metrics import signed_volume
-    from .preprocess.sub_volumes import SubVolumes
 
     tris = np.asarray(rig.output_triangles, dtype=np.int64)
     n = rig.output_count
@@ -129,8 +132,6 @@ def written_surface(rig: Rig):
 def refine_coarse(rig: Rig, max_edge: float | None = None) -> Rig:
     """``rig`` refined for the simulation (:meth:`Rig.refined`) where its skin is coarse, or
     everywhere an edge is longer than an explicit ``max_edge``; ``rig`` itself otherwise."""
-    from .collision import mean_edge
-    from .preprocess.refine import default_max_edge
 
     if max_edge is None:
         max_edge = default_max_edge(rig.vertices, rig.triangles)
@@ -196,7 +197,6 @@ class SkinModelBuilder:
         self.radii = self._stage("radii", lambda: particle_radii(self.layers, rig.triangles))
         self.regions: Regions = self._stage("regions", lambda: build_regions(self.layers, rig.triangles, self.masses, omega=p.omega))
 
-        from .preprocess.fast_summation import build_path_layout, region_runs
 
         # paths of at most 32 vertices: the scan runs one thread per path and layer, and the
         # unbounded layout can be one path per layer on a tube (four threads for the whole
@@ -207,7 +207,6 @@ class SkinModelBuilder:
         )
         self.runs = self._stage("runs", lambda: region_runs(self.paths, self.regions.ring_offsets, self.regions.ring_members))
         if p.volume:
-            from .preprocess.sub_volumes import build_subvolumes
 
             self.subvolumes = self._stage("subvolumes", lambda: build_subvolumes(rig, p.subvolumes, bones=self.bones))
         else:
@@ -221,12 +220,10 @@ class SkinModelBuilder:
         self.stiffness = self._particle_stiffness()
         self.solver_layout = self._stage("solver_layout", self._solver_layout)
         if self.subvolumes is not None:
-            from .volume import volume_layout
 
             self.volume_layout = self._stage("volume_layout", lambda: volume_layout(self.subvolumes))
         else:
             self.volume_layout = None
-        from .collision import collision_topology
 
         self.collision_topology = self._stage("collision_topology", lambda: collision_topology(rig))
         self._built = True
@@ -485,7 +482,6 @@ class SkinModel:
             drive = h["rest_drive"]
             self.rest_drive_group_count = 0 if drive is None else int(drive.shape[0])
             self.rest_drive_offsets = wp.array(drive, dtype=wp.vec3) if drive is not None else None
-        from .volume import upload_volume_layout
 
         self.subvolume_count = int(h["subvolume_count"])
         self.volume = upload_volume_layout(h["volume_layout"], h["volume_centres"], device) \
@@ -503,7 +499,6 @@ class SkinModel:
         self.collision = None
         if b is not None:
             rig = b.rig
-            from .collision import upload_collision
 
             self.collision_params = b.params.collision
             self.collision = upload_collision(b.collision_topology, rig, b.params.collision, device) \

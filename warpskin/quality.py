@@ -35,6 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from .metrics import PairQuery, self_intersections, self_intersections_of_two
 
 __all__ = ["STRAIN_LIMIT", "WrittenMesh", "CrossPairs", "QualityLimits", "QualityLog", "mesh_measures"]
 
@@ -145,7 +146,6 @@ class WrittenMesh:
 
     def pairs(self, points: np.ndarray) -> int:
         """Intersecting triangle pairs of the welded mesh (the exact test)."""
-        from .metrics import self_intersections
 
         return int(len(self_intersections(self.welded(points), self.welded_triangles)))
 
@@ -157,7 +157,6 @@ class WrittenMesh:
     def pair_keys_of_two(self, points: np.ndarray, lbs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The intersecting pairs of ``points`` and of ``lbs`` as sorted keys ``i T + j``
         (``i < j`` welded triangles, ``T`` their count), found in one pass."""
-        from .metrics import self_intersections_of_two
 
         a, b = self_intersections_of_two(self.welded(points), self.welded(lbs), self.welded_triangles)
         t = len(self.welded_triangles)
@@ -168,7 +167,6 @@ class WrittenMesh:
         """The keys (:meth:`pair_keys_of_two`) of the pairs the rest pose has (computed once)."""
         keys = getattr(self, "_rest_keys", None)
         if keys is None:
-            from .metrics import self_intersections
 
             a = self_intersections(self.welded(self.rest), self.welded_triangles)
             keys = self._rest_keys = np.unique(a[:, 0] * len(self.welded_triangles) + a[:, 1])
@@ -227,7 +225,6 @@ class CrossPairs:
         self._query = None
         self.rest_counts = np.zeros(m * m, dtype=np.int64)
         if m > 1 and len(self.triangles) > 1:
-            from .metrics import PairQuery
 
             self._query = PairQuery(self.triangles, labels=self.label)
             rest = self._stack({w.name: w.rest for w in self.meshes})

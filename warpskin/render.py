@@ -26,6 +26,7 @@ import numpy as np
 
 from .errors import InputError
 from .mesh import triangulate_faces
+from .quality import STRAIN_LIMIT, WrittenMesh, mesh_measures
 
 __all__ = ["BakePair", "bake_pairs", "bake_quality", "find_blender_python", "render_bake"]
 
@@ -61,7 +62,6 @@ def bake_quality(path, pairs: list[BakePair] | None = None) -> tuple[list[float]
     {measure: [per frame]}})`` (:func:`~warpskin.quality.mesh_measures` without pairs)."""
     from pxr import Usd, UsdGeom
 
-    from .quality import WrittenMesh, mesh_measures
 
     stage = Usd.Stage.Open(str(path))
     pairs = bake_pairs(stage) if pairs is None else pairs
@@ -118,7 +118,6 @@ def _where_worst(stage, pair: BakePair, tc: float) -> list[int]:
     the largest offset)."""
     from pxr import Usd, UsdGeom
 
-    from .quality import STRAIN_LIMIT, WrittenMesh
 
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath(pair.physical))
     guide = UsdGeom.Mesh(stage.GetPrimAtPath(pair.lbs))

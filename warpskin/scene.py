@@ -35,8 +35,10 @@ from importlib import resources
 from pathlib import Path
 
 from .errors import SceneError
+from .io import RIG_EXTENSIONS, load_rig
+from .params import CollisionParams
 from .rig import Rig, RigError
-from .settings import setting
+from .settings import check_value, from_section, read_section, setting, setting_named, settings_of
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -154,7 +156,6 @@ def scene_sections() -> dict[str, list]:
     from .preprocess.joint_constraints import JointParams
     from .preprocess.layers import LayerParams
     from .preprocess.sub_volumes import SubVolumeParams
-    from .settings import settings_of
 
     return {
         "scene": settings_of(SceneInfo),
@@ -174,7 +175,6 @@ def scene_sections() -> dict[str, list]:
 def _read(scene_or_extra, section: str, where: str) -> dict:
     """A section's table read against its declared keys (:func:`~warpskin.settings.read_section`):
     ``{field name: value}`` of the keys given."""
-    from .settings import read_section
 
     table = scene_or_extra.get(section, {})
     return read_section(scene_sections()[section], table, where, section)
@@ -298,8 +298,6 @@ class Scene:
     def collision_params(self):
         """The :class:`~warpskin.collision.CollisionParams` of the ``[collision]`` section
         (self-collision is on by default)."""
-        from .params import CollisionParams
-        from .settings import from_section
 
         return from_section(CollisionParams, self.extra.get("collision", {}), _where(self.source), "collision")
 
@@ -307,7 +305,6 @@ class Scene:
         """The :class:`~warpskin.guard.GuardParams` of the ``[guard]`` section (the surface guard
         of the written meshes; on by default)."""
         from .guard import GuardParams
-        from .settings import from_section
 
         return from_section(GuardParams, self.extra.get("guard", {}), _where(self.source), "guard")
 
@@ -374,7 +371,6 @@ def _build_rig(scene: Scene) -> Rig:
         except RigError as exc:
             raise SceneError(f"{where}: [animation.keys] {exc}") from None
     weights = scene.rig_spec.get("weights", "file")
-    from .settings import check_value, setting_named
 
     check_value(setting_named(RigSpec, "weights"), weights, f"{where}: [rig] ")
     if weights == "bone_heat":
@@ -409,7 +405,6 @@ def _load_rig_of(scene: Scene) -> Rig:
         return rig.rescaled(unit_scale) if unit_scale else rig
     if "params" in spec:
         raise SceneError(f"{where}: [rig.params] only applies to a generator")
-    from .io import load_rig
 
     if "file" in spec:
         path = Path(spec["file"])
@@ -446,7 +441,6 @@ def list_scenes() -> list[dict]:
 
 def is_rig_file(target: str | Path) -> bool:
     """Is ``target`` a rig file (glTF or USD, by its extension) rather than a scene?"""
-    from .io import RIG_EXTENSIONS
 
     return str(target).lower().endswith(RIG_EXTENSIONS)
 
@@ -470,7 +464,6 @@ def clip_frame_span(clip, rate: float) -> tuple[int, int]:
 def _format_hint(path: Path) -> str:
     """What a file that is not a scene looks like, by its first bytes, and the extensions a rig
     file is taken by: ``"; it looks like binary glTF: rename it to .glb (...)"``."""
-    from .io import RIG_EXTENSIONS
 
     try:
         with open(path, "rb") as f:
@@ -583,7 +576,6 @@ def _model_params(extra: dict, where: str):
     from .preprocess.joint_constraints import JointParams
     from .preprocess.layers import LayerParams
     from .model import ModelParams
-    from .settings import settings_of
 
     lay = _read(extra, "layers", where)
     per_bone_proj, per_bone_stiff = {}, {}

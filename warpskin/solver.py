@@ -16,6 +16,7 @@ import math
 import numpy as np
 import warp as wp
 
+from .collision import SelfCollision
 from .errors import InputError, SceneError, SimulationError
 from .params import SolverParams
 from .kernels import constraints as k_con
@@ -24,6 +25,7 @@ from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
 from .model import Contacts, Control, SkinModel, State
 from .units import UNITS, metres_per_unit
+from .volume import VolumeConstraints
 
 __all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
            "gravity_step_limit", "skin_step_limit"]
@@ -162,7 +164,6 @@ class SkinSolver:
             self.volume = None
             self.volume_weight_scale = wp.ones(n, dtype=wp.float32)
             if model.subvolume_count and self.params.volume_iterations > 0:
-                from .volume import VolumeConstraints
 
                 self.volume = VolumeConstraints(model, along_normals=self.params.volume_along_normals)
                 self.volume_centres = self.volume.centers  # its fan centres, posed every step
@@ -170,7 +171,6 @@ class SkinSolver:
             # sub-volumes again on the added ones (see step)
             self.written_volume = None
             if self.volume is not None and model.written_surface is not None:
-                from .volume import VolumeConstraints
 
                 self.written_volume = VolumeConstraints(model.written_surface, device=dev,
                                                         along_normals=self.params.volume_along_normals)
@@ -184,7 +184,6 @@ class SkinSolver:
                         np.where(mine, self.tether_cap.numpy(), np.inf).astype(np.float32), dtype=wp.float32)
             self.collision = None
             if model.collision is not None:
-                from .collision import SelfCollision
 
                 self.collision = SelfCollision(model)
                 # the skin between the fail-safe and the volume loop: what the pass after the

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..quality import CrossPairs
 from ..transforms import matrix_to_quat, quat_slerp, quat_to_matrix, rigid_fit
 from .params import GuardParams, as_written
 from .surface import SurfaceGuard
@@ -107,7 +108,6 @@ class CrossGuard:
         pair = min(small, large) * m + max(small, large)
         two = self._two.get(pair)
         if two is None:  # the trials count the two meshes alone
-            from ..quality import CrossPairs
 
             two = self._two[pair] = CrossPairs([cross.meshes[min(small, large)], cross.meshes[max(small, large)]])
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from ..rig import RigError
 
 __all__ = ["Material", "RenderAttributes", "smoothing_groups", "group_normals", "read_asset_bytes"]
 
@@ -66,7 +67,6 @@ class RenderAttributes:
     physics_weight: np.ndarray | None = None
 
     def check(self, file_vertex_count: int, triangle_count: int, where: str) -> None:
-        from ..rig import RigError
 
         if self.uvs is not None:
             if self.uvs.shape != (triangle_count, 3, 2) or not np.isfinite(self.uvs).all():

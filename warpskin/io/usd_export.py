@@ -20,7 +20,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from .. import __version__
 from ..errors import OutputError
+from .render import group_normals
 
 __all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS", "check_output_path", "OutputLock"]
 
@@ -285,7 +287,6 @@ class UsdSkinWriter:
         self._animated_primvars: dict[str, dict] = {}
         if comment:
             st.GetRootLayer().comment = comment
-        from .. import __version__
 
         st.GetRootLayer().customLayerData = {"warpskin:version": __version__}  # what wrote it
         self._meshes: dict[str, tuple] = {}
@@ -451,7 +452,6 @@ class UsdSkinWriter:
         return UsdShade
 
     def _normals(self, points: np.ndarray, normals) -> np.ndarray:
-        from .render import group_normals
 
         _, groups, tri = normals
         return group_normals(points, tri, groups).astype(np.float32)

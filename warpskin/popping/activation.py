@@ -13,6 +13,8 @@ import numpy as np
 
 from ..errors import SceneError
 from ..params import PoppingSettings
+from ..scene import scene_sections
+from ..settings import read_section
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -373,8 +375,6 @@ def popping_settings(scene) -> PoppingSettings:
             table = tomllib.loads(Path(scene.source).read_text()).get("popping")
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise SceneError(f"{where}: cannot read the [popping] section: {exc}") from None
-    from ..scene import scene_sections
-    from ..settings import read_section
 
     values = read_section(scene_sections()["popping"], dict(table or {}), where, "popping")
     values["activation"] = ActivationTimeline.from_table(values.get("activation", {}),

@@ -11,6 +11,7 @@ import warp as wp
 
 from ..errors import SceneError
 from ..kernels import popping as _k
+from ..settings import check_value, setting_named
 from .examples import Activation
 
 if TYPE_CHECKING:
@@ -23,7 +24,6 @@ if TYPE_CHECKING:
 def _check_dynamics(alpha_min: float, beta: float, threshold: float, where: str = "popping") -> None:
     """``alpha_min``, ``beta`` and ``threshold`` in their ranges as ``[popping]`` declares them
     (:class:`~warpskin.popping.activation.PoppingSettings`), else a one-line SceneError."""
-    from ..settings import check_value, setting_named
     from .activation import PoppingSettings
 
     for name, value in (("alpha_min", alpha_min), ("beta", beta), ("threshold", threshold)):

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.gltf import read_gltf_morph_targets
+from ..io.usdskel import read_usd_blend_shapes, read_usd_inbetweens
 from ..kernels import popping as _k
 from ..rig import Clip, Rig, RigError
 from ..transforms import blend_skinning_matrices, linear_blend_skin
@@ -240,10 +242,8 @@ def _read_file_shapes(path: str, mesh: str | None) -> tuple[dict, dict]:
     ``{name: [(weight, offsets)]}`` (UsdSkel only; glTF morph targets have none)."""
     suffix = Path(path).suffix.lower()
     if suffix in (".glb", ".gltf"):
-        from ..io.gltf import read_gltf_morph_targets
 
         return read_gltf_morph_targets(path, mesh=mesh), {}
-    from ..io.usdskel import read_usd_blend_shapes, read_usd_inbetweens
 
     return read_usd_blend_shapes(path, mesh=mesh), read_usd_inbetweens(path, mesh=mesh)
 

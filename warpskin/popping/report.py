@@ -18,6 +18,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+from ..preprocess.bones import bone_segments, closest_point_on_segments, dominant_bone
+from ..preprocess.layers import _vertex_normals
 
 __all__ = ["belly_of_bones", "belly_of_examples", "bulge_series", "beat_summary", "write_popping_report"]
 
@@ -26,7 +28,6 @@ _RISE = 0.9  # a pop has risen at the first frame whose bulge reaches this share
 
 def belly_of_bones(rig, joints: Sequence[str]) -> np.ndarray:
     """``[V]`` bool per welded vertex of ``rig``: on the middle of one of ``joints``' bones."""
-    from ..preprocess.bones import bone_segments, closest_point_on_segments, dominant_bone
 
     names = rig.skeleton.joint_names
     idx = np.array([names.index(j) for j in joints if j in names], dtype=np.int64)
@@ -61,7 +62,6 @@ def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.nda
     up axis."""
     from pxr import Usd, UsdGeom
 
-    from ..preprocess.layers import _vertex_normals  # area-weighted unit normals
 
     stage = Usd.Stage.Open(str(path))
     root = stage.GetDefaultPrim()

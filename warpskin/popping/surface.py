@@ -60,8 +60,11 @@ import numpy as np
 import scipy.sparse as sp
 import warp as wp
 
+from ..capture import point_normals, shape_diameter, welded_pieces
+from ..collision import skin_edges
 from ..errors import SceneError
 from ..kernels import popping as _k
+from ..metrics import PairQuery, triangle_pairs_intersect
 from ..preprocess.bone_heat import vertex_areas
 from ..preprocess.fast_summation import vertex_adjacency
 from ..quality import STRAIN_LIMIT
@@ -225,7 +228,6 @@ def _welded_surface(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np
     shading; :func:`~warpskin.capture.welded_pieces`). Returns ``(first [C], cls [N], triangles
     over the welded points, piece [C], seam [C])``: pieces whose borders meet merged, and the
     border points where they meet (:func:`_seams`)."""
-    from ..capture import welded_pieces
 
     every = np.asarray(points, dtype=np.float64)
     mesh = np.zeros(len(every), dtype=np.int64) if mesh_of_point is None else np.asarray(mesh_of_point)
@@ -331,7 +333,6 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     """
     if not (isinstance(swell, (int, float)) and 0.0 < swell <= 2.0):
         raise SceneError(f"swell must be in (0, 2] (a share of the tissue depth), got {swell!r}")
-    from ..capture import point_normals, shape_diameter
 
     # one point per position within a mesh (a flat-shaded file splits every facet), so that
     # rings, pieces and edges are the surface's
@@ -551,7 +552,6 @@ class SurfacePop:
                 if points is None:
                     ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
                 else:  # the welded surface: its rings, and the facets the offsets keep
-                    from ..collision import skin_edges
 
                     first, cls, wtris, _, _ = _welded_surface(points, tris, mesh_of_point)
                     on = np.zeros(len(first), dtype=bool)
@@ -564,7 +564,6 @@ class SurfacePop:
                     # shading, seams) ease alike
                     owner = sp.csr_matrix((np.ones(n), (np.arange(n), cls)), shape=(n, len(first)))
                     ring = (owner @ wring @ owner.T).tocsr()
-                from ..metrics import PairQuery
 
                 self._triangles = tris
                 # triangles that share a point of the surface (a seam's copies are one point):
@@ -706,7 +705,6 @@ class SurfacePop:
         triangles each share a point with the two triangles of a pair that intersects without
         the pop: a crossing the source already has (a limb through the piece over it, a
         stylised mesh through itself) that the pop moves by at most one ring, not a new one."""
-        from ..metrics import triangle_pairs_intersect
 
         factor = np.ones(len(self.moved))
         x = surface.copy()

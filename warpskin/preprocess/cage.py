@@ -22,8 +22,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import RigWarning
+from ..kernels import cage as k_cage
 from ..mesh import mesh_edge_report
-from ..rig import RigError
+from ..metrics import signed_volume
+from ..rig import Clip, Rig, RigError
+from ..run.output import rest_pose_points
+from .refine import flip_flat_edges
 
 __all__ = ["Cage", "closest_faces", "build_cage", "separable_parts", "character_parts", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
            "transfer_weights", "cage_rig"]
@@ -94,7 +99,6 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
     import warp as wp
     from warp.geometry import IsoSurfaceMarchingCubes
 
-    from ..kernels import cage as k_cage
 
     t_start = time.perf_counter()
     p = np.asarray(points, dtype=np.float64)
@@ -142,7 +146,6 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
     f = _oriented_outward(v, f)
     v, f = _drop_cavities(v, f)
     v = _taubin(v, f, smooth_iterations)
-    from .refine import flip_flat_edges
 
     f = flip_flat_edges(v, f)
     timings["clean_up"] = time.perf_counter() - t0
@@ -169,9 +172,6 @@ def cage_from_mesh(mesh, rig, *, device=None, min_inside: float = 0.5, soup: Cha
 
     import warp as wp
 
-    from ..errors import RigWarning
-    from ..kernels import cage as k_cage
-    from ..metrics import signed_volume
 
     t0 = time.perf_counter()
     src = mesh.source
@@ -368,8 +368,6 @@ class CharacterSoup:
 
 def character_soup(rig) -> CharacterSoup:
     """The rig's skin (welded) and attachments at the skeleton's rest pose, in stage space."""
-    from ..rig import Clip
-    from ..run.output import rest_pose_points
 
     j = rig.joint_count
     skin = rest_pose_points(rig)[: rig.output_count]
@@ -394,7 +392,6 @@ def character_parts(rig, soup: CharacterSoup) -> tuple[np.ndarray, np.ndarray, n
     (of its corners' summed weights), and the joints' bones at rest in stage space as segments
     ``[S, 2, 3]`` with their joint ``[S]``: from each joint to each of its children (a leaf: a
     point at the joint)."""
-    from ..rig import Clip
 
     world = rig.joint_world_transforms(Clip("rest"), 0.0)[:, :3, 3]
     parents = np.asarray(rig.skeleton.parents)
@@ -454,7 +451,6 @@ def closest_faces(query: np.ndarray, points: np.ndarray, triangles: np.ndarray, 
     ``(face [M] int, -1 where none is that near; barycentric [M, 3] float64)``."""
     import warp as wp
 
-    from ..kernels import cage as k_cage
 
     q = np.asarray(query, dtype=np.float64)
     with wp.ScopedDevice(device):
@@ -530,7 +526,6 @@ def cage_rig(rig, cage: Cage, *, device=None, smooth_passes: int = 8) -> tuple:
     from the character (:func:`transfer_weights`, matched within two cage edges). (Taking the
     cage into the file's bind space instead folds it where that differs from the rest pose.)
     Returns ``(rig, soup, matched)``."""
-    from ..rig import Clip, Rig
 
     soup = character_soup(rig)
     ji, jw, matched = transfer_weights(cage.vertices, cage.triangles, soup, max_distance=2.0 * cage.edge, device=device,

@@ -16,10 +16,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..collision import skin_edges
 from ..errors import SceneError
+from ..metrics import self_intersections
 from ..settings import check_settings, setting
 from ..rig import Rig, RigError, RigWarning
 from .bones import Bones, bone_segments, closest_point_on_segments, dominant_bone
+from .refine import extend_midpoints
 
 __all__ = ["LayerParams", "Layers", "build_layers", "fit_layer_depths", "fit_piece_depths", "folded_triangles", "LAYER_NAMES",
            "check_layer_folds"]
@@ -121,7 +124,6 @@ class Layers:
         every added vertex's layer positions, foot and parameters are its parents' mean, so
         each refined layer triangle lies inside a layer triangle of the coarse skin and folds
         nowhere the coarse layers do not; its bone is its first parent's."""
-        from .refine import extend_midpoints
 
         return Layers(
             positions=np.stack([extend_midpoints(x, parents) for x in self.positions]),
@@ -305,8 +307,6 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     instead: the thinnest depth (``min_scale``), the piece held where it meets the body and free
     away from it (it is not marked unresolved).
     """
-    from ..collision import skin_edges
-    from ..metrics import self_intersections
 
     v = rig.vertices
     tris = rig.triangles
@@ -378,7 +378,6 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
                      "they follow LBS")
         import warnings
 
-        from ..rig import RigWarning
 
         warnings.warn(notes[-1], RigWarning, stacklevel=2)
     if outward.any():

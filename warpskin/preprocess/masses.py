@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rig import RigError
-from .layers import Layers
+from .layers import LAYER_NAMES, Layers
 
 __all__ = ["mixed_voronoi_areas", "layer_heights", "particle_masses"]
 
@@ -84,7 +84,6 @@ def particle_masses(layers: Layers, triangles: np.ndarray, *, density: float = 1
     m = np.stack([mixed_voronoi_areas(layers.positions[k], triangles) for k in range(4)]) * h * density
     bad = np.nonzero(~(m > 0))
     if bad[0].size:
-        from .layers import LAYER_NAMES
 
         k, i = int(bad[0][0]), int(bad[1][0])
         raise RigError(

@@ -41,7 +41,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..capture import point_normals, shape_diameter, welded_pieces
+from ..kernels import pieces as k_pieces
 from ..mesh import mesh_edge_report
+from ..metrics import self_intersections
+from ..units import metres_per_unit
+from .cage import closest_faces
 
 __all__ = ["PieceSurface", "SurfaceGroups", "piece_surface", "cap_loop", "boundary_loops", "PieceParams"]
 
@@ -404,7 +409,6 @@ def cap_loop(points: np.ndarray, loop: np.ndarray, *, max_planarity: float = 0.6
 def _caps_cross(points: np.ndarray, triangles: np.ndarray, own: int) -> bool:
     """Whether a cap triangle (those from ``own`` on) crosses another triangle of the piece
     (the exact test of :func:`~warpskin.metrics.self_intersections`, neighbours skipped)."""
-    from ..metrics import self_intersections
 
     used = np.unique(triangles)
     remap = np.full(len(points), -1, dtype=np.int64)
@@ -501,7 +505,6 @@ def _reduction_unit(height: float) -> float:
     where that file's points are these times the same power of ten."""
     if not (height > 0.0) or not math.isfinite(height):
         return 1.0
-    from ..units import metres_per_unit
 
     unit = metres_per_unit(height)
     return unit * 2.0 ** round(math.log2(REDUCE_AT / (height * unit)))
@@ -540,7 +543,6 @@ def _closest_weights(query: np.ndarray, points: np.ndarray, triangles: np.ndarra
                      device) -> np.ndarray:
     """The barycentric blend of ``weights`` (per point of the mesh ``points``, ``triangles``)
     at the closest point of the mesh to each of ``query``."""
-    from .cage import closest_faces
 
     far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([query, points]), axis=0))) + 1.0
     face, bary = closest_faces(query, points, triangles, far, device)
@@ -553,7 +555,6 @@ def _garments(locals_: dict, candidates: np.ndarray, count: int, max_gap: float,
     and how far they lie from them (90th percentile of the covered points' gaps [m])."""
     import warp as wp
 
-    from ..kernels import pieces as k_pieces
 
     garment = np.zeros(count, dtype=bool)
     gap = np.zeros(count)
@@ -585,7 +586,6 @@ def _garments(locals_: dict, candidates: np.ndarray, count: int, max_gap: float,
     owner = np.concatenate([np.full(len(locals_[k].points), k) for k in ids])
     hit = np.where(face >= 0, tri_owner[np.maximum(face, 0)], -1)
     under = (hit >= 0) & (hit != owner)
-    from ..metrics import self_intersections
 
     for i, k in enumerate(ids):
         s = slice(offsets[i], offsets[i + 1])
@@ -639,7 +639,6 @@ def _thin(locals_: dict, candidates: np.ndarray, count: int, prm: PieceParams, d
     (:func:`~warpskin.capture.shape_diameter` on its own closed surface) against the mean edge of
     the candidates, grown by the square root of the reduction ``max_vertices`` asks for; and that
     edge [m]."""
-    from ..capture import point_normals, shape_diameter
 
     out = np.zeros(count, dtype=bool)
     ids = list(np.nonzero(candidates)[0])
@@ -686,7 +685,6 @@ def piece_surface(points: np.ndarray, triangles: np.ndarray, dense_weights: np.n
     Returns:
         The :class:`PieceSurface`, or ``None`` where no piece can be simulated.
     """
-    from ..capture import welded_pieces
 
     prm = params or PieceParams()
     p = np.asarray(points, dtype=np.float64)
@@ -833,7 +831,6 @@ def _groups(vertices: np.ndarray, triangles: np.ndarray, written: np.ndarray, ve
     Groups: ``0 .. P-1`` the pieces, ``P .. 2P-1`` their caps, then one per seam zone."""
     import warp as wp
 
-    from ..kernels import pieces as k_pieces
 
     group = np.where(cap, count + vertex_piece, vertex_piece).astype(np.int64)
     seams: list[tuple[int, int]] = []  # (piece, partner) of each seam group

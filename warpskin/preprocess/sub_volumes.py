@@ -97,7 +97,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from ..rig import Rig, RigError
+from ..rig import Rig, RigError, RigWarning
 from ..settings import setting
 from .bones import Bones, bone_segments, dominant_bone
 
@@ -720,7 +720,6 @@ def build_subvolumes(rig: Rig, params: SubVolumeParams | None = None, *, bones: 
         # but a relative volume error means nothing for it (the checks and reports skip it)
         import warnings
 
-        from ..rig import RigWarning
 
         s = int(bad[0])
         bounding = [_short(names[planes[k].joint]) for k in range(len(planes)) if s in sides[k]]

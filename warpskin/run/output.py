@@ -14,7 +14,9 @@ import numpy as np
 
 from ..errors import SceneError
 from ..io.render import smoothing_groups
+from ..io.usd_export import _prim_name
 from ..mesh import weld_by_position
+from ..rig import Clip
 from ..transforms import linear_blend_skin
 
 __all__ = ["CharacterOutput", "TOPOLOGIES", "rest_pose_points", "attachment_kwargs"]
@@ -28,7 +30,6 @@ def rest_pose_points(rig) -> np.ndarray:
     """The skin in the skeleton's rest pose in stage space ``[V, 3]`` (every vertex of ``rig``):
     the default-time points of a bake, standing where its frames stand (CesiumMan's bind space
     is Z-up under a Y-up stage)."""
-    from ..rig import Clip
 
     mats = rig.skinning_matrices(Clip("rest"), 0.0)
     return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, mats)
@@ -77,7 +78,6 @@ class CharacterOutput:
     def skin_prim(self) -> str:
         """The prim name of the character's skin: its file's mesh name (``Cesium_Man``,
         ``Hand_R``), ``skin`` where it has none; its LBS guide is ``<name>_lbs``."""
-        from ..io.usd_export import _prim_name
 
         name = _prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
         taken = {_prim_name(a.name) for a in getattr(self.rig, "attachments", []) or []}
@@ -116,7 +116,6 @@ class CharacterOutput:
 
     def declare_attachments(self, writer) -> None:
         """Add every attachment as a sibling mesh in its own topology, at rest in stage space."""
-        from ..rig import Clip
 
         rest_world = self.rig.joint_world_transforms(Clip("rest"), 0.0)
         for a in self.attachments:

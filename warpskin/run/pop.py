@@ -11,13 +11,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SceneError
-from ..io.usd_export import UsdSkinWriter, check_output_path
+from ..errors import RigWarning, SceneError
+from ..io.usd_export import UsdSkinWriter, _prim_name, check_output_path
+from ..model import SkinModelBuilder
 from ..popping.activation import BeatSpec, PoppingSettings, popping_settings, vibrating
 from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene, examples_from_file, has_examples
-from ..popping.layered import muscle_rest_offset_deltas
+from ..popping.layered import muscle_rest_offset_deltas, rest_offset_deltas
+from ..popping.muscles import DEFAULT_SWELL, belly_of_swelling, groups_of_model, muscles_from_skeleton
 from ..popping.pose_space import PoseSpaceDeformer
+from ..popping.report import belly_of_bones, belly_of_examples, write_popping_report
+from ..preprocess.bones import Bones
+from ..rig import Clip
 from ..scene import resolve_scene
 from ..units import file_unit
 from .output import CharacterOutput
@@ -252,7 +257,6 @@ def run_popping(
         "ms_per_frame": float(np.sum(record.step_ms)) * plan.substeps / count,
     }
     if report_dir is not None:
-        from ..popping.report import belly_of_examples
 
         rep = _report(report_dir, writer.path, belly_of_examples(rig, examples), rig, topology, plan.fps, settings)
         summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
@@ -265,7 +269,6 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
     skin is ``rig``'s (``bellies``: per group a mask per welded skin vertex, or ``{prim name:
     mask per written point of that mesh}`` as written); returns its folder (``dir``) and each
     group's pops (``beats``: :func:`~warpskin.popping.report.beat_summary`)."""
-    from ..popping.report import write_popping_report
 
     masks = {g: (m[rig.weld_map] if topology == "file" and not isinstance(m, dict) else m) for g, m in bellies.items()}
     tl = settings.activation
@@ -278,9 +281,6 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
                  start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
                  swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True,
                  pop_on="surface") -> PoppingRun:
-    from ..model import SkinModelBuilder
-    from ..popping.layered import rest_offset_deltas
-    from ..popping.muscles import DEFAULT_SWELL, belly_of_swelling, muscles_from_skeleton
     from .simulate import simulate
 
     if examples is None and has_examples(scene):
@@ -366,11 +366,9 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
                                "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
     if report_dir is not None:
-        from ..popping.report import belly_of_bones, belly_of_examples
 
         render = scene.rig()
         if surface:  # every written mesh the pop moves, by its prim name
-            from ..io.usd_export import _prim_name
             from .output import CharacterOutput
 
             skin_prim = CharacterOutput(render, topology).skin_prim
@@ -410,11 +408,7 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
     import warnings
 
     from ..capture import welded_pieces
-    from ..errors import RigWarning
-    from ..popping.muscles import groups_of_model
     from ..popping.surface import DEFAULT_SURFACE_SWELL, belly_of_groups, surface_swelling
-    from ..preprocess.bones import Bones
-    from ..rig import Clip
 
     soup = character.soup
     chosen = groups_of_model(builder, muscles)  # builds the model
@@ -467,7 +461,6 @@ def _surface_pop(character, builder, plan, settings, muscles, swell, found: list
     point}``) and sets the activation ``timeline``. ``unit``: metres per file unit (the snap
     distance ``settings.threshold`` is in metres)."""
     from ..popping.surface import SurfacePop, seam_points
-    from ..rig import Clip
 
     soup, rig = character.soup, character.rig
     found[:], swelling, chosen, stage, mesh, belly = surface_muscles(character, builder, muscles, swell, device)

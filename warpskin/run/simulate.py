@@ -14,12 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SimulationError
-from ..io.usd_export import UsdSkinWriter, check_output_path
+from ..io.usd_export import UsdSkinWriter, _prim_name, check_output_path
 from ..metrics import self_intersections_of_two, signed_volume
 from ..model import SkinModelBuilder
 from ..preprocess.layers import LAYER_NAMES
+from ..quality import QualityLimits, QualityLog
+from ..report import write_plots
 from ..scene import Scene
-from ..solver import SolverParams
+from ..solver import GRAVITY_STEP, SolverParams, skin_step_limit
 from ..transforms import linear_blend_skin
 from .physics import PhysicsStepper
 from .output import CharacterOutput, attachment_kwargs
@@ -237,11 +239,9 @@ class _WrittenQuality:
 
     def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper,
                  measures: _Measurements, skin_prim: str = "skin") -> None:
-        from ..quality import QualityLimits, QualityLog
 
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
         # measured and reported under the names they are written with (the skin: its file's)
-        from ..io.usd_export import _prim_name
 
         self.names = {p.name: (skin_prim if p.name == "skin" else _prim_name(p.name)) for p in character.parts}
         self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
@@ -370,7 +370,6 @@ def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: Fra
     ``params.dt`` asked; unchanged where it does not."""
     from dataclasses import replace
 
-    from ..solver import GRAVITY_STEP, skin_step_limit
 
     limit = skin_step_limit([builder], model, params)
     if not limit < params.dt:
@@ -662,7 +661,6 @@ def simulate(
         summary["subvolume_names"] = list(subs.names)
     result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
     if report_dir is not None:
-        from ..report import write_plots
 
         report = Path(report_dir)
         report.mkdir(parents=True, exist_ok=True)
