@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
-from .cli import build_parser
+from .parser import build_parser
 from .errors import InputError
 from .scene import list_scenes, resolve_scene
 from .settings import add_option, setting

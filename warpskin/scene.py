@@ -36,7 +36,7 @@ from pathlib import Path
 
 from .errors import SceneError
 from .io import RIG_EXTENSIONS, load_rig
-from .params import CollisionParams
+from .params import CollisionParams, PoppingSettings
 from .rig import Rig, RigError
 from .settings import check_value, from_section, read_section, setting, setting_named, settings_of
 
@@ -307,6 +307,24 @@ class Scene:
         from .guard import GuardParams
 
         return from_section(GuardParams, self.extra.get("guard", {}), _where(self.source), "guard")
+
+    def popping_settings(self):
+        """The :class:`~warpskin.params.PoppingSettings` of the ``[popping]`` section (defaults
+        where absent), its activation table parsed into an
+        :class:`~warpskin.popping.activation.ActivationTimeline`.
+
+        Raises:
+            SceneError: a value of the wrong kind or range, naming the file and key.
+        """
+        from .popping.activation import ActivationTimeline  # the popping package loads Warp: only when asked
+
+        where = str(self.source) if self.source else "scene"
+        values = read_section(scene_sections()["popping"], dict(self.extra.get("popping") or {}), where, "popping")
+        values["activation"] = ActivationTimeline.from_table(values.get("activation", {}),
+                                                             where=f"{where}: [popping.activation]")
+        settings = PoppingSettings(**values)
+        settings.check(where)
+        return settings
 
     def physics_weights(self) -> dict[str, float]:
         """``[physics.weights]``: joint-name patterns (shell-style, case-insensitive: ``"*hand*"``)

@@ -65,7 +65,8 @@ Example:
 from __future__ import annotations
 
 
-from .activation import ActivationTimeline, Beat, BeatSpec, PoppingSettings, beat_times, popping_settings, read_beats
+from ..params import PoppingSettings
+from .activation import ActivationTimeline, Beat, BeatSpec, beat_times, popping_settings, read_beats
 from .dynamics import PoppingDynamics
 from .examples import EXAMPLE_GENERATORS, MAX_GROUPS, Activation, PoppingExamples, examples_for_scene, examples_from_meshes, examples_from_morph_targets
 from .layered import muscle_rest_offset_deltas

@@ -4,22 +4,17 @@
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import SceneError
-from ..params import PoppingSettings
-from ..scene import scene_sections
-from ..settings import read_section
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+if TYPE_CHECKING:
+    from ..params import PoppingSettings
 
 
 # --------------------------------------------------------------------------------------------
@@ -363,22 +358,9 @@ def vibrating(sample: Callable[[float], np.ndarray], start: float, end: float, *
 # Scenes
 # --------------------------------------------------------------------------------------------
 def popping_settings(scene) -> PoppingSettings:
-    """Parse a scene's ``[popping]`` section (defaults where absent).
+    """A scene's ``[popping]`` section, parsed: :meth:`warpskin.scene.Scene.popping_settings`.
 
     Raises:
-        RigError: a value of the wrong kind or range, naming the file and key.
+        SceneError: a value of the wrong kind or range, naming the file and key.
     """
-    where = str(scene.source) if getattr(scene, "source", None) else "scene"
-    table = scene.extra.get("popping") if isinstance(getattr(scene, "extra", None), dict) else None
-    if table is None and getattr(scene, "source", None) is not None and str(scene.source).endswith(".toml"):
-        try:
-            table = tomllib.loads(Path(scene.source).read_text()).get("popping")
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise SceneError(f"{where}: cannot read the [popping] section: {exc}") from None
-
-    values = read_section(scene_sections()["popping"], dict(table or {}), where, "popping")
-    values["activation"] = ActivationTimeline.from_table(values.get("activation", {}),
-                                                         where=f"{where}: [popping.activation]")
-    settings = PoppingSettings(**values)
-    settings.check(where)
-    return settings
+    return scene.popping_settings()

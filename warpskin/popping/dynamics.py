@@ -11,6 +11,7 @@ import warp as wp
 
 from ..errors import SceneError
 from ..kernels import popping as _k
+from ..params import PoppingSettings
 from ..settings import check_value, setting_named
 from .examples import Activation
 
@@ -23,9 +24,7 @@ if TYPE_CHECKING:
 # --------------------------------------------------------------------------------------------
 def _check_dynamics(alpha_min: float, beta: float, threshold: float, where: str = "popping") -> None:
     """``alpha_min``, ``beta`` and ``threshold`` in their ranges as ``[popping]`` declares them
-    (:class:`~warpskin.popping.activation.PoppingSettings`), else a one-line SceneError."""
-    from .activation import PoppingSettings
-
+    (:class:`~warpskin.params.PoppingSettings`), else a one-line SceneError."""
     for name, value in (("alpha_min", alpha_min), ("beta", beta), ("threshold", threshold)):
         check_value(setting_named(PoppingSettings, name), value, f"{where}: ")
 

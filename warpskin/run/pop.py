@@ -14,7 +14,8 @@ import numpy as np
 from ..errors import RigWarning, SceneError
 from ..io.usd_export import UsdSkinWriter, _prim_name, check_output_path
 from ..model import SkinModelBuilder
-from ..popping.activation import BeatSpec, PoppingSettings, popping_settings, vibrating
+from ..params import PoppingSettings
+from ..popping.activation import BeatSpec, popping_settings, vibrating
 from ..popping.dynamics import PoppingDynamics
 from ..popping.examples import PoppingExamples, examples_for_scene, examples_from_file, has_examples
 from ..popping.layered import muscle_rest_offset_deltas, rest_offset_deltas
