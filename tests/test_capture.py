@@ -13,7 +13,8 @@ import warp as wp
 from scipy.sparse.csgraph import connected_components
 
 from oracles import lbs
-from warpskin.capture import CaptureParams, point_normals, shape_diameter
+from warpskin.capture import CaptureParams, shape_diameter
+from warpskin.mesh import vertex_normals
 from warpskin.character import Character
 from warpskin.preprocess.cage import build_cage, character_parts, character_soup
 
@@ -27,13 +28,13 @@ def _components(v: np.ndarray, f: np.ndarray) -> int:
 def test_shape_diameter_of_a_sphere_and_a_box_is_their_width(device):
     s = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
     v, f = np.asarray(s.vertices), np.asarray(s.faces)
-    d = shape_diameter(v, point_normals(v, f), v, f, device=device)
+    d = shape_diameter(v, vertex_normals(v, f), v, f, device=device)
     # the five rays (one along the inward normal, four tilted 20 degrees) are chords of the
     # sphere: 2 r for the first, 2 r cos 20 for the others; the median is a tilted one
     np.testing.assert_allclose(d, 2 * 0.05 * np.cos(np.radians(20.0)), rtol=0.02)
     b = trimesh.creation.box(extents=(0.3, 0.04, 0.2)).subdivide().subdivide()
     v, f = np.asarray(b.vertices), np.asarray(b.faces)
-    d = shape_diameter(v, point_normals(v, f), v, f, device=device)
+    d = shape_diameter(v, vertex_normals(v, f), v, f, device=device)
     mid_top = (np.abs(v[:, 1] - 0.02) < 1e-9) & (np.abs(v[:, 0]) < 0.1) & (np.abs(v[:, 2]) < 0.05)
     np.testing.assert_allclose(np.median(d[mid_top]), 0.04 / np.cos(np.radians(20.0)), rtol=0.02)
 
@@ -48,7 +49,7 @@ def test_an_overlapping_piece_does_not_end_the_ray(device):
     ball.apply_translation([0, 0, 0.27])
     v = np.concatenate([tv, ball.vertices])
     f = np.concatenate([tf, ball.faces + len(tv)])
-    n = point_normals(v, f)
+    n = vertex_normals(v, f)
     side = np.abs(v[:, 2] - 0.27) < 0.006
     side[len(tv):] = False
     d = shape_diameter(v[side], n[side], v, f, device=device)

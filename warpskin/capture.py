@@ -41,9 +41,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
+from .mesh import vertex_normals
 from .preprocess.cage import closest_faces
 
-__all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "point_normals", "shape_diameter",
+__all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "shape_diameter",
            "welded_pieces", "wrap_points"]
 
 
@@ -141,18 +142,6 @@ def welded_pieces(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np.n
     rows, cols = np.concatenate([t[:, 0], t[:, 1], t[:, 2]]), np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
     _, piece = connected_components(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(c, c)), directed=False)
     return first, cls, t, piece
-
-
-def point_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals ``[N, 3]`` (zero for a point on no triangle)."""
-    p = np.asarray(points, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    fn = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    n = np.zeros_like(p)
-    for k in range(3):
-        np.add.at(n, t[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.where(length > 0, n / np.maximum(length, 1e-300), 0.0)
 
 
 def shape_diameter(points: np.ndarray, normals: np.ndarray, mesh_points: np.ndarray, mesh_triangles: np.ndarray, *,
@@ -305,8 +294,8 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     c = first.size
     q = p[first]
     wq = wp_dense[first]
-    nq = point_normals(q, ctri)
-    cage_n = point_normals(cv, cage_triangles)
+    nq = vertex_normals(q, ctri)
+    cage_n = vertex_normals(cv, cage_triangles)
     notes: dict = {}
 
     # 1. raw capture: nearby simulated vertices, skinned alike and facing alike

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .capture import (
-    Capture, CaptureParams, _smoothstep, capture_points, identity_capture, point_normals, shape_diameter,
+    Capture, CaptureParams, _smoothstep, capture_points, identity_capture, shape_diameter,
     welded_pieces, wrap_points,
 )
 from .deformer import WrittenDeformer, joint_points
@@ -42,6 +42,7 @@ from .errors import RigWarning, SceneError
 from .guard import CrossGuard, GuardParams, JumpLimit, SurfaceGuard, WornRepair
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
 from .io.usd_export import _prim_name
+from .mesh import vertex_normals
 from .preprocess.cage import _pick, build_cage, cage_from_mesh, cage_rig, character_parts
 from .preprocess.pieces import PieceParams, piece_surface
 from .quality import CrossPairs, WrittenMesh
@@ -519,7 +520,7 @@ class Character:
         if sim_points.size:
             first, cls, ctri, _ = welded_pieces(soup.points, soup.triangles, self.mesh_of_point)
             q = soup.points[first]
-            thick = shape_diameter(q, point_normals(q, ctri), q, ctri, device=device)[cls]
+            thick = shape_diameter(q, vertex_normals(q, ctri), q, ctri, device=device)[cls]
             ramp = _smoothstep(np.where(np.isfinite(thick), thick, np.inf), prm.thin * ps.edge, prm.thick * ps.edge)
             phi[sim_points] *= ramp[sim_points]
             notes["thin_points"] = int((ramp[sim_points] < 1.0).sum())

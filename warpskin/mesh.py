@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["weld_by_position", "mesh_edge_report", "triangulate_faces", "polygon_triangle_count"]
+__all__ = ["weld_by_position", "mesh_edge_report", "triangulate_faces", "polygon_triangle_count", "vertex_normals"]
 
 
 def weld_by_position(points: np.ndarray, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -113,3 +113,16 @@ def triangulate_faces(
     base = offsets[face_of_tri]
     tri = np.stack([indices[base], indices[base + k + 1], indices[base + k + 2]], axis=1)
     return tri, skipped
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[N, 3]`` of ``points`` ``[N, 3]`` and ``triangles``
+    ``[T, 3]`` (outward for outward-wound triangles; zero for a point on no triangle), in float64."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    fn = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    n = np.zeros_like(p)
+    for k in range(3):
+        np.add.at(n, t[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.where(length > 0, n / np.maximum(length, 1e-300), 0.0)

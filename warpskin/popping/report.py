@@ -18,8 +18,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+from ..mesh import vertex_normals
 from ..preprocess.bones import bone_segments, closest_point_on_segments, dominant_bone
-from ..preprocess.layers import _vertex_normals
 
 __all__ = ["belly_of_bones", "belly_of_examples", "bulge_series", "beat_summary", "write_popping_report"]
 
@@ -99,7 +99,7 @@ def bulge_series(path, bellies: dict, moved: dict | None = None) -> tuple[np.nda
             s = np.asarray(mesh.GetPointsAttr().Get(tc), dtype=np.float64)
             r = np.asarray(guide.GetPointsAttr().Get(tc), dtype=np.float64)
             one, cls, tris = joined[k]
-            outward[k] = np.einsum("ij,ij->i", s - r, _vertex_normals(r[one], tris)[cls])
+            outward[k] = np.einsum("ij,ij->i", s - r, vertex_normals(r[one], tris)[cls])
         for g, masks in belly.items():
             total = sum(float(outward[k][sel].sum()) for k, sel in masks.items())
             count = sum(int(np.count_nonzero(sel)) for sel in masks.values())

@@ -60,10 +60,11 @@ import numpy as np
 import scipy.sparse as sp
 import warp as wp
 
-from ..capture import point_normals, shape_diameter, welded_pieces
+from ..capture import shape_diameter, welded_pieces
 from ..collision import skin_edges
 from ..errors import SceneError
 from ..kernels import popping as _k
+from ..mesh import vertex_normals
 from ..metrics import PairQuery, triangle_pairs_intersect
 from ..preprocess.bone_heat import vertex_areas
 from ..preprocess.fast_summation import vertex_adjacency
@@ -348,7 +349,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     ok = r > 1e-9 * max(diagonal, 1e-12)
     direction = np.zeros_like(points)
     direction[ok] = radial[ok] / r[ok, None]
-    normals = point_normals(points, tris)
+    normals = vertex_normals(points, tris)
     # the skin swells along its own normal where that faces away from the bone (an offset of
     # the surface: a box-like shell moves off its faces, not diagonally through them), turning
     # to the radial direction where the normal turns along the bone or towards it (a cap)

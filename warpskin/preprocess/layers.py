@@ -18,6 +18,7 @@ import numpy as np
 
 from ..collision import skin_edges
 from ..errors import SceneError
+from ..mesh import vertex_normals
 from ..metrics import self_intersections
 from ..settings import check_settings, setting
 from ..rig import Rig, RigError, RigWarning
@@ -248,16 +249,6 @@ def _segment_exits(rig: Rig, seg: np.ndarray, reach: np.ndarray) -> tuple[np.nda
     return out, inside
 
 
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals ``[V, 3]`` (outward for outward-wound triangles)."""
-    t = triangles
-    n = np.cross(vertices[t[:, 1]] - vertices[t[:, 0]], vertices[t[:, 2]] - vertices[t[:, 0]])
-    out = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(out, t[:, k], n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
-
-
 def _ramp(scale: np.ndarray, edges: np.ndarray, step: float) -> np.ndarray:
     """Lower ``scale`` until neighbours differ by at most ``step`` (never raise it): a reduced
     vertex pulls its surroundings down gradually, so the depth varies smoothly."""
@@ -317,7 +308,7 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     typical = float(np.median(length[length > 0])) if (length > 0).any() else 0.0
     on_bone = length <= 1e-6 * typical
     if on_bone.any():  # a vertex on its bone's centre line has no way in: along its inward normal
-        seg[on_bone] = -_vertex_normals(v, tris)[on_bone] * typical
+        seg[on_bone] = -vertex_normals(v, tris)[on_bone] * typical
         length = np.linalg.norm(seg, axis=1)
     exits, inward = _segment_exits(rig, seg, deepest * length / exit_margin)
     outward = ~inward
@@ -325,7 +316,7 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
         # the nearest point of the bone lies outside the skin here (the segment points out of
         # the body): such a vertex's layers go in along its inward normal instead, as deep as
         # its bone is far
-        seg[outward] = -_vertex_normals(v, tris)[outward] * length[outward, None]
+        seg[outward] = -vertex_normals(v, tris)[outward] * length[outward, None]
         again, _ = _segment_exits(rig, seg, deepest * length / exit_margin)
         exits[outward] = again[outward]
     with np.errstate(divide="ignore", invalid="ignore"):

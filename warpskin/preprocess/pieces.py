@@ -41,9 +41,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..capture import point_normals, shape_diameter, welded_pieces
+from ..capture import shape_diameter, welded_pieces
 from ..kernels import pieces as k_pieces
-from ..mesh import mesh_edge_report
+from ..mesh import mesh_edge_report, vertex_normals
 from ..metrics import self_intersections
 from ..units import metres_per_unit
 from .cage import closest_faces
@@ -660,7 +660,7 @@ def _thin(locals_: dict, candidates: np.ndarray, count: int, prm: PieceParams, d
         if loc.flipped:
             tris = tris[:, ::-1]
         n = len(loc.points)
-        d = shape_diameter(loc.points, point_normals(pts, tris)[:n], pts, tris, device=device)
+        d = shape_diameter(loc.points, vertex_normals(pts, tris)[:n], pts, tris, device=device)
         d = d[np.isfinite(d)]
         out[k] = d.size > 0 and float(np.median(d)) < prm.thin * h
     return out, h
