@@ -45,7 +45,7 @@ from .mesh import vertex_normals
 from .preprocess.cage import closest_faces
 
 __all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "shape_diameter",
-           "welded_pieces", "wrap_points"]
+           "welded_pieces", "wrap_points", "smoothstep"]
 
 
 @dataclass
@@ -119,7 +119,9 @@ class Capture:
         return phi
 
 
-def _smoothstep(x, a: float, b: float):
+def smoothstep(x, a: float, b: float):
+    """The smoothstep ``3 u^2 - 2 u^3`` of ``u = (x - a) / (b - a)`` clamped to [0, 1]: 0 up to
+    ``a``, 1 from ``b`` on (``x`` any shape, float64 out)."""
     u = np.clip((np.asarray(x, dtype=np.float64) - a) / max(b - a, 1e-300), 0.0, 1.0)
     return u * u * (3.0 - 2.0 * u)
 
@@ -250,9 +252,9 @@ def _smoothing(q: np.ndarray, wq: np.ndarray, nq: np.ndarray, piece: np.ndarray,
     same = piece[a] == piece[b]
     a, b = a[same], b[same]
     cos = np.einsum("ij,ij->i", nq[a], nq[b])
-    facing = _smoothstep(cos, 0.0, 0.5)
+    facing = smoothstep(cos, 0.0, 0.5)
     if part is not None:
-        facing = np.where(part[a] != part[b], _smoothstep(cos, -0.5, 0.0), facing)
+        facing = np.where(part[a] != part[b], smoothstep(cos, -0.5, 0.0), facing)
     g = _kernel(np.linalg.norm(q[a] - q[b], axis=1), sigma) * _similarity(wq, wq, a, b) ** 2 * facing
     keep = g > 0
     a, b, g = a[keep], b[keep], g[keep]
@@ -314,7 +316,7 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     cols = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=int(counts.sum()))
     dist = np.linalg.norm(q[rows] - cv[cols], axis=1)
     sim = _similarity(wq, wc_dense, rows, cols)
-    facing = _smoothstep(np.einsum("ij,ij->i", nq[rows], cage_n[cols]), -0.3, 0.3)
+    facing = smoothstep(np.einsum("ij,ij->i", nq[rows], cage_n[cols]), -0.3, 0.3)
     k_raw = _kernel(dist, max(radius, float(dist.max()) * 1.0001)) * sim ** 2 * facing
     if cage_exclude is not None:
         k_raw = np.where(np.asarray(cage_exclude, dtype=bool)[cols], 0.0, k_raw)
@@ -340,8 +342,8 @@ def capture_points(points: np.ndarray, triangles: np.ndarray, dense_weights: np.
     # physics weight: thick enough, captured confidently, not excluded
     thickness = shape_diameter(q, nq, q, ctri, device=device)
     # a part whose inward rays leave through nothing is a sheet (a flat strip, a cape): no volume
-    phi = (_smoothstep(np.where(np.isfinite(thickness), thickness, 0.0), prm.thin * h, prm.thick * h)
-           * _smoothstep(confidence, *prm.confidence))
+    phi = (smoothstep(np.where(np.isfinite(thickness), thickness, 0.0), prm.thin * h, prm.thick * h)
+           * smoothstep(confidence, *prm.confidence))
     phi[unmatched] = 0.0
     ex = np.zeros(c, dtype=bool)
     if exclude is not None:

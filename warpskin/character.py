@@ -34,16 +34,16 @@ from pathlib import Path
 import numpy as np
 
 from .capture import (
-    Capture, CaptureParams, _smoothstep, capture_points, identity_capture, shape_diameter,
+    Capture, CaptureParams, smoothstep, capture_points, identity_capture, shape_diameter,
     welded_pieces, wrap_points,
 )
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
 from .guard import CrossGuard, GuardParams, JumpLimit, SurfaceGuard, WornRepair
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
-from .io.usd_export import _prim_name
+from .io.usd_export import valid_prim_name
 from .mesh import vertex_normals
-from .preprocess.cage import _pick, build_cage, cage_from_mesh, cage_rig, character_parts
+from .preprocess.cage import strongest_influences, build_cage, cage_from_mesh, cage_rig, character_parts
 from .preprocess.pieces import PieceParams, piece_surface
 from .quality import CrossPairs, WrittenMesh
 from .rig import Clip, Rig
@@ -222,7 +222,7 @@ class Character:
         (as a cage is: :func:`~warpskin.preprocess.cage.cage_rig`), with its collision groups."""
 
         rig, ps = self.rig, self.pieces
-        ji, jw = _pick(ps.dense_weights, 4)
+        ji, jw = strongest_influences(ps.dense_weights, 4)
         rest_world = rig.joint_world_transforms(Clip("rest"), 0.0)
         sim = Rig(name=rig.name, vertices=ps.vertices.copy(), triangles=ps.triangles, skeleton=rig.skeleton,
                   joint_indices=ji, joint_weights=jw, inverse_bind=np.linalg.inv(rest_world), clips=rig.clips,
@@ -463,7 +463,7 @@ class Character:
                 # is inside one at rest: a hair cap through a bun)
                 clearance = _clearance(soup.points[points], soup.points, body, None, 0.1, 0.05 * ps.edge, device)
                 wrap = (points, corners, bary, coef, clearance, body)
-                phi[points] = 1.0 - _smoothstep(dist, reach, 2.0 * reach)  # beyond a garment's gap: less and less
+                phi[points] = 1.0 - smoothstep(dist, reach, 2.0 * reach)  # beyond a garment's gap: less and less
                 notes["wrapped_points"] = int(points.size)
         sets.append((np.nonzero(~on & ~ps.simulated[piece] & ~worn)[0], anywhere, prm))
         next_group = 0
@@ -479,7 +479,7 @@ class Character:
                                  ps.vertices, ps.triangles, ps.dense_weights, ps.edge, rigid=rigid,
                                  cage_exclude=ps.cap | unresolved | other, params=sub_prm, device=device)
             rows.append((points, sub.indices, sub.weights))
-            phi[points] = _smoothstep(sub.confidence, *prm.confidence)
+            phi[points] = smoothstep(sub.confidence, *prm.confidence)
             # a carried assembly (a fist) moves with the surface that holds it, whatever that
             # surface's joints (the forearm's end): its weight is 1 where it is captured at all
             carried = ps.carried[piece[points]] & (sub.confidence > 0.0)
@@ -521,7 +521,7 @@ class Character:
             first, cls, ctri, _ = welded_pieces(soup.points, soup.triangles, self.mesh_of_point)
             q = soup.points[first]
             thick = shape_diameter(q, vertex_normals(q, ctri), q, ctri, device=device)[cls]
-            ramp = _smoothstep(np.where(np.isfinite(thick), thick, np.inf), prm.thin * ps.edge, prm.thick * ps.edge)
+            ramp = smoothstep(np.where(np.isfinite(thick), thick, np.inf), prm.thin * ps.edge, prm.thick * ps.edge)
             phi[sim_points] *= ramp[sim_points]
             notes["thin_points"] = int((ramp[sim_points] < 1.0).sum())
         k = max(r[1].shape[1] for r in rows)
@@ -677,8 +677,8 @@ class Character:
         """The name a written mesh has in the output (the skin: its file's mesh name)."""
 
         if name == "skin":
-            return _prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
-        return _prim_name(name)
+            return valid_prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
+        return valid_prim_name(name)
 
     def weight_summary(self) -> dict:
         """Per written mesh (by its :meth:`display_name`): the mean physics weight and the share

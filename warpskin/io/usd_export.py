@@ -24,7 +24,7 @@ from .. import __version__
 from ..errors import OutputError
 from .render import group_normals
 
-__all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS", "check_output_path", "OutputLock"]
+__all__ = ["UsdSkinWriter", "ExportError", "USD_EXTENSIONS", "check_output_path", "OutputLock", "valid_prim_name"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -57,7 +57,9 @@ def _valid_faces(tri: np.ndarray) -> np.ndarray:
     return distinct & unique
 
 
-def _prim_name(name: str) -> str:
+def valid_prim_name(name: str) -> str:
+    """A valid USD prim name made of ``name``: every character but a letter, a digit or ``_``
+    replaced by ``_``, and ``_`` put before a name that is empty or starts with a digit."""
     out = "".join(c if (c.isalnum() or c == "_") else "_" for c in name)
     if not out or out[0].isdigit():
         out = "_" + out
@@ -277,7 +279,7 @@ class UsdSkinWriter:
         st.SetFramesPerSecond(self.fps)
         UsdGeom.SetStageUpAxis(st, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
         UsdGeom.SetStageMetersPerUnit(st, float(meters_per_unit))
-        self._root = UsdGeom.Xform.Define(st, Sdf.Path("/" + _prim_name(root)))
+        self._root = UsdGeom.Xform.Define(st, Sdf.Path("/" + valid_prim_name(root)))
         st.SetDefaultPrim(self._root.GetPrim())
         from pxr import Kind, Usd as _Usd
 
@@ -348,7 +350,7 @@ class UsdSkinWriter:
         """
         self._check_open()
         UsdGeom, Vt = self._usdgeom, self._vt
-        key = "/".join(_prim_name(part) for part in name.split("/"))
+        key = "/".join(valid_prim_name(part) for part in name.split("/"))
         if key in self._meshes:
             raise ExportError(f"mesh {name!r} was already added")
         tri = np.asarray(triangles)
@@ -379,7 +381,7 @@ class UsdSkinWriter:
             remap = np.asarray(remap, dtype=np.int64)
             if remap.ndim != 1 or remap.shape[0] != vertex_count:
                 raise ExportError(f"mesh {name!r}: remap must give one source index per vertex ({vertex_count})")
-        child = key if prim_name is None else _prim_name(prim_name)
+        child = key if prim_name is None else valid_prim_name(prim_name)
         if child != key and (child in self._meshes or child in self._children.values()):
             raise ExportError(f"mesh {name!r}: prim name {child!r} is taken")
         self._children[key] = child
@@ -429,7 +431,7 @@ class UsdSkinWriter:
                 binding = self._usdshade().MaterialBindingAPI.Apply(mesh.GetPrim())
                 binding.Bind(material)
             else:
-                subset = UsdGeom.Subset.CreateGeomSubset(mesh, _prim_name(material.GetPrim().GetName()),
+                subset = UsdGeom.Subset.CreateGeomSubset(mesh, valid_prim_name(material.GetPrim().GetName()),
                                                          UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces.astype(np.int32)),
                                                          "materialBind")
                 self._usdshade().MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
@@ -471,7 +473,7 @@ class UsdSkinWriter:
                     hashlib.sha1(material.texture).hexdigest() if material.texture else "")
         if identity in self._material_paths:  # the same material again (several meshes share it)
             return self._material_paths[identity]
-        base = _prim_name(material.name)
+        base = valid_prim_name(material.name)
         path, k = looks.AppendChild(base), 1
         while self._stage.GetPrimAtPath(path):  # another material of that (sanitised) name
             path, k = looks.AppendChild(f"{base}_{k}"), k + 1
@@ -488,7 +490,7 @@ class UsdSkinWriter:
             surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(rgba[3])
         mat.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
         if material.texture:
-            name = _file_name(material.texture_name or f"{_prim_name(material.name)}.png")
+            name = _file_name(material.texture_name or f"{valid_prim_name(material.name)}.png")
             while name in self._textures and self._textures[name] != material.texture:
                 name = "_" + name
             self._textures[name] = material.texture
@@ -523,7 +525,7 @@ class UsdSkinWriter:
         keys = {(child, attr) for prims in variants.values() for child, ops in prims.items() for attr in ops}
         local = {}
         for child, attr in keys:
-            target = root.GetChild(self._children.get(_prim_name(child), _prim_name(child)))
+            target = root.GetChild(self._children.get(valid_prim_name(child), valid_prim_name(child)))
             held = target.GetAttribute(attr)
             local[(child, attr)] = held.Get() if held and held.HasAuthoredValue() else None
             if held:
@@ -537,7 +539,7 @@ class UsdSkinWriter:
                     value = prims.get(child, {}).get(attr, local[(child, attr)])
                     if value is None:
                         continue
-                    img = UsdGeom.Imageable(root.GetChild(self._children.get(_prim_name(child), _prim_name(child))))
+                    img = UsdGeom.Imageable(root.GetChild(self._children.get(valid_prim_name(child), valid_prim_name(child))))
                     (img.CreateVisibilityAttr() if attr == "visibility" else img.CreatePurposeAttr()).Set(value)
         vset.SetVariantSelection(default)
 
@@ -559,7 +561,7 @@ class UsdSkinWriter:
         """
         self._check_open()
         UsdGeom, Vt = self._usdgeom, self._vt
-        key = "/".join(_prim_name(part) for part in name.split("/"))
+        key = "/".join(valid_prim_name(part) for part in name.split("/"))
         if key in self._meshes:
             raise ExportError(f"prim {name!r} was already added")
         pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
@@ -581,7 +583,7 @@ class UsdSkinWriter:
         self._check_open()
         from pxr import UsdGeom
 
-        UsdGeom.Xform.Define(self._stage, self._root.GetPath().AppendChild(_prim_name(name)))
+        UsdGeom.Xform.Define(self._stage, self._root.GetPath().AppendChild(valid_prim_name(name)))
         return self
 
     # ------------------------------------------------------------------ frames
@@ -602,7 +604,7 @@ class UsdSkinWriter:
         Vt = self._vt
         tc = float(frame)
         for name, pts in points.items():
-            key = "/".join(_prim_name(part) for part in name.split("/"))
+            key = "/".join(valid_prim_name(part) for part in name.split("/"))
             if key not in self._meshes:
                 raise ExportError(f"frame {frame}: no mesh {name!r} was added (meshes: {sorted(self._meshes)})")
             mesh, pts_attr, ext_attr, count, animated, remap, normals = self._meshes[key]
@@ -626,7 +628,7 @@ class UsdSkinWriter:
             if normals is not None:
                 normals[0].Set(Vt.Vec3fArray.FromNumpy(self._normals(arr, normals)), tc)
         for name, values in (primvars or {}).items():
-            key = "/".join(_prim_name(part) for part in name.split("/"))
+            key = "/".join(valid_prim_name(part) for part in name.split("/"))
             declared = self._animated_primvars.get(key, {})
             remap = self._meshes[key][5] if key in self._meshes else None
             for pv_name, vals in values.items():

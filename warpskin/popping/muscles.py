@@ -42,7 +42,8 @@ __all__ = ["Muscle", "muscles_from_skeleton", "belly_of_swelling", "choose_group
 DEFAULT_SWELL = 0.3
 """Peak rest-shape swelling of the belly, as a share of the fat-plus-muscle depth (with the
 thinning around it taken off, the skin rises by most of it)."""
-_CAP = 0.15  # the swelling is at most this share of its bone's length
+#: The swelling of a muscle group is at most this share of its bone's length.
+SWELL_CAP = 0.15
 _BUFFER = 2  # rings over which the thinning fades towards the skin the group's neighbourhood does not carry
 _SMOOTH = 8  # rings over which the thinning's share passes from one sub-volume to the next
 
@@ -115,7 +116,7 @@ def _field(layers, bones: np.ndarray, swell: float, thinning: np.ndarray, volume
     on = np.isin(layers.bone, bones) & ok
     length = layers.bones.length[layers.bone]
     t = np.clip(layers.bone_t, 0.0, 1.0)
-    amount = np.where(on, np.minimum(swell * depth, _CAP * length) * _profile(t), 0.0)
+    amount = np.where(on, np.minimum(swell * depth, SWELL_CAP * length) * _profile(t), 0.0)
     shapes = np.where(ok[:, None], thinning, 0.0)
     direction = np.zeros_like(skin)
     direction[ok] = radial[ok] / r[ok][:, None]

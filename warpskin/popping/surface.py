@@ -70,7 +70,7 @@ from ..preprocess.bone_heat import vertex_areas
 from ..preprocess.fast_summation import vertex_adjacency
 from ..quality import STRAIN_LIMIT
 from .activation import clench_table
-from .muscles import _CAP, Muscle, neighbourhood, thinning_reach
+from .muscles import SWELL_CAP, Muscle, neighbourhood, thinning_reach
 
 __all__ = ["DEFAULT_SURFACE_SWELL", "belly_profile", "surface_swelling", "bone_coordinates", "seam_points", "belly_of_groups", "SurfacePop"]
 
@@ -388,7 +388,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
         level = np.where(on, depth, 0.0)
         for _ in range(_EASE):
             level = np.where(on, (ring @ level) / np.maximum(ring @ on.astype(np.float64), 1.0), 0.0)
-        amount = np.where(on, np.minimum(swell * level, _CAP * length) * profile, 0.0)
+        amount = np.where(on, np.minimum(swell * level, SWELL_CAP * length) * profile, 0.0)
         hood = neighbourhood(group, parents)
         near = thinning_reach(w[:, hood].sum(axis=1), np.isin(dominant, hood), ring) * ok
         shape = near * np.where(bellied, 1.0 - np.clip(profile, 0.0, 1.0), 1.0)  # away from the bellies

@@ -31,7 +31,7 @@ from ..run.output import rest_pose_points
 from .refine import flip_flat_edges
 
 __all__ = ["Cage", "closest_faces", "build_cage", "separable_parts", "character_parts", "default_cage_edge", "TARGET_VERTICES", "mesh_quality", "CharacterSoup", "character_soup",
-           "transfer_weights", "cage_rig"]
+           "transfer_weights", "cage_rig", "strongest_influences"]
 
 #: Vertices of a default cage (the layered model's cost grows with them; a few thousand
 #: resolve a human's joints).
@@ -507,10 +507,13 @@ def transfer_weights(cage_vertices: np.ndarray, cage_triangles: np.ndarray, soup
         avg = sp.diags(1.0 / np.maximum(np.asarray(a.sum(axis=1)).ravel(), 1.0)) @ a
         for _ in range(smooth_passes):
             dense = 0.5 * dense + 0.5 * (avg @ dense)
-    return _pick(dense, influences) + (matched,)
+    return strongest_influences(dense, influences) + (matched,)
 
 
-def _pick(dense: np.ndarray, influences: int) -> tuple[np.ndarray, np.ndarray]:
+def strongest_influences(dense: np.ndarray, influences: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``influences`` largest weights of each row of ``dense`` ``[N, J]`` (negative ones taken
+    as 0) and their joints: ``(joint indices [N, K], weights [N, K])``, the weights renormalised to
+    sum to 1 (``K = min(influences, J)``)."""
     dense = np.clip(dense, 0.0, None)
     k = min(influences, dense.shape[1])
     idx = np.argsort(-dense, axis=1)[:, :k]

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import SceneError
 from ..io.render import smoothing_groups
-from ..io.usd_export import _prim_name
+from ..io.usd_export import valid_prim_name
 from ..mesh import weld_by_position
 from ..rig import Clip
 from ..transforms import linear_blend_skin
@@ -79,8 +79,8 @@ class CharacterOutput:
         """The prim name of the character's skin: its file's mesh name (``Cesium_Man``,
         ``Hand_R``), ``skin`` where it has none; its LBS guide is ``<name>_lbs``."""
 
-        name = _prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
-        taken = {_prim_name(a.name) for a in getattr(self.rig, "attachments", []) or []}
+        name = valid_prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
+        taken = {valid_prim_name(a.name) for a in getattr(self.rig, "attachments", []) or []}
         taken |= {"lbs", "rest", "cage", "Looks", "layer_fat", "layer_muscle", "layer_bone"}
         return name if name not in taken and f"{name}_lbs" not in taken else f"{name}_skin"
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import RigWarning, SceneError
-from ..io.usd_export import UsdSkinWriter, _prim_name, check_output_path
+from ..io.usd_export import UsdSkinWriter, valid_prim_name, check_output_path
 from ..model import SkinModelBuilder
 from ..params import PoppingSettings
 from ..popping.activation import BeatSpec, popping_settings, vibrating
@@ -375,7 +375,7 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
             skin_prim = CharacterOutput(render, topology).skin_prim
             bellies = {}
             for g, masks in zip(groups, surface_bellies):
-                bellies[g] = {(skin_prim if name == "skin" else _prim_name(name)):
+                bellies[g] = {(skin_prim if name == "skin" else valid_prim_name(name)):
                               (m[render.weld_map] if name == "skin" and topology == "file" else m)
                               for name, m in masks.items() if m.any()}
         else:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SimulationError
-from ..io.usd_export import UsdSkinWriter, _prim_name, check_output_path
+from ..io.usd_export import UsdSkinWriter, valid_prim_name, check_output_path
 from ..metrics import self_intersections_of_two, signed_volume
 from ..model import SkinModelBuilder
 from ..preprocess.layers import LAYER_NAMES
@@ -243,7 +243,7 @@ class _WrittenQuality:
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
         # measured and reported under the names they are written with (the skin: its file's)
 
-        self.names = {p.name: (skin_prim if p.name == "skin" else _prim_name(p.name)) for p in character.parts}
+        self.names = {p.name: (skin_prim if p.name == "skin" else valid_prim_name(p.name)) for p in character.parts}
         self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.limits = {self.names[name]: lim for name, lim in character.limits.items()}

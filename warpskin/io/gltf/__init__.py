@@ -27,7 +27,7 @@ import numpy as np
 
 from ...rig import Attachment, Rig, RigError, RigWarning
 from ..render import Material, RenderAttributes
-from ..usd_export import _prim_name
+from ..usd_export import valid_prim_name
 from .document import _MALFORMED, _Document
 from .mesh import _attributes, _describe, _mesh_entries, _read_mesh
 from .skin import _read_clips, _SkinInfo
@@ -141,7 +141,7 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
 
 def _clean(name: str) -> str:
 
-    return _prim_name(name)
+    return valid_prim_name(name)
 
 
 def _attachments(doc: _Document, entries: list[dict], info, node_parent: np.ndarray, rig: Rig) -> list[Attachment]:
