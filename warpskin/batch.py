@@ -142,7 +142,6 @@ def _file_hash(path: Path) -> str:
 
 def _input_files(rig: str) -> list[Path]:
     """The files a job's rig reads (its file; a scene's TOML and the rig file it names)."""
-
     try:
         paths = resolve_scene(rig).input_paths()
     except InputError:
@@ -152,7 +151,6 @@ def _input_files(rig: str) -> list[Path]:
 
 def _check_rig(rig: str, where: str) -> None:
     """A rig that exists: a file, or a shipped scene name."""
-
     names = [s["name"] for s in list_scenes()]
     if Path(rig).is_file() or rig in names:
         return
@@ -162,7 +160,6 @@ def _check_rig(rig: str, where: str) -> None:
 def _check_args(command: str, rig: str, args: list[str], where: str) -> None:
     """Parse the job's command line as the command would, so that a bad option fails the batch
     before anything runs (argparse's own message, its error line)."""
-
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
         try:
@@ -713,7 +710,6 @@ def _thumbnail(out: Path, job: Job) -> str:
     """The index's picture of a finished job (``thumbs/<job>.png``, drawn by
     :func:`~warpskin.thumbnail.write_thumbnail` unless newer than the bake), as Markdown;
     empty where it cannot be drawn (no matplotlib, no mesh)."""
-
     target = out / "thumbs" / f"{_log_name(job.id)}.png"
     try:
         if not target.is_file() or target.stat().st_mtime < job.output.stat().st_mtime:

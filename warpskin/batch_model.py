@@ -234,7 +234,6 @@ class _Centres:
 def _batch_volume(parts, v0, j0, total: int):
     """The volume layouts of ``parts`` side by side, encoded points re-encoded for the batch
     (``k < V``: skin vertex, else fan centre ``k - V``)."""
-
     lays = [p["volume_layout"] for p in parts]
     cs = np.array([lay.center_count for lay in lays], dtype=np.int64)
     c0 = np.concatenate([[0], np.cumsum(cs)[:-1]])
@@ -287,7 +286,6 @@ def batch_model(builders: Sequence, device=None):
             self-collision on or off, its passes or fail-safe rounds, or on having volume
             (module docstring); each names the character.
     """
-
 
     builders = list(builders)
     names = []
@@ -358,7 +356,6 @@ def _batch_written_surface(parts, v0, total: int):
     """The refined characters' written surfaces (each one closed "sub-volume" without fans,
     :func:`~warpskin.model.written_surface`) as one :class:`SubVolumes` over the batch's
     vertices, in character order; ``None`` where no character has one."""
-
     have = [(c, p["written_surface"]) for c, p in enumerate(parts) if p.get("written_surface") is not None]
     if not have:
         return None
@@ -378,7 +375,6 @@ def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.nda
     """Put a batched ``model``'s ``state`` at each character's pose (``poses[c]``
     ``[J_c, 4, 4]``), every character as :func:`~warpskin.run.physics.initial_state` puts it
     alone (LBS of its layers in float64 on the host, at rest, oriented like its bones)."""
-
     if len(builders) != len(model.characters) or len(poses) != len(model.characters):
         raise InputError(f"a batch of {len(model.characters)} characters needs as many builders and poses, "
                          f"got {len(builders)} and {len(poses)}")

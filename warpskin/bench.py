@@ -128,7 +128,6 @@ def _cage_build(rig) -> dict:
     capture (``capture_s``), the written points' deformation per frame against the render
     skin's LBS kernel, and the surface guard of the written meshes per frame (``guard_ms`` on a
     frame it lets through, ``guard_acting_ms`` on one where it takes a crumpled patch back)."""
-
     soup = character_soup(rig)
     tetra = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
     build_cage(tetra, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]), edge=0.2)  # compile outside the timing
@@ -138,7 +137,6 @@ def _cage_build(rig) -> dict:
     # per frame: the written points through the cage (the displacement and deformation
     # launches of warpskin.character) against the LBS kernel of the render skin, both on the
     # CPU device and on device-resident inputs
-
     dev = wp.get_device("cpu")
     t0 = time.perf_counter()
     character = Character(rig, cage="always", device=dev)
@@ -171,7 +169,6 @@ def _cage_build(rig) -> dict:
     # the surface guard of every written mesh, per frame on the host: on a frame it lets
     # through (a small smooth displacement: its checks and the two exact pair counts), and on
     # a frame where it acts (a patch of the first mesh crumpled)
-
     physical = deformer.launch(x, targets).numpy().astype(np.float64)
     lbs_host = character.lbs(rest, 0.0)
     crumpled = physical.copy()
@@ -209,7 +206,6 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     overflow check, per substep); ``lbs_ms`` (the LBS kernel on the skin vertices, the
     kinematic baseline) and ``total_over_lbs``.
     """
-
     dev = resolve_device(device)
     out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
            "cpu_count": os.cpu_count(), "steps": steps, "repeat": repeat, "scenes": {}}
@@ -369,7 +365,6 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
     run). A scene that cannot be loaded or batched (its assets absent, a rest-shape drive)
     reports its ``error``.
     """
-
     if not (isinstance(count, int) and count >= 1):
         raise ValueError(f"--batch needs a positive number of characters, got {count!r}")
     if steps < 1 or repeat < 1:

@@ -404,7 +404,6 @@ def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, 
     gamma n`` in that triangle's edges and the unit normal blended from the vertex normals of
     ``all_triangles`` (the whole closed surface, as the kernel computes them). Returns
     ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
-
     p = np.asarray(points, dtype=np.float64)
     x = np.asarray(surface, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)

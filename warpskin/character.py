@@ -61,7 +61,6 @@ def check_choices(cage, rigid_pieces: str) -> Path | None:
     if rigid_pieces not in RIGID_MODES:
         raise SceneError(f"rigid_pieces must be 'cage' or 'joint', got {rigid_pieces!r}")
     if isinstance(cage, Path) or cage not in CAGE_MODES:
-
         if not isinstance(cage, (str, Path)) or Path(cage).suffix.lower() not in CAGE_EXTENSIONS:
             raise SceneError(f"cage must be 'auto', 'always', 'none' or a mesh file ({', '.join(CAGE_EXTENSIONS)}), "
                              f"got {cage!r}")
@@ -193,13 +192,11 @@ class Character:
     @property
     def pieces_params(self):
         """The :class:`~warpskin.preprocess.pieces.PieceParams` of the character's own pieces."""
-
         return PieceParams()
 
     def _piece_surface(self):
         """The character's own pieces made closed (:func:`~warpskin.preprocess.pieces.piece_surface`),
         or ``None`` where too few of its points lie on pieces that can be (see ``cage``)."""
-
         soup = self.soup
         names = [self.display_name(name) for name, _, _ in soup.pieces]
         ps = piece_surface(soup.points, soup.triangles, soup.dense_weights, self._mesh_of_soup(), names,
@@ -220,7 +217,6 @@ class Character:
     def _pieces_rig(self):
         """The pieces' closed surface as a rig to simulate, bound at the rest pose in stage space
         (as a cage is: :func:`~warpskin.preprocess.cage.cage_rig`), with its collision groups."""
-
         rig, ps = self.rig, self.pieces
         ji, jw = strongest_influences(ps.dense_weights, 4)
         rest_world = rig.joint_world_transforms(Clip("rest"), 0.0)
@@ -240,10 +236,8 @@ class Character:
         return sim
 
     def _build_cage(self, cage_file) -> None:
-
         rig, soup = self.rig, self.soup
         if cage_file is not None:  # the user's own
-
             cage = cage_from_mesh(read_cage_mesh(cage_file), rig, device=self.device, soup=soup)
         else:
             cage = build_cage(soup.points, soup.triangles, device=self.device, parts=character_parts(rig, soup))
@@ -400,7 +394,6 @@ class Character:
         the body's deformation; the other points (sheets, small rigid pieces) by the simulated
         surface near them, each rigid piece as a whole. A captured point's physics weight is the capture's confidence (its
         skinning similarity, :class:`~warpskin.capture.CaptureParams` ``confidence``)."""
-
         ps, soup = self.pieces, self.soup
         prm = self.capture or CaptureParams()
         n = self.point_count
@@ -447,7 +440,6 @@ class Character:
         worn = np.zeros(n, dtype=bool)
         wrap = None
         if candidates.size:
-
             # on the written surface of the simulated pieces (what shows beneath a garment)
             body = soup.triangles[ps.simulated[piece[soup.triangles[:, 0]]]]
             corners, bary, coef, dist = wrap_points(soup.points[candidates], soup.points, body, body, device=device)
@@ -515,7 +507,6 @@ class Character:
         # fingers of a piece that was kept): their physics weight ramps down with the thickness
         # (the shape diameter, CaptureParams thin and thick, in the surface's edges), smoothed
         # over the written surface
-
         sim_points = np.nonzero(ps.simulated[piece])[0]
         if sim_points.size:
             first, cls, ctri, _ = welded_pieces(soup.points, soup.triangles, self.mesh_of_point)
@@ -624,7 +615,6 @@ class Character:
     # ------------------------------------------------------------------ per frame
     def lbs(self, clip, t: float) -> np.ndarray:
         """Every written point under LBS at clip time ``t`` [s], ``[N, 3]`` (host, float64)."""
-
         rig = self.rig
         n = rig.output_count
         skin = linear_blend_skin(rig.vertices[:n], rig.joint_indices[:n], rig.joint_weights[:n],
@@ -675,7 +665,6 @@ class Character:
 
     def display_name(self, name: str) -> str:
         """The name a written mesh has in the output (the skin: its file's mesh name)."""
-
         if name == "skin":
             return valid_prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
         return valid_prim_name(name)

@@ -33,7 +33,6 @@ __all__ = ["main"]
 
 
 def _scene_of(args):
-
     if is_rig_file(args.target):
         scene = Scene.from_rig_file(
             args.target, clip=getattr(args, "clip", None), fps=getattr(args, "fps", None),
@@ -65,7 +64,6 @@ def _with_projection(scene, args):
 
 # ------------------------------------------------------------------------------------ commands
 def cmd_scenes(args) -> int:
-
     for s in list_scenes():
         print(f"{s['name']:<14} {s['rig']:<34} {s['description']}")
     return 0
@@ -95,10 +93,8 @@ def _muscle_summary(scene, character):
 
 
 def cmd_info(args) -> int:
-
     out: dict = {}
     if is_rig_file(args.target):
-
         out["meshes"] = list_meshes(args.target)
     scene = _scene_of(args)
     try:
@@ -118,7 +114,6 @@ def cmd_info(args) -> int:
     pieces = rigid_pieces(character_soup(rig))
     out["rigid_pieces"] = int(pieces.max()) + 1 if pieces.size else 0
     out["joint_names"] = rig.skeleton.joint_names
-
     out["length_unit_m"] = file_unit(scene.solver_params().units, rig.vertices)
     out["parents"] = rig.skeleton.parents.tolist()
     # the automatic physics weights of every mesh (through the cage simulate would build)
@@ -180,7 +175,6 @@ def cmd_info(args) -> int:
         print(f"  {j:3d} {n}  <- {names[p] if p >= 0 else '(root)'}")
     print("clips:" if summary["clips"] else "clips: none (rest pose only; a scene file keys its joints in "
           "[animation.keys], see the docs' scenes page)")
-
     for n, c in summary["clips"].items():
         rate = scene.fps or rig.clip(n).rate or DEFAULT_FPS
         first, last = clip_frame_span(rig.clip(n), rate)
@@ -209,7 +203,6 @@ def _joint_text(row: dict, summary: dict) -> str:
 
 def _unit_line(scene, rig) -> str:
     """One line: the character's size and the length unit physics takes it in."""
-
     unit = file_unit(scene.solver_params().units, rig.vertices)
     size = extent(rig.vertices)
     how = ("[solver] units = \"file\"" if scene.solver_params().units == "file"
@@ -411,7 +404,6 @@ def _emit_json(result: dict, path: str | None) -> int:
 
 
 def _missing_asset(target: str) -> bool:
-
     if is_rig_file(target):
         return False
     try:
@@ -519,7 +511,6 @@ def _beat_spec(args):
 
 
 def cmd_render(args) -> int:
-
     render_bake(args.bake, args.output, frames=args.frames, extra=args.extra, close_up=not args.no_close_up,
                 resolution=args.resolution, python=args.python, progress=not args.quiet, yaw=args.yaw)
     return 0
@@ -583,7 +574,6 @@ def _init_warp_quietly() -> None:
 
 
 def _on_signal(signum, frame):
-
     raise Stopped(signum)
 
 
@@ -622,7 +612,6 @@ def main(argv: list[str] | None = None) -> int:
         wp.config.log_level = wp.LOG_ERROR  # no banner
         if not str(getattr(args, "device", None) or "").startswith("cuda"):
             _init_warp_quietly()
-
     def one_line(message, category, filename, lineno, file=None, line=None):  # no file paths or source lines
         print(f"warpskin: warning: {message}", file=sys.stderr if file is None else file)
 

@@ -222,7 +222,6 @@ class WrittenDeformer:
                 self.body_normals = wp.zeros(n, dtype=wp.vec3)
                 self.body_mesh = wp.Mesh(points=self.out, indices=self.body_triangles)
                 # the room along each worn point's normal at rest, on the rest surface
-
                 rest_pts = wp.array(character.soup.points.astype(np.float32), dtype=wp.vec3)
                 rest_mesh = wp.Mesh(points=rest_pts, indices=self.body_triangles)
                 rest_normals = wp.zeros(n, dtype=wp.vec3)

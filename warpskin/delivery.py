@@ -56,7 +56,6 @@ def hole_fans(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The fans that close the holes of a mesh: ``(edges [F, 2], loop [F])``, every boundary
     edge ``(b, a)`` (opposite to the way its triangle runs it) and its loop's number; empty where
     the boundary is not a set of simple loops (:func:`~warpskin.preprocess.pieces.boundary_loops`)."""
-
     loops, simple = boundary_loops(triangles)
     if not simple or not loops:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)

@@ -118,7 +118,6 @@ def written_surface(rig: Rig):
     """The loaded mesh of a refined ``rig`` as one closed "sub-volume" without fans
     (:class:`~warpskin.preprocess.sub_volumes.SubVolumes`), for a volume constraint on what is
     written."""
-
     tris = np.asarray(rig.output_triangles, dtype=np.int64)
     n = rig.output_count
     return SubVolumes(
@@ -132,7 +131,6 @@ def written_surface(rig: Rig):
 def refine_coarse(rig: Rig, max_edge: float | None = None) -> Rig:
     """``rig`` refined for the simulation (:meth:`Rig.refined`) where its skin is coarse, or
     everywhere an edge is longer than an explicit ``max_edge``; ``rig`` itself otherwise."""
-
     if max_edge is None:
         max_edge = default_max_edge(rig.vertices, rig.triangles)
         if mean_edge(rig.vertices, rig.triangles) <= COARSE_EDGE * max_edge:
@@ -207,7 +205,6 @@ class SkinModelBuilder:
         )
         self.runs = self._stage("runs", lambda: region_runs(self.paths, self.regions.ring_offsets, self.regions.ring_members))
         if p.volume:
-
             self.subvolumes = self._stage("subvolumes", lambda: build_subvolumes(rig, p.subvolumes, bones=self.bones))
         else:
             self.subvolumes = None
@@ -220,11 +217,9 @@ class SkinModelBuilder:
         self.stiffness = self._particle_stiffness()
         self.solver_layout = self._stage("solver_layout", self._solver_layout)
         if self.subvolumes is not None:
-
             self.volume_layout = self._stage("volume_layout", lambda: volume_layout(self.subvolumes))
         else:
             self.volume_layout = None
-
         self.collision_topology = self._stage("collision_topology", lambda: collision_topology(rig))
         self._built = True
         return self
@@ -482,7 +477,6 @@ class SkinModel:
             drive = h["rest_drive"]
             self.rest_drive_group_count = 0 if drive is None else int(drive.shape[0])
             self.rest_drive_offsets = wp.array(drive, dtype=wp.vec3) if drive is not None else None
-
         self.subvolume_count = int(h["subvolume_count"])
         self.volume = upload_volume_layout(h["volume_layout"], h["volume_centres"], device) \
             if self.subvolume_count else None
@@ -499,7 +493,6 @@ class SkinModel:
         self.collision = None
         if b is not None:
             rig = b.rig
-
             self.collision_params = b.params.collision
             self.collision = upload_collision(b.collision_topology, rig, b.params.collision, device) \
                 if b.params.collision.enabled else None

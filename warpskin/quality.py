@@ -146,7 +146,6 @@ class WrittenMesh:
 
     def pairs(self, points: np.ndarray) -> int:
         """Intersecting triangle pairs of the welded mesh (the exact test)."""
-
         return int(len(self_intersections(self.welded(points), self.welded_triangles)))
 
     def pairs_of_two(self, points: np.ndarray, lbs: np.ndarray) -> tuple[int, int]:
@@ -157,7 +156,6 @@ class WrittenMesh:
     def pair_keys_of_two(self, points: np.ndarray, lbs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The intersecting pairs of ``points`` and of ``lbs`` as sorted keys ``i T + j``
         (``i < j`` welded triangles, ``T`` their count), found in one pass."""
-
         a, b = self_intersections_of_two(self.welded(points), self.welded(lbs), self.welded_triangles)
         t = len(self.welded_triangles)
         return np.unique(a[:, 0] * t + a[:, 1]), np.unique(b[:, 0] * t + b[:, 1])
@@ -167,7 +165,6 @@ class WrittenMesh:
         """The keys (:meth:`pair_keys_of_two`) of the pairs the rest pose has (computed once)."""
         keys = getattr(self, "_rest_keys", None)
         if keys is None:
-
             a = self_intersections(self.welded(self.rest), self.welded_triangles)
             keys = self._rest_keys = np.unique(a[:, 0] * len(self.welded_triangles) + a[:, 1])
         return keys
@@ -225,7 +222,6 @@ class CrossPairs:
         self._query = None
         self.rest_counts = np.zeros(m * m, dtype=np.int64)
         if m > 1 and len(self.triangles) > 1:
-
             self._query = PairQuery(self.triangles, labels=self.label)
             rest = self._stack({w.name: w.rest for w in self.meshes})
             self.rest_counts = self.counts(self._keys(self._query.pairs(rest)))

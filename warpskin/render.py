@@ -26,6 +26,7 @@ import numpy as np
 
 from .errors import InputError
 from .mesh import triangulate_faces
+from .units import extent
 from .quality import STRAIN_LIMIT, WrittenMesh, mesh_measures
 
 __all__ = ["BakePair", "bake_pairs", "bake_quality", "find_blender_python", "render_bake"]
@@ -146,7 +147,7 @@ def _height(stage, pairs: list[BakePair]) -> float:
         x = attr.Get(Usd.TimeCode.Default()) or attr.Get(Usd.TimeCode.EarliestTime())
         if x is not None and len(x):
             rest.append(np.asarray(x, dtype=np.float64))
-    return float(np.ptp(np.concatenate(rest), axis=0).max()) if rest else 0.0
+    return extent(np.concatenate(rest)) if rest else 0.0
 
 
 def _pct(x: float) -> str:

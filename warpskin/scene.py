@@ -175,7 +175,6 @@ def scene_sections() -> dict[str, list]:
 def _read(scene_or_extra, section: str, where: str) -> dict:
     """A section's table read against its declared keys (:func:`~warpskin.settings.read_section`):
     ``{field name: value}`` of the keys given."""
-
     table = scene_or_extra.get(section, {})
     return read_section(scene_sections()[section], table, where, section)
 
@@ -298,7 +297,6 @@ class Scene:
     def collision_params(self):
         """The :class:`~warpskin.collision.CollisionParams` of the ``[collision]`` section
         (self-collision is on by default)."""
-
         return from_section(CollisionParams, self.extra.get("collision", {}), _where(self.source), "collision")
 
     def guard_params(self):
@@ -389,7 +387,6 @@ def _build_rig(scene: Scene) -> Rig:
         except RigError as exc:
             raise SceneError(f"{where}: [animation.keys] {exc}") from None
     weights = scene.rig_spec.get("weights", "file")
-
     check_value(setting_named(RigSpec, "weights"), weights, f"{where}: [rig] ")
     if weights == "bone_heat":
         from .preprocess.bone_heat import with_bone_heat_weights
@@ -423,7 +420,6 @@ def _load_rig_of(scene: Scene) -> Rig:
         return rig.rescaled(unit_scale) if unit_scale else rig
     if "params" in spec:
         raise SceneError(f"{where}: [rig.params] only applies to a generator")
-
     if "file" in spec:
         path = Path(spec["file"])
         if not path.is_absolute() and scene.source is not None:
@@ -459,7 +455,6 @@ def list_scenes() -> list[dict]:
 
 def is_rig_file(target: str | Path) -> bool:
     """Is ``target`` a rig file (glTF or USD, by its extension) rather than a scene?"""
-
     return str(target).lower().endswith(RIG_EXTENSIONS)
 
 
@@ -482,7 +477,6 @@ def clip_frame_span(clip, rate: float) -> tuple[int, int]:
 def _format_hint(path: Path) -> str:
     """What a file that is not a scene looks like, by its first bytes, and the extensions a rig
     file is taken by: ``"; it looks like binary glTF: rename it to .glb (...)"``."""
-
     try:
         with open(path, "rb") as f:
             head = f.read(8)

@@ -76,8 +76,11 @@ def skin_step_limit(builders, model: SkinModel, params: SolverParams) -> float:
     from .collision import mean_edge
 
     units = length_units(model, params.units)
-    limits = [gravity_step_limit(mean_edge(b.rig.vertices, b.rig.triangles), params.gravity, u)
-              for b, u in zip(builders, units)]
+    edges: dict[int, float] = {}  # a batch of one builder repeated measures its skin once
+    for b in builders:
+        if id(b) not in edges:
+            edges[id(b)] = mean_edge(b.rig.vertices, b.rig.triangles)
+    limits = [gravity_step_limit(edges[id(b)], params.gravity, u) for b, u in zip(builders, units)]
     return min(limits, default=math.inf)
 
 
@@ -164,14 +167,12 @@ class SkinSolver:
             self.volume = None
             self.volume_weight_scale = wp.ones(n, dtype=wp.float32)
             if model.subvolume_count and self.params.volume_iterations > 0:
-
                 self.volume = VolumeConstraints(model, along_normals=self.params.volume_along_normals)
                 self.volume_centres = self.volume.centers  # its fan centres, posed every step
             # a refined skin: the written mesh's volume on the loaded vertices, then the
             # sub-volumes again on the added ones (see step)
             self.written_volume = None
             if self.volume is not None and model.written_surface is not None:
-
                 self.written_volume = VolumeConstraints(model.written_surface, device=dev,
                                                         along_normals=self.params.volume_along_normals)
                 self.split_weight_scale = wp.zeros(v, dtype=wp.float32)
@@ -184,7 +185,6 @@ class SkinSolver:
                         np.where(mine, self.tether_cap.numpy(), np.inf).astype(np.float32), dtype=wp.float32)
             self.collision = None
             if model.collision is not None:
-
                 self.collision = SelfCollision(model)
                 # the skin between the fail-safe and the volume loop: what the pass after the
                 # volume loop puts a pair's vertices back to

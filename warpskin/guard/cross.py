@@ -108,7 +108,6 @@ class CrossGuard:
         pair = min(small, large) * m + max(small, large)
         two = self._two.get(pair)
         if two is None:  # the trials count the two meshes alone
-
             two = self._two[pair] = CrossPairs([cross.meshes[min(small, large)], cross.meshes[max(small, large)]])
 
         def place(c: float) -> np.ndarray:

@@ -67,7 +67,6 @@ class RenderAttributes:
     physics_weight: np.ndarray | None = None
 
     def check(self, file_vertex_count: int, triangle_count: int, where: str) -> None:
-
         if self.uvs is not None:
             if self.uvs.shape != (triangle_count, 3, 2) or not np.isfinite(self.uvs).all():
                 raise RigError(f"{where}: texture coordinates must be finite, [{triangle_count}, 3, 2]; got {self.uvs.shape}")

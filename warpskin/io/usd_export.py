@@ -289,7 +289,6 @@ class UsdSkinWriter:
         self._animated_primvars: dict[str, dict] = {}
         if comment:
             st.GetRootLayer().comment = comment
-
         st.GetRootLayer().customLayerData = {"warpskin:version": __version__}  # what wrote it
         self._meshes: dict[str, tuple] = {}
         self._children: dict[str, str] = {}  # mesh key -> its prim's name under the root
@@ -454,7 +453,6 @@ class UsdSkinWriter:
         return UsdShade
 
     def _normals(self, points: np.ndarray, normals) -> np.ndarray:
-
         _, groups, tri = normals
         return group_normals(points, tri, groups).astype(np.float32)
 

@@ -242,9 +242,7 @@ def _read_file_shapes(path: str, mesh: str | None) -> tuple[dict, dict]:
     ``{name: [(weight, offsets)]}`` (UsdSkel only; glTF morph targets have none)."""
     suffix = Path(path).suffix.lower()
     if suffix in (".glb", ".gltf"):
-
         return read_gltf_morph_targets(path, mesh=mesh), {}
-
     return read_usd_blend_shapes(path, mesh=mesh), read_usd_inbetweens(path, mesh=mesh)
 
 

@@ -42,7 +42,6 @@ def muscle_rest_offset_deltas(builder, examples: PoppingExamples, skin_matrices:
     Returns:
         ``[G, M, 3]`` [m], M the number of region entries.
     """
-
     builder.build()
     bad = [n for n in layers if n not in LAYER_NAMES[:3]]
     if bad:
@@ -67,7 +66,6 @@ def rest_offset_deltas(builder, displacements: np.ndarray, *, layers: Sequence[s
     the model's skin vertices, refined ones included): each region's rest centre follows (mass
     weighted), so entry e (member j of region r) changes by ``dx0_j - dc0_r``. Returns
     ``[G, M, 3]`` [m] for :meth:`~warpskin.model.SkinModelBuilder.set_rest_drive`."""
-
     builder.build()
     bad = [n for n in layers if n not in LAYER_NAMES[:3]]
     if bad:

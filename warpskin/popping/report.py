@@ -28,7 +28,6 @@ _RISE = 0.9  # a pop has risen at the first frame whose bulge reaches this share
 
 def belly_of_bones(rig, joints: Sequence[str]) -> np.ndarray:
     """``[V]`` bool per welded vertex of ``rig``: on the middle of one of ``joints``' bones."""
-
     names = rig.skeleton.joint_names
     idx = np.array([names.index(j) for j in joints if j in names], dtype=np.int64)
     bones = bone_segments(rig)

@@ -229,7 +229,6 @@ def _welded_surface(points: np.ndarray, triangles: np.ndarray, mesh_of_point: np
     shading; :func:`~warpskin.capture.welded_pieces`). Returns ``(first [C], cls [N], triangles
     over the welded points, piece [C], seam [C])``: pieces whose borders meet merged, and the
     border points where they meet (:func:`_seams`)."""
-
     every = np.asarray(points, dtype=np.float64)
     mesh = np.zeros(len(every), dtype=np.int64) if mesh_of_point is None else np.asarray(mesh_of_point)
     first, cls, tris, piece = welded_pieces(every, triangles, mesh)
@@ -334,7 +333,6 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     """
     if not (isinstance(swell, (int, float)) and 0.0 < swell <= 2.0):
         raise SceneError(f"swell must be in (0, 2] (a share of the tissue depth), got {swell!r}")
-
     # one point per position within a mesh (a flat-shaded file splits every facet), so that
     # rings, pieces and edges are the surface's
     first, cls, tris, piece, _ = _welded_surface(points, triangles, mesh_of_point)
@@ -553,7 +551,6 @@ class SurfacePop:
                 if points is None:
                     ring = (vertex_adjacency(tris, n) + sp.identity(n, format="csr")).tocsr()
                 else:  # the welded surface: its rings, and the facets the offsets keep
-
                     first, cls, wtris, _, _ = _welded_surface(points, tris, mesh_of_point)
                     on = np.zeros(len(first), dtype=bool)
                     on[cls[self.moved]] = True
@@ -565,7 +562,6 @@ class SurfacePop:
                     # shading, seams) ease alike
                     owner = sp.csr_matrix((np.ones(n), (np.arange(n), cls)), shape=(n, len(first)))
                     ring = (owner @ wring @ owner.T).tocsr()
-
                 self._triangles = tris
                 # triangles that share a point of the surface (a seam's copies are one point):
                 # a crossing the pop moves by one ring of the crossing the frame has without it
@@ -706,7 +702,6 @@ class SurfacePop:
         triangles each share a point with the two triangles of a pair that intersects without
         the pop: a crossing the source already has (a limb through the piece over it, a
         stylised mesh through itself) that the pop moves by at most one ring, not a new one."""
-
         factor = np.ones(len(self.moved))
         x = surface.copy()
         x[self.moved] += world

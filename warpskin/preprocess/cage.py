@@ -146,7 +146,6 @@ def build_cage(points: np.ndarray, triangles: np.ndarray, *, edge: float | None 
     f = _oriented_outward(v, f)
     v, f = _drop_cavities(v, f)
     v = _taubin(v, f, smooth_iterations)
-
     f = flip_flat_edges(v, f)
     timings["clean_up"] = time.perf_counter() - t0
 
@@ -368,7 +367,6 @@ class CharacterSoup:
 
 def character_soup(rig) -> CharacterSoup:
     """The rig's skin (welded) and attachments at the skeleton's rest pose, in stage space."""
-
     j = rig.joint_count
     skin = rest_pose_points(rig)[: rig.output_count]
     pts, tris, pieces = [skin], [rig.output_triangles], [("skin", 0, len(skin))]
@@ -392,7 +390,6 @@ def character_parts(rig, soup: CharacterSoup) -> tuple[np.ndarray, np.ndarray, n
     (of its corners' summed weights), and the joints' bones at rest in stage space as segments
     ``[S, 2, 3]`` with their joint ``[S]``: from each joint to each of its children (a leaf: a
     point at the joint)."""
-
     world = rig.joint_world_transforms(Clip("rest"), 0.0)[:, :3, 3]
     parents = np.asarray(rig.skeleton.parents)
     child = np.nonzero(parents >= 0)[0]
@@ -529,7 +526,6 @@ def cage_rig(rig, cage: Cage, *, device=None, smooth_passes: int = 8) -> tuple:
     from the character (:func:`transfer_weights`, matched within two cage edges). (Taking the
     cage into the file's bind space instead folds it where that differs from the rest pose.)
     Returns ``(rig, soup, matched)``."""
-
     soup = character_soup(rig)
     ji, jw, matched = transfer_weights(cage.vertices, cage.triangles, soup, max_distance=2.0 * cage.edge, device=device,
                                        smooth_passes=smooth_passes)

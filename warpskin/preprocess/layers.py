@@ -125,7 +125,6 @@ class Layers:
         every added vertex's layer positions, foot and parameters are its parents' mean, so
         each refined layer triangle lies inside a layer triangle of the coarse skin and folds
         nowhere the coarse layers do not; its bone is its first parent's."""
-
         return Layers(
             positions=np.stack([extend_midpoints(x, parents) for x in self.positions]),
             foot=extend_midpoints(self.foot, parents),
@@ -298,7 +297,6 @@ def fit_layer_depths(rig: Rig, layers: Layers, *, where: str = "layers", shrink:
     instead: the thinnest depth (``min_scale``), the piece held where it meets the body and free
     away from it (it is not marked unresolved).
     """
-
     v = rig.vertices
     tris = rig.triangles
     seg = layers.foot - v

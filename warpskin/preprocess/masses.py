@@ -84,7 +84,6 @@ def particle_masses(layers: Layers, triangles: np.ndarray, *, density: float = 1
     m = np.stack([mixed_voronoi_areas(layers.positions[k], triangles) for k in range(4)]) * h * density
     bad = np.nonzero(~(m > 0))
     if bad[0].size:
-
         k, i = int(bad[0][0]), int(bad[1][0])
         raise RigError(
             f"{where}: {bad[0].size} particles have zero mass, e.g. vertex {i} on the {LAYER_NAMES[k]} layer "

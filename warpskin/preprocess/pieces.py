@@ -409,7 +409,6 @@ def cap_loop(points: np.ndarray, loop: np.ndarray, *, max_planarity: float = 0.6
 def _caps_cross(points: np.ndarray, triangles: np.ndarray, own: int) -> bool:
     """Whether a cap triangle (those from ``own`` on) crosses another triangle of the piece
     (the exact test of :func:`~warpskin.metrics.self_intersections`, neighbours skipped)."""
-
     used = np.unique(triangles)
     remap = np.full(len(points), -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
@@ -505,7 +504,6 @@ def _reduction_unit(height: float) -> float:
     where that file's points are these times the same power of ten."""
     if not (height > 0.0) or not math.isfinite(height):
         return 1.0
-
     unit = metres_per_unit(height)
     return unit * 2.0 ** round(math.log2(REDUCE_AT / (height * unit)))
 
@@ -543,7 +541,6 @@ def _closest_weights(query: np.ndarray, points: np.ndarray, triangles: np.ndarra
                      device) -> np.ndarray:
     """The barycentric blend of ``weights`` (per point of the mesh ``points``, ``triangles``)
     at the closest point of the mesh to each of ``query``."""
-
     far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([query, points]), axis=0))) + 1.0
     face, bary = closest_faces(query, points, triangles, far, device)
     return np.einsum("vc,vcj->vj", bary, weights[triangles[np.maximum(face, 0)]])
@@ -586,7 +583,6 @@ def _garments(locals_: dict, candidates: np.ndarray, count: int, max_gap: float,
     owner = np.concatenate([np.full(len(locals_[k].points), k) for k in ids])
     hit = np.where(face >= 0, tri_owner[np.maximum(face, 0)], -1)
     under = (hit >= 0) & (hit != owner)
-
     for i, k in enumerate(ids):
         s = slice(offsets[i], offsets[i + 1])
         if under[s].mean() < cover:
@@ -639,7 +635,6 @@ def _thin(locals_: dict, candidates: np.ndarray, count: int, prm: PieceParams, d
     (:func:`~warpskin.capture.shape_diameter` on its own closed surface) against the mean edge of
     the candidates, grown by the square root of the reduction ``max_vertices`` asks for; and that
     edge [m]."""
-
     out = np.zeros(count, dtype=bool)
     ids = list(np.nonzero(candidates)[0])
     if not ids:
@@ -685,7 +680,6 @@ def piece_surface(points: np.ndarray, triangles: np.ndarray, dense_weights: np.n
     Returns:
         The :class:`PieceSurface`, or ``None`` where no piece can be simulated.
     """
-
     prm = params or PieceParams()
     p = np.asarray(points, dtype=np.float64)
     w = np.asarray(dense_weights, dtype=np.float64)

@@ -30,7 +30,6 @@ def rest_pose_points(rig) -> np.ndarray:
     """The skin in the skeleton's rest pose in stage space ``[V, 3]`` (every vertex of ``rig``):
     the default-time points of a bake, standing where its frames stand (CesiumMan's bind space
     is Z-up under a Y-up stage)."""
-
     mats = rig.skinning_matrices(Clip("rest"), 0.0)
     return linear_blend_skin(rig.vertices, rig.joint_indices, rig.joint_weights, mats)
 
@@ -78,7 +77,6 @@ class CharacterOutput:
     def skin_prim(self) -> str:
         """The prim name of the character's skin: its file's mesh name (``Cesium_Man``,
         ``Hand_R``), ``skin`` where it has none; its LBS guide is ``<name>_lbs``."""
-
         name = valid_prim_name(self.rig.mesh_name) if self.rig.mesh_name else "skin"
         taken = {valid_prim_name(a.name) for a in getattr(self.rig, "attachments", []) or []}
         taken |= {"lbs", "rest", "cage", "Looks", "layer_fat", "layer_muscle", "layer_bone"}
@@ -116,7 +114,6 @@ class CharacterOutput:
 
     def declare_attachments(self, writer) -> None:
         """Add every attachment as a sibling mesh in its own topology, at rest in stage space."""
-
         rest_world = self.rig.joint_world_transforms(Clip("rest"), 0.0)
         for a in self.attachments:
             self.declare(writer, a.name, a.triangles, a.points(rest_world), attachment_kwargs(a))

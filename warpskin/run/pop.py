@@ -258,7 +258,6 @@ def run_popping(
         "ms_per_frame": float(np.sum(record.step_ms)) * plan.substeps / count,
     }
     if report_dir is not None:
-
         rep = _report(report_dir, writer.path, belly_of_examples(rig, examples), rig, topology, plan.fps, settings)
         summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
     return PoppingRun(path=Path(writer.path), frames=count, summary=summary)
@@ -270,7 +269,6 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
     skin is ``rig``'s (``bellies``: per group a mask per welded skin vertex, or ``{prim name:
     mask per written point of that mesh}`` as written); returns its folder (``dir``) and each
     group's pops (``beats``: :func:`~warpskin.popping.report.beat_summary`)."""
-
     masks = {g: (m[rig.weld_map] if topology == "file" and not isinstance(m, dict) else m) for g, m in bellies.items()}
     tl = settings.activation
     data = write_popping_report(report_dir, path, masks, fps, lambda t, names: tl.sample(t, names),
@@ -367,7 +365,6 @@ def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device
         summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
                                "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
     if report_dir is not None:
-
         render = scene.rig()
         if surface:  # every written mesh the pop moves, by its prim name
             from .output import CharacterOutput

@@ -239,10 +239,8 @@ class _WrittenQuality:
 
     def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper,
                  measures: _Measurements, skin_prim: str = "skin") -> None:
-
         self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
         # measured and reported under the names they are written with (the skin: its file's)
-
         self.names = {p.name: (skin_prim if p.name == "skin" else valid_prim_name(p.name)) for p in character.parts}
         self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
@@ -661,7 +659,6 @@ def simulate(
         summary["subvolume_names"] = list(subs.names)
     result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
     if report_dir is not None:
-
         report = Path(report_dir)
         report.mkdir(parents=True, exist_ok=True)
         title = (f"{scene.name}: {model.particle_count} particles, {plan.substeps} x {plan.dt * 1e3:.2f} ms steps per frame "

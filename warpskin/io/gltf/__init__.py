@@ -140,7 +140,6 @@ def _load(path: Path, mesh: str | None, weld: bool) -> Rig:
 
 
 def _clean(name: str) -> str:
-
     return valid_prim_name(name)
 
 
