@@ -39,7 +39,7 @@ from .capture import (
 )
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
-from .guard import CrossGuard, GuardParams, JumpLimit, SurfaceGuard, WornRepair
+from .guard import CrossGuard, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, WornRepair
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
 from .io.usd_export import valid_prim_name
 from .mesh import vertex_normals
@@ -365,6 +365,20 @@ class Character:
                 if p.physics and rows.size:
                     self.repairs[p.name] = (WornRepair(self.meshes[p.name], worn[rows] - p.start, floor[rows], params),
                                             rows)
+        #: Per mesh written by capture from its own pieces, its
+        #: :class:`~warpskin.guard.PieceVolume` (before its worn repair and guard): the written
+        #: pieces keep the volume their simulation keeps.
+        self.volumes = {}
+        if self._deformer is not None and self.pieces is not None and intended is None:
+            # every closed piece with physics in it, but those moved as a whole (a rigid fit
+            # keeps their volume, or a similarity their shape); not on a popped character, whose
+            # muscles swell it on purpose
+            weight = np.where(cap.group < 0, cap.physics_weight, 0.0)
+            for p in self.parts:
+                if p.physics:
+                    repair = PieceVolume(self.meshes[p.name], weight[p.start:p.start + p.count])
+                    if repair.active.any():
+                        self.volumes[p.name] = repair
         self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
                                             ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
                                             direct=not self.caged,
@@ -544,6 +558,8 @@ class Character:
             n = self.rig.output_count
             physical[:n] = np.asarray(sim_skin[:n], dtype=np.float64)
         physical, lbs_by = self.split(physical), self.split(lbs)
+        for name, repair in self.volumes.items():  # before the worn points' carriers are taken
+            physical[name] = repair.apply(physical[name])
         #: The last frame's physical result before the guard, ``{mesh name: [N, 3]}``.
         self.last_physical = physical
         out = dict(physical)

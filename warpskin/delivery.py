@@ -35,13 +35,15 @@ from .preprocess.pieces import boundary_loops
 from .quality import WrittenMesh
 from .transforms import rigid_fit
 
-__all__ = ["DeliveryLog", "RIGID_WEIGHT", "hole_fans", "piece_volumes", "rigid_rms"]
+__all__ = ["DeliveryLog", "RIGID_WEIGHT", "hole_fans", "piece_components", "piece_volumes", "rigid_rms"]
 
 #: A point is on one joint when that joint's weight is at least this.
 RIGID_WEIGHT = 0.999
 
 
-def _components(count: int, triangles: np.ndarray) -> np.ndarray:
+def piece_components(count: int, triangles: np.ndarray) -> np.ndarray:
+    """``[count]`` the connected component of every point of ``triangles`` ``[T, 3]`` (a point on
+    no triangle is a component of its own)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
@@ -102,7 +104,7 @@ class _Mesh:
     def __init__(self, mesh: WrittenMesh, dense_weights: np.ndarray | None) -> None:
         self.mesh = mesh
         c = mesh.first.size
-        self.piece = _components(c, mesh.welded_triangles) if c else np.zeros(0, dtype=np.int64)
+        self.piece = piece_components(c, mesh.welded_triangles) if c else np.zeros(0, dtype=np.int64)
         self.count = int(self.piece.max()) + 1 if c else 0
         rest = mesh.welded(mesh.rest)
         self.fans = hole_fans(mesh.welded_triangles) if c else None
