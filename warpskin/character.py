@@ -370,9 +370,9 @@ class Character:
         #: pieces keep the volume their simulation keeps.
         self.volumes = {}
         if self._deformer is not None and self.pieces is not None and intended is None:
-            # every closed piece with physics in it, but those moved as a whole (a rigid fit
-            # keeps their volume, or a similarity their shape); not on a popped character, whose
-            # muscles swell it on purpose
+            # every closed piece with physics in it, but those moved as a whole (they keep their
+            # LBS shape, moved rigidly); not on a popped character, whose muscles swell it on
+            # purpose
             weight = np.where(cap.group < 0, cap.physics_weight, 0.0)
             for p in self.parts:
                 if p.physics:

@@ -13,7 +13,7 @@ for every closed piece ``k`` (a connected component of the welded mesh, its hole
 to each loop's centre, as :func:`~warpskin.delivery.piece_volumes` measures it) that holds a
 point with weight: ``V`` its signed volume [m^3], ``V0`` at rest, ``g_i = dV / dW_i`` (the fans'
 centres moving with their loops) and ``w_i`` in [0, 1] the point's weight (its physics weight;
-0 on a piece moved as a whole, whose rigid or similar motion keeps its shape). This is the
+0 on a piece moved as a whole, which keeps its LBS shape). This is the
 position-based projection of a volume constraint per piece (Mueller et al. 2007, as the
 sub-volumes' in :mod:`warpskin.kernels.volume`), repeated ``ROUNDS`` times: the gradient moves
 with the points, so one projection leaves an error of second order in the correction.
