@@ -558,6 +558,9 @@ class Character:
             n = self.rig.output_count
             physical[:n] = np.asarray(sim_skin[:n], dtype=np.float64)
         physical, lbs_by = self.split(physical), self.split(lbs)
+        #: The last frame's skinned normals of the meshes skinned by the rig, ``{mesh name:
+        #: [T, 3]}`` (:meth:`skinned_normals`).
+        self.last_skinned = skinned = self.skinned_normals(clip, t)
         for name, repair in self.volumes.items():  # before the worn points' carriers are taken
             physical[name] = repair.apply(physical[name])
         #: The last frame's physical result before the guard, ``{mesh name: [N, 3]}``.
@@ -574,7 +577,7 @@ class Character:
             if name in self.repairs:
                 repair, rows = self.repairs[name]
                 pts = repair.apply(pts, carriers[rows])
-            guarded[name] = guard.apply(pts, lbs_by[name])
+            guarded[name] = guard.apply(pts, lbs_by[name], skinned.get(name))
         if self.cross is not None:
             shown = {p.name: self.display_name(p.name) for p in self.parts}
             across = self.cross.apply({shown[n]: guarded.get(n, out[n]) for n in shown},
@@ -629,6 +632,19 @@ class Character:
         return np.clip(phi, 0.0, 1.0)
 
     # ------------------------------------------------------------------ per frame
+    def skinned_normals(self, clip, t: float) -> dict[str, np.ndarray]:
+        """``{mesh name: [T, 3]}`` at clip time ``t`` [s], for the rig's skin where it is
+        written with physics: :meth:`~warpskin.quality.WrittenMesh.skinned_normals` of its
+        points' blended skinning maps (what LBS's own folds are judged by)."""
+        p = next((p for p in self.parts if p.name == "skin"), None)
+        if p is None or p.name not in self.meshes:
+            return {}
+        rig = self.rig  # the skin's points are the rig's first output_count vertices
+        m = rig.skinning_matrices(clip, t)[:, :3, :3]
+        idx, w = rig.joint_indices[:p.count], rig.joint_weights[:p.count]
+        blended = np.einsum("nk,nkij->nij", w, m[idx])
+        return {p.name: self.meshes[p.name].skinned_normals(blended)}
+
     def lbs(self, clip, t: float) -> np.ndarray:
         """Every written point under LBS at clip time ``t`` [s], ``[N, 3]`` (host, float64)."""
         rig = self.rig

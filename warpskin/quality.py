@@ -119,10 +119,27 @@ class WrittenMesh:
             ratio = length / self.rest_length
             return np.maximum(ratio, 1.0 / ratio)
 
-    def flipped(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+    def skinned_normals(self, blended: np.ndarray) -> np.ndarray:
+        """``[T, 3]`` per file triangle, the normal its rest shape takes under the mean ``B`` of
+        its points' blended skinning maps (``blended``: ``[N, 3, 3]``, the linear part of each
+        written point's ``sum_k w_k M_k``): ``(B e1) x (B e2) = cof(B) (e1 x e2)``, ``e1, e2``
+        its rest edges. This is the orientation LBS gives the triangle where it does not fold
+        it: LBS blends the maps point by point, and where they differ much across a triangle
+        (a collapsed crease) it can turn the triangle over; the mean map cannot."""
+        t = self.triangles
+        b = np.asarray(blended, dtype=np.float64)[t].mean(axis=1)
+        r = self.rest
+        e1, e2 = r[t[:, 1]] - r[t[:, 0]], r[t[:, 2]] - r[t[:, 0]]
+        return np.cross(np.einsum("tij,tj->ti", b, e1), np.einsum("tij,tj->ti", b, e2))
+
+    def flipped(self, points: np.ndarray, lbs: np.ndarray, skinned: np.ndarray | None = None) -> np.ndarray:
         """Indices of the file triangles whose normal turns by more than 90 degrees against LBS
-        (among those not degenerate at rest nor in either pose)."""
-        t = self.triangles[self._tri_ok]
+        (among those not degenerate at rest nor in either pose). With ``skinned``
+        (:meth:`skinned_normals` of the frame, ``[T, 3]``), a triangle that LBS itself turns
+        over against it (LBS's own fold) is not counted where ``points`` keeps it the right
+        way: there LBS is no reference, and unfolding it is the repair."""
+        rows = self._tri_ok
+        t = self.triangles[rows]
 
         def normals(x):
             x = np.asarray(x, dtype=np.float64)
@@ -131,7 +148,11 @@ class WrittenMesh:
         n, m = normals(points), normals(lbs)
         la, lb = np.linalg.norm(n, axis=1), np.linalg.norm(m, axis=1)
         ok = (la > self._area_floor) & (lb > self._area_floor)
-        return self._tri_ok[ok & (np.einsum("ij,ij->i", n, m) < 0.0)]
+        turned = ok & (np.einsum("ij,ij->i", n, m) < 0.0)
+        if skinned is not None:
+            k = np.asarray(skinned, dtype=np.float64)[rows]
+            turned &= ~((np.einsum("ij,ij->i", m, k) < 0.0) & (np.einsum("ij,ij->i", n, k) > 0.0))
+        return rows[turned]
 
     def split(self, points: np.ndarray) -> tuple[float, int]:
         """``(gap [m], k)``: the largest distance between a file vertex and the first copy of its
@@ -281,7 +302,7 @@ class CrossPairs:
 
 
 def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True,
-                  pair_keys: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+                  pair_keys: tuple[np.ndarray, np.ndarray] | None = None, skinned: np.ndarray | None = None) -> dict:
     """The measures of one frame of ``mesh`` (see the module docstring) as a dict: ``strained``,
     ``strained_lbs`` (shares of edges), ``worst_strain`` (ratio) and ``worst_strain_vertex`` (a
     file vertex of that edge), ``flipped`` (share of triangles) and ``flipped_vertex``,
@@ -291,13 +312,14 @@ def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pai
     ``offset`` [m] and ``offset_vertex``, ``joint_offset`` [m] (the largest offset of its
     :attr:`WrittenMesh.joint_points`: a gap or overlap opening where it meets its neighbours),
     ``split`` and ``split_lbs`` [m] and ``split_vertices`` (the file vertices of the widest split,
-    ``(-1, -1)`` for none)."""
+    ``(-1, -1)`` for none). ``skinned``: the frame's :meth:`WrittenMesh.skinned_normals`, where
+    LBS's own folds are not to count as flips (:meth:`WrittenMesh.flipped`)."""
     points = np.asarray(points, dtype=np.float64)
     lbs = np.asarray(lbs, dtype=np.float64)
     s, s_lbs = mesh.strain(points), mesh.strain(lbs)
     e = max(mesh.edge_count, 1)
     k = int(np.argmax(s)) if s.size else -1
-    flips = mesh.flipped(points, lbs)
+    flips = mesh.flipped(points, lbs, skinned)
     d = np.linalg.norm(points - lbs, axis=1)
     j = int(np.argmax(d)) if d.size else -1
     counts = (None, None, None, None)
@@ -402,13 +424,16 @@ class QualityLog:
         self.frames: list[float] = []
 
     def measure(self, frame, points: dict, lbs: dict, *, pairs: dict | None = None,
-                extra: dict | None = None, every: tuple[dict, dict] | None = None) -> str | None:
+                extra: dict | None = None, every: tuple[dict, dict] | None = None,
+                skinned: dict | None = None) -> str | None:
         """Measure frame ``frame`` (``points[name]``, ``lbs[name]`` for every mesh); returns the first
         range problem (``"frame F: mesh ...``) or ``None``. The series are kept either way.
         ``pairs``: ``{name: (keys, keys_lbs)}`` found already (see :func:`mesh_measures`);
         ``extra``: ``{name: {key: value}}`` further per-frame series to keep (the guard's);
         ``every``: ``(points, lbs)`` of every written mesh (with :attr:`cross`: the pairs
-        between meshes; default ``points``, ``lbs``)."""
+        between meshes; default ``points``, ``lbs``); ``skinned``: ``{name: [T, 3]}`` the
+        frame's :meth:`WrittenMesh.skinned_normals`, where known (LBS's own folds are not
+        flips)."""
         self.frames.append(frame)
         if self.cross is not None:
             allp, alll = every if every is not None else (points, lbs)
@@ -418,7 +443,7 @@ class QualityLog:
         problem = None
         for mesh in self.meshes:
             m = mesh_measures(mesh, points[mesh.name], lbs[mesh.name], pairs=self.count_pairs,
-                              pair_keys=(pairs or {}).get(mesh.name))
+                              pair_keys=(pairs or {}).get(mesh.name), skinned=(skinned or {}).get(mesh.name))
             for k in self.KEYS:
                 self.series[mesh.name][k].append(m[k])
             for k, v in (extra or {}).get(mesh.name, {}).items():

@@ -16,7 +16,8 @@ Every frame, per mesh (on the host, in the mesh's welded topology):
 2. ``W`` is checked against ``L``. Flagged are: edges past ``strain`` x their rest length (or
    under its inverse) and past LBS's strain, where LBS's is within
    :data:`~warpskin.quality.STRAIN_LIMIT` or ``W``'s is over 1.1 x LBS's; triangles whose normal
-   turns by more than ``flip_degrees`` against LBS; and intersecting triangle pairs (the exact
+   turns by more than ``flip_degrees`` against LBS (but for LBS's own folds, triangles LBS turns
+   over against the frame's skinned normals, that ``W`` keeps the right way); and intersecting triangle pairs (the exact
    test of :func:`~warpskin.metrics.self_intersections`) that LBS does not have, except, where
    pieces cross or touch at rest (a ball joint inside a tube's end, a seam) or where LBS passes
    through itself in the frame (a crease the physics keeps apart), those matched one
@@ -111,6 +112,10 @@ class SurfaceGuard:
         area2 = np.linalg.norm(np.cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]]), axis=1)
         self._floor = mesh._area_floor
         self._tri = t[area2 > self._floor]  # flips are judged on triangles not degenerate at rest
+        self._tri_rows = mesh.measured_triangles[area2 > self._floor]  # their file triangles
+        # the frame's skinned normals of the judged triangles and where LBS folds them itself
+        # (:meth:`apply`'s ``skinned``), or None
+        self._ref: tuple[np.ndarray, np.ndarray] | None = None
         self._all_tri = t
         self._query = PairQuery(t)  # the pair counts' tree and buffers, kept from frame to frame
         self._cos = float(np.cos(np.radians(self.params.flip_degrees)))
@@ -192,13 +197,21 @@ class SurfaceGuard:
     def _cosines(self, x: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray,
                  which: np.ndarray | None = None) -> np.ndarray:
         """The cosine of every judged triangle's normal in ``x`` against its LBS normal (or of
-        those ``which`` selects); 1 where either is degenerate (never a flip)."""
+        those ``which`` selects); 1 where either is degenerate, or where LBS turns the triangle
+        over against the frame's skinned normal and ``x`` does not (:meth:`apply`'s
+        ``skinned``): never a flip."""
         if which is not None:
             n_lbs, len_lbs = n_lbs[which], len_lbs[which]
         n = self._normals(x, which)
         ln = np.linalg.norm(n, axis=1)
         ok = (ln > self._floor) & (len_lbs > self._floor)
-        return np.where(ok, np.einsum("ij,ij->i", n, n_lbs) / np.where(ok, ln * len_lbs, 1.0), 1.0)
+        cos = np.where(ok, np.einsum("ij,ij->i", n, n_lbs) / np.where(ok, ln * len_lbs, 1.0), 1.0)
+        if self._ref is not None:  # LBS's own folds, kept the right way: no flip
+            ref, folded = self._ref
+            if which is not None:
+                ref, folded = ref[which], folded[which]
+            cos = np.where(folded & (np.einsum("ij,ij->i", n, ref) > 0.0), 1.0, cos)
+        return cos
 
     def _pairs(self, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
         """Keys of the intersecting pairs of ``x`` (with ``active``: those with an active
@@ -330,11 +343,9 @@ class SurfaceGuard:
 
     def _turned(self, physical: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray) -> float:
         """The share of the judged triangles the physical result turns over against LBS (normal
-        against normal, ``n_lbs`` with lengths ``len_lbs``; degenerate ones never)."""
-        n = self._normals(physical)
-        ln = np.linalg.norm(n, axis=1)
-        ok = (ln > self._floor) & (len_lbs > self._floor)
-        return np.count_nonzero(ok & (np.einsum("ij,ij->i", n, n_lbs) < 0.0)) / max(len(self._tri), 1)
+        against normal, ``n_lbs`` with lengths ``len_lbs``; degenerate ones and LBS's own folds
+        kept the right way never: :meth:`_cosines`)."""
+        return np.count_nonzero(self._cosines(physical, n_lbs, len_lbs) < 0.0) / max(len(self._tri), 1)
 
     def _trusted_after(self, pw: np.ndarray, lw: np.ndarray, s_lbs: np.ndarray, n_lbs: np.ndarray,
                        len_lbs: np.ndarray) -> bool:
@@ -365,11 +376,15 @@ class SurfaceGuard:
         return np.where(np.isfinite(dist), (1.0 - u * u) ** 3, 0.0)
 
     # ------------------------------------------------------------------ per frame
-    def apply(self, points: np.ndarray, lbs: np.ndarray) -> np.ndarray:
+    def apply(self, points: np.ndarray, lbs: np.ndarray, skinned: np.ndarray | None = None) -> np.ndarray:
         """The guarded points of one frame, ``[N, 3]`` in the mesh's file order (``points``: the
         physical result, ``lbs``: the mesh's LBS, both ``[N, 3]`` [m]); advances the guard's
         weight. Returns ``points`` itself where nothing is held, else the blend rounded to
-        float32 as USD stores it (the checks are made on those values)."""
+        float32 as USD stores it (the checks are made on those values). ``skinned``: the
+        frame's :meth:`~warpskin.quality.WrittenMesh.skinned_normals` (``[T, 3]``, file
+        triangles), where known: a triangle LBS turns over against it (LBS's own fold, a
+        collapsed crease) is not flagged, nor counted against the trust, where the result keeps
+        it the right way; it also holds for this frame's :meth:`keep`."""
         prm, mesh = self.params, self.mesh
         p = np.asarray(points, dtype=np.float64)
         lb = np.asarray(lbs, dtype=np.float64)
@@ -387,6 +402,10 @@ class SurfaceGuard:
         self._frame = (p, lb)
         lw = mesh.welded(lb)
         pw = mesh.welded(p)
+        self._ref = None
+        if skinned is not None:
+            ref = np.asarray(skinned, dtype=np.float64)[self._tri_rows]
+            self._ref = (ref, np.einsum("ij,ij->i", self._normals(lw), ref) < 0.0)
         d = pw - lw
         moving = np.linalg.norm(d, axis=1) > 0.0
         g_prev = self.g

@@ -279,7 +279,9 @@ class _WrittenQuality:
                                                  if k in self.repairs else {})}
                                           for k, g in guards.items()},
                                    every=({self.character.display_name(k): v for k, v in written.items()},
-                                          {self.character.display_name(k): v for k, v in lbs.items()}))
+                                          {self.character.display_name(k): v for k, v in lbs.items()}),
+                                   skinned={self.names[k]: v
+                                            for k, v in getattr(self.character, "last_skinned", {}).items()})
         if self.cap is not None:
             st = self.stepper
             v = st.model.vertex_count
