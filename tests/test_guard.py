@@ -567,8 +567,27 @@ def _folded(rest: np.ndarray, tris: np.ndarray, count: int, seed: int) -> np.nda
     return out
 
 
+@pytest.mark.parametrize("folds, trusted", [(5, True), (16, False)])
+def test_a_direct_skin_is_trusted_only_while_it_turns_over_no_more_than_the_written_bound(folds, trusted):
+    # a sphere of 1280 triangles kept at rest by its physics where "LBS" folds triangles over
+    # (no skinned normals given: LBS is the reference): 5 turned against LBS (0.4 %, under the
+    # 1 % the written meshes are held to) keep the trust, 16 (1.25 %, over it) lose it; the
+    # boundary is tested with margins on both sides
+    rest, tris = _sphere((0.0, 0.0, 0.0), 1.0, 31)
+    lbs = _folded(rest, tris, folds, 32)
+    physical = rest.copy()
+    assert strain_and_flips(rest, physical, lbs, tris)[2] == pytest.approx(folds / len(tris))
+    guard = SurfaceGuard(WrittenMesh("sphere", tris, rest), direct=True)
+    out = guard.apply(physical, lbs)
+    assert guard.trusted is trusted
+    if trusted:
+        assert np.array_equal(out, physical)
+    else:
+        assert strain_and_flips(rest, out, lbs, tris)[2] <= 0.01
+
+
 def test_lbs_own_folds_unfolded_by_the_physics_are_neither_flags_nor_flips():
-    # "LBS" folds 24 triangles of 1280 over (1.9 %, past the trust's 1.5 %); the frame's skinned
+    # "LBS" folds 24 triangles of 1280 over (1.9 %, past the trust's 1 %); the frame's skinned
     # normals (its points' blended maps, here one rotation for all: the rest normals turned)
     # say they point the other way. A result that keeps them the right way is counted
     # unflipped and keeps the trust; judged against LBS alone it would lose it. A result that

@@ -30,8 +30,9 @@ class GuardParams:
     * ``strain`` stays below :data:`~warpskin.quality.STRAIN_LIMIT`, so the guard acts before
       the quality measure counts an edge.
     * ``trust_flipped``: a skin simulated directly is written as simulated until a frame's
-      physical result turns more than this share of its triangles over against LBS (1.5 x the
-      1 % the quality checks ask: a margin for a crease at the bound); from then on it is guarded.
+      physical result turns more than this share of its triangles over against LBS (the
+      :data:`WRITTEN_FLIPPED` the quality checks ask, so a trusted skin is written within it);
+      from then on it is guarded.
     * ``trust_strained``: the same for the share of edges strained past the limit beyond LBS's
       (just under the 0.5 % the quality checks ask: a pop's swelling strains edges on purpose).
     """
@@ -59,8 +60,9 @@ class GuardParams:
                              must="in [0, 1]")
     spread: float = setting(4.0, "number", "the weight changes over this many times the displacement it takes back "
                             "(along the surface)", low=0.0, open_low=True, high=100.0, must="in (0, 100]")
-    trust_flipped: float = setting(0.015, "number", "a directly simulated skin is written as simulated until this "
-                                   "share of its triangles turns over", low=0.0, high=1.0, must="in [0, 1]")
+    trust_flipped: float = setting(WRITTEN_FLIPPED, "number", "a directly simulated skin is written as simulated "
+                                   "until this share of its triangles turns over", low=0.0, high=1.0,
+                                   must="in [0, 1]")
     trust_strained: float = setting(0.0045, "number", "... or this share of its edges strains past the limit "
                                     "beyond LBS's", low=0.0, high=1.0, must="in [0, 1]")
     joint_gap: float = setting(0.01, "number", "a piece moved as a whole (a rigid shoe, a robot's shin) moves the "
