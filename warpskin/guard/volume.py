@@ -88,23 +88,25 @@ class PieceVolume:
         n = np.maximum(np.bincount(self.piece, minlength=self.count), 1)
         centre = np.stack([np.bincount(self.piece, weights=x[:, j], minlength=self.count) for j in range(3)], axis=1)
         x = x - (centre / n[:, None])[self.piece]
-        g = np.zeros_like(x)
+        c = len(x)
         a, b, d = x[t[:, 0]], x[t[:, 1]], x[t[:, 2]]
         # V = sum a . (b x d) / 6 about any origin for a closed piece: dV/da = (b x d) / 6, ...
-        for k, (p, q) in enumerate(((b, d), (d, a), (a, b))):
-            np.add.at(g, t[:, k], np.cross(p, q) / 6.0)
+        rows = [t[:, 0], t[:, 1], t[:, 2]]
+        parts = [np.cross(b, d), np.cross(d, a), np.cross(a, b)]
         e, loop = self.fans
         if len(e):
             m = np.stack([np.bincount(loop, weights=x[e[:, 1], j]) for j in range(3)], axis=1)
             m /= np.bincount(loop)[:, None]
-            c = m[loop]  # fan triangle (e0, e1, m) of the boundary edge (e0, e1)
-            np.add.at(g, e[:, 0], np.cross(x[e[:, 1]], c) / 6.0)
-            np.add.at(g, e[:, 1], np.cross(c, x[e[:, 0]]) / 6.0)
+            mc = m[loop]  # fan triangle (e0, e1, m) of the boundary edge (e0, e1)
+            rows += [e[:, 0], e[:, 1]]
+            parts += [np.cross(x[e[:, 1]], mc), np.cross(mc, x[e[:, 0]])]
             # the centre is the mean of the loop's points (each is the e1 of one fan edge)
             gm = np.stack([np.bincount(loop, weights=v, minlength=len(m)) for v in np.cross(x[e[:, 0]], x[e[:, 1]]).T],
-                          axis=1) / 6.0
-            np.add.at(g, e[:, 1], gm[loop] / np.bincount(loop)[loop][:, None])
-        return g
+                          axis=1)
+            rows.append(e[:, 1])
+            parts.append(gm[loop] / np.bincount(loop)[loop][:, None])
+        r, p = np.concatenate(rows), np.concatenate(parts)
+        return np.stack([np.bincount(r, weights=p[:, j], minlength=c) for j in range(3)], axis=1) / 6.0
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """The repaired points ``[N, 3]`` (file order) of ``points`` ``[N, 3]`` [m]; ``points``
