@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from .metrics import PairQuery, self_intersections, self_intersections_of_two
 
-__all__ = ["STRAIN_LIMIT", "WrittenMesh", "CrossPairs", "QualityLimits", "QualityLog", "mesh_measures"]
+__all__ = ["STRAIN_LIMIT", "WrittenMesh", "CrossPairs", "QualityLimits", "QualityLog", "mesh_measures", "own_fold_kept"]
 
 #: An edge is strained when it is longer than this times its rest length, or shorter than its
 #: inverse.
@@ -150,8 +150,7 @@ class WrittenMesh:
         ok = (la > self._area_floor) & (lb > self._area_floor)
         turned = ok & (np.einsum("ij,ij->i", n, m) < 0.0)
         if skinned is not None:
-            k = np.asarray(skinned, dtype=np.float64)[rows]
-            turned &= ~((np.einsum("ij,ij->i", m, k) < 0.0) & (np.einsum("ij,ij->i", n, k) > 0.0))
+            turned &= ~own_fold_kept(n, m, np.asarray(skinned, dtype=np.float64)[rows])
         return rows[turned]
 
     def split(self, points: np.ndarray) -> tuple[float, int]:
@@ -299,6 +298,14 @@ class CrossPairs:
         return {"pairs_across": int(len(keys)), "pairs_across_lbs": int(len(keys_lbs)),
                 "pairs_across_new": int(w.sum()), "pairs_across_new_lbs": int(lb.sum()),
                 "pairs_across_worst": worst}
+
+
+def own_fold_kept(n: np.ndarray, n_lbs: np.ndarray, skinned: np.ndarray) -> np.ndarray:
+    """``[T]`` bool: the triangles that LBS turns over against their skinned normal (LBS's own
+    fold, :meth:`WrittenMesh.skinned_normals`) and that the result (normals ``n``) keeps the
+    right way. There LBS is no reference: such a triangle is not a flip. ``n``, ``n_lbs``,
+    ``skinned``: ``[T, 3]`` normals of any length."""
+    return (np.einsum("ij,ij->i", n_lbs, skinned) < 0.0) & (np.einsum("ij,ij->i", n, skinned) > 0.0)
 
 
 def mesh_measures(mesh: WrittenMesh, points: np.ndarray, lbs: np.ndarray, *, pairs: bool = True,

@@ -16,9 +16,9 @@ Every frame, per mesh (on the host, in the mesh's welded topology):
 2. ``W`` is checked against ``L``. Flagged are: edges past ``strain`` x their rest length (or
    under its inverse) and past LBS's strain, where LBS's is within
    :data:`~warpskin.quality.STRAIN_LIMIT` or ``W``'s is over 1.1 x LBS's; triangles whose normal
-   turns by more than ``flip_degrees`` against LBS (but for LBS's own folds, triangles LBS turns
-   over against the frame's skinned normals, that ``W`` keeps the right way); and intersecting triangle pairs (the exact
-   test of :func:`~warpskin.metrics.self_intersections`) that LBS does not have, except, where
+   turns by more than ``flip_degrees`` against LBS (but for LBS's own folds that ``W`` keeps
+   the right way: :func:`~warpskin.quality.own_fold_kept`); and intersecting triangle pairs
+   (the exact test of :func:`~warpskin.metrics.self_intersections`) that LBS does not have, except, where
    pieces cross or touch at rest (a ball joint inside a tube's end, a seam) or where LBS passes
    through itself in the frame (a crease the physics keeps apart), those matched one
    to one with a nearby pair that LBS has and ``W`` lost (within ``match`` median edges: a
@@ -59,7 +59,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..metrics import PairQuery
-from ..quality import STRAIN_LIMIT, WrittenMesh
+from ..quality import STRAIN_LIMIT, WrittenMesh, own_fold_kept
 from .params import GuardParams, WRITTEN_FLIPPED, WRITTEN_STRAINED, as_written, blend, pair_keys
 
 __all__ = ["SurfaceGuard"]
@@ -113,9 +113,8 @@ class SurfaceGuard:
         self._floor = mesh._area_floor
         self._tri = t[area2 > self._floor]  # flips are judged on triangles not degenerate at rest
         self._tri_rows = mesh.measured_triangles[area2 > self._floor]  # their file triangles
-        # the frame's skinned normals of the judged triangles and where LBS folds them itself
-        # (:meth:`apply`'s ``skinned``), or None
-        self._ref: tuple[np.ndarray, np.ndarray] | None = None
+        # the frame's skinned normals of the judged triangles (:meth:`apply`'s ``skinned``), or None
+        self._ref: np.ndarray | None = None
         self._all_tri = t
         self._query = PairQuery(t)  # the pair counts' tree and buffers, kept from frame to frame
         self._cos = float(np.cos(np.radians(self.params.flip_degrees)))
@@ -207,10 +206,8 @@ class SurfaceGuard:
         ok = (ln > self._floor) & (len_lbs > self._floor)
         cos = np.where(ok, np.einsum("ij,ij->i", n, n_lbs) / np.where(ok, ln * len_lbs, 1.0), 1.0)
         if self._ref is not None:  # LBS's own folds, kept the right way: no flip
-            ref, folded = self._ref
-            if which is not None:
-                ref, folded = ref[which], folded[which]
-            cos = np.where(folded & (np.einsum("ij,ij->i", n, ref) > 0.0), 1.0, cos)
+            ref = self._ref if which is None else self._ref[which]
+            cos = np.where(own_fold_kept(n, n_lbs, ref), 1.0, cos)
         return cos
 
     def _pairs(self, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
@@ -402,10 +399,7 @@ class SurfaceGuard:
         self._frame = (p, lb)
         lw = mesh.welded(lb)
         pw = mesh.welded(p)
-        self._ref = None
-        if skinned is not None:
-            ref = np.asarray(skinned, dtype=np.float64)[self._tri_rows]
-            self._ref = (ref, np.einsum("ij,ij->i", self._normals(lw), ref) < 0.0)
+        self._ref = None if skinned is None else np.asarray(skinned, dtype=np.float64)[self._tri_rows]
         d = pw - lw
         moving = np.linalg.norm(d, axis=1) > 0.0
         g_prev = self.g
