@@ -161,3 +161,40 @@ def test_each_written_piece_keeps_its_volume_within_a_third_of_lbs_change(dancer
     big = np.abs(v0) > 1e-3 * np.abs(v0).max()
     change = lambda frames: max(np.abs(volumes(p)[big] / v0[big] - 1.0).max() for p in frames[1::3])
     assert change(pts) <= change(lbs) / 3.0
+
+
+def test_the_garments_swing_after_the_body(dancer_bake, tmp_path):
+    """The garments' swing (:class:`~warpskin.guard.GarmentSway`): the same bake with ``[guard]
+    sway = 0`` writes the trousers and the shirt where the wrap puts them on the body. With the
+    swing they move against that by millimetres at human scale, the other pieces move as they
+    did, and the secondary motion grows. The garments are the file's last two pieces (the
+    dancer's :data:`~warpskin.scenes.dancer.PIECES` order), found here as connected triangles."""
+    import warnings
+
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from warpskin.guard import GuardParams
+    from warpskin.run import simulate
+    from warpskin.scene import Scene
+
+    summary, bake = dancer_bake
+    path = dancer_file(tmp_path, cell=0.035, shell=6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        still = simulate(Scene.from_rig_file(str(path), clip="dance"), tmp_path / "still.usdc", device="cpu",
+                         frames=(0, 24), with_lbs=True, progress=False, guard=GuardParams(sway=0.0))
+    tris, rest, pts, _ = _frames(bake)
+    _, _, pts_still, _ = _frames(tmp_path / "still.usdc")
+    n = len(rest)
+    graph = sp.csr_matrix((np.ones(3 * len(tris)), (tris.ravel(), np.roll(tris, 1, axis=1).ravel())), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    first = np.array([np.nonzero(label == k)[0].min() for k in range(label.max() + 1)])
+    garment = np.isin(label, np.argsort(first)[-2:])
+    height = float(np.ptp(rest, axis=0).max())
+    moved = np.max([np.linalg.norm(a - b, axis=1) for a, b in zip(pts, pts_still)], axis=0)
+    assert moved[garment].max() > 2e-3 * height  # 3.6 mm on 1.8 m
+    assert np.mean(moved[garment] > 1e-4 * height) > 0.3  # most of a garment swings, not a few points
+    assert np.mean(moved[~garment] > 0.0) < 0.02  # the rest is written as before
+    (name, d), = summary["delivered"].items()
+    assert d["secondary_motion"] > 1.1 * still.summary["delivered"][name]["secondary_motion"]

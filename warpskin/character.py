@@ -39,7 +39,7 @@ from .capture import (
 )
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
-from .guard import CrossGuard, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, WornRepair
+from .guard import CrossGuard, GarmentSway, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, WornRepair
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
 from .io.usd_export import valid_prim_name
 from .mesh import vertex_normals
@@ -353,6 +353,9 @@ class Character:
         #: over others, :class:`~warpskin.preprocess.pieces.PieceParams`) are repaired: other
         #: worn sheets lie on or in their neighbours, where taking them nearer crosses more.
         self.repairs = {}
+        #: Per mesh with garment points, its :class:`~warpskin.guard.GarmentSway` (before its
+        #: worn repair): loose garments swing after the body and settle after it stops.
+        self.sways = {}
         if cap.wrap is not None and self.pieces is not None:
             worn = np.asarray(cap.wrap[0], dtype=np.int64)
             gamma, clearance = np.asarray(cap.wrap[3])[:, 2], np.asarray(cap.wrap[4])
@@ -365,6 +368,13 @@ class Character:
                 if p.physics and rows.size:
                     self.repairs[p.name] = (WornRepair(self.meshes[p.name], worn[rows] - p.start, floor[rows], params),
                                             rows)
+                    if params.enabled and params.sway > 0.0:
+                        room = np.minimum(gamma[rows], _room(self.soup.points, self.pieces.piece_of_point, worn[rows]))
+                        sway = GarmentSway(worn[rows] - p.start, room, cap.physics_weight[worn[rows]],
+                                           params.sway_frequency, params.sway_damping, params.sway,
+                                           self.meshes[p.name], self.pieces.piece_of_point[p.start:p.start + p.count])
+                        if sway.enabled:
+                            self.sways[p.name] = sway
         #: Per mesh written by capture from its own pieces, its
         #: :class:`~warpskin.guard.PieceVolume` (before its worn repair and guard): the written
         #: pieces keep the volume their simulation keeps.
@@ -561,16 +571,16 @@ class Character:
         #: The last frame's skinned normals of the meshes skinned by the rig, ``{mesh name:
         #: [T, 3]}`` (:meth:`skinned_normals`).
         self.last_skinned = skinned = self.skinned_normals(clip, t)
+        if self.sways:  # garments swing (their carriers are not worn), before their volume is kept
+            carriers = self._carriers(physical)
+            for name, sway in self.sways.items():
+                physical[name] = sway.apply(physical[name], lbs_by[name], t, carriers[self.repairs[name][1]])
         for name, repair in self.volumes.items():  # before the worn points' carriers are taken
             physical[name] = repair.apply(physical[name])
+        carriers = self._carriers(physical) if self.repairs else None
         #: The last frame's physical result before the guard, ``{mesh name: [N, 3]}``.
         self.last_physical = physical
         out = dict(physical)
-        carriers = None
-        if self.repairs:  # the worn points' carrier points on the written surface as it is
-            _, corners, bary = self.capture_result.wrap[:3]
-            whole = np.concatenate([physical[p.name] for p in self.parts])
-            carriers = np.einsum("kj,kjc->kc", bary, whole[corners])
         guarded = {}
         for name, guard in self.guards.items():
             pts = physical[name]
@@ -589,6 +599,13 @@ class Character:
             if out[name] is not limited:  # the limit goes on from what is written
                 self.limits[name].written(out[name], lbs_by[name])
         return out
+
+    def _carriers(self, points: dict) -> np.ndarray:
+        """``[K, 3]`` the carrier point of every worn point (``cap.wrap``'s rows) on the written
+        surface ``points`` (``{mesh name: [N, 3]}``) as it is."""
+        _, corners, bary = self.capture_result.wrap[:3]
+        whole = np.concatenate([points[p.name] for p in self.parts])
+        return np.einsum("kj,kjc->kc", bary, whole[corners])
 
     def painted(self) -> np.ndarray:
         """``[N]`` the file's painted physics weight of every written point (NaN: none)."""
@@ -720,6 +737,20 @@ class Character:
     def split(self, points: np.ndarray) -> dict[str, np.ndarray]:
         """``{mesh name: its rows of points}``."""
         return {p.name: points[p.start:p.start + p.count] for p in self.parts}
+
+
+def _room(points: np.ndarray, piece: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``[K]`` the rest distance [m] from each of ``points[rows]`` to the nearest point of
+    another piece (``piece``: ``[N]`` per point): the room a garment point has before it meets
+    the body, another garment or a shoe."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(rows), np.inf)
+    for k in np.unique(piece[rows]):
+        mine, others = piece[rows] == k, np.nonzero(piece != k)[0]
+        if others.size:
+            out[mine] = cKDTree(points[others]).query(points[rows[mine]])[0]
+    return out
 
 
 def _clearance(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, dist, share: float, edge: float,

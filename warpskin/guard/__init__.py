@@ -6,6 +6,8 @@
   them;
 * :class:`WornRepair` (:mod:`warpskin.guard.worn`): garments worn over the simulated surface are
   repaired where they cross;
+* :class:`GarmentSway` (:mod:`warpskin.guard.sway`): loose garments swing after the body's
+  motion and settle after it stops;
 * :class:`PieceVolume` (:mod:`warpskin.guard.volume`): pieces written by capture keep the
   volume their simulation keeps;
 * :class:`JumpLimit` (:mod:`warpskin.guard.jump`): no written point's offset from LBS jumps from
@@ -19,8 +21,9 @@ from .cross import CrossGuard
 from .jump import JumpLimit
 from .params import WRITTEN_FLIPPED, WRITTEN_STRAINED, GuardParams
 from .surface import SurfaceGuard
+from .sway import GarmentSway
 from .volume import PieceVolume
 from .worn import WornRepair
 
-__all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WornRepair", "PieceVolume", "WRITTEN_STRAINED",
+__all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WornRepair", "PieceVolume", "GarmentSway", "WRITTEN_STRAINED",
            "WRITTEN_FLIPPED"]
