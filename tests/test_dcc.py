@@ -195,21 +195,28 @@ def test_render_captions_give_the_offset_as_a_share_of_the_height(tmp_path):
     assert _height(stage, [pair]) == pytest.approx(float((rest.max(axis=0) - rest.min(axis=0)).max()))
 
 
-def test_the_render_script_draws_physical_beside_lbs(tmp_path):
-    # a short bake of the coarse arm, rendered by warpskin render in Blender: the worst frame
+@pytest.fixture(scope="module")
+def arm_bake(tmp_path_factory):
+    """A short bake of the coarse arm, with its LBS: frames 40-46 of its flex."""
+    tmp = tmp_path_factory.mktemp("arm")
+    scene = tmp / "arm.toml"
+    scene.write_text("[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n"
+                     "[animation]\nclip = 'flex'\nfps = 30\nframes = [40, 46]\n[solver]\niterations = 8\ntether_max = 0.08\n")
+    bake = tmp / "arm.usdc"
+    assert main(["simulate", str(scene), "-o", str(bake), "--lbs", "--quiet"]) == 0
+    return bake
+
+
+def test_the_render_script_draws_physical_beside_lbs(tmp_path, arm_bake):
+    # the short bake of the coarse arm, rendered by warpskin render in Blender: the worst frame
     # and one more, and a close-up; each picture has two panels of the same size that differ
     # (the physical skin and LBS) on a white page with something drawn on it
     from PIL import Image
 
     from warpskin.render import render_bake
 
-    scene = tmp_path / "arm.toml"
-    scene.write_text("[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n"
-                     "[animation]\nclip = 'flex'\nfps = 30\nframes = [40, 46]\n[solver]\niterations = 8\ntether_max = 0.08\n")
-    bake = tmp_path / "arm.usdc"
-    assert main(["simulate", str(scene), "-o", str(bake), "--lbs", "--quiet"]) == 0
-    paths = render_bake(bake, tmp_path / "pictures", extra=1, resolution=(320, 240), python=str(_blender_python()),
-                        progress=False)
+    paths = render_bake(arm_bake, tmp_path / "pictures", extra=1, resolution=(320, 240),
+                        python=str(_blender_python()), progress=False)
     assert len(paths) == 3 and all(p.is_file() for p in paths)
     for p in paths:
         img = np.asarray(Image.open(p).convert("RGB"), dtype=np.float64) / 255.0
@@ -219,3 +226,33 @@ def test_the_render_script_draws_physical_beside_lbs(tmp_path):
         for panel in (left, right):
             assert (panel.min(axis=2) < 0.8).mean() > 0.01  # a mesh is drawn
         assert np.abs(left - right).mean() > 1e-3  # two different colours, two different shapes
+
+
+def test_the_render_colours_what_moves_against_lbs(tmp_path, arm_bake):
+    # --color motion: the physical skin drawn white where it moves with LBS and orange to red
+    # where it moves against it since the previous frame (the arm's jiggle as it flexes),
+    # against the USD samples themselves: the reddest pixels are where the motion is largest;
+    # the LBS panel keeps its plain blue; the caption gives the scale
+    from PIL import Image
+
+    from warpskin.errors import InputError
+    from warpskin.render import bake_pairs, render_bake
+
+    stage = Usd.Stage.Open(str(arm_bake))
+    pair = bake_pairs(stage)[0]
+    phys, lbs = (UsdGeom.Mesh(stage.GetPrimAtPath(p)).GetPointsAttr() for p in (pair.physical, pair.lbs))
+    moved = [np.linalg.norm((np.asarray(phys.Get(t)) - np.asarray(lbs.Get(t)))
+                            - (np.asarray(phys.Get(t - 1)) - np.asarray(lbs.Get(t - 1))), axis=1).max()
+             for t in range(41, 47)]
+    frame = 41 + int(np.argmax(moved))
+    assert max(moved) > 0.0
+    path, = render_bake(arm_bake, tmp_path / "pictures", frames=[frame], close_up=False, resolution=(320, 240),
+                        python=str(_blender_python()), progress=False, color="motion")
+    img = np.asarray(Image.open(path).convert("RGB"), dtype=np.float64) / 255.0
+    left, right = img[:, :320], img[:, 320:]
+    warm = left[..., 0] - left[..., 2] > 0.4  # orange to red (the plain skin tan: at most 0.37, lit)
+    assert warm.mean() > 1e-3
+    assert (right[..., 2] - right[..., 0] > 0.1).mean() > 0.01 and (right[..., 0] - right[..., 2] > 0.25).mean() == 0.0
+    assert (left.max(axis=2) < 0.3).mean() > 1e-4  # dark caption text
+    with pytest.raises(InputError, match="color must be one of plain, offset, motion"):
+        render_bake(arm_bake, tmp_path / "pictures", color="speed", python=str(_blender_python()))

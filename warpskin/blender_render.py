@@ -11,7 +11,10 @@ Usage (what :func:`warpskin.render.render_bake` runs)::
      "views": [{"frame": 12, "out": "walk_12.png", "captions": ["warpskin ...", "LBS ..."],
                 "focus": ["/mannequin/shoe_l"] or null, "focus_points": [vertex, ...] or null}],
      "physical": ["/mannequin/body", ...], "lbs": ["/mannequin/lbs", ...],
-     "resolution": [960, 720], "title": "...", "yaw": 20}
+     "resolution": [960, 720], "title": "...", "yaw": 20,
+     "color": "plain" | "offset" | "motion", "height": 1.8}
+
+(each view may also give ``"previous"``: the time code before its frame, or null.)
 
 Every view renders the bake at one frame twice with the same orthographic camera, once with
 the physical meshes and once with their LBS guides, with Blender's Workbench engine (no GPU
@@ -20,6 +23,12 @@ physical meshes (or those named in ``focus``; with ``focus_points``, those verti
 first of them, with a margin) from the front, a little from the side; the bake
 is imported with its guides (``import_guide=True``), as a reviewer would; ``yaw`` turns the
 camera about the vertical (180: from behind).
+
+With ``color`` ``offset`` or ``motion``, each view draws still copies of the meshes as evaluated
+at its frame instead: the physical ones coloured per vertex by ``|P - L|`` (``offset``) or by
+``|(P - L) - (P' - L')|`` (``motion``: ``'`` at the previous time code, 0 where there is none),
+white at 0 to red from the 98th percentile of the values over the physical meshes on, the LBS
+guides in their plain colour, and one more caption line gives the scale as a share of ``height``.
 """
 
 import json
@@ -53,6 +62,61 @@ def _world_points(obj, graph) -> np.ndarray:
     pts = pts.reshape(-1, 3)
     m = np.array(ev.matrix_world)
     return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def _ramp(value: np.ndarray, scale: float) -> np.ndarray:
+    """``[N, 4]`` RGBA: white at 0 through orange to dark red at ``scale`` and beyond."""
+    c = np.clip(value / scale, 0.0, 1.0) if scale > 0.0 else np.zeros_like(value)
+    r = 1.0 - 0.45 * np.clip(2.0 * c - 1.0, 0.0, 1.0)
+    g = 1.0 - np.clip(1.6 * c, 0.0, 1.0) * 0.85
+    b = 1.0 - np.clip(2.0 * c, 0.0, 1.0)
+    return np.stack([r, g, b, np.ones_like(c)], axis=1)
+
+
+def _still_copy(scene, obj, graph, rgba: np.ndarray, per: str = "POINT"):
+    """A still mesh object of ``obj`` as evaluated now, its vertices coloured ``rgba`` ``[N, 4]``
+    (the colour attribute Workbench draws with ``color_type = "VERTEX"``; ``per="CORNER"``: one
+    ``[1, 4]`` colour for every face corner)."""
+    ev = obj.evaluated_get(graph)
+    mesh = bpy.data.meshes.new_from_object(ev)
+    attr = mesh.color_attributes.new("warpskin", "FLOAT_COLOR", per)
+    rgba = np.asarray(rgba, dtype=np.float32)
+    if per == "CORNER":
+        rgba = np.tile(rgba.reshape(1, 4), (len(mesh.loops), 1))
+    attr.data.foreach_set("color", rgba.ravel())
+    mesh.color_attributes.active_color = attr
+    mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
+    copy = bpy.data.objects.new(f"{obj.name}_still", mesh)
+    copy.matrix_world = ev.matrix_world.copy()
+    scene.collection.objects.link(copy)
+    return copy
+
+
+def _coloured(scene, view: dict, job: dict, physical: list, lbs: list) -> tuple[list, list, str]:
+    """Still copies of the ``physical`` and ``lbs`` objects at the view's frame (the scene is
+    there), coloured as ``job["color"]`` asks; and the caption line of the scale."""
+    graph = bpy.context.evaluated_depsgraph_get()
+    now = [(_world_points(p, graph), _world_points(q, graph)) for p, q in zip(physical, lbs)]
+    values = [np.linalg.norm(p - q, axis=1) for p, q in now]
+    what = "offset from LBS"
+    if job["color"] == "motion":
+        what = "motion against LBS since the last frame"
+        if view.get("previous") is None:
+            values = [np.zeros(len(v)) for v in values]
+        else:
+            scene.frame_set(int(round(view["previous"])))
+            graph = bpy.context.evaluated_depsgraph_get()
+            before = [(_world_points(p, graph), _world_points(q, graph)) for p, q in zip(physical, lbs)]
+            values = [np.linalg.norm((p - q) - (p0 - q0), axis=1) for (p, q), (p0, q0) in zip(now, before)]
+            scene.frame_set(int(view["frame"]))
+            graph = bpy.context.evaluated_depsgraph_get()
+    every = np.concatenate(values) if values else np.zeros(0)
+    scale = float(np.percentile(every, 98.0)) if every.size else 0.0  # one point's outlier leaves the rest drawn
+    copies_p = [_still_copy(scene, o, graph, _ramp(v, scale)) for o, v in zip(physical, values)]
+    copies_l = [_still_copy(scene, o, graph, np.tile([0.50, 0.62, 0.86, 1.0], (len(v), 1)))
+                for o, v in zip(lbs, values)]
+    share = 100.0 * scale / float(job.get("height") or 1.0)
+    return copies_p, copies_l, f"colour: {what}, white 0 to red from {share:.2g} % of the height"
 
 
 def _camera(scene, lo: np.ndarray, hi: np.ndarray, aspect: float, yaw_deg: float = 20.0):
@@ -134,7 +198,13 @@ def main(job_path: str) -> None:
             lo, hi = lo - pad, hi + pad
         cam = _camera(scene, lo, hi, aspect, float(job.get("yaw", 20.0)))
         panels = []
-        for k, (shown, hidden) in enumerate(((physical, lbs), (lbs, physical))):
+        sides, captions, copies = (physical, lbs), [list(c) for c in view["captions"]], []
+        if job.get("color", "plain") != "plain":
+            copies_p, copies_l, line = _coloured(scene, view, job, physical, lbs)
+            sides, copies = (copies_p, copies_l), copies_p + copies_l
+            captions[0].append(line)
+            shading.color_type = "VERTEX"
+        for k, (shown, hidden) in enumerate(((sides[0], sides[1]), (sides[1], sides[0]))):
             for o in shown:
                 o.hide_render = False
             for o in hidden:
@@ -142,7 +212,14 @@ def main(job_path: str) -> None:
             for o in scene.objects:  # everything else (the cage, the inner layers) stays out
                 if o.type == "MESH" and o not in shown:
                     o.hide_render = True
-            caps = [_caption(cam, line, aspect, row) for row, line in enumerate(reversed(view["captions"][k]))]
+            caps = [_caption(cam, line, aspect, row) for row, line in enumerate(reversed(captions[k]))]
+            if copies:  # drawn by their vertex colours: the captions as still meshes in theirs
+                graph = bpy.context.evaluated_depsgraph_get()
+                still = [_still_copy(scene, c, graph, np.tile([0.05, 0.05, 0.05, 1.0], (1, 1)), per="CORNER")
+                         for c in caps]
+                for c in caps:
+                    bpy.data.objects.remove(c)
+                caps = still
             path = f"{view['out']}.panel{k}.png"
             scene.render.filepath = path
             bpy.ops.render.render(write_still=True)
@@ -156,6 +233,11 @@ def main(job_path: str) -> None:
             import os
 
             os.remove(path)
+        for o in copies:
+            mesh = o.data
+            bpy.data.objects.remove(o)
+            bpy.data.meshes.remove(mesh)
+        shading.color_type = "OBJECT"
         both = np.concatenate(panels, axis=1)
         out = bpy.data.images.new("review", width=2 * w, height=h, alpha=False)
         out.pixels.foreach_set(both.ravel())

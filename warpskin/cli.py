@@ -512,7 +512,8 @@ def _beat_spec(args):
 
 def cmd_render(args) -> int:
     render_bake(args.bake, args.output, frames=args.frames, extra=args.extra, close_up=not args.no_close_up,
-                resolution=args.resolution, python=args.python, progress=not args.quiet, yaw=args.yaw)
+                resolution=args.resolution, python=args.python, progress=not args.quiet, yaw=args.yaw,
+                color=args.color)
     return 0
 
 

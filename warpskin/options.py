@@ -254,4 +254,8 @@ class RenderOptions:
                          unit="degrees", low=-360.0, high=360.0, must="in [-360, 360]", cli="--yaw")
     python: str | None = setting(None, "string", "a Python with Blender's bpy (default: $WARPSKIN_BPY_PYTHON or "
                                  ".venv-bpy/bin/python)", optional=True, cli="--python", metavar="EXE")
+    color: str = setting("plain", "string", "colour the physical meshes by their offset from LBS, or by their "
+                         "motion against LBS since the previous frame (what moves on its own: jiggle, a garment "
+                         "still swinging after a stop), white to red", choices=("plain", "offset", "motion"),
+                         cli="--color")
     quiet: bool = setting(False, "bool", "do not list the pictures written", cli="--quiet")

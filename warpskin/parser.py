@@ -157,7 +157,7 @@ def build_parser(handlers: Mapping[str, Callable] | None = None,
     s = sub.add_parser("render", help="pictures of a bake in Blender: the physical result beside LBS, at its worst frame")
     opt(s, RenderOptions, "bake")
     opt(s, RenderOptions, "output", required=True)
-    for name in ("frames", "extra", "no_close_up", "resolution", "yaw", "python", "quiet"):
+    for name in ("frames", "extra", "no_close_up", "resolution", "yaw", "color", "python", "quiet"):
         opt(s, RenderOptions, name)
     handled(s, "render")
 

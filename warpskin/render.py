@@ -29,7 +29,10 @@ from .mesh import triangulate_faces
 from .units import extent
 from .quality import STRAIN_LIMIT, WrittenMesh, mesh_measures
 
-__all__ = ["BakePair", "bake_pairs", "bake_quality", "find_blender_python", "render_bake"]
+#: The colourings of :func:`render_bake`.
+COLORS = ("plain", "offset", "motion")
+
+__all__ = ["COLORS", "BakePair", "bake_pairs", "bake_quality", "find_blender_python", "render_bake"]
 
 
 @dataclass
@@ -156,12 +159,16 @@ def _pct(x: float) -> str:
 
 def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int = 2, close_up: bool = True,
                 resolution: tuple[int, int] = (800, 900), python: str | None = None, progress: bool = True,
-                yaw: float = 20.0) -> list[Path]:
+                yaw: float = 20.0, color: str = "plain") -> list[Path]:
     """Render ``bake`` (a USD file written with ``--lbs``) into PNGs in ``out_dir``: the worst
     frame and ``extra`` others (or exactly ``frames``, time codes), the physical meshes beside
     their LBS, captioned; with ``close_up``, also the worst frame framed on its worst mesh. The
     camera looks at the character's front turned by ``yaw`` degrees about the vertical (180:
-    from behind). Returns the PNG paths.
+    from behind). ``color``: ``plain`` (one colour per side), ``offset`` (the physical meshes
+    coloured by each point's distance from its LBS) or ``motion`` (by the change of that offset
+    since the previous time sample: what moves against the animation; 0 at the first), white at
+    0 to red from the frame's 98th percentile over the physical meshes on, that scale in the
+    caption as a share of the character's height. Returns the PNG paths.
 
     Raises:
         InputError: the bake does not exist, has no mesh with an LBS guide, a frame is not one
@@ -169,6 +176,8 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
     """
     from pxr import Usd
 
+    if color not in COLORS:
+        raise InputError(f"render: color must be one of {', '.join(COLORS)}, got {color!r}")
     bake = Path(bake)
     if not bake.is_file():
         raise InputError(f"render: {bake}: no such file")
@@ -203,16 +212,19 @@ def render_bake(bake, out_dir, *, frames: list[float] | None = None, extra: int 
     views = []
     for i in chosen:
         views.append({"frame": times[i], "out": str(out_dir / f"{stem}_{times[i]:g}.png"),
-                      "captions": _captions(stem, times[i], i, series, i == worst, height), "focus": None})
+                      "captions": _captions(stem, times[i], i, series, i == worst, height), "focus": None,
+                      "previous": times[i - 1] if i > 0 else None})
     if close_up:
         name = max(series, key=lambda k: (series[k]["strained"][worst] - series[k]["strained_lbs"][worst],
                                           series[k]["offset"][worst]))
         pair = next(p for p in pairs if p.name == name)
         views.append({"frame": times[worst], "out": str(out_dir / f"{stem}_{times[worst]:g}_{name}.png"),
                       "captions": _captions(stem, times[worst], worst, {name: series[name]}, True, height, close=name),
-                      "focus": [pair.physical], "focus_points": _where_worst(stage, pair, times[worst])})
+                      "focus": [pair.physical], "focus_points": _where_worst(stage, pair, times[worst]),
+                      "previous": times[worst - 1] if worst > 0 else None})
     job = {"bake": str(bake.resolve()), "views": views, "physical": [p.physical for p in pairs],
-           "lbs": [p.lbs for p in pairs], "resolution": list(resolution), "yaw": float(yaw)}
+           "lbs": [p.lbs for p in pairs], "resolution": list(resolution), "yaw": float(yaw), "color": color,
+           "height": height}
     script = Path(__file__).with_name("blender_render.py")
     with tempfile.TemporaryDirectory(prefix="warpskin-render-") as tmp:
         job_path = Path(tmp) / "job.json"
