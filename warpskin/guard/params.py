@@ -36,8 +36,9 @@ class GuardParams:
     * ``trust_strained``: the same for the share of edges strained past the limit beyond LBS's
       (just under the 0.5 % the quality checks ask: a pop's swelling strains edges on purpose).
     * ``sway``, ``sway_frequency``, ``sway_damping``: a garment worn over the body swings as a
-      damped oscillator per point driven by its LBS's acceleration, within ``sway`` x its rest
-      gap over the body (:class:`~warpskin.guard.GarmentSway`).
+      damped oscillator per point driven by its LBS's acceleration, within ``sway`` x its room
+      (:class:`~warpskin.guard.GarmentSway`); with the guard off (``enabled`` false) garments
+      ride on the body, as written by the wrap.
     """
 
     _section = "guard"
@@ -74,7 +75,7 @@ class GuardParams:
     max_jump: float = setting(0.015, "number", "a written point's offset from LBS changes by at most this share of "
                               "the character's height from one frame to the next (0: no limit)", low=0.0, high=1.0,
                               must="in [0, 1]")
-    sway: float = setting(0.5, "number", "a loose garment's points swing after the body's motion by at most this "
+    sway: float = setting(0.35, "number", "a loose garment's points swing after the body's motion by at most this "
                           "share of their rest gap over the body (0: garments ride on the body)", low=0.0, high=1.0,
                           must="in [0, 1]")
     sway_frequency: float = setting(2.0, "number", "natural frequency of a garment point's swing", unit="Hz", low=0.0,

@@ -15,8 +15,9 @@ LBS's motion, along the body:
   onto the plane across the point's offset from its carrier ``P_i - C_i`` (the swing slides
   along the body, it does not press into it); ``P_i`` the worn point as the wrap gives it,
   ``phi_i`` its physics weight;
-* the state is limited, smoothly, to ``s_i``: ``u <- u s_i / sqrt(s_i^2 + |u|^2)`` (velocity
-  scaled alike, so it rings down from where it is written), with ``s_i = share x`` the least of
+* the state is limited, smoothly, to ``s_i`` (:func:`soft_limit`: untouched up to half of it,
+  so the oscillator's own decay holds there; beyond, compressed towards ``s_i``; its velocity
+  scaled alike), with ``s_i = share x`` the least of
   the point's rest gap over the surface it is worn on (0 where it lies on or in it), its rest
   distance to another piece, its offset ``|P_i - C_i|`` this frame (the wrap shrinks it where
   the body folds under it: the back of a bent knee) and its distance this frame to another
@@ -24,7 +25,7 @@ LBS's motion, along the body:
   :attr:`GarmentSway.SLOPE` per metre along the mesh (a tight cuff beside a loose leg);
 * ``S`` is :attr:`GarmentSway.ROUNDS` rounds of the mean over each point's ring of the mesh's
   worn points (neighbours swing alike, so the swing strains the garment little), its result
-  cut to ``s_i`` again.
+  projected onto each point's plane again and cut to ``s_i``.
 
 So a tight waistband does not move, a baggy leg swings by up to ``share`` of its room, and no
 point comes nearer the body or another piece than ``1 - share`` of the room it has. After a stop
@@ -43,7 +44,28 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GarmentSway"]
+__all__ = ["GarmentSway", "soft_limit"]
+
+
+def soft_limit(size: np.ndarray, limit: np.ndarray) -> np.ndarray:
+    """``[K]`` the factor that takes a length ``size`` to at most ``limit`` (both ``[K]``,
+    >= 0), smoothly: 1 up to half the limit (the oscillator's own motion, its decay untouched),
+    beyond it ``L/2 + L/2 tanh((|u| - L/2) / (L/2))`` over ``|u|`` (slope 1 at the knee, at most
+    ``L``: below it but where tanh rounds to 1); 0 where the limit is 0."""
+    size = np.asarray(size, dtype=np.float64)
+    lim = np.asarray(limit, dtype=np.float64)
+    knee = 0.5 * lim
+    over = size > knee
+    out = np.where(lim > 0.0, 1.0, 0.0)
+    k = knee[over]
+    out[over] = np.where(k > 0.0, (k + k * np.tanh((size[over] - k) / np.maximum(k, 1e-300)))
+                         / np.maximum(size[over], 1e-300), 0.0)
+    return out
+
+
+def _across(x: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Rows of ``x`` ``[K, 3]`` less their part along the unit rows of ``n``."""
+    return x - np.einsum("ij,ij->i", x, n)[:, None] * n
 
 
 class GarmentSway:
@@ -59,7 +81,9 @@ class GarmentSway:
         share: The swing's limit as a share of the gap, in [0, 1] (0: no swing).
         mesh: The written mesh (:class:`~warpskin.quality.WrittenMesh`) whose points ``worn``
             index: where given, the limit changes by at most :attr:`SLOPE` per unit length along
-            its edges (0 on the points not worn), so neighbours swing alike.
+            its edges (0 on the points not worn), and the swing is the ring mean ``S``.
+        pieces: ``[N]`` the piece of every point of the mesh: where given, a point swings by at
+            most ``share`` of its distance this frame to a point of another piece.
     """
 
     #: Rounds of the ring mean over the written swing (see ``mesh``).
@@ -191,20 +215,19 @@ class GarmentSway:
         h1, h2 = float(t) - t1, t1 - t2
         a = 2.0 * ((now - l1) / h1 - (l1 - l2) / h2) / (h1 + h2)
         lim = self.limit
+        n = None
         if carriers is not None:  # along the body: the swing in the plane across the point's offset
             n = np.asarray(points, dtype=np.float64)[self.worn] - np.asarray(carriers, dtype=np.float64)
             gap = np.linalg.norm(n, axis=1)
             lim = np.minimum(lim, self.share * gap)  # where the body folds under it, the room it has now
+            n /= np.maximum(gap, 1e-300)[:, None]
+            a = _across(a, n)
         if self.pieces is not None:  # and where another piece comes near in this pose
             lim = np.minimum(lim, self.share * self._room(np.asarray(points, dtype=np.float64)))
-            n /= np.maximum(gap, 1e-300)[:, None]
-            a = a - np.einsum("ij,ij->i", a, n)[:, None] * n
         u, v = self.step(self._u, self._v, a, h1)
-        if carriers is not None:
-            u = u - np.einsum("ij,ij->i", u, n)[:, None] * n
-            v = v - np.einsum("ij,ij->i", v, n)[:, None] * n
-        size = np.linalg.norm(u, axis=1)
-        scale = np.where(lim > 0.0, lim / np.sqrt(lim * lim + size * size), 0.0)
+        if n is not None:
+            u, v = _across(u, n), _across(v, n)
+        scale = soft_limit(np.linalg.norm(u, axis=1), lim)
         self._u, self._v = u * scale[:, None], v * scale[:, None]
         self._history = [(t1, l1), (float(t), now)]
         swing = self._u
@@ -216,6 +239,8 @@ class GarmentSway:
             for _ in range(self.ROUNDS):
                 w = m @ w
             swing = w[ids]
+            if n is not None:  # the mean of neighbours' slides leans off the plane: back onto it
+                swing = _across(swing, n)
             size = np.linalg.norm(swing, axis=1)  # still within each point's limit
             swing = swing * np.minimum(1.0, lim / np.maximum(size, 1e-300))[:, None]
         swing = self.weight[:, None] * swing
