@@ -92,23 +92,23 @@ def _still_copy(scene, obj, graph, rgba: np.ndarray, per: str = "POINT"):
     return copy
 
 
-def _coloured(scene, view: dict, job: dict, physical: list, lbs: list) -> tuple[list, list, str]:
+def _coloured(scene, view: dict, job: dict, physical: list, lbs: list) -> tuple[list, list, list]:
     """Still copies of the ``physical`` and ``lbs`` objects at the view's frame (the scene is
-    there), coloured as ``job["color"]`` asks; and the caption line of the scale."""
+    there), coloured as ``job["color"]`` asks; and the caption lines of the scale."""
     graph = bpy.context.evaluated_depsgraph_get()
     now = [(_world_points(p, graph), _world_points(q, graph)) for p, q in zip(physical, lbs)]
     values = [np.linalg.norm(p - q, axis=1) for p, q in now]
     what = "offset from LBS"
     if job["color"] == "motion":
-        what = "motion against LBS since the last frame"
+        what = "motion against LBS"  # since the previous time sample
         if view.get("previous") is None:
             values = [np.zeros(len(v)) for v in values]
         else:
-            scene.frame_set(int(round(view["previous"])))
+            _goto(scene, view["previous"])
             graph = bpy.context.evaluated_depsgraph_get()
             before = [(_world_points(p, graph), _world_points(q, graph)) for p, q in zip(physical, lbs)]
             values = [np.linalg.norm((p - q) - (p0 - q0), axis=1) for (p, q), (p0, q0) in zip(now, before)]
-            scene.frame_set(int(view["frame"]))
+            _goto(scene, view["frame"])
             graph = bpy.context.evaluated_depsgraph_get()
     every = np.concatenate(values) if values else np.zeros(0)
     scale = float(np.percentile(every, 98.0)) if every.size else 0.0  # one point's outlier leaves the rest drawn
@@ -116,7 +116,7 @@ def _coloured(scene, view: dict, job: dict, physical: list, lbs: list) -> tuple[
     copies_l = [_still_copy(scene, o, graph, np.tile([0.50, 0.62, 0.86, 1.0], (len(v), 1)))
                 for o, v in zip(lbs, values)]
     share = 100.0 * scale / float(job.get("height") or 1.0)
-    return copies_p, copies_l, f"colour: {what}, white 0 to red from {share:.2g} % of the height"
+    return copies_p, copies_l, [f"colour: {what}, red from {share:.2g} % of the height"]
 
 
 def _camera(scene, lo: np.ndarray, hi: np.ndarray, aspect: float, yaw_deg: float = 20.0):
@@ -138,6 +138,23 @@ def _camera(scene, lo: np.ndarray, hi: np.ndarray, aspect: float, yaw_deg: float
     cam_data.ortho_scale = 1.2 * max(width / min(1.0, aspect), size[2] / min(1.0, 1.0 / aspect)) + 1e-6
     cam_data.clip_end = 2.0 * distance + float(np.linalg.norm(size))
     return cam
+
+
+def _goto(scene, t: float) -> None:
+    """The scene at time code ``t`` (its fraction as a subframe)."""
+    whole = math.floor(float(t))
+    scene.frame_set(int(whole), subframe=float(t) - whole)
+
+
+def _remove(objects: list) -> None:
+    """Remove ``objects`` and the data blocks (mesh, curve, camera) they own."""
+    for o in objects:
+        data = o.data
+        bpy.data.objects.remove(o)
+        for store in (bpy.data.meshes, bpy.data.curves, bpy.data.cameras):
+            if data is not None and data.users == 0 and data.name in store and store[data.name] == data:
+                store.remove(data)
+                break
 
 
 def _caption(cam, text: str, aspect: float, row: int = 0):
@@ -185,7 +202,7 @@ def main(job_path: str) -> None:
     for o in lbs:
         o.color = (0.50, 0.62, 0.86, 1.0)
     for view in job["views"]:
-        scene.frame_set(int(view["frame"]))
+        _goto(scene, view["frame"])
         graph = bpy.context.evaluated_depsgraph_get()
         focus = [objects[p] for p in (view.get("focus") or []) if p in objects] or physical
         pts = np.concatenate([_world_points(o, graph) for o in focus])
@@ -200,9 +217,9 @@ def main(job_path: str) -> None:
         panels = []
         sides, captions, copies = (physical, lbs), [list(c) for c in view["captions"]], []
         if job.get("color", "plain") != "plain":
-            copies_p, copies_l, line = _coloured(scene, view, job, physical, lbs)
+            copies_p, copies_l, lines = _coloured(scene, view, job, physical, lbs)
             sides, copies = (copies_p, copies_l), copies_p + copies_l
-            captions[0].append(line)
+            captions[0].extend(lines)
             shading.color_type = "VERTEX"
         for k, (shown, hidden) in enumerate(((sides[0], sides[1]), (sides[1], sides[0]))):
             for o in shown:
@@ -217,14 +234,12 @@ def main(job_path: str) -> None:
                 graph = bpy.context.evaluated_depsgraph_get()
                 still = [_still_copy(scene, c, graph, np.tile([0.05, 0.05, 0.05, 1.0], (1, 1)), per="CORNER")
                          for c in caps]
-                for c in caps:
-                    bpy.data.objects.remove(c)
+                _remove(caps)
                 caps = still
             path = f"{view['out']}.panel{k}.png"
             scene.render.filepath = path
             bpy.ops.render.render(write_still=True)
-            for c in caps:
-                bpy.data.objects.remove(c)
+            _remove(caps)
             img = bpy.data.images.load(path)
             px = np.empty(w * h * 4, dtype=np.float32)
             img.pixels.foreach_get(px)
@@ -233,10 +248,7 @@ def main(job_path: str) -> None:
             import os
 
             os.remove(path)
-        for o in copies:
-            mesh = o.data
-            bpy.data.objects.remove(o)
-            bpy.data.meshes.remove(mesh)
+        _remove(copies)
         shading.color_type = "OBJECT"
         both = np.concatenate(panels, axis=1)
         out = bpy.data.images.new("review", width=2 * w, height=h, alpha=False)
@@ -245,7 +257,7 @@ def main(job_path: str) -> None:
         out.file_format = "PNG"
         out.save()
         bpy.data.images.remove(out)
-        bpy.data.objects.remove(cam)
+        _remove([cam])
         print(f"wrote {view['out']}")
 
 
