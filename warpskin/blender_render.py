@@ -151,10 +151,10 @@ def _remove(objects: list) -> None:
     for o in objects:
         data = o.data
         bpy.data.objects.remove(o)
-        for store in (bpy.data.meshes, bpy.data.curves, bpy.data.cameras):
-            if data is not None and data.users == 0 and data.name in store and store[data.name] == data:
+        for kind, store in ((bpy.types.Mesh, bpy.data.meshes), (bpy.types.Curve, bpy.data.curves),
+                            (bpy.types.Camera, bpy.data.cameras)):
+            if isinstance(data, kind) and data.users == 0:
                 store.remove(data)
-                break
 
 
 def _caption(cam, text: str, aspect: float, row: int = 0):
@@ -232,7 +232,7 @@ def main(job_path: str) -> None:
             caps = [_caption(cam, line, aspect, row) for row, line in enumerate(reversed(captions[k]))]
             if copies:  # drawn by their vertex colours: the captions as still meshes in theirs
                 graph = bpy.context.evaluated_depsgraph_get()
-                still = [_still_copy(scene, c, graph, np.tile([0.05, 0.05, 0.05, 1.0], (1, 1)), per="CORNER")
+                still = [_still_copy(scene, c, graph, np.array([[0.05, 0.05, 0.05, 1.0]]), per="CORNER")
                          for c in caps]
                 _remove(caps)
                 caps = still

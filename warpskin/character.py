@@ -40,6 +40,7 @@ from .capture import (
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
 from .guard import CrossGuard, GarmentSway, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, WornRepair
+from .guard.sway import piece_room
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
 from .io.usd_export import valid_prim_name
 from .mesh import vertex_normals
@@ -369,7 +370,7 @@ class Character:
                     self.repairs[p.name] = (WornRepair(self.meshes[p.name], worn[rows] - p.start, floor[rows], params),
                                             rows)
                     if params.enabled and params.sway > 0.0:
-                        room = np.minimum(gamma[rows], _room(self.soup.points, self.pieces.piece_of_point, worn[rows]))
+                        room = np.minimum(gamma[rows], piece_room(self.soup.points, self.pieces.piece_of_point, worn[rows]))
                         sway = GarmentSway(worn[rows] - p.start, room, cap.physics_weight[worn[rows]],
                                            params.sway_frequency, params.sway_damping, params.sway,
                                            self.meshes[p.name], self.pieces.piece_of_point[p.start:p.start + p.count])
@@ -737,20 +738,6 @@ class Character:
     def split(self, points: np.ndarray) -> dict[str, np.ndarray]:
         """``{mesh name: its rows of points}``."""
         return {p.name: points[p.start:p.start + p.count] for p in self.parts}
-
-
-def _room(points: np.ndarray, piece: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """``[K]`` the rest distance [m] from each of ``points[rows]`` to the nearest point of
-    another piece (``piece``: ``[N]`` per point): the room a garment point has before it meets
-    the body, another garment or a shoe."""
-    from scipy.spatial import cKDTree
-
-    out = np.full(len(rows), np.inf)
-    for k in np.unique(piece[rows]):
-        mine, others = piece[rows] == k, np.nonzero(piece != k)[0]
-        if others.size:
-            out[mine] = cKDTree(points[others]).query(points[rows[mine]])[0]
-    return out
 
 
 def _clearance(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, dist, share: float, edge: float,

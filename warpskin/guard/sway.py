@@ -44,7 +44,24 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GarmentSway", "soft_limit"]
+__all__ = ["GarmentSway", "piece_room", "soft_limit"]
+
+
+def piece_room(points: np.ndarray, piece: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``[K]`` the distance [m] from each of ``points[rows]`` to the nearest of ``points``
+    ``[N, 3]`` on another piece (``piece``: ``[N]`` per point; inf where there is none): the
+    room a garment point has before it meets the body, another garment or a shoe."""
+    from scipy.spatial import cKDTree
+
+    rows = np.asarray(rows, dtype=np.int64)
+    own = piece[rows]
+    out = np.full(rows.size, np.inf)
+    for k in np.unique(own):
+        others = piece != k
+        if others.any():
+            mine = own == k
+            out[mine] = cKDTree(points[others]).query(points[rows[mine]])[0]
+    return out
 
 
 def soft_limit(size: np.ndarray, limit: np.ndarray) -> np.ndarray:
@@ -138,32 +155,13 @@ class GarmentSway:
         point's row (seam copies share one)."""
         import scipy.sparse as sp
 
-        welded = mesh.weld[self.worn]
-        uniq, ids = np.unique(welded, return_inverse=True)
-        local = np.full(mesh.first.size, -1)
-        local[uniq] = np.arange(uniq.size)
-        e = local[mesh.edges]
-        e = e[(e >= 0).all(axis=1)]
-        n = uniq.size
-        rows = np.concatenate([e[:, 0], e[:, 1], np.arange(n)])
-        cols = np.concatenate([e[:, 1], e[:, 0], np.arange(n)])
-        adj = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
-        deg = np.asarray(adj.sum(axis=1)).ravel()
-        return sp.diags(1.0 / deg) @ adj, ids.ravel()
+        from ..preprocess.fast_summation import vertex_adjacency
 
-    def _room(self, points: np.ndarray) -> np.ndarray:
-        """``[K]`` the distance [m] from each worn point to the nearest of ``points`` ``[N, 3]``
-        (the mesh's points this frame) on another piece."""
-        from scipy.spatial import cKDTree
-
-        own = self.pieces[self.worn]
-        out = np.full(self.worn.size, np.inf)
-        for k in np.unique(own):
-            others = self.pieces != k
-            if others.any():
-                mine = own == k
-                out[mine] = cKDTree(points[others]).query(points[self.worn[mine]])[0]
-        return out
+        uniq, ids = np.unique(mesh.weld[self.worn], return_inverse=True)
+        ring = vertex_adjacency(mesh.welded_triangles, mesh.first.size)[uniq][:, uniq].astype(np.float64)
+        ring = (ring + sp.identity(uniq.size, format="csr")).tocsr()
+        deg = np.asarray(ring.sum(axis=1)).ravel()
+        return sp.diags(1.0 / deg) @ ring, ids.ravel()
 
     def reset(self) -> None:
         """At rest, with no history: the next two frames are written as given."""
@@ -223,7 +221,7 @@ class GarmentSway:
             n /= np.maximum(gap, 1e-300)[:, None]
             a = _across(a, n)
         if self.pieces is not None:  # and where another piece comes near in this pose
-            lim = np.minimum(lim, self.share * self._room(np.asarray(points, dtype=np.float64)))
+            lim = np.minimum(lim, self.share * piece_room(np.asarray(points, dtype=np.float64), self.pieces, self.worn))
         u, v = self.step(self._u, self._v, a, h1)
         if n is not None:
             u, v = _across(u, n), _across(v, n)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..delivery import hole_fans, piece_components, piece_volumes
+from ..mesh import mesh_edge_report
 from ..quality import WrittenMesh
 
 __all__ = ["PieceVolume"]
@@ -61,13 +62,9 @@ class PieceVolume:
         # a piece is closed when each of its boundary edges is one of the fans' (hole_fans is
         # empty where the boundary is not simple loops: then only pieces without a boundary)
         open_edge = np.zeros(self.count, dtype=bool)
-        if c:
-            e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-            key = np.sort(e, axis=1)
-            _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-            boundary = e[counts[inverse.ravel()] == 1]
-            if len(boundary) and not len(self.fans[0]):
-                open_edge[self.piece[boundary[:, 0]]] = True
+        if c and not len(self.fans[0]):
+            boundary = mesh_edge_report(t, c)["boundary_edges"]
+            open_edge[self.piece[boundary[:, 0]]] = True
         big = np.abs(self.rest_volumes) > 1e-3 * (np.abs(self.rest_volumes).max() if self.count else 0.0)
         active = big & ~open_edge
         if c:
