@@ -276,7 +276,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         plan = FramePlan.at_times(list(range(frames)), [t_mid + k / scene.frame_rate for k in range(frames)], scene.frame_rate, max_dt=dt)
         sub = plan.substeps
         try:
-            st = PhysicsStepper(builder, model, params, plan, clip, label="bench")
+            st = PhysicsStepper(builder, SkinSolver(model, params), plan, clip, label=f"bench {builder.rig.name}")
             for k in range(3):  # compile, capture, grow the contact buffers outside the timed region
                 st.advance(k)
             nxt = iter(range(3, frames))

@@ -221,15 +221,16 @@ def _print_weights(weights: dict) -> None:
 
 
 def cmd_skin(args) -> int:
-    from .run import skin_to_usd
+    from .run import SkinningOptions, skin_to_usd
 
     scene = _scene_of(args)
     out = Path(args.output)
-    run = skin_to_usd(
-        scene, out, method=args.method, device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
+    options = SkinningOptions(
+        method=args.method, device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
         with_rest=args.with_rest, with_lbs=args.with_lbs, topology=args.topology, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]),
     )
+    run = skin_to_usd(scene, out, options)
     if args.json:
         return _print_json({"path": str(run.path), **run.summary})
     print(f"wrote {run.path} ({run.frames} frames, {args.method})")
@@ -286,7 +287,7 @@ def cmd_layers(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from .run import simulate
+    from .run import SimulationOptions, simulate
 
     scene = _scene_of(args)
     if args.fps:
@@ -306,13 +307,14 @@ def cmd_simulate(args) -> int:
     guard = scene.guard_params()
     if args.no_guard:
         guard.enabled = False
-    result = simulate(
-        scene, Path(args.output), device=args.device, frames=args.frames, solver_params=params, collision=collision,
-        with_lbs=args.lbs, with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
+    options = SimulationOptions(
+        device=args.device, frames=args.frames, solver_params=params, collision=collision, with_lbs=args.lbs,
+        with_layers=args.layers, report_dir=args.report, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), preroll=args.preroll, allow_unstable=args.allow_unstable,
         start_frame=args.start_frame, topology=args.topology, cage=args.cage, rigid_pieces=args.rigid_pieces,
         physics_weights=dict(args.physics_weight or []), guard=guard,
     )
+    result = simulate(scene, Path(args.output), options)
     s = result.summary
     if args.json:
         return _print_json({"path": str(result.path), **s})
@@ -414,20 +416,21 @@ def _missing_asset(target: str) -> bool:
 
 def cmd_pop(args) -> int:
     from .bench import run_popping_bench
-    from .run import run_popping
+    from .run import PoppingOptions, run_popping
 
     if args.bench:
         return _emit_json(run_popping_bench(args.device, steps=args.steps, repeat=args.repeat), args.json)
     if args.target is None or args.output is None:
         raise SceneError("pop needs a SCENE and -o OUT.usdc (or --bench)")
     scene = _scene_of(args)
-    result = run_popping(
-        scene, Path(args.output), device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame,
-        topology=args.topology, alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
+    options = PoppingOptions(
+        device=args.device, frames=args.frames, fps=args.fps, start_frame=args.start_frame, topology=args.topology,
+        alpha_min=args.alpha_min, beta=args.beta, dt=args.dt, progress=not args.quiet,
         comment="warpskin " + " ".join(sys.argv[1:]), mode=args.mode, beats=_beat_spec(args),
         muscles=_group_entries(args), swell=args.swell, cage=args.cage, report_dir=args.report,
         normal_guide=not args.no_normal_guide, vibrate=not args.no_vibrate, pop_on=args.pop_on,
     )
+    result = run_popping(scene, Path(args.output), options)
     s = result.summary
     if args.json:
         return _print_json({"path": str(result.path), "frames": result.frames, **s})

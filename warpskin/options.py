@@ -17,7 +17,7 @@ from pathlib import Path
 
 from .settings import setting
 
-__all__ = ["GlobalOptions", "CommonOptions", "InfoOptions", "SkinOptions", "SimulateOptions", "LayersOptions",
+__all__ = ["with_overrides", "GlobalOptions", "CommonOptions", "InfoOptions", "SkinOptions", "SimulateOptions", "LayersOptions",
            "BenchOptions", "PopOptions", "RenderOptions"]
 
 
@@ -84,6 +84,30 @@ def resolution_arg(text: str) -> tuple[int, int]:
 
 
 _CAGE = "auto|always|none|FILE"
+
+
+def with_overrides(kind: type, options, overrides: dict, command: str):
+    """A Python API's options in one place: ``options`` (an instance of the frozen dataclass
+    ``kind``, or ``None`` for its defaults) with the fields named in ``overrides`` replaced
+    (:func:`dataclasses.replace`).
+
+    Raises:
+        InputError: ``"<command>: unknown option 'NAME' (options: ...)"``, or ``options`` not a
+            ``kind``.
+    """
+    from dataclasses import fields, replace
+
+    from .errors import InputError
+
+    if options is None:
+        options = kind()
+    elif not isinstance(options, kind):
+        raise InputError(f"{command}: options must be a {kind.__name__}, got {type(options).__name__}")
+    known = {f.name for f in fields(kind)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise InputError(f"{command}: unknown option {unknown[0]!r} (options: {', '.join(sorted(known))})")
+    return replace(options, **overrides) if overrides else options
 
 
 # ------------------------------------------------------------------------------ declarations

@@ -7,16 +7,16 @@
 * Steppers: :class:`PhysicsStepper` (``physics``: the multi-layer solver with graph capture,
   overflow retries, NaN checks and the pre-roll), :class:`PoppingStepper` (``pop``: the goal
   mode of the popping dance), :class:`SkinningStepper` (``skin``: LBS and DQS).
-* Drivers: :func:`simulate` (``warpskin simulate``), :func:`run_popping` and :func:`pop`
+* Drivers: :func:`simulate` (``warpskin simulate``; its options: :class:`SimulationOptions`), :func:`run_popping` and :func:`pop`
   (``warpskin pop``, both modes), :func:`skin_to_usd` (``warpskin skin``); ``warpskin bench`` times the same steppers.
 """
 
 from .physics import PhysicsStepper, initial_state
 from .plan import FramePlan
-from .pop import PoppingRun, PoppingStepper, pop, run_popping
+from .pop import PoppingOptions, PoppingRun, PoppingStepper, pop, run_popping
 from .runner import FrameRunner, RunRecord
-from .simulate import SimulationResult, simulate
-from .skin import SkinningStepper, skin_to_usd
+from .simulate import SimulationOptions, SimulationResult, simulate
+from .skin import SkinningOptions, SkinningStepper, skin_to_usd
 
 __all__ = [
     "FramePlan",
@@ -27,9 +27,12 @@ __all__ = [
     "SkinningStepper",
     "initial_state",
     "simulate",
+    "SimulationOptions",
     "SimulationResult",
     "run_popping",
+    "PoppingOptions",
     "pop",
     "PoppingRun",
     "skin_to_usd",
+    "SkinningOptions",
 ]

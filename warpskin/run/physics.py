@@ -22,7 +22,7 @@ from ..errors import SceneError, SimulationError
 from ..metrics import self_intersections
 from ..preprocess.layers import LAYER_NAMES
 from ..skinning import dual_quaternions
-from ..solver import SkinSolver, SolverParams
+from ..solver import SkinSolver
 from ..transforms import linear_blend_skin
 from .plan import FramePlan
 from .runner import first_non_finite
@@ -66,8 +66,8 @@ class PhysicsStepper:
 
     Args:
         builder: The built :class:`~warpskin.model.SkinModelBuilder` (host view: rig, layers).
-        model: ``builder.finalize(device)``.
-        params: Solver settings (``dt`` is the plan's substep).
+        solver: The :class:`~warpskin.solver.SkinSolver` of its model (``builder.finalize(device)``)
+            and settings (``dt`` is the plan's substep).
         plan: The frames.
         clip: The clip the poses come from.
         use_graph: Record each frame once as a graph and replay it (bit-identical to plain
@@ -75,21 +75,21 @@ class PhysicsStepper:
         preroll: Seconds simulated from the bind pose into the first frame's pose before the
             first frame (nothing of it is written); 0 for none.
         activation: ``activation(t) -> [G]`` for a model with a rest-shape drive.
-        label: Progress-bar label prefix (the command).
-        name: What is simulated, for the label (default: the rig's name).
+        label: Progress-bar label prefix: the command and what is simulated (default
+            ``"simulate <rig name>"``).
     """
 
-    def __init__(self, builder, model, params: SolverParams, plan: FramePlan, clip, *, use_graph: bool = True,
-                 preroll: float = 0.0, activation: Callable | None = None, label: str = "simulate",
-                 name: str = "") -> None:
+    def __init__(self, builder, solver: SkinSolver, plan: FramePlan, clip, *, use_graph: bool = True,
+                 preroll: float = 0.0, activation: Callable | None = None, label: str | None = None) -> None:
+        model, params = solver.model, solver.params
         self.builder, self.model, self.plan, self.clip = builder, model, plan, clip
         rig = self.rig = builder.rig
-        self.solver = solver = SkinSolver(model, params)
+        self.solver = solver
         self.collision = solver.collision
         self.contacts = model.contacts()  # None when the model has no collision data
         self.use_graph = use_graph
         self.dev = dev = model.device
-        self.label = f"{label} {name or rig.name} ({dev}, {model.particle_count} particles)"
+        self.label = f"{label or 'simulate ' + rig.name} ({dev}, {model.particle_count} particles)"
         self.substeps = substeps = plan.substeps
         self.dt = plan.dt
         j = self.joint_count = rig.joint_count

@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import RigWarning, SceneError
 from ..io.usd_export import UsdSkinWriter, valid_prim_name, check_output_path
 from ..model import SkinModelBuilder
+from ..options import with_overrides
 from ..params import PoppingSettings
 from ..popping.activation import BeatSpec, popping_settings, vibrating
 from ..popping.dynamics import PoppingDynamics
@@ -30,7 +31,8 @@ from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["PoppingRun", "PoppingStepper", "pop", "run_popping", "surface_muscles", "POP_ON"]
+__all__ = ["PoppingOptions", "PoppingRun", "PoppingStepper", "pop", "run_popping", "surface_muscles",
+           "POP_ON"]
 
 POP_ON = ("surface", "layers")
 """Where muscles found from the skeleton swell (:func:`run_popping`'s ``pop_on``)."""
@@ -113,50 +115,21 @@ class _Overshoot:
         self.max_goal = max(self.max_goal, float(np.linalg.norm(x - goal, axis=1).max()))
 
 
-def run_popping(
-    scene,
-    out_path,
-    *,
-    examples: PoppingExamples | None = None,
-    device=None,
-    frames: tuple[int, int] | None = None,
-    fps: float | None = None,
-    start_frame: int | None = None,
-    topology: str = "file",
-    alpha_min: float | None = None,
-    beta: float | None = None,
-    dt: float | None = None,
-    progress: bool = True,
-    comment: str = "",
-    mode: str | None = None,
-    beats: BeatSpec | None = None,
-    muscles: list[str] | None = None,
-    swell: float | None = None,
-    cage: str = "auto",
-    report_dir=None,
-    normal_guide: bool = True,
-    vibrate: bool = True,
-    pop_on: str = "surface",
-) -> PoppingRun:
-    """Play a popping scene and write it to USD (the ``warpskin pop`` command).
+@dataclass(frozen=True)
+class PoppingOptions:
+    """How :func:`run_popping` plays a scene: the Python API's options, and what ``warpskin pop``
+    builds from its command line. Every field has the default a scene needs nothing else for.
 
-    Prims under ``/warpskin``: ``popping`` (the dynamic skin), ``normal`` (example-based
-    normal mesh, no popping), ``goal`` (the activated clenched goal, a guide) and ``lbs``
-    (plain linear blend skinning, a guide), side by side for review. Every frame advances the
-    dynamics by ``substeps`` steps ending at the frame's time, with the activation sampled at
-    each step; the pose is the frame's. In layered mode the file holds the physical skin and
-    LBS, as ``warpskin simulate --lbs`` writes them.
-
-    Args:
-        scene: A :class:`~warpskin.scene.Scene`, a shipped scene name or a TOML path.
-        out_path: ``.usdc`` (default format), ``.usda`` or ``.usd``; written atomically.
+    Attributes:
         examples: The examples; default :func:`~warpskin.popping.examples_for_scene`.
-        device: Warp device.
+        device: Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``, ``None``: Warp's default).
         frames: Inclusive frame range; default the scene's.
         fps: Output frame rate; default the scene's.
         start_frame: Time code of the first frame written; default its frame number.
         topology: ``"file"`` (the file's own vertices, faces, UVs; default) or ``"welded"``.
         alpha_min, beta, dt: Overrides of the scene's ``[popping]`` values.
+        progress: Progress bar on stderr.
+        comment: Stage comment.
         mode: ``"goal"`` or ``"layered"``; default the scene's ``[popping] mode``.
         beats: Pops on a tempo or a list of beats (:class:`~warpskin.popping.BeatSpec`) over
             the frames written, in place of the scene's ``[popping.activation]``.
@@ -169,6 +142,9 @@ def run_popping(
         cage: Layered mode without examples: ``"auto"`` (an open character simulates through
             an automatic cage, whose muscles pop and carry the written meshes), ``"always"``,
             ``"none"`` or a cage mesh file, as :func:`~warpskin.run.simulate` takes it.
+        report_dir: Also write the report there: each muscle group's bulge against its
+            activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
+            in layered mode beside the simulation's own report.
         normal_guide: Layered mode: also simulate the same frames without the pop and write
             that skin beside the result as the guide ``<skin>_normal`` (the paper's normal-only
             skin; the pop's bulge is measured against it). Doubles the cost. Both run with the
@@ -183,55 +159,92 @@ def run_popping(
             normal skin (:mod:`warpskin.popping.surface`; one simulation, the guide free);
             ``"layers"``: the multi-layer model's rest shape (the skin's, or its cage's), the
             physical skin making the pop.
-        report_dir: Also write the report there: each muscle group's bulge against its
-            activation over time (``popping.json``, ``popping.png``; :mod:`warpskin.popping.report`),
-            in layered mode beside the simulation's own report.
+    """
 
-    Without examples (a rig file, or a scene whose rig makes none) the mode is layered, with
-    muscle groups found from the skeleton.
-        progress: Progress bar on stderr.
-        comment: Stage comment.
+    examples: PoppingExamples | None = None
+    device: object = None
+    frames: tuple[int, int] | None = None
+    fps: float | None = None
+    start_frame: int | None = None
+    topology: str = "file"
+    alpha_min: float | None = None
+    beta: float | None = None
+    dt: float | None = None
+    progress: bool = True
+    comment: str = ""
+    mode: str | None = None
+    beats: BeatSpec | None = None
+    muscles: list[str] | None = None
+    swell: float | None = None
+    cage: object = "auto"
+    report_dir: object = None
+    normal_guide: bool = True
+    vibrate: bool = True
+    pop_on: str = "surface"
+
+
+def run_popping(scene, out_path, options: PoppingOptions | None = None, **overrides) -> PoppingRun:
+    """Play a popping scene and write it to USD (the ``warpskin pop`` command).
+
+    Prims under ``/warpskin``: ``popping`` (the dynamic skin), ``normal`` (example-based
+    normal mesh, no popping), ``goal`` (the activated clenched goal, a guide) and ``lbs``
+    (plain linear blend skinning, a guide), side by side for review. Every frame advances the
+    dynamics by ``substeps`` steps ending at the frame's time, with the activation sampled at
+    each step; the pose is the frame's. In layered mode the file holds the physical skin and
+    LBS, as ``warpskin simulate --lbs`` writes them. Without examples (a rig file, or a scene
+    whose rig makes none) the mode is layered, with muscle groups found from the skeleton.
+
+    Args:
+        scene: A :class:`~warpskin.scene.Scene`, a shipped scene name or a TOML path.
+        out_path: ``.usdc`` (default format), ``.usda`` or ``.usd``; written atomically.
+        options: :class:`PoppingOptions` (each field's meaning is documented there).
+        overrides: Any of its fields by name (``frames=(0, 26)``, ``beats=BeatSpec(bpm=120)``).
 
     Returns:
         A :class:`PoppingRun`.
     """
+    o = with_overrides(PoppingOptions, options, overrides, "pop")
     scene = resolve_scene(scene)
     check_output_path(out_path, inputs=scene.input_paths())  # before any work
-    if fps is not None:
-        if not (math.isfinite(fps) and fps > 0):
-            raise SceneError(f"fps must be a positive number, got {fps}")
-        scene.fps = float(fps)
+    if o.fps is not None:
+        if not (math.isfinite(o.fps) and o.fps > 0):
+            raise SceneError(f"fps must be a positive number, got {o.fps}")
+        scene.fps = float(o.fps)
     settings = popping_settings(scene)
     where = str(scene.source or scene.name)
-    for key, value in (("alpha_min", alpha_min), ("beta", beta), ("dt", dt)):
-        if value is not None:
-            setattr(settings, key, value)
-    if mode is not None:
-        settings.mode = mode
+    for key in ("alpha_min", "beta", "dt"):
+        if getattr(o, key) is not None:
+            setattr(settings, key, getattr(o, key))
+    if o.mode is not None:
+        settings.mode = o.mode
     settings.check(where)
-    if pop_on not in POP_ON:
-        raise SceneError(f"pop_on must be one of {', '.join(POP_ON)}, got {pop_on!r}")
+    if o.pop_on not in POP_ON:
+        raise SceneError(f"pop_on must be one of {', '.join(POP_ON)}, got {o.pop_on!r}")
+    examples = o.examples
     mapped = "examples" in (scene.extra.get("popping") or {})
     if examples is None and (mapped or not has_examples(scene)):
         examples = examples_from_file(scene)  # the file's blend shapes: mapped, or those named *clench* ...
     if settings.mode is None:
         settings.mode = "goal" if examples is not None or has_examples(scene) else "layered"
     if settings.mode == "layered":
-        return _run_layered(scene, out_path, settings, examples=examples, device=device, frames=frames,
-                            progress=progress, comment=comment, start_frame=start_frame, topology=topology,
-                            beats=beats, muscles=muscles, swell=swell, cage=cage, report_dir=report_dir,
-                            normal_guide=normal_guide, vibrate=vibrate, pop_on=pop_on)
-    if muscles is not None and any("=" in str(m) for m in muscles):
+        return _LayeredPop(scene, settings, o, examples).run(out_path)
+    if o.muscles is not None and any("=" in str(m) for m in o.muscles):
         raise SceneError(f"{where}: goal mode pops the examples' groups ({'--groups'} takes their names); "
                          "NAME=JOINT_PATTERN groups need --mode layered")
+    return _run_goal(scene, out_path, settings, o, examples)
+
+
+def _run_goal(scene, out_path, settings: PoppingSettings, o: PoppingOptions, examples) -> PoppingRun:
+    """The goal mode (:func:`run_popping`): example-based skinning and the goal-driven skin."""
+    where = str(scene.source or scene.name)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    plan = FramePlan.for_scene(scene, frames, max_dt=settings.dt, start_frame=start_frame)
+    plan = FramePlan.for_scene(scene, o.frames, max_dt=settings.dt, start_frame=o.start_frame)
     if examples is None:
         examples = examples_for_scene(scene)
-    deformer = PoseSpaceDeformer(rig, examples, device=device, joints=settings.joints, rbf_width=settings.rbf_width)
-    if beats is not None:
-        settings.activation = beats.timeline(deformer.group_names, float(plan.times[0]), float(plan.times[-1]))
+    deformer = PoseSpaceDeformer(rig, examples, device=o.device, joints=settings.joints, rbf_width=settings.rbf_width)
+    if o.beats is not None:
+        settings.activation = o.beats.timeline(deformer.group_names, float(plan.times[0]), float(plan.times[-1]))
     settings.activation.check_groups(deformer.group_names, f"{where}: [popping.activation]")
     dynamics = PoppingDynamics(deformer, alpha_min=settings.alpha_min, beta=settings.beta,
                                threshold=settings.threshold / file_unit(scene.solver_params().units, rig.vertices))
@@ -240,9 +253,9 @@ def run_popping(
         raise SceneError(f"{where}: beta * dt = {settings.beta * h:.4g} must be <= 1; lower beta or dt")
     stepper = PoppingStepper(rig, clip, plan, deformer, dynamics, settings, name=scene.name)
     over = _Overshoot()
-    output = CharacterOutput(rig, topology, clip)
-    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
-    record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=progress,
+    output = CharacterOutput(rig, o.topology, clip)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=o.comment, root=output.root_name)
+    record = FrameRunner(plan, stepper, writer=writer, measures=[over], progress=o.progress,
                          steps_in_first_frame=True, output=output).run()
     count = len(record.frames)
     summary = {
@@ -257,8 +270,8 @@ def run_popping(
         "max_goal_distance_m": over.max_goal,
         "ms_per_frame": float(np.sum(record.step_ms)) * plan.substeps / count,
     }
-    if report_dir is not None:
-        rep = _report(report_dir, writer.path, belly_of_examples(rig, examples), rig, topology, plan.fps, settings)
+    if o.report_dir is not None:
+        rep = _report(o.report_dir, writer.path, belly_of_examples(rig, examples), rig, o.topology, plan.fps, settings)
         summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
     return PoppingRun(path=Path(writer.path), frames=count, summary=summary)
 
@@ -276,112 +289,128 @@ def _report(report_dir, path, bellies: dict, rig, topology: str, fps: float, set
     return {"dir": str(report_dir), "beats": {g: row.get("beats", []) for g, row in data["groups"].items()}}
 
 
-def _run_layered(scene, out_path, settings: PoppingSettings, *, examples, device, frames, progress, comment,
-                 start_frame=None, topology="file", beats: BeatSpec | None = None, muscles=None,
-                 swell=None, cage="auto", report_dir=None, normal_guide=True, vibrate=True,
-                 pop_on="surface") -> PoppingRun:
-    from .simulate import simulate
+class _LayeredPop:
+    """The layered mode (:func:`run_popping`): the activation drives the multi-layer model's rest
+    shape (examples' muscles, or muscles found from the skeleton of what is simulated), or the
+    written meshes' goal-driven offset (``pop_on="surface"``); one :func:`simulate` run, and
+    with ``normal_guide`` (but on the surface) a second without the pop beside it."""
 
-    if examples is None and has_examples(scene):
-        examples = examples_for_scene(scene)
-    rig = scene.rig()
-    clip = rig.clip(scene.clip)
-    solver = _pop_solver_params(scene)
-    plan = FramePlan.for_scene(scene, frames, max_dt=solver.dt, start_frame=start_frame)
-    start, end = float(plan.times[0]), float(plan.times[-1])
-    found: list = []
-    groups: list[str] = []
-    surface = False
-    surface_bellies: list = []  # per group, {written mesh: belly mask} (on the written surface)
-    drive: list = []  # the rest drive's activation over clip time, once the groups are known
+    def __init__(self, scene, settings: PoppingSettings, o: PoppingOptions, examples) -> None:
+        if examples is None and has_examples(scene):
+            examples = examples_for_scene(scene)
+        self.scene, self.settings, self.o, self.examples = scene, settings, o, examples
+        self.rig = scene.rig()
+        self.clip = self.rig.clip(scene.clip)
+        self.solver = _pop_solver_params(scene)
+        self.plan = FramePlan.for_scene(scene, o.frames, max_dt=self.solver.dt, start_frame=o.start_frame)
+        self.start, self.end = float(self.plan.times[0]), float(self.plan.times[-1])
+        self.found: list = []  # the muscles found from the skeleton
+        self.groups: list[str] = []
+        self.surface = False
+        self.surface_bellies: list = []  # per group, {written mesh: belly mask} (on the written surface)
+        self.drive: list = []  # the rest drive's activation over clip time, once the groups are known
+        self.made: list = []  # the surface pop, once made
 
-    def timeline(names: list[str], respond: bool = True) -> None:
-        groups[:] = names
-        if beats is None and not settings.activation.groups:
-            raise SceneError(f"{scene.source or scene.name}: popping without a timeline: pass --bpm N or --beats "
-                             f"FILE (muscle groups found: {', '.join(names)})")
-        if beats is not None:
-            settings.activation = beats.timeline(names, start, end)
+    def timeline(self, names: list[str], respond: bool = True) -> None:
+        """The groups ``names`` and their activation: the rest drive follows each group's
+        activation as the paper's skin follows its goal, ringing about it while clenched
+        (``alpha_min`` per solver step) and relaxing monotonely (``beta``); ``respond`` false
+        (or ``vibrate`` off): as it is."""
+        settings, plan = self.settings, self.plan
+        self.groups[:] = names
+        if self.o.beats is None and not settings.activation.groups:
+            raise SceneError(f"{self.scene.source or self.scene.name}: popping without a timeline: pass --bpm N or "
+                             f"--beats FILE (muscle groups found: {', '.join(names)})")
+        if self.o.beats is not None:
+            settings.activation = self.o.beats.timeline(names, self.start, self.end)
         settings.activation.check_groups(names, "[popping.activation]")
 
         def raw(t: float) -> np.ndarray:
             return settings.activation.sample(t, names)
 
-        # the drive follows each group's activation as the paper's skin follows its goal: ringing
-        # about it while clenched (alpha_min per solver step), relaxing monotonely (beta)
-        drive[:] = [vibrating(raw, start - 1.0 / plan.fps, end + plan.dt, h=plan.dt, alpha=settings.alpha_min,
-                              beta=settings.beta) if vibrate and respond else raw]
+        self.drive[:] = [vibrating(raw, self.start - 1.0 / plan.fps, self.end + plan.dt, h=plan.dt,
+                                   alpha=settings.alpha_min, beta=settings.beta)
+                         if self.o.vibrate and respond else raw]
 
-    def activation(t: float) -> np.ndarray:
-        return drive[0](t)
+    def activation(self, t: float) -> np.ndarray:
+        return self.drive[0](t)
 
-    if examples is not None:
-        if muscles is not None and any("=" in str(m) for m in muscles):
-            raise SceneError("this scene's examples name its muscle groups: --groups takes their names "
-                             f"({', '.join(examples.group_names)})")
-        builder = SkinModelBuilder(rig, scene.model_params())
-        builder.set_rest_drive(muscle_rest_offset_deltas(builder, examples, rig.skinning_matrices(clip, start)))
-        timeline(list(examples.group_names))
-        result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
-                          solver_params=solver,
-                          comment=comment, start_frame=start_frame, topology=topology, builder=builder,
-                          activation=activation, report_dir=report_dir)
-    elif pop_on == "surface":  # on the written meshes
-        surface = True
-        made: list = []
+    def overlay(self, character, builder, frames_plan):
+        """The surface pop (:func:`_surface_pop`) over what ``character`` writes."""
+        unit = file_unit(self.scene.solver_params().units, character.soup.points)  # metres per file unit
+        pop = _surface_pop(character, builder, frames_plan, self, unit=unit)
+        pop.normal_guide = bool(self.o.normal_guide)
+        self.made.append(pop)
+        return pop
 
-        def overlay(character, builder, frames_plan):
-            unit = file_unit(scene.solver_params().units, character.soup.points)  # metres per file unit
-            pop = _surface_pop(character, builder, frames_plan, settings, muscles, swell, found, timeline, device,
-                               vibrate, surface_bellies, unit=unit)
-            pop.normal_guide = bool(normal_guide)
-            made.append(pop)
-            return pop
+    def prepare(self, builder) -> None:
+        """Muscles from the skeleton of what is simulated (the skin, or its cage) as its rest drive."""
+        swell = DEFAULT_SWELL if self.o.swell is None else self.o.swell
+        self.found[:], swelling = muscles_from_skeleton(builder, self.o.muscles, swell=swell)
+        self.timeline([m.name for m in self.found])
+        builder.set_rest_drive(rest_offset_deltas(builder, swelling), swelling=belly_of_swelling(builder, swelling))
 
-        result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
-                          comment=comment, start_frame=start_frame, topology=topology, cage=cage, overlay=overlay,
-                          report_dir=report_dir)
-    else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
-        def prepare(builder) -> None:
-            found[:], swelling = muscles_from_skeleton(builder, muscles, swell=DEFAULT_SWELL if swell is None else swell)
-            timeline([m.name for m in found])
-            builder.set_rest_drive(rest_offset_deltas(builder, swelling), swelling=belly_of_swelling(builder, swelling))
+    def run(self, out_path) -> PoppingRun:
+        from .simulate import SimulationOptions, simulate
 
-        result = simulate(scene, out_path, device=device, frames=frames, with_lbs=True, progress=progress,
-                          solver_params=solver,
-                          comment=comment, start_frame=start_frame, topology=topology, cage=cage, prepare=prepare,
-                          activation=activation, report_dir=report_dir)
-    if normal_guide and not surface:  # the same run without the pop, beside it (twice the cost)
-        _add_normal_guide(scene, result.path, device=device, frames=frames, start_frame=start_frame,
-                          topology=topology, cage=cage, progress=progress, solver_params=solver)
-    summary = dict(result.summary)
-    summary["mode"] = "layered"
-    summary["pop_on"] = "surface" if surface else "layers"
-    if surface and made:  # the largest share of an offset the clearance to another surface took back
-        summary["clearance_held"] = made[0].held
-    summary["groups"] = groups
-    summary["normal_guide"] = bool(normal_guide)
-    if found:
-        summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
-                               "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
-    if report_dir is not None:
-        render = scene.rig()
-        if surface:  # every written mesh the pop moves, by its prim name
-            from .output import CharacterOutput
+        o, examples = self.o, self.examples
+        base = SimulationOptions(device=o.device, frames=o.frames, with_lbs=True, progress=o.progress,
+                                 comment=o.comment, start_frame=o.start_frame, topology=o.topology,
+                                 report_dir=o.report_dir)
+        if examples is not None:
+            if o.muscles is not None and any("=" in str(m) for m in o.muscles):
+                raise SceneError("this scene's examples name its muscle groups: --groups takes their names "
+                                 f"({', '.join(examples.group_names)})")
+            builder = SkinModelBuilder(self.rig, self.scene.model_params())
+            builder.set_rest_drive(muscle_rest_offset_deltas(builder, examples,
+                                                             self.rig.skinning_matrices(self.clip, self.start)))
+            self.timeline(list(examples.group_names))
+            result = simulate(self.scene, out_path, base, solver_params=self.solver, builder=builder,
+                              activation=self.activation)
+        elif o.pop_on == "surface":  # on the written meshes
+            self.surface = True
+            result = simulate(self.scene, out_path, base, cage=o.cage, overlay=self.overlay)
+        else:  # any rig: muscles from the skeleton of what is simulated (the skin, or its cage)
+            result = simulate(self.scene, out_path, base, solver_params=self.solver, cage=o.cage,
+                              prepare=self.prepare, activation=self.activation)
+        if o.normal_guide and not self.surface:  # the same run without the pop, beside it (twice the cost)
+            _add_normal_guide(self.scene, result.path, SimulationOptions(
+                device=o.device, frames=o.frames, start_frame=o.start_frame, topology=o.topology, cage=o.cage,
+                solver_params=self.solver, progress=o.progress, comment="normal-only guide"))
+        return PoppingRun(path=result.path, frames=len(result.frames), summary=self.summary(result))
 
-            skin_prim = CharacterOutput(render, topology).skin_prim
-            bellies = {}
-            for g, masks in zip(groups, surface_bellies):
-                bellies[g] = {(skin_prim if name == "skin" else valid_prim_name(name)):
-                              (m[render.weld_map] if name == "skin" and topology == "file" else m)
-                              for name, m in masks.items() if m.any()}
-        else:
-            bellies = (belly_of_examples(render, examples) if examples is not None
-                       else {m.name: belly_of_bones(render, m.joints) for m in found})
-        rep = _report(report_dir, result.path, bellies, render, topology, scene.frame_rate, settings,
-                      depth_mm={m.name: 1e3 * m.depth_m for m in found})
-        summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
-    return PoppingRun(path=result.path, frames=len(result.frames), summary=summary)
+    def summary(self, result) -> dict:
+        """The simulation's summary with the pop's: mode, groups, muscles found, the report."""
+        o, found = self.o, self.found
+        summary = dict(result.summary)
+        summary["mode"] = "layered"
+        summary["pop_on"] = "surface" if self.surface else "layers"
+        if self.surface and self.made:  # the largest share of an offset the clearance to another surface took back
+            summary["clearance_held"] = self.made[0].held
+        summary["groups"] = self.groups
+        summary["normal_guide"] = bool(o.normal_guide)
+        if found:
+            summary["muscles"] = [{"name": m.name, "joints": m.joints, "vertices": m.vertices,
+                                   "depth_mm": 1e3 * m.depth_m, "peak_swell_mm": 1e3 * m.peak_m} for m in found]
+        if o.report_dir is not None:
+            render = self.scene.rig()
+            rep = _report(o.report_dir, result.path, self._bellies(render), render, o.topology, self.scene.frame_rate,
+                          self.settings, depth_mm={m.name: 1e3 * m.depth_m for m in found})
+            summary["popping_report"], summary["beats"] = rep["dir"], rep["beats"]
+        return summary
+
+    def _bellies(self, render) -> dict:
+        """Per group, its belly for the report: ``{prim name: mask per written point}`` on the
+        surface, else a mask per skin vertex."""
+        if not self.surface:
+            return (belly_of_examples(render, self.examples) if self.examples is not None
+                    else {m.name: belly_of_bones(render, m.joints) for m in self.found})
+        skin_prim = CharacterOutput(render, self.o.topology).skin_prim
+        weld = self.o.topology == "file"
+        return {g: {(skin_prim if name == "skin" else valid_prim_name(name)):
+                    (m[render.weld_map] if name == "skin" and weld else m)
+                    for name, m in masks.items() if m.any()}
+                for g, masks in zip(self.groups, self.surface_bellies)}
 
 
 _SHOWN_POINTS = 3  # the fewest written positions on a belly that swell visibly for a group to pop
@@ -451,27 +480,28 @@ def surface_muscles(character, builder, muscles=None, swell: float | None = None
 
 
 
-def _surface_pop(character, builder, plan, settings, muscles, swell, found: list, timeline, device, vibrate: bool,
-                 bellies: list, unit: float = 1.0):
-    """The written meshes' muscles (:func:`surface_muscles`) and their goal-driven offset
-    (:class:`~warpskin.popping.surface.SurfacePop`), stepped with the solver's steps of
-    ``plan``; fills ``found`` and ``bellies`` (per group, ``{written mesh: belly mask per
-    point}``) and sets the activation ``timeline``. ``unit``: metres per file unit (the snap
-    distance ``settings.threshold`` is in metres)."""
+def _surface_pop(character, builder, plan, run: _LayeredPop, unit: float = 1.0):
+    """The written meshes' muscles (:func:`surface_muscles`, with ``run``'s muscles, swell and
+    device) and their goal-driven offset (:class:`~warpskin.popping.surface.SurfacePop`),
+    stepped with the solver's steps of ``plan``; fills ``run.found`` and ``run.surface_bellies``
+    (per group, ``{written mesh: belly mask per point}``) and sets its activation
+    (:meth:`_LayeredPop.timeline`). ``unit``: metres per file unit (the snap distance
+    ``settings.threshold`` is in metres)."""
     from ..popping.surface import SurfacePop, seam_points
 
-    soup, rig = character.soup, character.rig
-    found[:], swelling, chosen, stage, mesh, belly = surface_muscles(character, builder, muscles, swell, device)
-    names = [m.name for m in found]
-    bellies[:] = [character.split(mask) for mask in belly]
-    timeline(names, respond=False)  # the points themselves vibrate
+    soup, rig, settings, o = character.soup, character.rig, run.settings, run.o
+    run.found[:], swelling, chosen, stage, mesh, belly = surface_muscles(character, builder, o.muscles, o.swell,
+                                                                         o.device)
+    names = [m.name for m in run.found]
+    run.surface_bellies[:] = [character.split(mask) for mask in belly]
+    run.timeline(names, respond=False)  # the points themselves vibrate
     diagonal = character.rig.size()
     return SurfacePop(swelling, soup.dense_weights, rig.skinning_matrices(Clip("rest"), 0.0), plan.substep_times(),
                       lambda t: settings.activation.sample(t, names), h=plan.dt,
-                      alpha_min=settings.alpha_min if vibrate else 1.0, beta=settings.beta,
+                      alpha_min=settings.alpha_min if o.vibrate else 1.0, beta=settings.beta,
                       threshold=settings.threshold / unit, triangles=soup.triangles, margin=_CLEAR * diagonal,
                       start=1e-5 * diagonal, points=soup.points,
-                      seams=seam_points(soup.points, soup.triangles, mesh), mesh_of_point=mesh, device=device)
+                      seams=seam_points(soup.points, soup.triangles, mesh), mesh_of_point=mesh, device=o.device)
 
 
 def _pop_solver_params(scene):
@@ -483,10 +513,11 @@ def _pop_solver_params(scene):
     return params
 
 
-def _add_normal_guide(scene, path, *, device, frames, start_frame, topology, cage, progress, solver_params) -> None:
-    """Simulate ``scene`` without the pop (the same frames, cage, topology and solver settings)
-    and add its skin to the bake at ``path`` as the guide ``<skin>_normal`` (``warpskin:role``
-    ``normal``); the file is replaced atomically."""
+def _add_normal_guide(scene, path, options) -> None:
+    """Simulate ``scene`` without the pop with ``options`` (:class:`~warpskin.run.SimulationOptions`:
+    the same frames, cage, topology and solver settings as the bake) and add its skin to the bake
+    at ``path`` as the guide ``<skin>_normal`` (``warpskin:role`` ``normal``); the file is
+    replaced atomically."""
     import os
     import tempfile
 
@@ -497,9 +528,7 @@ def _add_normal_guide(scene, path, *, device, frames, start_frame, topology, cag
     out = Path(path)
     with tempfile.TemporaryDirectory(prefix="warpskin-normal-") as tmp:
         normal = Path(tmp) / "normal.usdc"
-        simulate(scene, normal, device=device, frames=frames, start_frame=start_frame, topology=topology, cage=cage,
-                 solver_params=solver_params,
-                 progress=progress, comment="normal-only guide")
+        simulate(scene, normal, options)
         src, dst = Usd.Stage.Open(str(normal)), Usd.Stage.Open(str(out))
 
         def skin(stage):

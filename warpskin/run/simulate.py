@@ -17,18 +17,19 @@ from ..errors import SimulationError
 from ..io.usd_export import UsdSkinWriter, valid_prim_name, check_output_path
 from ..metrics import self_intersections_of_two, signed_volume
 from ..model import SkinModelBuilder
+from ..options import with_overrides
 from ..preprocess.layers import LAYER_NAMES
 from ..quality import QualityLimits, QualityLog
 from ..report import write_plots
 from ..scene import Scene
-from ..solver import GRAVITY_STEP, SolverParams, skin_step_limit
+from ..solver import GRAVITY_STEP, SkinSolver, SolverParams, skin_step_limit
 from ..transforms import linear_blend_skin
 from .physics import PhysicsStepper
 from .output import CharacterOutput, attachment_kwargs
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["SimulationResult", "simulate"]
+__all__ = ["SimulationOptions", "SimulationResult", "simulate"]
 
 _SKIN_COLOR = (0.85, 0.64, 0.52)
 _LBS_COLOR = (0.4, 0.55, 0.85)
@@ -387,62 +388,102 @@ def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: Fra
     return params, plan, limit
 
 
-def simulate(
-    scene: Scene,
-    out_path,
-    *,
-    device=None,
-    frames: tuple[int, int] | None = None,
-    solver_params: SolverParams | None = None,
-    with_lbs: bool = False,
-    with_layers: bool = False,
-    report_dir=None,
-    progress: bool = True,
-    comment: str = "",
-    use_graph: bool = True,
-    collision=None,
-    check_intersections: bool | None = None,
-    builder: SkinModelBuilder | None = None,
-    activation: Callable | None = None,
-    preroll: float | None = None,
-    allow_unstable: bool = False,
-    start_frame: int | None = None,
-    topology: str = "file",
-    cage: str | Path = "auto",
-    rigid_pieces: str = "cage",
-    physics_weights: dict[str, float] | None = None,
-    guard=None,
-    prepare: Callable | None = None,
-    overlay: Callable | None = None,
-) -> SimulationResult:
+@dataclass(frozen=True)
+class SimulationOptions:
+    """How :func:`simulate` runs a scene: the Python API's options, and what ``warpskin simulate``
+    builds from its command line (:func:`warpskin.cli.cmd_simulate`). Every field has the
+    default a scene needs nothing else for.
+
+    * ``device``: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``None`` (Warp's default), resolved
+      once, by the model (:meth:`~warpskin.model.SkinModelBuilder.finalize`).
+    * ``frames``: ``(first, last)`` of the source's time codes (``frame / fps`` seconds, at the
+      clip's own rate unless the scene sets ``fps``), default all; ``start_frame`` writes the
+      first frame at that time code instead.
+    * ``solver_params`` (default: the scene's ``[solver]``), ``collision``
+      (:class:`~warpskin.collision.CollisionParams`, default: the scene's ``[collision]``, on
+      unless disabled), ``guard`` (:class:`~warpskin.guard.GuardParams`, default: the scene's
+      ``[guard]``, on: it takes back, frame by frame and smoothly, the part of the physical
+      displacement that would leave a mesh written with physics worse than its own LBS; how
+      much it held is in the summary's ``written`` and ``delivered`` and in report.json).
+    * ``with_lbs``, ``with_layers``: also write LBS, and the inner layers, as guides;
+      ``topology`` ``"file"`` (default) writes the skin (and LBS) with the file's own vertices,
+      faces, UVs and materials, ``"welded"`` the closed surface as loaded.
+    * ``report_dir``: write report.json and PNG plots there; ``check_intersections`` counts
+      intersecting skin triangle pairs per frame with the exact, solver-independent check
+      (:func:`warpskin.metrics.self_intersections`), default only with a report.
+    * ``progress``: a progress bar on stderr; ``comment``: the USD layer's comment.
+    * ``use_graph`` records each frame's substeps once as a Warp graph (CPU and CUDA) and
+      replays it, which removes the per-launch overhead; the results are bit-identical.
+    * ``preroll`` [s] (default: the scene's ``[animation] preroll``) simulates that long before
+      the first frame, from the bind pose into the first frame's pose (the root joints at the
+      first frame's placement throughout, the joints below them interpolated, eased in and
+      out); velocities are zeroed after it. A first pose whose LBS skin already passes through
+      itself is then reached by collision instead of started from; nothing of the pre-roll is
+      written.
+    * ``allow_unstable`` turns a frame out of its plausible range into one warning and goes on.
+    * ``cage``: ``"auto"`` (default) simulates, where the skin is not one closed manifold, the
+      character's own pieces or an automatic closed cage around it
+      (:func:`~warpskin.preprocess.cage.build_cage`, weights transferred) and writes every mesh
+      as its own LBS plus the physical deformation captured near it
+      (:class:`~warpskin.character.Character`, :mod:`warpskin.capture`); a closed skin is
+      simulated directly, its other meshes (attachments) following their joints by LBS.
+      ``"always"`` cages any character (its attachments too); ``"none"`` never (the skin must
+      then be closed). A mesh file (:data:`~warpskin.io.cage_file.CAGE_EXTENSIONS`) is the
+      user's own cage, used as the automatic one would be
+      (:func:`~warpskin.preprocess.cage.cage_from_mesh`: closed, manifold, around the rest
+      pose, in the character file's units).
+    * ``rigid_pieces``: through a cage, the pieces that LBS moves rigidly (eyes or teeth skinned
+      to one joint, rigidly parented parts) move by one rigid motion with the cage around them
+      (``"cage"``, default) or follow their joints (``"joint"``).
+    * ``physics_weights``: ``{joint-name pattern: weight}`` overrides of the physics weight (0:
+      LBS, 1: physical), before the scene's ``[physics.weights]``.
+    * ``builder``: a model builder to use instead of the scene's (for example one with a
+      rest-shape drive, :meth:`~warpskin.model.SkinModelBuilder.set_rest_drive`); then
+      ``activation(t) -> [G]`` gives the muscle activation at clip time ``t`` (every substep's
+      is precomputed and uploaded once, like the poses).
+    * ``prepare(builder)``, where given, is called on the model builder of the simulated
+      surface (the skin, or the character's cage) before the model is finalised, for example to
+      set the rest-shape drive that ``activation`` drives (layered popping on any character).
+    * ``overlay(character, builder, plan)``, where given, is called once the character is bound
+      and returns an offset of what is written, stepped with the physics
+      (:class:`~warpskin.popping.surface.SurfacePop`: its ``advance(steps)`` takes a frame's
+      solver steps, its ``offsets(skinning matrices, points) -> [N, 3]`` [m] is added to every
+      written point, before the written meshes are measured; its ``moved`` lists the points it
+      may move); with its ``normal_guide`` true, every mesh it moves is also written without
+      it, as the guide ``<mesh>_normal`` (the skin's: ``<skin>_normal``).
+    """
+
+    device: object = None
+    frames: tuple[int, int] | None = None
+    solver_params: SolverParams | None = None
+    with_lbs: bool = False
+    with_layers: bool = False
+    report_dir: object = None
+    progress: bool = True
+    comment: str = ""
+    use_graph: bool = True
+    collision: object = None
+    check_intersections: bool | None = None
+    builder: SkinModelBuilder | None = None
+    activation: Callable | None = None
+    preroll: float | None = None
+    allow_unstable: bool = False
+    start_frame: int | None = None
+    topology: str = "file"
+    cage: object = "auto"
+    rigid_pieces: str = "cage"
+    physics_weights: dict | None = None
+    guard: object = None
+    prepare: Callable | None = None
+    overlay: Callable | None = None
+
+
+def simulate(scene: Scene, out_path, options: SimulationOptions | None = None, **overrides) -> SimulationResult:
     """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
 
-    ``use_graph`` records each frame's substeps once as a Warp graph (CPU and CUDA) and
-    replays it, which removes the per-launch overhead; the results are bit-identical.
-    ``builder`` is a model builder to use instead of the scene's (for example one with a
-    rest-shape drive, :meth:`~warpskin.model.SkinModelBuilder.set_rest_drive`); then
-    ``activation(t) -> [G]`` gives the muscle activation at clip time ``t`` (every substep's is
-    precomputed and uploaded once, like the poses). ``prepare(builder)``, where given, is called
-    on the model builder of the simulated surface (the skin, or the character's cage) before
-    the model is finalised, for example to set the rest-shape drive that ``activation`` drives
-    (layered popping on any character). ``overlay(character, builder, plan)``, where given, is
-    called once the character is bound and returns an offset of what is written, stepped with
-    the physics (:class:`~warpskin.popping.surface.SurfacePop`: its ``advance(steps)`` takes a
-    frame's solver steps, its ``offsets(skinning matrices, points) -> [N, 3]`` [m] is added to
-    every written point, before the written meshes are measured; its ``moved`` lists the points
-    it may move); with its ``normal_guide`` true, every mesh it moves is also written without
-    it, as the guide ``<mesh>_normal`` (the skin's: ``<skin>_normal``). ``collision``
-    (:class:`~warpskin.collision.CollisionParams`) defaults to the scene's ``[collision]``
-    section (on unless disabled). If a frame finds more contact candidates than the buffers
-    hold, the frame is run again with larger buffers. ``check_intersections`` counts
-    intersecting skin triangle pairs per frame with the exact, solver-independent check
-    (:func:`warpskin.metrics.self_intersections`); default: only when writing a report.
-    ``preroll`` [s] (default: the scene's ``[animation] preroll``) simulates that long before
-    the first frame, from the bind pose into the first frame's pose (the root joints at the
-    first frame's placement throughout, the joints below them interpolated, eased in and out);
-    velocities are zeroed after it.
-    A first pose whose LBS skin already passes through itself is then reached by collision
-    instead of started from; nothing of the pre-roll is written.
+    ``options`` (:class:`SimulationOptions`, each field's meaning is documented there) with
+    ``overrides`` (any of its fields by name, e.g. ``simulate(scene, path, frames=(0, 24),
+    with_lbs=True)``), applied by :func:`~warpskin.options.with_overrides`.
 
     Every frame is checked against its plausible range before it is written: the simulated skin
     within ``max_offset`` x the body's diagonal of LBS, the whole and every sub-volume within
@@ -452,183 +493,194 @@ def simulate(
     than its LBS, at most ``max_flipped`` of its triangles flipped against LBS, and not many
     more intersecting pairs than LBS. ``allow_unstable`` turns a violation into one warning and
     goes on. The summary's ``written`` holds each written mesh's worst figures, report.json
-    their series.
-
-    Frames are the source's time codes (``frame / fps`` seconds, at the clip's own rate unless
-    the scene sets ``fps``); ``start_frame`` writes the first frame at that time code instead.
-    ``topology`` ``"file"`` (default) writes the skin (and LBS) with the file's own vertices,
-    faces, UVs and materials, ``"welded"`` the closed surface as loaded.
-
-    ``cage``: ``"auto"`` (default) simulates an automatic closed cage around the character
-    (:func:`~warpskin.preprocess.cage.build_cage`, weights transferred) where its skin is not
-    one closed manifold, and writes every mesh as its own LBS plus the cage's physical
-    deformation captured near it (:class:`~warpskin.character.Character`,
-    :mod:`warpskin.capture`) with the cage as a guide; a closed skin is simulated directly, its
-    other meshes (attachments) following their joints by LBS.
-    ``"always"`` cages any character (its attachments too); ``"none"`` never (the skin must
-    then be closed). A mesh file (:data:`~warpskin.io.cage_file.CAGE_EXTENSIONS`) is the user's
-    own cage, used as the automatic one would be
-    (:func:`~warpskin.preprocess.cage.cage_from_mesh`: closed, manifold, around the rest pose,
-    in the character file's units). ``rigid_pieces``: through a cage, the pieces that LBS moves
-    rigidly (eyes or teeth skinned to one joint, rigidly parented parts) move by one rigid motion
-    with the cage around them (``"cage"``, default) or follow their joints (``"joint"``).
-    ``physics_weights``: ``{joint-name pattern: weight}`` overrides of the physics weight (0:
-    LBS, 1: physical), before the scene's ``[physics.weights]``
-    (:class:`~warpskin.character.Character`). ``guard``
-    (:class:`~warpskin.guard.GuardParams`, default: the scene's ``[guard]``, on) takes back,
-    frame by frame and smoothly, the part of the physical displacement that would leave a mesh
-    written with physics worse than its own LBS (strained edges, flipped triangles, intersecting
-    pairs); how much it held is in the summary's ``written`` (``max_held``, ``max_guarded``) and
-    report.json.
+    their series. If a frame finds more contact candidates than the buffers hold, the frame is
+    run again with larger buffers.
 
     Raises:
+        InputError: an unknown option.
         SimulationError: a particle became NaN, or the skin left its plausible range; the
             message names the frame and the particle, vertex (the file's number), bone or
             sub-volume; the USD file keeps the frames before it (valid, closed).
     """
-    from ..character import Character, check_choices
+    run = _Simulation(scene, out_path, with_overrides(SimulationOptions, options, overrides, "simulate"))
+    record = FrameRunner(run.plan, run, writer=run.writer, measures=[run.measures], progress=run.o.progress,
+                         output=run.output).run(keep_failure=True)
+    summary = _summary(run, record.frames)
+    result = SimulationResult(path=Path(run.writer.path), frames=record.frames, metrics=run.measures.m, summary=summary)
+    if run.o.report_dir is not None:
+        _write_report(run, summary)
+    if record.failure is not None:
+        raise record.failure
+    return result
 
-    cage_file = check_choices(cage, rigid_pieces)  # before any work
-    check_output_path(out_path, inputs=[*scene.input_paths(), *([cage_file] if cage_file else [])])  # before any work
-    params = solver_params or scene.solver_params()
-    params.check(str(scene.source or scene.name))
-    rig = scene.rig()
-    clip = rig.clip(scene.clip)
-    plan = FramePlan.for_scene(scene, frames, max_dt=params.dt, start_frame=start_frame)
-    preroll = scene.preroll if preroll is None else float(preroll)
-    t_build = time.perf_counter()
-    render = rig  # what is written
-    weights = {**(physics_weights or {}), **{k: v for k, v in scene.physics_weights().items()
-                                              if k not in (physics_weights or {})}}
-    guard = scene.guard_params() if guard is None else guard
-    guard.check()
-    character = Character(rig, cage="none" if builder is not None else (cage_file or cage), rigid_pieces=rigid_pieces,
-                          weights=weights or None, device=device, guard=guard)
-    caged = character if character.caged else None
-    captured = character if character.captured else None
-    rig = character.sim_rig
-    builder = builder or SkinModelBuilder(rig, scene.model_params())  # the scene's [collision] included
-    if prepare is not None:
-        prepare(builder)
-    if collision is not None:
-        builder.params.collision = collision
-    model = builder.finalize(device)
-    character.bind(builder, device=model.device)
-    params, plan, gravity_limit = _steps_gravity_allows(scene, builder, model, params, plan, frames, start_frame)
-    pop = overlay(character, builder, plan) if overlay is not None else None
-    build_s = time.perf_counter() - t_build
-    if check_intersections is None:
-        check_intersections = report_dir is not None
-    stepper = PhysicsStepper(builder, model, params, plan, clip, use_graph=use_graph, preroll=preroll,
-                             activation=activation, label="simulate", name=scene.name)
-    measures = _Measurements(builder, stepper, plan, check_intersections, params, allow_unstable)
-    sim = builder.rig  # the simulated skin: the file's vertices first, then any added by refining
-    output = CharacterOutput(sim, topology, clip) if captured is None else CharacterOutput(render, topology)
-    quality = _WrittenQuality(character, plan, params, allow_unstable, stepper, measures, output.skin_prim)
-    meshes = _meshes_to_write(character, builder, render, with_lbs, with_layers)
-    guided = []  # the meshes the overlay moves, each written without it beside it as a guide
-    if pop is not None and pop.normal_guide:
-        guided = [p for p in character.parts if np.any((pop.moved >= p.start) & (pop.moved < p.start + p.count))]
-        for p in guided:
-            if p.name == "skin":
-                meshes.insert(1, ("normal", meshes[0][1], meshes[0][2], {"color": _NORMAL_COLOR, "purpose": "guide",
-                                                                        "prim_name": f"{output.skin_prim}_normal"}))
-            else:
-                meshes.append((f"{p.name}_normal", p.triangles, p.rest, {"color": _NORMAL_COLOR, "purpose": "guide"}))
-    render_deviation = np.zeros(render.output_count)  # the written skin's, per vertex, over the frames
 
-    class _Writes:
-        """What ``simulate`` writes of a physics frame."""
+class _Simulation:
+    """One run of :func:`simulate`: the character bound to its model, the stepper, the checks and
+    the writer (its frames are what :class:`FrameRunner` writes: ``label``, :meth:`meshes`,
+    :meth:`advance`, :meth:`frame`)."""
 
-        label = stepper.label
+    def __init__(self, scene: Scene, out_path, o: SimulationOptions) -> None:
+        from ..character import check_choices
 
-        def meshes(self):
-            return meshes
+        self.scene, self.o = scene, o
+        self.cage_file = check_choices(o.cage, o.rigid_pieces)  # before any work
+        check_output_path(out_path, inputs=[*scene.input_paths(), *([self.cage_file] if self.cage_file else [])])
+        params = o.solver_params or scene.solver_params()
+        params.check(str(scene.source or scene.name))
+        rig = scene.rig()
+        self.clip = rig.clip(scene.clip)
+        plan = FramePlan.for_scene(scene, o.frames, max_dt=params.dt, start_frame=o.start_frame)
+        t_build = time.perf_counter()
+        self.render = rig  # what is written
+        self._bind(scene, rig)
+        builder, model = self.builder, self.model
+        self.params, self.plan, self.gravity_limit = _steps_gravity_allows(scene, builder, model, params, plan,
+                                                                           o.frames, o.start_frame)
+        self.pop = o.overlay(self.character, builder, self.plan) if o.overlay is not None else None
+        self.build_s = time.perf_counter() - t_build
+        self._checks()
+        self.writer = UsdSkinWriter(out_path, fps=self.plan.fps, up_axis=self.character.sim_rig.up_axis, comment=o.comment,
+                                    root=self.output.root_name)
 
-        def advance(self, i):
-            stepper.advance(i)
+    def _bind(self, scene: Scene, rig) -> None:
+        """The character (:class:`~warpskin.character.Character`), its simulated surface's model
+        builder and model, bound."""
+        from ..character import Character
 
-        def frame(self, i):
-            pts = stepper.frame(i)
-            measures.evaluate(i, pts["skin"])  # stops here if the simulated surface left its range
-            t = plan.times[i]
-            lbs_all = character.lbs(clip, t)
-            # the surface's LBS of the frame: the tether's targets of its last step, where it stepped
-            targets = stepper.solver.tether_targets if (i > 0 and params.tether > 0) else None
-            written = character.written(stepper.state_a.x, pts["skin"], clip, t, lbs=lbs_all, surface_lbs=targets)
-            normal = written
-            if pop is not None:  # the overlay's offsets, stepped with the physics
-                if i > 0:
-                    pop.advance(plan.substeps)
-                every = np.concatenate([written[p.name] for p in character.parts])
-                offsets = character.split(pop.offsets(render.skinning_matrices(clip, t), every))
-                written = {k: v + offsets[k] for k, v in written.items()}
-            lbs_by = character.split(lbs_all)
-            quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
-            out = dict(written) if captured is not None else {"skin": written["skin"]}
-            lbs = lbs_by["skin"]
-            if caged is not None:
-                out["cage"] = pts["skin"][: sim.output_count]
-            elif captured is not None and with_layers:
-                out["surface"] = pts["skin"][: character.pieces.vertex_count]
-            deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
-            render_deviation[:] = np.maximum(render_deviation, deviation)
-            out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
-            for p in guided:
-                out["normal" if p.name == "skin" else f"{p.name}_normal"] = normal[p.name]
-            if with_lbs:
-                out["lbs"] = lbs
-                if captured is not None:
-                    for name in lbs_by:
-                        if name != "skin":
-                            out[f"{name}_lbs"] = lbs_by[name]
-            if with_layers:
-                for k in range(1, 4):
-                    out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
-            return out
+        o = self.o
+        weights = {**(o.physics_weights or {}), **{k: v for k, v in scene.physics_weights().items()
+                                                   if k not in (o.physics_weights or {})}}
+        guard = scene.guard_params() if o.guard is None else o.guard
+        guard.check()
+        character = Character(rig, cage="none" if o.builder is not None else (self.cage_file or o.cage),
+                              rigid_pieces=o.rigid_pieces, weights=weights or None, device=o.device, guard=guard)
+        self.character = character
+        self.caged = character if character.caged else None
+        self.captured = character if character.captured else None
+        builder = o.builder or SkinModelBuilder(character.sim_rig, scene.model_params())  # [collision] included
+        if o.prepare is not None:
+            o.prepare(builder)
+        if o.collision is not None:
+            builder.params.collision = o.collision
+        self.builder = builder
+        self.model = builder.finalize(o.device)
+        character.bind(builder, device=self.model.device)
 
-    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
-    record = FrameRunner(plan, _Writes(), writer=writer, measures=[measures], progress=progress,
-                         output=output).run(keep_failure=True)
-    metrics = measures.m
-    written = record.frames
-    subs = builder.subvolumes
+    def _checks(self) -> None:
+        """The stepper, the measures of the simulated surface and of the written meshes, and what
+        is written."""
+        o, character, plan = self.o, self.character, self.plan
+        check_intersections = o.report_dir is not None if o.check_intersections is None else o.check_intersections
+        self.stepper = PhysicsStepper(self.builder, SkinSolver(self.model, self.params), plan, self.clip,
+                                      use_graph=o.use_graph,
+                                      preroll=self.scene.preroll if o.preroll is None else float(o.preroll),
+                                      activation=o.activation,
+                                      label=f"simulate {self.scene.name or self.builder.rig.name}")
+        self.label = self.stepper.label
+        self.measures = _Measurements(self.builder, self.stepper, plan, check_intersections, self.params,
+                                      o.allow_unstable)
+        self.sim = self.builder.rig  # the simulated skin: the file's vertices first, then any added by refining
+        self.output = (CharacterOutput(self.sim, o.topology, self.clip) if self.captured is None
+                       else CharacterOutput(self.render, o.topology))
+        self.quality = _WrittenQuality(character, plan, self.params, o.allow_unstable, self.stepper, self.measures,
+                                       self.output.skin_prim)
+        self._meshes = _meshes_to_write(character, self.builder, self.render, o.with_lbs, o.with_layers)
+        self.guided = []  # the meshes the overlay moves, each written without it beside it as a guide
+        if self.pop is not None and self.pop.normal_guide:
+            self.guided = [p for p in character.parts
+                           if np.any((self.pop.moved >= p.start) & (self.pop.moved < p.start + p.count))]
+            _add_normal_guides(self._meshes, self.guided, self.output.skin_prim)
+        self.render_deviation = np.zeros(self.render.output_count)  # the written skin's, per vertex, over the frames
+
+    # ------------------------------------------------------------------ what FrameRunner writes
+    def meshes(self):
+        return self._meshes
+
+    def advance(self, i):
+        self.stepper.advance(i)
+
+    def frame(self, i):
+        """The points written at frame ``i`` (after the checks, which stop the run where a mesh
+        left its range)."""
+        character, plan, params, o = self.character, self.plan, self.params, self.o
+        pts = self.stepper.frame(i)
+        self.measures.evaluate(i, pts["skin"])  # stops here if the simulated surface left its range
+        t = plan.times[i]
+        lbs_all = character.lbs(self.clip, t)
+        # the surface's LBS of the frame: the tether's targets of its last step, where it stepped
+        targets = self.stepper.solver.tether_targets if (i > 0 and params.tether > 0) else None
+        written = character.written(self.stepper.state_a.x, pts["skin"], self.clip, t, lbs=lbs_all,
+                                    surface_lbs=targets)
+        normal = written
+        if self.pop is not None:  # the overlay's offsets, stepped with the physics
+            if i > 0:
+                self.pop.advance(plan.substeps)
+            every = np.concatenate([written[p.name] for p in character.parts])
+            offsets = character.split(self.pop.offsets(self.render.skinning_matrices(self.clip, t), every))
+            written = {k: v + offsets[k] for k, v in written.items()}
+        lbs_by = character.split(lbs_all)
+        self.quality.check(i, written, lbs_by)  # stops here if a written mesh left its range
+        out = dict(written) if self.captured is not None else {"skin": written["skin"]}
+        lbs = lbs_by["skin"]
+        if self.caged is not None:
+            out["cage"] = pts["skin"][: self.sim.output_count]
+        elif self.captured is not None and o.with_layers:
+            out["surface"] = pts["skin"][: character.pieces.vertex_count]
+        deviation = np.linalg.norm(out["skin"] - lbs, axis=1)
+        self.render_deviation[:] = np.maximum(self.render_deviation, deviation)
+        out["primvars"] = {"skin": {"deviationFromLbs": deviation}}
+        for p in self.guided:
+            out["normal" if p.name == "skin" else f"{p.name}_normal"] = normal[p.name]
+        if o.with_lbs:
+            out["lbs"] = lbs
+            if self.captured is not None:
+                out.update({f"{name}_lbs": v for name, v in lbs_by.items() if name != "skin"})
+        if o.with_layers:
+            for k in range(1, 4):
+                out[f"layer_{LAYER_NAMES[k]}"] = pts[f"layer_{LAYER_NAMES[k]}"]
+        return out
+
+
+def _add_normal_guides(meshes: list, guided: list, skin_prim: str) -> None:
+    """Add to ``meshes`` (:func:`_meshes_to_write`) a guide ``<mesh>_normal`` for every part in
+    ``guided`` (the meshes an overlay moves, written without it beside it)."""
+    for p in guided:
+        if p.name == "skin":
+            meshes.insert(1, ("normal", meshes[0][1], meshes[0][2], {"color": _NORMAL_COLOR, "purpose": "guide",
+                                                                    "prim_name": f"{skin_prim}_normal"}))
+        else:
+            meshes.append((f"{p.name}_normal", p.triangles, p.rest, {"color": _NORMAL_COLOR, "purpose": "guide"}))
+
+
+def _summary(run: _Simulation, written: list[int]) -> dict:
+    """The run's summary (:attr:`SimulationResult.summary`) after the frames ``written``."""
+    metrics, plan, params, model = run.measures.m, run.plan, run.params, run.model
+    character, caged, stepper, quality = run.character, run.caged, run.stepper, run.quality
     col = stepper.collision
     # frame 0 is the LBS pose by construction (the simulation starts there): measure after it
-    vol = np.array(metrics["volume"][1:])
-    vol_lbs = np.array(metrics["volume_lbs"][1:])
-    v0 = metrics["volume_rest"]
+    vol, vol_lbs, v0 = np.array(metrics["volume"][1:]), np.array(metrics["volume_lbs"][1:]), metrics["volume_rest"]
     summary = {
-        "scene": scene.name,
-        "device": str(model.device),
-        "particles": model.particle_count,
-        "vertices": model.vertex_count,
-        "topology": topology,
-        "file_vertices_written": render.file_vertex_count if topology == "file" else render.output_count,
+        "scene": run.scene.name, "device": str(model.device), "particles": model.particle_count,
+        "vertices": model.vertex_count, "topology": run.o.topology,
+        "file_vertices_written": run.render.file_vertex_count if run.o.topology == "file" else run.render.output_count,
         "surface": _surface_summary(character),
-        "cage": None if caged is None else {
-            "vertices": int(caged.sim_rig.vertex_count), "edge_m": caged.cage_surface.edge, "build_s": caged.build_s,
-            "weights_matched": float(caged.matched.mean()), "captured_points": int(caged.point_count),
-            "rigid_pieces": caged.rigid_piece_count, "rigid_pieces_follow": rigid_pieces,
-            "meshes": [p.name for p in caged.parts],
-            "source": str(cage_file) if cage_file is not None else "automatic",
-        },
+        "cage": None if caged is None else _cage_summary(caged, run.o.rigid_pieces, run.cage_file),
         "physics_weight": character.weight_summary(),
         "written": quality.log.summary(),
         "written_worst": quality.log.worst(),
         "written_across": quality.log.across_summary(),
         "delivered": quality.delivery.summary(),
         "max_capped_share": float(max(quality.capped)) if quality.capped else 0.0,
-        "refined_vertices_added": model.vertex_count - sim.output_count,
+        "refined_vertices_added": model.vertex_count - run.sim.output_count,
         "frames": len(written),
         "substeps_per_frame": plan.substeps,
         "dt_s": plan.dt,
-        "gravity_step_limit_s": gravity_limit if np.isfinite(gravity_limit) else None,
+        "gravity_step_limit_s": run.gravity_limit if np.isfinite(run.gravity_limit) else None,
         "iterations": params.iterations,
         "volume_iterations": params.volume_iterations,
         "fast_summation": params.fast_summation,
         "graph_capture": bool(stepper.graphs),  # frames replayed from captured graphs (else plain launches)
-        "build_s": build_s,
+        "build_s": run.build_s,
         "mean_step_ms": float(np.mean(metrics["step_ms"][1:])) if len(written) > 1 else 0.0,
         "max_volume_deviation": float(np.abs(vol / v0 - 1).max()) if vol.size else 0.0,
         "max_volume_deviation_lbs": float(np.abs(vol_lbs / v0 - 1).max()) if vol.size else 0.0,
@@ -643,39 +695,55 @@ def simulate(
         "tether": params.tether,
         "tether_clamped_particle_steps": int(stepper.solver.tether_clamped.numpy()[0]),
         "max_offset_from_lbs_m": float(max(metrics["max_offset_from_lbs"])) if metrics["max_offset_from_lbs"] else 0.0,
-        "body_diagonal_m": measures.diagonal,
+        "body_diagonal_m": run.measures.diagonal,
         # the written meshes' rest diagonal, all of them together (the joint limit's reference)
         "written_diagonal_m": float(np.linalg.norm(np.ptp(character.soup.points, axis=0))),
         "length_unit_m": stepper.solver.length_unit,  # metres per file unit, as gravity takes it
-        "depth_reduced_vertices": int((builder.layers.depth_scale < 1.0).sum()),
-        "depth_notes": list(builder.layers.depth_notes),
+        "depth_reduced_vertices": int((run.builder.layers.depth_scale < 1.0).sum()),
+        "depth_notes": list(run.builder.layers.depth_notes),
     }
-    if check_intersections and metrics["intersecting_pairs"]:
+    if run.measures.check_intersections and metrics["intersecting_pairs"]:
         summary["max_intersecting_pairs"] = max(metrics["intersecting_pairs"])
         summary["max_intersecting_pairs_lbs"] = max(metrics["intersecting_pairs_lbs"])
         summary["intersecting_pairs_first_frame"] = metrics["intersecting_pairs"][0]
+    subs = run.builder.subvolumes
     if subs is not None and metrics["subvolume"]:
         if len(metrics["subvolume"]) > 1:
             for key, name in (("subvolume", "max_subvolume_deviation"), ("subvolume_lbs", "max_subvolume_deviation_lbs")):
                 summary[name] = float(subs.volume_errors(np.array(metrics[key][1:])).max())
         summary["subvolume_names"] = list(subs.names)
-    result = SimulationResult(path=Path(writer.path), frames=written, metrics=metrics, summary=summary)
-    if report_dir is not None:
-        report = Path(report_dir)
-        report.mkdir(parents=True, exist_ok=True)
-        title = (f"{scene.name}: {model.particle_count} particles, {plan.substeps} x {plan.dt * 1e3:.2f} ms steps per frame "
-                 f"at {plan.fps:g} fps, {params.iterations} + {params.volume_iterations} iterations, collisions "
-                 f"{'on' if col is not None else 'off'}, {model.device}")
-        plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
-                            where=(output.rest, render_deviation),
-                            weights=(character.soup.points, character.capture_result.physics_weight),
-                            quality=quality.log.series)
-        if not plots:
-            warnings.warn(f"{report}: no PNG plots (matplotlib cannot be imported: reinstall warpskin); report.json "
-                          f"has the figures", RuntimeWarning, stacklevel=2)
-        summary["plots"] = plots or "matplotlib cannot be imported: no PNG plots"
-        (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": metrics,
-                                                        "written": quality.log.series}, indent=1))
-    if record.failure is not None:
-        raise record.failure
-    return result
+    return summary
+
+
+def _cage_summary(caged, rigid_pieces: str, cage_file) -> dict:
+    """The summary's ``cage``: what was simulated around a caged character."""
+    return {
+        "vertices": int(caged.sim_rig.vertex_count), "edge_m": caged.cage_surface.edge, "build_s": caged.build_s,
+        "weights_matched": float(caged.matched.mean()), "captured_points": int(caged.point_count),
+        "rigid_pieces": caged.rigid_piece_count, "rigid_pieces_follow": rigid_pieces,
+        "meshes": [p.name for p in caged.parts],
+        "source": str(cage_file) if cage_file is not None else "automatic",
+    }
+
+
+def _write_report(run: _Simulation, summary: dict) -> None:
+    """``report.json`` and the PNG plots into the run's ``report_dir``; adds ``plots`` to
+    ``summary``."""
+    report = Path(run.o.report_dir)
+    report.mkdir(parents=True, exist_ok=True)
+    model, plan, params, metrics = run.model, run.plan, run.params, run.measures.m
+    subs = run.builder.subvolumes
+    col = run.stepper.collision
+    title = (f"{run.scene.name}: {model.particle_count} particles, {plan.substeps} x {plan.dt * 1e3:.2f} ms steps per "
+             f"frame at {plan.fps:g} fps, {params.iterations} + {params.volume_iterations} iterations, collisions "
+             f"{'on' if col is not None else 'off'}, {model.device}")
+    plots = write_plots(report, metrics, list(subs.names) if subs is not None else [], title=title,
+                        where=(run.output.rest, run.render_deviation),
+                        weights=(run.character.soup.points, run.character.capture_result.physics_weight),
+                        quality=run.quality.log.series)
+    if not plots:
+        warnings.warn(f"{report}: no PNG plots (matplotlib cannot be imported: reinstall warpskin); report.json "
+                      f"has the figures", RuntimeWarning, stacklevel=3)
+    summary["plots"] = plots or "matplotlib cannot be imported: no PNG plots"
+    (report / "report.json").write_text(json.dumps({"summary": summary, "metrics": run.measures.m,
+                                                    "written": run.quality.log.series}, indent=1))

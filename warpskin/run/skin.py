@@ -11,13 +11,14 @@ import numpy as np
 
 from ..errors import SceneError
 from ..io.usd_export import UsdSkinWriter, check_output_path
+from ..options import with_overrides
 from ..scene import resolve_scene
 from ..skinning import Skinner
 from .output import CharacterOutput
 from .plan import FramePlan
 from .runner import FrameRunner
 
-__all__ = ["SkinningStepper", "SkinRun", "skin_to_usd"]
+__all__ = ["SkinningOptions", "SkinningStepper", "SkinRun", "skin_to_usd"]
 
 
 class SkinningStepper:
@@ -81,28 +82,14 @@ class SkinRun:
         return iter((self.path, self.frames))
 
 
-def skin_to_usd(
-    scene,
-    out_path,
-    *,
-    method: str = "lbs",
-    device: str | None = None,
-    frames: tuple[int, int] | None = None,
-    fps: float | None = None,
-    start_frame: int | None = None,
-    with_rest: bool = False,
-    with_lbs: bool = False,
-    topology: str = "file",
-    progress: bool = True,
-    comment: str = "",
-):
-    """Skin a scene frame by frame and write it to USD (the ``warpskin skin`` command).
+@dataclass(frozen=True)
+class SkinningOptions:
+    """How :func:`skin_to_usd` skins a scene: the Python API's options, and what ``warpskin skin``
+    builds from its command line.
 
-    Args:
-        scene: A :class:`~warpskin.scene.Scene` (or a shipped scene's name / TOML path / rig file).
-        out_path: ``.usdc`` (default format), ``.usda`` or ``.usd`` file.
+    Attributes:
         method: ``"lbs"`` or ``"dqs"``.
-        device: Warp device.
+        device: Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``, ``None``: Warp's default).
         frames: Inclusive frame range; default the scene's.
         fps: Output frame rate (resampling the clip); default the scene's, else the clip's own.
         start_frame: Time code of the first frame written; default its frame number (the
@@ -114,10 +101,38 @@ def skin_to_usd(
             works on).
         progress: Show a progress bar on stderr.
         comment: Stage comment.
+    """
+
+    method: str = "lbs"
+    device: str | None = None
+    frames: tuple[int, int] | None = None
+    fps: float | None = None
+    start_frame: int | None = None
+    with_rest: bool = False
+    with_lbs: bool = False
+    topology: str = "file"
+    progress: bool = True
+    comment: str = ""
+
+
+def skin_to_usd(scene, out_path, options: SkinningOptions | None = None, **overrides) -> SkinRun:
+    """Skin a scene frame by frame and write it to USD (the ``warpskin skin`` command).
+
+    Args:
+        scene: A :class:`~warpskin.scene.Scene` (or a shipped scene's name / TOML path / rig file).
+        out_path: ``.usdc`` (default format), ``.usda`` or ``.usd`` file.
+        options: :class:`SkinningOptions` (each field's meaning is documented there).
+        overrides: Any of its fields by name (``frames=(0, 1)``, ``method="dqs"``).
 
     Returns:
         A :class:`SkinRun` (unpacks as ``(path, frame_count)``).
+
+    Raises:
+        InputError: an unknown option.
     """
+    o = with_overrides(SkinningOptions, options, overrides, "skin")
+    method, device, frames, fps, start_frame = o.method, o.device, o.frames, o.fps, o.start_frame
+    with_rest, with_lbs, topology, progress, comment = o.with_rest, o.with_lbs, o.topology, o.progress, o.comment
     scene = resolve_scene(scene)
     check_output_path(out_path, inputs=scene.input_paths())  # before any work
     if fps is not None:
