@@ -3,6 +3,8 @@ swelling, and ``warpskin pop RIG --bpm`` popping them on the beat in the written
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 
 import numpy as np
@@ -241,8 +243,7 @@ def test_pop_report_plots_each_groups_bulge_beside_its_activation(tmp_path, caps
 
     plain = tmp_path / "plain.usdc"
     scene = load_scene("arm")
-    params = scene.solver_params()
-    params.volume_along_normals = True
+    params = dataclasses.replace(scene.solver_params(), volume_along_normals=True)
     simulate(scene, plain, frames=(0, 16), progress=False, solver_params=params)
     capsys.readouterr()
     stages = [Usd.Stage.Open(str(out)), Usd.Stage.Open(str(plain))]  # held while their prims are read

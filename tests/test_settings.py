@@ -83,10 +83,9 @@ def _read_back(scene, section: str) -> dict:
         out.update({"radius_factor": m.joints.radius_factor, "layers": list(m.joints.layers), "joints": m.joints.joints,
                     "enabled": m.volume, "planes": {} if m.subvolumes is None else m.subvolumes.planes})
         return out
-    if section == "solver":
-        p = scene.solver_params()
+    if section == "solver":  # the solver's settings and the run's limits
         return {s.scene_key: list(getattr(p, s.name)) if s.kind == "numbers" else getattr(p, s.name)
-                for s in settings_of(p)}
+                for p in (scene.solver_params(), scene.run_limits()) for s in settings_of(p)}
     if section == "physics":
         return {"weights": scene.physics_weights()}
     obj = {"collision": scene.collision_params, "guard": scene.guard_params,

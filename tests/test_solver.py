@@ -4,6 +4,8 @@ device."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -49,10 +51,10 @@ def test_fast_summation_equals_direct_gather_in_a_running_simulation(device, coa
         a, b = b, a
     q_out = wp.zeros_like(a.q)
     solver.update_moments(a.q)
-    solver.params.fast_summation = False
+    solver.params = dataclasses.replace(solver.params, fast_summation=False)
     solver.region_fit(a.x, a.q, q_out)
     com_gather, q_gather = solver.region_com.numpy().copy(), q_out.numpy().copy()
-    solver.params.fast_summation = True
+    solver.params = dataclasses.replace(solver.params, fast_summation=True)
     solver.region_fit(a.x, a.q, q_out)
     com_fast, q_fast = solver.region_com.numpy(), q_out.numpy()
     size = rig.size()

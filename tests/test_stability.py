@@ -3,6 +3,8 @@ range stop with the frame named (exit 3) instead of writing an explosion with ex
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -14,6 +16,7 @@ from warpskin.errors import SimulationError
 from warpskin.model import ModelParams, SkinModelBuilder
 from warpskin.run import initial_state, simulate
 from warpskin.scene import load_scene
+from warpskin.params import RunLimits
 from warpskin.solver import SkinSolver, SolverParams
 
 COARSE = ("[rig]\ngenerator = 'arm'\n[rig.params]\nrings = 30\nsegments = 20\n{params}"
@@ -179,10 +182,9 @@ def test_motion_growing_faster_than_max_speed_stops_at_the_first_such_frame(tmp_
     growing = np.nonzero((speed > bound) & (speed - np.concatenate([[0.0], speed[:-1]]) > given))[0]
     first = int(growing[0])
     assert 0 < first < 30
-    params = scene.solver_params()
-    params.max_speed = float(bound)
+    limits = dataclasses.replace(scene.run_limits(), max_speed=float(bound))
     with pytest.raises(SimulationError, match=rf"frame {first}: .*motion relative to the animation keeps growing"):
-        simulate(scene, tmp_path / "stopped.usdc", progress=False, frames=(0, 30), solver_params=params)
+        simulate(scene, tmp_path / "stopped.usdc", progress=False, frames=(0, 30), limits=limits)
     # the frames before it were kept
     stage = Usd.Stage.Open(str(tmp_path / "stopped.usdc"))
     times = UsdGeom.Mesh(prim(stage, "skin")).GetPointsAttr()
@@ -212,7 +214,7 @@ def test_a_fast_clip_is_not_taken_for_an_explosion(tmp_path, assets):
     diag = result.summary["body_diagonal_m"]
     speed = np.array(result.metrics["relative_speed_rms"]) / diag
     given = np.array(result.metrics["animation_speed_change_rms"]) / diag
-    fast = speed > SolverParams().max_speed
+    fast = speed > RunLimits().max_speed
     assert fast.any()  # the bound was passed ...
     gained = speed - np.concatenate([[0.0], speed[:-1]])
     assert np.all(gained[fast] <= given[fast])  # ... by what the animation put in
@@ -228,16 +230,15 @@ def test_a_share_held_at_the_cap_stops_the_run_once_it_lasts_capped_time(tmp_pat
                    extra="[layers]\nstiffness = [0.01, 0.01, 0.01, 0.01]\n")
     with pytest.warns(RuntimeWarning):
         free = simulate(scene, tmp_path / "free.usdc", progress=False, frames=(0, 10), allow_unstable=True)
-    above = np.array(free.metrics["capped_share"]) > scene.solver_params().max_capped
+    above = np.array(free.metrics["capped_share"]) > scene.run_limits().max_capped
     assert above.sum() >= 4
     third = next(i for i in range(2, len(above)) if above[i - 2:i + 1].all())
     with pytest.raises(SimulationError, match=rf"frame {third}: .*held at the tether's cap .*above that for 0.0667 s"):
         simulate(scene, tmp_path / "a.usdc", progress=False, frames=(0, 10))
-    params = scene.solver_params()
-    params.capped_time = 0.0
+    limits = dataclasses.replace(scene.run_limits(), capped_time=0.0)
     first = int(np.argmax(above))
     with pytest.raises(SimulationError, match=rf"frame {first}: .*held at the tether's cap"):
-        simulate(scene, tmp_path / "b.usdc", progress=False, frames=(0, 10), solver_params=params)
+        simulate(scene, tmp_path / "b.usdc", progress=False, frames=(0, 10), limits=limits)
 
 
 @pytest.mark.slow
@@ -246,7 +247,7 @@ def test_a_punch_is_not_taken_for_an_explosion_the_cap_hides(tmp_path, assets):
     # hand at the tether's cap, and the next frame it is back under: a lag, not an explosion;
     # the run ends with every frame written
     result = _robot_clip_runs_to_the_end(tmp_path, assets, "Punch")
-    above = np.array(result.metrics["capped_share"]) > SolverParams().max_capped
+    above = np.array(result.metrics["capped_share"]) > RunLimits().max_capped
     assert above.any()  # the bound was passed ...
     assert not (above[1:] & above[:-1]).any()  # ... in no two frames in a row
 
@@ -319,10 +320,9 @@ def test_the_volume_check_stops_where_the_physics_is_worse_than_lbs_ever_was(tmp
     # the worst-so-far rule changes the answer here (or the bound alone decides: both cases
     # are the check's; the test names which one it saw)
     print(f"stops at frame {first}; without LBS's worst so far it would at {_volume_stop(m, bound, False, 0.01)}")
-    params = scene.solver_params()
-    params.max_volume_error = bound
+    limits = dataclasses.replace(scene.run_limits(), max_volume_error=bound)
     with pytest.raises(SimulationError, match=rf"frame {first}: .*(volume|sub-volume).* is off by"):
-        simulate(scene, tmp_path / "stopped.usdc", progress=False, solver_params=params)
+        simulate(scene, tmp_path / "stopped.usdc", progress=False, limits=limits)
 
 
 @pytest.mark.slow
@@ -397,8 +397,7 @@ def test_steps_longer_than_gravity_allows_are_split_and_the_arm_keeps_its_surfac
     rig = scene.rig()
     edges = trimesh.Trimesh(rig.vertices, rig.triangles, process=False).edges_unique_length
     limit = (GRAVITY_STEP * float(edges.mean()) / 9.81) ** 0.5
-    params = scene.solver_params()
-    params.dt = 0.02
+    params = dataclasses.replace(scene.solver_params(), dt=0.02)
     with pytest.warns(RuntimeWarning, match=r"each frame is split into 6 steps of 5\.56 ms instead") as record:
         result = simulate(scene, tmp_path / "arm.usdc", progress=False, frames=(0, 8), solver_params=params,
                           guard=GuardParams(enabled=False))

@@ -8,6 +8,8 @@ each run is a few frames, the rows cover every value of every axis), and the pro
 
 from __future__ import annotations
 
+import dataclasses
+
 import re
 import warnings
 
@@ -40,7 +42,7 @@ def test_a_sweep_ends_well_or_stops_on_purpose(tmp_path, request, asset, clip, f
         scene = Scene.from_rig_file(request.getfixturevalue("assets") / asset, clip=clip, unit_scale=scale)
     params = scene.solver_params()
     if dt is not None:
-        params.dt = dt
+        params = dataclasses.replace(params, dt=dt)
     if fat is not None:  # softer fat than the default: [layers] stiffness = [skin, fat, muscle, bone]
         stiffness = list(scene.model_params().stiffness)
         stiffness[1] = fat

@@ -11,6 +11,7 @@ import math
 import os
 import platform
 import time
+from dataclasses import replace
 
 import numpy as np
 import warp as wp
@@ -234,7 +235,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         solver.step(b, a, c, contacts, dt)
 
         def elasticity(fast: bool):
-            solver.params.fast_summation = fast
+            solver.params = replace(solver.params, fast_summation=fast)
             q_src, q_dst = a.q, solver.q_scratch
             for it in range(params.iterations):
                 solver.region_fit(b.x, q_src, q_dst)
@@ -260,7 +261,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
             row["collision_ms"] = 0.0
         elasticity(True)  # compile the scan kernels
         row["elasticity_fast_summation_ms"] = _best_ms(lambda f: elasticity(True), steps, repeat, dev)
-        solver.params.fast_summation = fast0
+        solver.params = replace(solver.params, fast_summation=fast0)
         if solver.volume is not None:
             row["volume_ms"] = _best_ms(
                 lambda f: solver.volume.project(b.x, solver.volume_inv_mass, solver.volume_weight_scale,

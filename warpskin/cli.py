@@ -287,26 +287,27 @@ def cmd_layers(args) -> int:
 
 
 def cmd_simulate(args) -> int:
+    from dataclasses import replace
+
     from .run import SimulationOptions, simulate
 
     scene = _scene_of(args)
     if args.fps:
         scene.fps = float(args.fps)
-    params = scene.solver_params()
-    for key in ("iterations", "volume_iterations", "dt", "damping"):
-        value = getattr(args, key)
-        if value is not None:
-            setattr(params, key, value)
+    # the scene's settings, then the command line's overrides of them, in one place
+    changes = {key: getattr(args, key) for key in ("iterations", "volume_iterations", "dt", "damping")
+               if getattr(args, key) is not None}
     if args.fast_summation:
-        params.fast_summation = True
+        changes["fast_summation"] = True
     if args.no_gravity:
-        params.gravity = (0.0, 0.0, 0.0)
+        changes["gravity"] = (0.0, 0.0, 0.0)
+    params = replace(scene.solver_params(), **changes)
     collision = scene.collision_params()
     if args.no_collisions:
-        collision.enabled = False
+        collision = replace(collision, enabled=False)
     guard = scene.guard_params()
     if args.no_guard:
-        guard.enabled = False
+        guard = replace(guard, enabled=False)
     options = SimulationOptions(
         device=args.device, frames=args.frames, solver_params=params, collision=collision, with_lbs=args.lbs,
         with_layers=args.layers, report_dir=args.report, progress=not args.quiet,

@@ -16,7 +16,7 @@ from .settings import check_settings, setting
 if TYPE_CHECKING:
     from .popping.activation import ActivationTimeline
 
-__all__ = ["SolverParams", "CollisionParams", "PoppingSettings"]
+__all__ = ["SolverParams", "RunLimits", "CollisionParams", "PoppingSettings"]
 
 
 def _no_activation():
@@ -26,9 +26,12 @@ def _no_activation():
     return ActivationTimeline()
 
 
-@dataclass
+@dataclass(frozen=True)
 class SolverParams:
-    """Solver settings (Table 1 of the paper: 20 elasticity iterations for the Arm).
+    """Solver settings (Table 1 of the paper: 20 elasticity iterations for the Arm): what the
+    solver reads, and ``dt``, the largest substep a run splits its frames into. The limits a run
+    stops at are :class:`RunLimits` (the same ``[solver]`` section). Frozen: a changed copy is
+    ``dataclasses.replace(params, ...)``.
 
     Attributes:
         iterations: Elasticity-loop iterations per step (``N_elasticity``), >= 1.
@@ -71,6 +74,49 @@ class SolverParams:
             this from its LBS target at the end of a step. A flex as deep as the procedural
             arm's 150 degrees, whose crease skin lies far from its collapsed LBS, needs more
             than the default (the arm scene sets its own).
+    """
+
+    _section = "solver"
+
+    iterations: int = setting(20, "integer", "elasticity iterations per step", low=1, cli="--iterations")
+    volume_iterations: int = setting(4, "integer", "volume iterations per step", low=0, cli="--volume-iterations")
+    rotation_iterations: int = setting(1, "integer", "warm-started rotation-extraction iterations per region fit",
+                                       low=1)
+    dt: float = setting(0.005, "number", "largest substep", unit="s", low=0.0, open_low=True, must="a positive number",
+                        cli="--dt")
+    gravity: tuple[float, float, float] = setting((0.0, -9.81, 0.0), "numbers", "external acceleration", unit="m/s^2",
+                                                  length=3, must="three finite numbers")
+    units: str = setting("auto", "string", "the file's length unit for gravity: auto (the power of ten of the metre "
+                         "that makes the character nearest human size) or file (metres)", choices=("auto", "file"))
+    damping: float = setting(2.0, "number", "velocity damping rate", unit="1/s", low=0.0, must="a rate >= 0",
+                             cli="--damping")
+    fast_summation: bool = setting(False, "bool", "region sums by prefix scans along paths (false: direct gather)",
+                                   cli="--fast-summation")
+    volume_along_normals: bool = setting(False, "bool", "volume corrections along the surface normals, inverse "
+                                         "masses floored at the median")
+    volume_stiffness: float = setting(1.0, "number", "stiffness of the volume constraints", low=0.0, high=1.0,
+                                      must="in [0, 1]")
+    tether: float = setting(1.5, "number", "the farthest a particle may be from its LBS target, x its tissue depth "
+                            "(0: off)", low=0.0)
+    tether_floor: float = setting(0.01, "number", "added to the tether radius, x the body's diagonal", low=0.0)
+    tether_max: float = setting(0.05, "number", "no tether radius is longer than this, x the body's diagonal",
+                                low=0.0)
+    def check(self, where: str = "SolverParams") -> None:
+        """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
+
+        Raises:
+            SceneError: ``"<where>: [solver] <key> must be <range>, got <value>"``.
+        """
+        check_settings(self, where, "solver")
+
+
+@dataclass(frozen=True)
+class RunLimits:
+    """The plausible range of a run (keys of the scene's ``[solver]`` section): a frame out of it
+    stops the run (:class:`~warpskin.errors.SimulationError`, the frames before it kept) unless
+    the run allows it (``allow_unstable``); the solver never reads them.
+
+    Attributes:
         max_offset: A run stops (SimulationError) at the first frame whose skin is farther
             than this fraction of the body's diagonal from LBS.
         max_volume_error: A run stops at the first frame whose volume (whole or any
@@ -102,29 +148,6 @@ class SolverParams:
 
     _section = "solver"
 
-    iterations: int = setting(20, "integer", "elasticity iterations per step", low=1, cli="--iterations")
-    volume_iterations: int = setting(4, "integer", "volume iterations per step", low=0, cli="--volume-iterations")
-    rotation_iterations: int = setting(1, "integer", "warm-started rotation-extraction iterations per region fit",
-                                       low=1)
-    dt: float = setting(0.005, "number", "largest substep", unit="s", low=0.0, open_low=True, must="a positive number",
-                        cli="--dt")
-    gravity: tuple[float, float, float] = setting((0.0, -9.81, 0.0), "numbers", "external acceleration", unit="m/s^2",
-                                                  length=3, must="three finite numbers")
-    units: str = setting("auto", "string", "the file's length unit for gravity: auto (the power of ten of the metre "
-                         "that makes the character nearest human size) or file (metres)", choices=("auto", "file"))
-    damping: float = setting(2.0, "number", "velocity damping rate", unit="1/s", low=0.0, must="a rate >= 0",
-                             cli="--damping")
-    fast_summation: bool = setting(False, "bool", "region sums by prefix scans along paths (false: direct gather)",
-                                   cli="--fast-summation")
-    volume_along_normals: bool = setting(False, "bool", "volume corrections along the surface normals, inverse "
-                                         "masses floored at the median")
-    volume_stiffness: float = setting(1.0, "number", "stiffness of the volume constraints", low=0.0, high=1.0,
-                                      must="in [0, 1]")
-    tether: float = setting(1.5, "number", "the farthest a particle may be from its LBS target, x its tissue depth "
-                            "(0: off)", low=0.0)
-    tether_floor: float = setting(0.01, "number", "added to the tether radius, x the body's diagonal", low=0.0)
-    tether_max: float = setting(0.05, "number", "no tether radius is longer than this, x the body's diagonal",
-                                low=0.0)
     max_offset: float = setting(0.1, "number", "a frame farther than this from LBS (x the diagonal) stops the run",
                                 low=0.0)
     max_volume_error: float = setting(0.1, "number", "a frame whose volume or a sub-volume's is off by more than this "
@@ -141,7 +164,7 @@ class SolverParams:
     capped_time: float = setting(0.1, "number", "how long more than max_capped of the skin must stay at the "
                                  "tether's cap to stop the run (0: one frame)", unit="s", low=0.0)
 
-    def check(self, where: str = "SolverParams") -> None:
+    def check(self, where: str = "RunLimits") -> None:
         """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
 
         Raises:
@@ -150,7 +173,7 @@ class SolverParams:
         check_settings(self, where, "solver")
 
 
-@dataclass
+@dataclass(frozen=True)
 class CollisionParams:
     """Self-collision settings (a scene's ``[collision]``). Each field's kind, default, range,
     unit and help are declared with it (:mod:`warpskin.settings`): the checks, the scene keys and

@@ -152,7 +152,7 @@ def scene_sections() -> dict[str, list]:
     (:mod:`warpskin.settings`), in the order of the docs' reference."""
     from .guard import GuardParams
     from .model import ModelParams
-    from .params import CollisionParams, PoppingSettings, SolverParams
+    from .params import CollisionParams, PoppingSettings, RunLimits, SolverParams
     from .preprocess.joint_constraints import JointParams
     from .preprocess.layers import LayerParams
     from .preprocess.sub_volumes import SubVolumeParams
@@ -164,7 +164,7 @@ def scene_sections() -> dict[str, list]:
         "layers": settings_of(LayerParams) + settings_of(ModelParams, "layers"),
         "joints": settings_of(JointParams),
         "subvolumes": settings_of(ModelParams, "subvolumes") + settings_of(SubVolumeParams),
-        "solver": settings_of(SolverParams),
+        "solver": settings_of(SolverParams) + settings_of(RunLimits),
         "collision": settings_of(CollisionParams),
         "physics": settings_of(PhysicsSettings),
         "guard": settings_of(GuardParams),
@@ -283,14 +283,29 @@ class Scene:
         return params
 
     def solver_params(self):
-        """The :class:`~warpskin.solver.SolverParams` of the ``[solver]`` section."""
-        from .solver import SolverParams
+        """The :class:`~warpskin.solver.SolverParams` of the ``[solver]`` section (what the solver
+        reads, and ``dt``)."""
+        from .params import SolverParams
+
+        return self._solver_section(SolverParams)
+
+    def run_limits(self):
+        """The :class:`~warpskin.params.RunLimits` of the ``[solver]`` section (where a run stops)."""
+        from .params import RunLimits
+
+        return self._solver_section(RunLimits)
+
+    def _solver_section(self, cls):
+        """``cls`` (:class:`~warpskin.params.SolverParams` or :class:`~warpskin.params.RunLimits`)
+        from its keys of the ``[solver]`` section, the whole section checked."""
+        from dataclasses import fields
 
         where = _where(self.source)
         table = _read(self.extra, "solver", where)
         if "gravity" in table:
             table["gravity"] = tuple(float(g) for g in table["gravity"])
-        params = SolverParams(**table)
+        names = {f.name for f in fields(cls)}
+        params = cls(**{k: v for k, v in table.items() if k in names})
         params.check(where)
         return params
 

@@ -22,7 +22,7 @@ WRITTEN_STRAINED = 0.005
 WRITTEN_FLIPPED = 0.01
 
 
-@dataclass
+@dataclass(frozen=True)
 class GuardParams:
     """Settings of :class:`SurfaceGuard` (a scene's ``[guard]``). Each field's kind, default,
     range, unit and help are declared with it (:mod:`warpskin.settings`). Notes beyond the help:

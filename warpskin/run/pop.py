@@ -507,9 +507,11 @@ def _surface_pop(character, builder, plan, run: _LayeredPop, unit: float = 1.0):
 def _pop_solver_params(scene):
     """The scene's solver settings for a layered pop and its normal-only guide: the volume
     constraints along the normals (``volume_along_normals``) unless the scene sets it."""
+    from dataclasses import replace
+
     params = scene.solver_params()
     if "volume_along_normals" not in scene.extra.get("solver", {}):
-        params.volume_along_normals = True
+        params = replace(params, volume_along_normals=True)
     return params
 
 

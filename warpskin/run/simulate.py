@@ -17,6 +17,7 @@ from ..errors import SimulationError
 from ..io.usd_export import UsdSkinWriter, valid_prim_name, check_output_path
 from ..metrics import self_intersections_of_two, signed_volume
 from ..model import SkinModelBuilder
+from ..params import RunLimits
 from ..options import with_overrides
 from ..preprocess.layers import LAYER_NAMES
 from ..quality import QualityLimits, QualityLog
@@ -64,10 +65,10 @@ class _Measurements:
     """Per-frame measurements of the physical skin against LBS (host, after the frame)."""
 
     def __init__(self, builder, stepper: PhysicsStepper, plan: FramePlan, check_intersections: bool,
-                 params: SolverParams, allow_unstable: bool = False) -> None:
+                 limits: RunLimits, allow_unstable: bool = False) -> None:
         self.b, self.st, self.plan = builder, stepper, plan
         self.check_intersections = check_intersections
-        self.params, self.allow_unstable, self.warned = params, allow_unstable, False
+        self.limits, self.allow_unstable, self.warned = limits, allow_unstable, False
         self.diagonal = builder.rig.size()
         self._pending: dict = {}
         self._clamped = int(stepper.solver.tether_clamped.numpy()[0])  # the pre-roll's
@@ -153,7 +154,7 @@ class _Measurements:
         return lbs
 
     def _out_of_range(self, i: int, skin: np.ndarray, e: dict, d: np.ndarray) -> str | None:
-        p, b = self.params, self.b
+        p, b = self.limits, self.b
         f = self.plan.frames[i]
         diag = self.diagonal
         if e["offset"] > p.max_offset * diag:
@@ -238,16 +239,18 @@ class _WrittenQuality:
     and the share of the simulated skin held at the tether's cap; either out of its range stops
     the run (:class:`SimulationError`) unless ``allow_unstable`` (one warning)."""
 
-    def __init__(self, character, plan: FramePlan, params: SolverParams, allow_unstable: bool, stepper,
+    def __init__(self, character, plan: FramePlan, limits: RunLimits, allow_unstable: bool, stepper,
                  measures: _Measurements, skin_prim: str = "skin") -> None:
-        self.plan, self.params, self.allow_unstable, self.stepper = plan, params, allow_unstable, stepper
+        params = stepper.solver.params  # the tether's cap
+        self.plan, self.run_limits, self.allow_unstable, self.stepper = plan, limits, allow_unstable, stepper
+        self.tether_max = params.tether_max
         # measured and reported under the names they are written with (the skin: its file's)
         self.names = {p.name: (skin_prim if p.name == "skin" else valid_prim_name(p.name)) for p in character.parts}
         self.meshes = [character.meshes[p.name] for p in character.parts if p.physics]
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.limits = {self.names[name]: lim for name, lim in character.limits.items()}
         self.repairs = {self.names[name]: r for name, r in getattr(character, "repairs", {}).items()}
-        self.log = QualityLog(self.meshes, QualityLimits(params.max_strained, params.max_flipped),
+        self.log = QualityLog(self.meshes, QualityLimits(limits.max_strained, limits.max_flipped),
                               cross=None if character.cross is None else character.cross.cross)
         from ..delivery import DeliveryLog
 
@@ -294,17 +297,17 @@ class _WrittenQuality:
             # how long the share has stayed above the bound, frame after frame (a lag clears
             # within a frame or two; an explosion the cap holds stays)
             t = float(self.plan.times[i])
-            if share > self.params.max_capped:
+            if share > self.run_limits.max_capped:
                 self._capped_since = t if self._capped_since is None else self._capped_since
             else:
                 self._capped_since = None
             held = None if self._capped_since is None else t - self._capped_since
-            if problem is None and held is not None and held >= self.params.capped_time - 1e-6:
+            if problem is None and held is not None and held >= self.run_limits.capped_time - 1e-6:
                 problem = (f"frame {f}: the skin left its plausible range: {100 * share:.1f} % of the simulated skin "
                            f"(where it shows in the written meshes) is held at the tether's cap "
-                           f"({self.cap:.3g} m from LBS, tether_max {self.params.tether_max:g}; max_capped "
-                           f"{100 * self.params.max_capped:g} %), above that for {held:.3g} s (capped_time "
-                           f"{self.params.capped_time:g} s): an explosion the cap hides")
+                           f"({self.cap:.3g} m from LBS, tether_max {self.tether_max:g}; max_capped "
+                           f"{100 * self.run_limits.max_capped:g} %), above that for {held:.3g} s (capped_time "
+                           f"{self.run_limits.capped_time:g} s): an explosion the cap hides")
         if problem is None:
             return
         if not self.allow_unstable:
@@ -399,7 +402,8 @@ class SimulationOptions:
     * ``frames``: ``(first, last)`` of the source's time codes (``frame / fps`` seconds, at the
       clip's own rate unless the scene sets ``fps``), default all; ``start_frame`` writes the
       first frame at that time code instead.
-    * ``solver_params`` (default: the scene's ``[solver]``), ``collision``
+    * ``solver_params`` and ``limits`` (:class:`~warpskin.params.RunLimits`: where the run stops;
+      both default to the scene's ``[solver]``), ``collision``
       (:class:`~warpskin.collision.CollisionParams`, default: the scene's ``[collision]``, on
       unless disabled), ``guard`` (:class:`~warpskin.guard.GuardParams`, default: the scene's
       ``[guard]``, on: it takes back, frame by frame and smoothly, the part of the physical
@@ -456,6 +460,7 @@ class SimulationOptions:
     device: object = None
     frames: tuple[int, int] | None = None
     solver_params: SolverParams | None = None
+    limits: RunLimits | None = None
     with_lbs: bool = False
     with_layers: bool = False
     report_dir: object = None
@@ -527,6 +532,8 @@ class _Simulation:
         check_output_path(out_path, inputs=[*scene.input_paths(), *([self.cage_file] if self.cage_file else [])])
         params = o.solver_params or scene.solver_params()
         params.check(str(scene.source or scene.name))
+        self.limits = o.limits or scene.run_limits()
+        self.limits.check(str(scene.source or scene.name))
         rig = scene.rig()
         self.clip = rig.clip(scene.clip)
         plan = FramePlan.for_scene(scene, o.frames, max_dt=params.dt, start_frame=o.start_frame)
@@ -577,12 +584,12 @@ class _Simulation:
                                       activation=o.activation,
                                       label=f"simulate {self.scene.name or self.builder.rig.name}")
         self.label = self.stepper.label
-        self.measures = _Measurements(self.builder, self.stepper, plan, check_intersections, self.params,
+        self.measures = _Measurements(self.builder, self.stepper, plan, check_intersections, self.limits,
                                       o.allow_unstable)
         self.sim = self.builder.rig  # the simulated skin: the file's vertices first, then any added by refining
         self.output = (CharacterOutput(self.sim, o.topology, self.clip) if self.captured is None
                        else CharacterOutput(self.render, o.topology))
-        self.quality = _WrittenQuality(character, plan, self.params, o.allow_unstable, self.stepper, self.measures,
+        self.quality = _WrittenQuality(character, plan, self.limits, o.allow_unstable, self.stepper, self.measures,
                                        self.output.skin_prim)
         self._meshes = _meshes_to_write(character, self.builder, self.render, o.with_lbs, o.with_layers)
         self.guided = []  # the meshes the overlay moves, each written without it beside it as a guide
