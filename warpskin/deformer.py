@@ -102,9 +102,11 @@ class WrittenDeformer:
                  joint_gap: float = 0.01) -> None:
         import warp as wp
 
+        from .device import resolve_device
+
         rig, sim = character.rig, character.sim_rig
         self.character = character
-        self.device = wp.get_device(device)
+        self.device = resolve_device(device)
         j = rig.joint_count
         n = character.point_count
         parts = character.parts

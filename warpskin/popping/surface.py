@@ -62,6 +62,7 @@ import warp as wp
 
 from ..capture import shape_diameter, welded_pieces
 from ..collision import skin_edges
+from ..device import resolve_device
 from ..errors import SceneError
 from ..kernels import popping as _k
 from ..mesh import vertex_normals
@@ -521,7 +522,7 @@ class SurfacePop:
             raise SceneError(f"popping: step {h!r} s needs beta * dt <= 1 (beta = {beta} /s)")
         self.steps = len(acts)
         self.h, self.alpha_min, self.beta, self.threshold = float(h), float(alpha_min), float(beta), float(threshold)
-        with wp.ScopedDevice(device):
+        with wp.ScopedDevice(resolve_device(device)):
             self.device = wp.get_device()
             self.disparity = wp.array(d[:, self.moved].astype(np.float32), dtype=wp.vec3)
             top = np.linalg.norm(d, axis=2).max(axis=1)
