@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
-from .mesh import vertex_normals
+from .mesh import summed_face_normals, vertex_normals
 from .preprocess.cage import closest_faces
 
 __all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "shape_diameter",
@@ -412,11 +412,7 @@ def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, 
     corners = t[np.maximum(face, 0)]
     bary = np.clip(bary, 0.0, None)
     bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-300)
-    vn = np.zeros_like(x)
-    at = np.asarray(all_triangles, dtype=np.int64)
-    fn = np.cross(x[at[:, 1]] - x[at[:, 0]], x[at[:, 2]] - x[at[:, 0]])
-    for k in range(3):
-        np.add.at(vn, at[:, k], fn)
+    vn = summed_face_normals(x, np.asarray(all_triangles, dtype=np.int64))
     c = np.einsum("mk,mkj->mj", bary, x[corners])
     n = np.einsum("mk,mkj->mj", bary, vn[corners])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)

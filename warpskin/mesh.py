@@ -1,12 +1,14 @@
-"""Mesh topology helpers on the host (NumPy): welding the copies a file splits at seams, the
-closedness and manifoldness of a triangle mesh, and polygons fanned into triangles. Indices are
-int64; positions float64."""
+"""Mesh helpers on the host (NumPy), each written once: welding the copies a file splits at seams,
+the closedness and manifoldness of a triangle mesh, polygons fanned into triangles, triangle
+normals and areas, vertex normals and mixed Voronoi areas. Indices are int64; positions float64
+unless a function says it keeps the dtype it is given."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["weld_by_position", "mesh_edge_report", "triangulate_faces", "polygon_triangle_count", "vertex_normals"]
+__all__ = ["weld_by_position", "mesh_edge_report", "triangulate_faces", "polygon_triangle_count", "vertex_normals",
+           "face_normals", "summed_face_normals", "triangle_areas", "surface_area", "mixed_voronoi_areas"]
 
 
 def weld_by_position(points: np.ndarray, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -115,14 +117,82 @@ def triangulate_faces(
     return tri, skipped
 
 
-def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals ``[N, 3]`` of ``points`` ``[N, 3]`` and ``triangles``
-    ``[T, 3]`` (outward for outward-wound triangles; zero for a point on no triangle), in float64."""
-    p = np.asarray(points, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    fn = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+def face_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``[T, 3]``: ``(p1 - p0) x (p2 - p0)`` of every triangle of ``points`` ``[N, 3]`` and
+    ``triangles`` ``[T, 3]``, its unit normal times twice its area (outward for outward-wound
+    triangles), in the dtype ``points`` has."""
+    p = np.asarray(points)
+    t = np.asarray(triangles)
+    return np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+
+
+def summed_face_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``[N, 3]``: every point's sum of its triangles' :func:`face_normals` (area-weighted, not
+    normalised; zero for a point on no triangle), in the dtype ``points`` has."""
+    p = np.asarray(points)
+    t = np.asarray(triangles)
+    fn = face_normals(p, t)
     n = np.zeros_like(p)
     for k in range(3):
         np.add.at(n, t[:, k], fn)
+    return n
+
+
+def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``[T]``: the area of every triangle [m^2], in the dtype ``points`` has."""
+    return 0.5 * np.linalg.norm(face_normals(points, triangles), axis=1)
+
+
+def surface_area(points: np.ndarray, triangles: np.ndarray) -> float:
+    """The area [m^2] of the triangle mesh ``points`` ``[N, 3]``, ``triangles`` ``[T, 3]`` (in
+    float64)."""
+    return float(triangle_areas(np.asarray(points, dtype=np.float64), np.asarray(triangles, dtype=np.int64)).sum())
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``[N, 3]`` of ``points`` ``[N, 3]`` and ``triangles``
+    ``[T, 3]`` (outward for outward-wound triangles; zero for a point on no triangle), in float64."""
+    n = summed_face_normals(np.asarray(points, dtype=np.float64), np.asarray(triangles, dtype=np.int64))
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return np.where(length > 0, n / np.maximum(length, 1e-300), 0.0)
+
+
+def mixed_voronoi_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Mixed Voronoi area of every vertex [m^2], ``[V]`` (Meyer, Desbrun, Schroeder and Barr
+    2003: the Voronoi region inside a non-obtuse triangle; half of an obtuse triangle for its
+    obtuse corner, a quarter for the others); they sum to the surface area."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    p = v[t]  # [T, 3 corners, 3]
+    # edge opposite each corner c: from corner c+1 to c+2
+    e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], axis=1)
+    len2 = np.einsum("tci,tci->tc", e, e)
+    cross = np.cross(e[:, 1], e[:, 2])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    # cosine of the angle at corner c: between -e[c+2] and e[c+1]
+    dots = np.stack(
+        [
+            -np.einsum("ti,ti->t", e[:, 2], e[:, 1]),
+            -np.einsum("ti,ti->t", e[:, 0], e[:, 2]),
+            -np.einsum("ti,ti->t", e[:, 1], e[:, 0]),
+        ],
+        axis=1,
+    )
+    safe = np.where(area > 0, 2.0 * area, 1.0)
+    cot = dots / safe[:, None]  # cot(angle) = cos / sin = dot / |cross|
+    # Voronoi corner area of corner c: (|e_{c+1}|^2 cot(c+1) + |e_{c+2}|^2 cot(c+2)) / 8, where e_k
+    # is the edge opposite corner k (the edges incident to c are e_{c+1} and e_{c+2}).
+    voronoi = np.empty_like(len2)
+    for c in range(3):
+        c1, c2 = (c + 1) % 3, (c + 2) % 3
+        voronoi[:, c] = (len2[:, c1] * cot[:, c1] + len2[:, c2] * cot[:, c2]) / 8.0
+    obtuse_corner = dots < 0.0
+    obtuse = obtuse_corner.any(axis=1)
+    corner = np.where(
+        obtuse[:, None],
+        np.where(obtuse_corner, area[:, None] / 2.0, area[:, None] / 4.0),
+        voronoi,
+    )
+    out = np.zeros(v.shape[0])
+    np.add.at(out, t.ravel(), corner.ravel())
+    return out

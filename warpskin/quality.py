@@ -35,6 +35,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .mesh import face_normals
 from .metrics import PairQuery, self_intersections, self_intersections_of_two
 
 __all__ = ["STRAIN_LIMIT", "WrittenMesh", "CrossPairs", "QualityLimits", "QualityLog", "mesh_measures", "own_fold_kept"]
@@ -142,8 +144,7 @@ class WrittenMesh:
         t = self.triangles[rows]
 
         def normals(x):
-            x = np.asarray(x, dtype=np.float64)
-            return np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+            return face_normals(np.asarray(x, dtype=np.float64), t)
 
         n, m = normals(points), normals(lbs)
         la, lb = np.linalg.norm(n, axis=1), np.linalg.norm(m, axis=1)

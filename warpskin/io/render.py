@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from ..mesh import face_normals
 from ..rig import RigError
 
 __all__ = ["Material", "RenderAttributes", "smoothing_groups", "group_normals", "read_asset_bytes"]
@@ -127,7 +129,7 @@ def group_normals(points: np.ndarray, triangles: np.ndarray, groups: np.ndarray)
     normals of ``triangles`` summed over each smoothing group (``groups`` ``[N]``)."""
     p = np.asarray(points, dtype=np.float64)
     tri = np.asarray(triangles, dtype=np.int64)
-    face = np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]])  # twice the area, outward
+    face = face_normals(p, tri)  # twice the area, outward
     count = int(groups.max()) + 1 if groups.size else 0
     acc = np.zeros((count, 3))
     for c in range(3):

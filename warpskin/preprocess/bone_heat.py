@@ -43,6 +43,7 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 
+from ..mesh import mixed_voronoi_areas
 from ..rig import Rig, RigError
 from .bones import bone_segments, closest_point_on_segments
 
@@ -166,23 +167,13 @@ def vertex_areas(vertices: np.ndarray, triangles: np.ndarray, *, kind: str = "mi
         ``[V]`` areas; zero for a vertex in no non-degenerate triangle.
     """
     v, t = _check_mesh(vertices, triangles, "vertex areas")
-    cot, area, ok = _triangle_geometry(v, t)
+    _, area, ok = _triangle_geometry(v, t)
     n = v.shape[0]
-    if kind == "barycentric":
-        per = np.repeat(area[:, None] / 3.0, 3, axis=1)
-    elif kind == "mixed":
-        p = v[t]
-        # squared length of the edge opposite corner k
-        e2 = np.sum((p[:, [2, 0, 1]] - p[:, [1, 2, 0]]) ** 2, axis=2)
-        # Voronoi part of corner k: 1/8 (|e_kn|^2 cot(angle at prev) + |e_kp|^2 cot(angle at next))
-        # edge k->next is opposite the previous corner, edge k->prev opposite the next corner
-        vor = 0.125 * (e2[:, [2, 0, 1]] * cot[:, [2, 0, 1]] + e2[:, [1, 2, 0]] * cot[:, [1, 2, 0]])
-        obtuse = cot < 0.0  # angle > 90 degrees
-        any_obtuse = obtuse.any(axis=1, keepdims=True)
-        per = np.where(any_obtuse, np.where(obtuse, 0.5, 0.25) * area[:, None], vor)
-    else:
+    if kind == "mixed":  # the one implementation (:func:`warpskin.mesh.mixed_voronoi_areas`)
+        return mixed_voronoi_areas(v, t[ok])
+    if kind != "barycentric":
         raise ValueError(f"kind must be 'mixed' or 'barycentric', got {kind!r}")
-    per = np.where(ok[:, None], per, 0.0)
+    per = np.where(ok[:, None], np.repeat(area[:, None] / 3.0, 3, axis=1), 0.0)
     return np.bincount(t.ravel(), weights=per.ravel(), minlength=n)
 
 

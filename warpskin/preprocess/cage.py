@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import RigWarning
 from ..kernels import cage as k_cage
-from ..mesh import mesh_edge_report
+from ..mesh import mesh_edge_report, triangle_areas
 from ..metrics import signed_volume
 from ..rig import Clip, Rig, RigError
 from ..run.output import rest_pose_points
@@ -65,7 +65,7 @@ def default_cage_edge(points: np.ndarray, triangles: np.ndarray, target_vertices
     an iso-surface of spacing ``h`` has triangles of area about ``0.45 h^2``."""
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
-    area = 0.5 * np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1).sum()
+    area = triangle_areas(p, t).sum()
     if not (area > 0 and math.isfinite(area)):
         raise RigError("the meshes have no area: no cage can be built around them")
     return float(math.sqrt(area / (2.0 * target_vertices * 0.45)))

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..collision import skin_edges
 from ..errors import SceneError
-from ..mesh import vertex_normals
+from ..mesh import face_normals, vertex_normals
 from ..metrics import self_intersections
 from ..settings import check_settings, setting
 from ..rig import Rig, RigError, RigWarning
@@ -175,10 +175,9 @@ def check_layer_folds(layers: Layers, triangles: np.ndarray, *, where: str = "la
     """
     skin = layers.positions[0]
     tolerated = layers.unresolved[triangles].any(axis=1)
-    n0 = np.cross(skin[triangles[:, 1]] - skin[triangles[:, 0]], skin[triangles[:, 2]] - skin[triangles[:, 0]])
+    n0 = face_normals(skin, triangles)
     for k in range(1, 4):
-        x = layers.positions[k]
-        n = np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
+        n = face_normals(layers.positions[k], triangles)
         dot = np.einsum("ij,ij->i", n, n0)
         flipped = np.nonzero((dot <= 0.0) & ~tolerated)[0]
         if flipped.size:
@@ -204,8 +203,7 @@ def folded_triangles(skin: np.ndarray, layer: np.ndarray, triangles: np.ndarray,
     more against the skin triangle's (``cos <= min_cos``), or collapsed: the layer folds over
     there. Returns their indices."""
     t = triangles
-    n0 = np.cross(skin[t[:, 1]] - skin[t[:, 0]], skin[t[:, 2]] - skin[t[:, 0]])
-    n = np.cross(layer[t[:, 1]] - layer[t[:, 0]], layer[t[:, 2]] - layer[t[:, 0]])
+    n0, n = face_normals(skin, t), face_normals(layer, t)
     dot = np.einsum("ij,ij->i", n, n0)
     norm = np.linalg.norm(n, axis=1) * np.linalg.norm(n0, axis=1)
     return np.nonzero(dot <= min_cos * np.maximum(norm, 1e-300))[0]

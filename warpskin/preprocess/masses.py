@@ -15,49 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import mixed_voronoi_areas
 from ..rig import RigError
 from .layers import LAYER_NAMES, Layers
 
 __all__ = ["mixed_voronoi_areas", "layer_heights", "particle_masses"]
-
-
-def mixed_voronoi_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Mixed Voronoi area of every vertex [m^2], ``[V]``."""
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    p = v[t]  # [T, 3 corners, 3]
-    # edge opposite each corner c: from corner c+1 to c+2
-    e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], axis=1)
-    len2 = np.einsum("tci,tci->tc", e, e)
-    cross = np.cross(e[:, 1], e[:, 2])
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    # cosine of the angle at corner c: between -e[c+2] and e[c+1]
-    dots = np.stack(
-        [
-            -np.einsum("ti,ti->t", e[:, 2], e[:, 1]),
-            -np.einsum("ti,ti->t", e[:, 0], e[:, 2]),
-            -np.einsum("ti,ti->t", e[:, 1], e[:, 0]),
-        ],
-        axis=1,
-    )
-    safe = np.where(area > 0, 2.0 * area, 1.0)
-    cot = dots / safe[:, None]  # cot(angle) = cos / sin = dot / |cross|
-    # Voronoi corner area of corner c: (|e_{c+1}|^2 cot(c+1) + |e_{c+2}|^2 cot(c+2)) / 8, where e_k
-    # is the edge opposite corner k (the edges incident to c are e_{c+1} and e_{c+2}).
-    voronoi = np.empty_like(len2)
-    for c in range(3):
-        c1, c2 = (c + 1) % 3, (c + 2) % 3
-        voronoi[:, c] = (len2[:, c1] * cot[:, c1] + len2[:, c2] * cot[:, c2]) / 8.0
-    obtuse_corner = dots < 0.0
-    obtuse = obtuse_corner.any(axis=1)
-    corner = np.where(
-        obtuse[:, None],
-        np.where(obtuse_corner, area[:, None] / 2.0, area[:, None] / 4.0),
-        voronoi,
-    )
-    out = np.zeros(v.shape[0])
-    np.add.at(out, t.ravel(), corner.ravel())
-    return out
 
 
 def layer_heights(layers: Layers) -> np.ndarray:

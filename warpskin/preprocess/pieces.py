@@ -43,7 +43,7 @@ import numpy as np
 
 from ..capture import shape_diameter, welded_pieces
 from ..kernels import pieces as k_pieces
-from ..mesh import mesh_edge_report, vertex_normals
+from ..mesh import mesh_edge_report, summed_face_normals, surface_area, vertex_normals
 from ..metrics import self_intersections
 from ..units import metres_per_unit
 from .cage import closest_faces
@@ -423,8 +423,7 @@ def _signed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
 
 
 def _area(points: np.ndarray, triangles: np.ndarray) -> float:
-    p = points[triangles]
-    return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+    return surface_area(points, triangles)
 
 
 @dataclass
@@ -562,10 +561,7 @@ def _garments(locals_: dict, candidates: np.ndarray, count: int, max_gap: float,
     offsets = np.concatenate([[0], np.cumsum([len(locals_[k].points) for k in ids])])
     tris = np.concatenate([locals_[k].triangles + offsets[i] for i, k in enumerate(ids)])
     tri_owner = np.concatenate([np.full(len(locals_[k].triangles), k) for k in ids])
-    normals = np.zeros_like(pts)
-    fn = np.cross(pts[tris[:, 1]] - pts[tris[:, 0]], pts[tris[:, 2]] - pts[tris[:, 0]])
-    for c in range(3):
-        np.add.at(normals, tris[:, c], fn)
+    normals = summed_face_normals(pts, tris)
     flip = np.concatenate([np.full(len(locals_[k].points), -1.0 if locals_[k].flipped else 1.0) for k in ids])
     normals *= flip[:, None] / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]]])

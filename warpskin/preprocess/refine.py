@@ -18,16 +18,13 @@ import math
 
 import numpy as np
 
+from ..mesh import surface_area
+
 __all__ = ["RefinedSurface", "refine_long_edges", "default_max_edge", "flip_flat_edges"]
 
 #: Vertex count the default edge length aims at for a coarse skin (near-equilateral triangles).
 TARGET_VERTICES = 1000
 
-
-def surface_area(vertices: np.ndarray, triangles: np.ndarray) -> float:
-    t = np.asarray(triangles, dtype=np.int64)
-    v = np.asarray(vertices, dtype=np.float64)
-    return float(0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum())
 
 
 def default_max_edge(vertices: np.ndarray, triangles: np.ndarray, target_vertices: int = TARGET_VERTICES) -> float:

@@ -97,6 +97,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from ..mesh import triangle_areas
 from ..rig import Rig, RigError, RigWarning
 from ..settings import setting
 from .bones import Bones, bone_segments, dominant_bone
@@ -643,7 +644,7 @@ def build_subvolumes(rig: Rig, params: SubVolumeParams | None = None, *, bones: 
     # plane's joint, any other (the root piece) after the joint dominating most of its area
     v = rig.vertices
     tri = rig.triangles
-    area = 0.5 * np.linalg.norm(np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]]), axis=1)
+    area = triangle_areas(v, tri)
     jc = rig.joint_count
     share = np.bincount(
         (comp[:, None] * jc + owner[tri]).ravel(), weights=np.repeat(area / 3.0, 3), minlength=ncomp * jc
