@@ -390,9 +390,11 @@ class Character:
                     repair = PieceVolume(self.meshes[p.name], weight[p.start:p.start + p.count])
                     if repair.active.any():
                         self.volumes[p.name] = repair
+        # a skin simulated on a refined copy is written with chords of the simulated surface
+        chords = self.surface == "skin" and builder is not None and builder.rig.refined_skin
         self.guards = {p.name: SurfaceGuard(self.meshes[p.name], params, cap.group[p.start:p.start + p.count],
                                             ceiling=None if self.caged else cap.physics_weight[p.start:p.start + p.count],
-                                            direct=not self.caged,
+                                            direct=not self.caged, chords=chords and p.name == "skin",
                                             intended=None if intended is None else intended[p.start:p.start + p.count])
                        for p in self.parts if p.physics}
         # pieces written as separate meshes keep apart as their LBS keeps them (after each

@@ -74,6 +74,13 @@ class SolverParams:
             this from its LBS target at the end of a step. A flex as deep as the procedural
             arm's 150 degrees, whose crease skin lies far from its collapsed LBS, needs more
             than the default (the arm scene sets its own).
+        chord_strain, chord_area: A refined skin (a coarse mesh simulated on a refined copy,
+            written with its own triangles: chords of the simulated surface) keeps its written
+            edges within ``chord_strain`` of their rest length (or of LBS's, where LBS strains
+            them more) and its written triangles facing the way LBS faces them with at least
+            ``chord_area`` of their LBS area (:mod:`warpskin.kernels.chords`), once per
+            elasticity iteration and again at the end of each step; 0 turns either off. Only a
+            refined skin with volume constraints has them.
     """
 
     _section = "solver"
@@ -101,6 +108,12 @@ class SolverParams:
     tether_floor: float = setting(0.01, "number", "added to the tether radius, x the body's diagonal", low=0.0)
     tether_max: float = setting(0.05, "number", "no tether radius is longer than this, x the body's diagonal",
                                 low=0.0)
+    chord_strain: float = setting(1.4, "number", "a refined skin's written edges stay within this strain of their "
+                                  "rest length, or of LBS's where LBS strains them more (0: off)", low=0.0,
+                                  must="0 (off) or > 1")
+    chord_area: float = setting(0.1, "number", "a refined skin's written triangles keep at least this share of their "
+                                "LBS area facing the way LBS faces them (0: off)", low=0.0, high=1.0,
+                                open_high=True, must="in [0, 1)")
     def check(self, where: str = "SolverParams") -> None:
         """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).
 
@@ -108,6 +121,8 @@ class SolverParams:
             SceneError: ``"<where>: [solver] <key> must be <range>, got <value>"``.
         """
         check_settings(self, where, "solver")
+        if 0.0 < self.chord_strain <= 1.0:
+            raise SceneError(f"{where}: [solver] chord_strain must be 0 (off) or > 1, got {self.chord_strain:g}")
 
 
 @dataclass(frozen=True)

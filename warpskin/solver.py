@@ -19,6 +19,7 @@ import warp as wp
 from .collision import SelfCollision
 from .errors import InputError, SceneError, SimulationError
 from .params import SolverParams
+from .kernels import chords as k_chord
 from .kernels import constraints as k_con
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
@@ -65,6 +66,11 @@ def gravity_step_limit(mean_edge: float, gravity, unit: float) -> float:
     if not (g > 0.0 and mean_edge > 0.0 and math.isfinite(g)):
         return math.inf
     return math.sqrt(GRAVITY_STEP * float(mean_edge) / g)
+
+
+#: Passes of the chord constraints at the end of a step (after the volume loop and the
+#: fail-safe), besides one per elasticity iteration.
+CHORD_PASSES = 4
 
 
 def skin_step_limit(builders, model: SkinModel, params: SolverParams) -> float:
@@ -183,6 +189,7 @@ class SkinSolver:
                     mine = model.vertex_written_volume.numpy() != 0
                     self.split_cap = self.tether_cap if mine.all() else wp.array(
                         np.where(mine, self.tether_cap.numpy(), np.inf).astype(np.float32), dtype=wp.float32)
+            self._chords_setup(model)
             self.collision = None
             if model.collision is not None:
                 self.collision = SelfCollision(model)
@@ -329,6 +336,39 @@ class SkinSolver:
                           radius, m.vertex_count],
                   outputs=[x, self.tether_clamped, self.tether_targets], device=self.device)
 
+    def _chords_setup(self, model: SkinModel) -> None:
+        """The written triangles and edges of a refined skin with volume (``model.written_surface``)
+        that :meth:`_chords` keeps (``chord_strain``, ``chord_area``); ``None`` where there are none
+        or both are off."""
+        p = self.params
+        self.chords = None
+        surface = model.written_surface
+        if surface is None or not (p.chord_strain > 0.0 or p.chord_area > 0.0):
+            return
+        dev = self.device
+        tris = np.asarray(surface.triangles, dtype=np.int64)
+        edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+        rest = model.particle_q0.numpy()[: model.vertex_count].astype(np.float64)
+        self.chords = {
+            "triangles": wp.array(tris.astype(np.int32), dtype=wp.int32, device=dev),
+            "edges": wp.array(edges.astype(np.int32), dtype=wp.int32, device=dev),
+            "rest_length": wp.array(np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1).astype(np.float32),
+                                    dtype=wp.float32, device=dev),
+            "lbs": wp.zeros(model.vertex_count, dtype=wp.vec3, device=dev),  # the step's LBS of the skin
+        }
+
+    def _chords(self, x: wp.array) -> None:
+        """One pass of the chord constraints (:mod:`warpskin.kernels.chords`): the written edges'
+        strain, then the written triangles' orientation, against the step's LBS."""
+        m, c, p, dev = self.model, self.chords, self.params, self.device
+        if p.chord_strain > 0.0:
+            wp.launch(k_chord.chord_strain_kernel, dim=c["edges"].shape[0],
+                      inputs=[c["edges"], c["rest_length"], c["lbs"], m.particle_inv_mass, p.chord_strain],
+                      outputs=[x], device=dev)
+        if p.chord_area > 0.0:
+            wp.launch(k_chord.chord_orientation_kernel, dim=c["triangles"].shape[0],
+                      inputs=[c["triangles"], c["lbs"], m.particle_inv_mass, p.chord_area], outputs=[x], device=dev)
+
     # ------------------------------------------------------------------ the step
     def step(self, state_in: State, state_out: State, control: Control, contacts: Contacts | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] into ``state_out`` (Algorithm 1). The caller swaps
@@ -369,9 +409,14 @@ class SkinSolver:
             col.detect(state_in.x, state_out.x, contacts)
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
+        if self.chords is not None:  # the step's LBS of the skin, the chords' reference
+            wp.launch(k_chord.skin_lbs_kernel, dim=m.vertex_count, inputs=[m.particle_q0, m.coupling_joint_indices,
+                      m.coupling_joint_weights, control.skin_matrices], outputs=[self.chords["lbs"]], device=dev)
         for it in range(p.iterations):
             self.region_fit(state_out.x, q_src, q_dst)
             self.blend_and_constrain(state_out.x, q_dst, it)
+            if self.chords is not None:
+                self._chords(state_out.x)
             if col is not None:
                 col.project(state_out.x, m.particle_inv_mass, contacts)
             q_src, q_dst = q_dst, q_src
@@ -411,6 +456,9 @@ class SkinSolver:
             self._written_volume(state_out.x, control, col is not None)
         if self.tether_radius is not None and col is not None and self.volume is None:
             self._tether(state_out.x, control, cap_only=True)  # what the fail-safe held back stays within the cap
+        if self.chords is not None:  # what the volume loop and the fail-safe left of the chords' shape
+            for _ in range(CHORD_PASSES):
+                self._chords(state_out.x)
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],

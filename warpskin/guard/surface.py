@@ -39,7 +39,10 @@ edges than LBS does (the strain a few rings around the places where LBS passes t
 left out where the physics kept those sides apart with no crossing of its own: LBS is no
 reference there, and keeping the sides apart bunches the skin between them, as in a deep
 flex's crease). From that frame on (a crumpled
-skin: a low-poly leg folded by its contacts) it is guarded as every captured mesh is.
+skin: a low-poly leg folded by its contacts) it is guarded as every captured mesh is. A skin
+simulated on a refined copy is written with chords of the simulated surface, which its collisions
+do not see: while trusted, its intersecting pairs that LBS does not have are still taken back, as
+above, and only they (``chords``).
 
 Invariants: with no flag ``W = P`` exactly; ``g = 0`` gives ``W = L`` exactly. A mesh the
 guard converged on has no strained edge or flipped triangle that LBS does not have (within the
@@ -84,6 +87,10 @@ class SurfaceGuard:
             an edge wholly inside it that is longer than at rest is neither flagged nor counted
             against the trust (a pop stretches the skin over its belly by design); shortened
             edges and turned triangles there are, as everywhere.
+        chords: The mesh is a skin simulated on a refined copy, written with its own triangles
+            (chords of the simulated surface, whose collisions do not see them): while trusted,
+            its intersecting pairs LBS does not have are still taken back (only they: its
+            strain and turned triangles are its physics').
     """
 
     #: Rounds after the back-off that set what is still flagged to its LBS.
@@ -91,10 +98,13 @@ class SurfaceGuard:
 
     def __init__(self, mesh: WrittenMesh, params: GuardParams | None = None, groups: np.ndarray | None = None,
                  ceiling: np.ndarray | None = None, direct: bool = False,
-                 intended: np.ndarray | None = None) -> None:
+                 intended: np.ndarray | None = None, chords: bool = False) -> None:
         #: Whether the mesh is written as simulated (a skin simulated directly, until a frame's
         #: physical result crumples past ``trust_flipped`` or ``trust_strained``; then never again).
         self.trusted = bool(direct)
+        #: The mesh is written with chords of the simulated surface (a skin simulated on a
+        #: refined copy): its crossings are taken back while it is trusted too.
+        self.chords = bool(chords)
         self.mesh = mesh
         self.params = params or GuardParams()
         c = mesh.first.size
@@ -412,14 +422,21 @@ class SurfaceGuard:
         e, t = mesh.edges, self._tri
         if self.trusted:  # guarded from the first frame whose physics crumples on
             self.trusted = self._trusted_after(pw, lw, s_lbs, n_lbs, len_lbs)
-        if self.trusted:
-            self.g = g
-            self.pair_counts = self.pair_keys = None
-            if np.all(g >= 1.0):
-                return given
-            return self.blend(p, lb, g)
-        shape = True
+        shape = True  # strained edges and turned triangles are flagged (not on a trusted mesh)
         pairs_lbs, pairs_w, active = np.zeros(0, dtype=np.int64), None, None
+        check = self.chords and prm.pairs and len(self._all_tri) > 1
+        if self.trusted:
+            if check:  # chords cross where the simulated surface does not: taken back where LBS does not
+                pairs_w, pairs_lbs = self._pairs_of_two(as_written(blend(pw, lw, g)), lw)
+                self._pose_crossings(pairs_lbs)
+                crossing = self._new_pairs(pairs_w, pairs_lbs, lw, np.linalg.norm(g[:, None] * d, axis=1)).size > 0
+            if not (check and crossing):
+                self.g = g
+                self.pair_counts = self.pair_keys = None
+                if np.all(g >= 1.0):
+                    return given
+                return self.blend(p, lb, g)
+            shape = False
         converged = False
         last = prm.rounds + self.FALLBACK_ROUNDS
         r = 0
