@@ -6,7 +6,8 @@ triangles, chords of the simulated surface. Shape matching keeps the refined sur
 shape, but nothing keeps a chord triangle from turning over, or a chord edge from stretching,
 where the refined surface between its corners bends (a low-poly paw folding at its wrist). Two
 unilateral position-based constraints act on the chords, once per elasticity iteration and
-``CHORD_PASSES`` times at the end of the step (``warpskin.solver``):
+``CHORD_PASSES`` times after the tether and the fail-safe, before the volume loop
+(``warpskin.solver``):
 
 * **Orientation**: ``C = n . m - a |n_L| >= 0`` per written triangle, ``n = (x1 - x0) x (x2 - x0)``
   (twice its area along its normal), ``n_L`` the same of its LBS and ``m = n_L / |n_L|``: the

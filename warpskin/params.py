@@ -79,7 +79,7 @@ class SolverParams:
             edges within ``chord_strain`` of their rest length (or of LBS's, where LBS strains
             them more) and its written triangles facing the way LBS faces them with at least
             ``chord_area`` of their LBS area (:mod:`warpskin.kernels.chords`), once per
-            elasticity iteration and again at the end of each step; 0 turns either off. Only a
+            elasticity iteration and again before the volume loop; 0 turns either off. Only a
             refined skin with volume constraints has them.
     """
 

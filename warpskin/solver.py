@@ -68,8 +68,8 @@ def gravity_step_limit(mean_edge: float, gravity, unit: float) -> float:
     return math.sqrt(GRAVITY_STEP * float(mean_edge) / g)
 
 
-#: Passes of the chord constraints at the end of a step (after the volume loop and the
-#: fail-safe), besides one per elasticity iteration.
+#: Passes of the chord constraints after the tether and the fail-safe (before the volume loop,
+#: which keeps the volume they move), besides one per elasticity iteration.
 CHORD_PASSES = 4
 
 
@@ -432,6 +432,9 @@ class SkinSolver:
         # pushes through is the second pass's, below)
         if col is not None:
             col.fail_safe(state_in.x, state_out.x, control.skin_matrices, contacts=contacts)
+        if self.chords is not None:  # what the tether and the fail-safe left of the chords' shape
+            for _ in range(CHORD_PASSES):
+                self._chords(state_out.x)
         # 11-13: volume loop; with the tether, each volume iteration is followed by the cap
         # (the volume loop moves skin particles only): a sub-volume squeezed by contacts
         # corrects through its few free particles and can throw one past it (a paw's vertex far
@@ -456,9 +459,6 @@ class SkinSolver:
             self._written_volume(state_out.x, control, col is not None)
         if self.tether_radius is not None and col is not None and self.volume is None:
             self._tether(state_out.x, control, cap_only=True)  # what the fail-safe held back stays within the cap
-        if self.chords is not None:  # what the volume loop and the fail-safe left of the chords' shape
-            for _ in range(CHORD_PASSES):
-                self._chords(state_out.x)
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],
