@@ -22,7 +22,7 @@ from ..options import with_overrides
 from ..preprocess.layers import LAYER_NAMES
 from ..quality import QualityLimits, QualityLog
 from ..report import write_plots
-from ..scene import Scene
+from ..scene import Scene, resolve_scene
 from ..solver import GRAVITY_STEP, SkinSolver, SolverParams, skin_step_limit
 from ..transforms import linear_blend_skin
 from .physics import PhysicsStepper
@@ -483,8 +483,9 @@ class SimulationOptions:
     overlay: Callable | None = None
 
 
-def simulate(scene: Scene, out_path, options: SimulationOptions | None = None, **overrides) -> SimulationResult:
-    """Simulate a scene and write the skin (and on request LBS and the inner layers) to USD.
+def simulate(scene: Scene | str, out_path, options: SimulationOptions | None = None, **overrides) -> SimulationResult:
+    """Simulate a scene (a :class:`~warpskin.scene.Scene`, a shipped scene's name, a TOML path or a
+    rig file) and write the skin (and on request LBS and the inner layers) to USD.
 
     ``options`` (:class:`SimulationOptions`, each field's meaning is documented there) with
     ``overrides`` (any of its fields by name, e.g. ``simulate(scene, path, frames=(0, 24),
@@ -507,7 +508,8 @@ def simulate(scene: Scene, out_path, options: SimulationOptions | None = None, *
             message names the frame and the particle, vertex (the file's number), bone or
             sub-volume; the USD file keeps the frames before it (valid, closed).
     """
-    run = _Simulation(scene, out_path, with_overrides(SimulationOptions, options, overrides, "simulate"))
+    options = with_overrides(SimulationOptions, options, overrides, "simulate")
+    run = _Simulation(resolve_scene(scene), out_path, options)
     record = FrameRunner(run.plan, run, writer=run.writer, measures=[run.measures], progress=run.o.progress,
                          output=run.output).run(keep_failure=True)
     summary = _summary(run, record.frames)
