@@ -30,7 +30,7 @@ from .run.physics import PhysicsStepper, initial_state
 from .run.plan import FramePlan
 from .skinning import Skinner
 from .scene import resolve_scene
-from .solver import SkinSolver, skin_step_limit
+from .solver import SkinSolver, largest_step
 
 __all__ = ["run_skinning_bench", "run_build_bench", "run_solver_bench", "run_popping_bench", "run_batch_bench"]
 
@@ -235,8 +235,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         t_mid = clip.start + 0.4 * clip.duration  # the arm: 2 s, flexed, forearm pressing
         initial_state(builder, a, rig.skinning_matrices(clip, t_mid))
         c.set_pose(rig.skinning_matrices(clip, t_mid + 0.01))
-        limit = skin_step_limit([builder], model, params)
-        dt = min(params.dt, limit)  # the step simulate takes
+        dt, limit = largest_step([builder], model, params)  # the step simulate takes
         solver.step(a, b, c, contacts, dt)  # compile / load outside the timed regions
         solver.step(b, a, c, contacts, dt)
 
@@ -390,8 +389,7 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
         except (WarpskinError, OSError) as exc:  # a scene without its assets, a model the batch refuses
             out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
-        limit = skin_step_limit([builder] * count, batch, params)
-        dt = min(params.dt, limit)  # the step simulate takes: gravity's limit applies to a batch as well
+        dt, limit = largest_step([builder] * count, batch, params)  # gravity's limit applies to a batch as well
         clip = rig.clip(scene.clip)
         times = [clip.start + (0.3 + 0.4 * k / max(count, 1)) * clip.duration for k in range(count)]
         poses = [rig.skinning_matrices(clip, t) for t in times]

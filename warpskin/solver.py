@@ -28,7 +28,7 @@ from .model import Contacts, Control, SkinModel, State
 from .units import UNITS, metres_per_unit
 from .volume import VolumeConstraints
 
-__all__ = ["SolverParams", "SkinSolver", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
+__all__ = ["SolverParams", "SkinSolver", "largest_step", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
            "gravity_step_limit", "skin_step_limit"]
 
 #: The most a step may let gravity move a free particle (``g dt^2``), as a share of the skin's
@@ -88,6 +88,15 @@ def skin_step_limit(builders, model: SkinModel, params: SolverParams) -> float:
             edges[id(b)] = mean_edge(b.rig.vertices, b.rig.triangles)
     limits = [gravity_step_limit(edges[id(b)], params.gravity, u) for b, u in zip(builders, units)]
     return min(limits, default=math.inf)
+
+
+def largest_step(builders, model: SkinModel, params: SolverParams) -> tuple[float, float]:
+    """``(dt, limit)`` [s]: the longest step a run of ``model`` takes, ``params.dt`` or, where it
+    is shorter, the limit gravity allows (:func:`skin_step_limit`, ``inf`` without gravity), and
+    that limit. The one place the step is resolved: ``simulate`` splits its frames into steps no
+    longer than ``dt`` (and pre-rolls with it), ``bench`` times steps of ``dt``."""
+    limit = skin_step_limit(builders, model, params)
+    return min(params.dt, limit), limit
 
 
 def particle_gravity(model: SkinModel, gravity, units: list[float]) -> np.ndarray:

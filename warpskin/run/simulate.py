@@ -23,7 +23,7 @@ from ..preprocess.layers import LAYER_NAMES
 from ..quality import QualityLimits, QualityLog
 from ..report import write_plots
 from ..scene import Scene, resolve_scene
-from ..solver import GRAVITY_STEP, SkinSolver, SolverParams, skin_step_limit
+from ..solver import GRAVITY_STEP, SkinSolver, SolverParams, largest_step
 from ..transforms import linear_blend_skin
 from .physics import PhysicsStepper
 from .output import CharacterOutput, attachment_kwargs
@@ -374,13 +374,12 @@ def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: Fra
     ``params.dt`` asked; unchanged where it does not."""
     from dataclasses import replace
 
-
-    limit = skin_step_limit([builder], model, params)
-    if not limit < params.dt:
+    dt, limit = largest_step([builder], model, params)
+    if not dt < params.dt:
         return params, plan, limit
     asked = plan
-    params = replace(params, dt=limit)
-    plan = FramePlan.for_scene(scene, frames, max_dt=limit, start_frame=start_frame)
+    params = replace(params, dt=dt)
+    plan = FramePlan.for_scene(scene, frames, max_dt=dt, start_frame=start_frame)
     if plan.substeps > asked.substeps:
         warnings.warn(f"{scene.source or scene.name}: steps of {1e3 * asked.dt:.3g} ms let gravity move the skin by "
                       f"{GRAVITY_STEP * (asked.dt / limit) ** 2:.2g} of its mean "
