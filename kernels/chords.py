@@ -20,29 +20,14 @@ unilateral position-based constraints act on the chords, once per elasticity ite
   (``l0`` at rest, ``l_L`` under LBS, ``s`` the strain limit): a stretch limit as in cloth (Provot
   1995), relative to LBS's own where LBS strains the edge more.
 
-Both are projected Gauss-Seidel style (atomic adds into the positions; on the CPU the threads run
+The step's LBS of the skin (``n_L``, ``l_L``) is :func:`~warpskin.kernels.skinning.lbs_kernel`'s,
+launched once per step. Both are projected Gauss-Seidel style (atomic adds into the positions; on the CPU the threads run
 in order, so the result is deterministic), corrections by inverse mass (the skin's particles).
 """
 
 import warp as wp
 
-from .skinning import lbs_point
-
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.kernel
-def skin_lbs_kernel(
-    particle_q0: wp.array(dtype=wp.vec3),
-    joint_indices: wp.array2d(dtype=wp.int32),
-    joint_weights: wp.array2d(dtype=wp.float32),
-    skin_matrices: wp.array(dtype=wp.mat44),
-    # outputs
-    targets: wp.array(dtype=wp.vec3),
-):
-    """LBS of every skin vertex (the first ``len(targets)`` particles) at ``skin_matrices``."""
-    i = wp.tid()
-    targets[i] = lbs_point(particle_q0[i], joint_indices, joint_weights, i, skin_matrices)
 
 
 @wp.kernel

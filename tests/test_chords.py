@@ -98,7 +98,10 @@ def test_the_reference_is_lbs_as_it_faces_this_frame(device):
     np.testing.assert_array_equal(_orient(x, point, [1.0, 1.0, 1.0], 0.1, device), x.astype(np.float32))
 
 
-def test_skin_lbs_is_the_blend_of_the_joint_matrices(device):
+def test_the_chords_lbs_reference_is_the_blend_of_the_joint_matrices(device):
+    # the solver launches the skinning module's LBS kernel on the skin particles for it
+    from warpskin.kernels.skinning import lbs_kernel
+
     rng = np.random.default_rng(3)
     rest = rng.normal(size=(5, 3))
     mats = np.stack([np.eye(4), np.eye(4)])
@@ -108,7 +111,7 @@ def test_skin_lbs_is_the_blend_of_the_joint_matrices(device):
     w /= w.sum(axis=1, keepdims=True)
     expect = sum(w[:, k, None] * (rest @ mats[k, :3, :3].T + mats[k, :3, 3]) for k in range(2))
     out = wp.zeros(5, dtype=wp.vec3, device=device)
-    wp.launch(kc.skin_lbs_kernel, dim=5, inputs=[
+    wp.launch(lbs_kernel, dim=5, inputs=[
         wp.array(rest.astype(np.float32), dtype=wp.vec3, device=device),
         wp.array(np.tile(np.arange(2, dtype=np.int32), (5, 1)), dtype=wp.int32, device=device),
         wp.array(w.astype(np.float32), dtype=wp.float32, device=device),

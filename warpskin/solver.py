@@ -419,7 +419,7 @@ class SkinSolver:
         # 6-10: elasticity loop (shape matching, coupling, joint constraints)
         q_src, q_dst = state_out.q, self.q_scratch
         if self.chords is not None:  # the step's LBS of the skin, the chords' reference
-            wp.launch(k_chord.skin_lbs_kernel, dim=m.vertex_count, inputs=[m.particle_q0, m.coupling_joint_indices,
+            wp.launch(k_skin.lbs_kernel, dim=m.vertex_count, inputs=[m.particle_q0, m.coupling_joint_indices,
                       m.coupling_joint_weights, control.skin_matrices], outputs=[self.chords["lbs"]], device=dev)
         for it in range(p.iterations):
             self.region_fit(state_out.x, q_src, q_dst)

@@ -426,11 +426,12 @@ class SurfaceGuard:
         pairs_lbs, pairs_w, active = np.zeros(0, dtype=np.int64), None, None
         check = self.chords and prm.pairs and len(self._all_tri) > 1
         if self.trusted:
+            crossing = False
             if check:  # chords cross where the simulated surface does not: taken back where LBS does not
                 pairs_w, pairs_lbs = self._pairs_of_two(as_written(blend(pw, lw, g)), lw)
                 self._pose_crossings(pairs_lbs)
                 crossing = self._new_pairs(pairs_w, pairs_lbs, lw, np.linalg.norm(g[:, None] * d, axis=1)).size > 0
-            if not (check and crossing):
+            if not crossing:
                 self.g = g
                 self.pair_counts = self.pair_keys = None
                 if np.all(g >= 1.0):

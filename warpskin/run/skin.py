@@ -131,33 +131,31 @@ def skin_to_usd(scene, out_path, options: SkinningOptions | None = None, **overr
         InputError: an unknown option.
     """
     o = with_overrides(SkinningOptions, options, overrides, "skin")
-    method, device, frames, fps, start_frame = o.method, o.device, o.frames, o.fps, o.start_frame
-    with_rest, with_lbs, topology, progress, comment = o.with_rest, o.with_lbs, o.topology, o.progress, o.comment
     scene = resolve_scene(scene)
     check_output_path(out_path, inputs=scene.input_paths())  # before any work
-    if fps is not None:
-        if not (math.isfinite(fps) and fps > 0):
-            raise SceneError(f"fps must be a positive number, got {fps}")
-        scene.fps = float(fps)
+    if o.fps is not None:
+        if not (math.isfinite(o.fps) and o.fps > 0):
+            raise SceneError(f"fps must be a positive number, got {o.fps}")
+        scene.fps = float(o.fps)
     rig = scene.rig()
     clip = rig.clip(scene.clip)
-    output = CharacterOutput(rig, topology, clip)
-    plan = FramePlan.for_scene(scene, frames, start_frame=start_frame)
-    stepper = SkinningStepper(rig, clip, plan, method=method, device=device, with_lbs=with_lbs, with_rest=with_rest,
-                              name=scene.name)
-    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=comment, root=output.root_name)
-    record = FrameRunner(plan, stepper, writer=writer, progress=progress, steps_in_first_frame=True,
+    output = CharacterOutput(rig, o.topology, clip)
+    plan = FramePlan.for_scene(scene, o.frames, start_frame=o.start_frame)
+    stepper = SkinningStepper(rig, clip, plan, method=o.method, device=o.device, with_lbs=o.with_lbs,
+                              with_rest=o.with_rest, name=scene.name)
+    writer = UsdSkinWriter(out_path, fps=plan.fps, up_axis=rig.up_axis, comment=o.comment, root=output.root_name)
+    record = FrameRunner(plan, stepper, writer=writer, progress=o.progress, steps_in_first_frame=True,
                          output=output).run()
     summary = {
         "scene": scene.name,
-        "method": method,
+        "method": o.method,
         "device": str(stepper.skinner.device),
-        "topology": topology,
+        "topology": o.topology,
         "fps": plan.fps,
         "frames": len(record.frames),
         "first_time_code": plan.time_codes[0],
         "last_time_code": plan.time_codes[-1],
-        "vertices_written": rig.file_vertex_count if topology == "file" else rig.vertex_count,
+        "vertices_written": rig.file_vertex_count if o.topology == "file" else rig.vertex_count,
         "mean_frame_ms": float(np.mean(record.step_ms)) if record.step_ms else 0.0,
     }
     return SkinRun(writer.path, len(record.frames), summary)
