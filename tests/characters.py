@@ -130,7 +130,7 @@ def pressed_arm(device, capacity: int, pair_capacity: int | None = None):
     col = SelfCollision(model)
     contacts = model.contacts(capacity, pair_capacity)
     a, b = model.state(), model.state()
-    initial_state(builder, a, rig.skinning_matrices("flex", 1.2))
-    initial_state(builder, b, rig.skinning_matrices("flex", 1.5))
+    initial_state(model, a, rig.skinning_matrices("flex", 1.2))
+    initial_state(model, b, rig.skinning_matrices("flex", 1.5))
     col.detect(a.x, b.x, contacts)
     return rig, col, contacts, a, b

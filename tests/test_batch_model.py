@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from oracles import coarse_arm
-from warpskin.batch_model import batch_initial_state, batch_model
+from warpskin.batch_model import batch_model
 from warpskin.collision import CollisionParams
 from warpskin.errors import InputError
 from warpskin.model import ModelParams, SkinModelBuilder
@@ -135,6 +135,30 @@ def test_a_batch_refuses_what_it_does_not_lay_out_in_one_line():
         batch_model([driven], "cpu")
 
 
+def test_initial_state_skins_each_character_of_a_batch_with_its_own_joints():
+    # one path for one model and a batch: the batch's state at its characters' poses is each
+    # one's own LBS (NumPy, from its rig's weights), and matrices for another joint count are
+    # refused in one line
+    from warpskin.transforms import linear_blend_skin
+
+    off = CollisionParams(enabled=False)
+    rigs = [coarse_arm(), coarse_arm(rings=23)]
+    builders = [SkinModelBuilder(r, ModelParams(collision=off, refine=False)) for r in rigs]
+    batch = batch_model(builders, "cpu")
+    assert [r.joint_start for r in batch.rest] == [0, rigs[0].joint_count]
+    poses = [rigs[0].skinning_matrices("flex", 0.7), rigs[1].skinning_matrices("flex", 1.3)]
+    state = batch.state()
+    initial_state(batch, state, np.concatenate(poses))
+    x = state.x.numpy()
+    for rig, b, pose, r in zip(rigs, builders, poses, batch.characters):
+        expect = linear_blend_skin(b.layers.flat(), np.tile(rig.joint_indices, (4, 1)), np.tile(rig.joint_weights, (4, 1)),
+                                   pose)
+        assert np.allclose(x[r.particles(batch.vertex_count)], expect, atol=1e-6 * rig.size())
+    with pytest.raises(InputError, match=r"skinning matrices of shape \(%d, 4, 4\), got \(%d, 4, 4\)"
+                       % (batch.joint_count, rigs[0].joint_count)):
+        initial_state(batch, state, poses[0])
+
+
 def test_bench_batch_reports_character_steps_per_second(tmp_path, capsys, device):
     # the JSON record (no timing is asserted: the figures are the performance page's): N
     # instances in one model against N separate models, on the device asked for. The shipped
@@ -185,10 +209,10 @@ def test_eight_cesium_men_step_bit_for_bit_as_each_alone(assets):
     steps = 4
     poses = [[rig.skinning_matrices(clip, clip.start + 0.09 * c + s * DT) for s in range(steps + 1)] for c in range(8)]
     x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(1, steps + 1)],
-                start=lambda st: batch_initial_state([builder] * 8, batch, st, [p[0] for p in poses]))
+                start=lambda st: initial_state(batch, st, np.concatenate([p[0] for p in poses])))
     alone = builder.finalize("cpu")
     for p, r in zip(poses, batch.characters):
-        ax, av = _run(alone, p[1:], start=lambda st: initial_state(builder, st, p[0]))
+        ax, av = _run(alone, p[1:], start=lambda st: initial_state(alone, st, p[0]))
         mine = r.particles(batch.vertex_count)
         assert np.array_equal(x[mine], ax) and np.array_equal(v[mine], av)
 
@@ -215,9 +239,10 @@ def test_a_mixed_batch_of_real_rigs_steps_bit_for_bit_as_each_alone(assets):
     steps = 4
     poses = [[rig.skinning_matrices(clip, clip.start + t0 + s * DT) for s in range(steps + 1)] for rig, clip, t0 in clips]
     x, v = _run(batch, [np.concatenate([p[s] for p in poses]) for s in range(1, steps + 1)],
-                start=lambda st: batch_initial_state(builders, batch, st, [p[0] for p in poses]))
+                start=lambda st: initial_state(batch, st, np.concatenate([p[0] for p in poses])))
     for b, p, r in zip(builders, poses, batch.characters):
-        ax, av = _run(b.finalize("cpu"), p[1:], start=lambda st: initial_state(b, st, p[0]))
+        alone = b.finalize("cpu")
+        ax, av = _run(alone, p[1:], start=lambda st: initial_state(alone, st, p[0]))
         mine = r.particles(batch.vertex_count)
         assert np.array_equal(x[mine], ax) and np.array_equal(v[mine], av), r.name
 

@@ -28,7 +28,7 @@ def _pushed_through(device, rounds=4):
     col = SelfCollision(model)
     v = rig.vertex_count
     a, b = model.state(), model.state()
-    initial_state(builder, a, rig.skinning_matrices("flex", 0.0))
+    initial_state(model, a, rig.skinning_matrices("flex", 0.0))
     x0 = a.x.numpy().astype(np.float64)
     axis = np.argmax(np.ptp(x0[:v], axis=0))  # the arm's length
     lo, hi = x0[:v, axis].min(), x0[:v, axis].max()
@@ -137,7 +137,7 @@ def test_fail_safe_from_the_pair_list_equals_the_query_from_every_triangle(devic
     contacts = model.contacts()
     a, b, ctl = model.state(), model.state(), model.control()
     v, tris = rig.vertex_count, rig.triangles
-    initial_state(builder, a, rig.skinning_matrices("flex", 0.9))
+    initial_state(model, a, rig.skinning_matrices("flex", 0.9))
     rng = np.random.default_rng(5)
     found = both_listed = 0
     for step in range(12):

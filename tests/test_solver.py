@@ -39,7 +39,7 @@ def _at_rest(device, builder, iterations):
     model = builder.finalize(device)
     solver = SkinSolver(model, SolverParams(iterations=iterations))
     a, b, c = model.state(), model.state(), model.control()
-    initial_state(builder, a, builder.rig.skinning_matrices("flex", 0.0))
+    initial_state(model, a, builder.rig.skinning_matrices("flex", 0.0))
     return model, builder.rig, solver, a, b, c
 
 
@@ -95,7 +95,7 @@ def test_rigid_motion_keeps_the_rest_shape(device, coarse_builder, fast):
     solver = SkinSolver(model, SolverParams(gravity=(0, 0, 0), fast_summation=fast))
     a, b, c = model.state(), model.state(), model.control()
     c.set_pose(mats)
-    initial_state(coarse_builder, a, mats)
+    initial_state(model, a, mats)
     for _ in range(200):
         solver.step(a, b, c, None, 0.005)
         a, b = b, a

@@ -94,7 +94,7 @@ def test_after_a_step_every_particle_is_within_its_tether(device):
     ctrl = model.control()
     ctrl.set_pose(mats)
     a, b = model.state(), model.state()
-    initial_state(builder, a, mats)
+    initial_state(model, a, mats)
     a.v.assign(np.random.default_rng(1).normal(scale=30.0, size=(model.particle_count, 3)).astype(np.float32))  # m/s
     solver.step(a, b, ctrl, None, 0.005)
     target = lbs(builder.layers.flat(), np.tile(rig.joint_indices, (4, 1)), np.tile(rig.joint_weights, (4, 1)), mats)
@@ -117,7 +117,7 @@ def test_with_the_volume_loop_no_skin_particle_ends_a_step_beyond_the_cap(device
     ctrl = model.control()
     ctrl.set_pose(mats)
     a, b = model.state(), model.state()
-    initial_state(builder, a, mats)
+    initial_state(model, a, mats)
     a.v.assign(np.random.default_rng(2).normal(scale=30.0, size=(model.particle_count, 3)).astype(np.float32))
     solver.step(a, b, ctrl, None, 0.005)
     v = model.vertex_count

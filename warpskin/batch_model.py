@@ -41,20 +41,19 @@ fail-safe on the written triangles, each character its own.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-import warp as wp
 
-from .collision import CollisionTopology, contact_scalars, upload_collision
+from .collision import CollisionTopology, contact_scalars
 from .device import resolve_device
 from .errors import InputError
 from .model import SkinModel, SkinModelBuilder, model_host_arrays
+from .params import CollisionParams
 from .preprocess.sub_volumes import SubVolumes
-from .run.physics import linear_blend_skin_layers
 from .volume import VolumeLayout
 
-__all__ = ["CharacterRange", "CharacterControl", "batch_host_arrays", "batch_initial_state", "batch_model", "character_controls"]
+__all__ = ["CharacterRange", "CharacterControl", "batch_host_arrays", "batch_model", "character_controls"]
 
 
 @dataclass(frozen=True)
@@ -219,6 +218,10 @@ def batch_host_arrays(parts: Sequence[dict], names: Sequence[str] | None = None)
     out["written_surface"] = _batch_written_surface(parts, v0, total)
     out["subvolume_count"] = int(sum(p["subvolume_count"] for p in parts))
     out["volume_layout"], out["volume_centres"] = _batch_volume(parts, v0, j0, total) if out["subvolume_count"] else (None, None)
+    out["rest"] = [replace(p["rest"][0], joint_start=int(j0[c])) for c, p in enumerate(parts)]
+    for key in ("mean_edges", "character_diagonals"):
+        out[key] = [p[key][0] for p in parts]
+    out["collision_params"], out["collision"] = _batch_collision(parts, names, out["characters"])
     return out
 
 
@@ -300,36 +303,30 @@ def batch_model(builders: Sequence, device=None):
         part = model_host_arrays(b)
         part["written_triangles"] = np.asarray(b.rig.output_triangles)
         parts.append(part)
-    host = batch_host_arrays(parts, names)
-    device = resolve_device(device)
-    model = SkinModel(None, device, host=host)
-    model.character_diagonals = [float(b.rig.size()) for b in builders]
-    if builders and any(b.params.collision.enabled for b in builders):
-        model.collision_params, model.collision = _batch_collision(builders, names, host["characters"], device)
-    return model
+    return SkinModel(batch_host_arrays(parts, names), resolve_device(device))
 
 
-def _batch_collision(builders, names, ranges, device):
-    """One :class:`~warpskin.collision.CollisionData` for the batch: the characters' topologies
-    side by side (vertices, edges, triangles and bones offset), each character's own scalars
-    (``characters``: its thickness, radius, margins, friction, ...; the kernels read each
-    vertex's), and the host's loop counts, which must agree (``passes``,
+def _batch_collision(parts, names, ranges):
+    """``(params, host form)`` of the batch's self-collision (:func:`~warpskin.model.model_host_arrays`'
+    ``collision_params`` and ``collision``; ``(off, None)`` where no character collides): the
+    characters' topologies side by side (vertices, edges, triangles and bones offset), each
+    character's own scalars (``characters``: its thickness, radius, margins, friction, ...; the
+    kernels read each vertex's), and the host's loop counts, which must agree (``passes``,
     ``fail_safe_rounds``: the solver runs them for all)."""
-    from types import SimpleNamespace
-
-
-    for name, b in zip(names, builders):
-        b.params.collision.check(name)
+    params = [p["collision_params"] for p in parts]
+    if not any(c.enabled for c in params):
+        return CollisionParams(enabled=False), None
+    for name, c in zip(names, params):
+        c.check(name)
     for key, what in (("enabled", "self-collision on or off"), ("passes", "[collision] passes"),
                       ("fail_safe_rounds", "[collision] fail_safe_rounds")):
-        values = [getattr(b.params.collision, key) for b in builders]
+        values = [getattr(c, key) for c in params]
         odd = [c for c, v in enumerate(values) if v != values[0]]
         if odd:
             raise InputError(f"the characters of a batch need one {what}: {names[0]} has {values[0]!r}, "
                              f"{names[odd[0]]} {values[odd[0]]!r}")
-    topos = [b.collision_topology for b in builders]
-    # each character's scalars as its own model gets them
-    chars = [contact_scalars(t, b.params.collision) for t, b in zip(topos, builders)]
+    cols = [p["collision"] for p in parts]
+    topos = [c["topology"] for c in cols]
     e0 = np.concatenate([[0], np.cumsum([len(t.edges) for t in topos])[:-1]])
     topo = CollisionTopology(
         edges=np.concatenate([t.edges + r.vertex_start for t, r in zip(topos, ranges)]),
@@ -338,18 +335,19 @@ def _batch_collision(builders, names, ranges, device):
         dominant_joint=np.concatenate([t.dominant_joint + r.joint_start for t, r in zip(topos, ranges)]),
         dominant_weight=np.concatenate([t.dominant_weight for t in topos]),
         mean_edge=topos[0].mean_edge, diagonal=max(t.diagonal for t in topos))
-    tris = np.concatenate([np.asarray(b.rig.triangles, dtype=np.int64) + r.vertex_start for b, r in zip(builders, ranges)])
-    written = np.concatenate([np.asarray(b.rig.output_triangles, dtype=np.int64) + r.vertex_start
-                              for b, r in zip(builders, ranges)])
-    rig = SimpleNamespace(vertices=np.concatenate([b.rig.vertices for b in builders]), triangles=tris,
-                          output_triangles=written)
     # the rigid bones by each character's own rigid_weight: one set of parameters uploads them all
-    rigid = [np.where(t.dominant_weight >= b.params.collision.rigid_weight, t.dominant_joint + r.joint_start, -1)
-             for t, b, r in zip(topos, builders, ranges)]
-    data = upload_collision(topo, rig, builders[0].params.collision, device)
-    data.rigid_bone = wp.array(np.concatenate(rigid).astype(np.int32), dtype=wp.int32, device=device)
-    data.characters = chars
-    return builders[0].params.collision, data
+    rigid = [np.where(t.dominant_weight >= c.rigid_weight, t.dominant_joint + r.joint_start, -1)
+             for t, c, r in zip(topos, params, ranges)]
+    return params[0], {
+        "topology": topo, "params": params[0],
+        "vertices": np.concatenate([c["vertices"] for c in cols]),
+        "triangles": np.concatenate([np.asarray(c["triangles"], dtype=np.int64) + r.vertex_start
+                                     for c, r in zip(cols, ranges)]),
+        "output_triangles": np.concatenate([np.asarray(c["output_triangles"], dtype=np.int64) + r.vertex_start
+                                            for c, r in zip(cols, ranges)]),
+        "rigid_bone": np.concatenate(rigid).astype(np.int32),
+        # each character's scalars as its own model gets them
+        "characters": [contact_scalars(t, c) for t, c in zip(topos, params)]}
 
 
 def _batch_written_surface(parts, v0, total: int):
@@ -369,26 +367,6 @@ def _batch_written_surface(parts, v0, total: int):
         rest_volume=np.concatenate([np.asarray(w.rest_volume, dtype=np.float64) for _, w in have]),
         plane_joint=np.zeros(0, dtype=np.int64), plane_t=np.zeros(0), plane_normal=np.zeros((0, 3)),
         plane_sides=np.zeros((0, 2), dtype=np.int64), vertex_count=total)
-
-
-def batch_initial_state(builders: Sequence, model, state, poses: Sequence[np.ndarray]) -> None:
-    """Put a batched ``model``'s ``state`` at each character's pose (``poses[c]``
-    ``[J_c, 4, 4]``), every character as :func:`~warpskin.run.physics.initial_state` puts it
-    alone (LBS of its layers in float64 on the host, at rest, oriented like its bones)."""
-    if len(builders) != len(model.characters) or len(poses) != len(model.characters):
-        raise InputError(f"a batch of {len(model.characters)} characters needs as many builders and poses, "
-                         f"got {len(builders)} and {len(poses)}")
-    total = model.vertex_count
-    x = np.zeros((4 * total, 3), dtype=np.float32)
-    q = np.zeros((4 * total, 4), dtype=np.float32)
-    for b, pose, r in zip(builders, poses, model.characters):
-        xc, qc = linear_blend_skin_layers(b, pose)
-        x[r.particles(total)] = xc
-        q[r.particles(total)] = qc
-    state.x.assign(x)
-    state.q.assign(q)
-    state.v.zero_()
-    state.omega.zero_()
 
 
 class CharacterControl:

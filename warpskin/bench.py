@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import warp as wp
 
-from .batch_model import batch_initial_state, batch_model
+from .batch_model import batch_model
 from .character import Character
 from .device import resolve_device
 from .errors import WarpskinError
@@ -233,9 +233,9 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         contacts = model.contacts()
         a, b, c = model.state(), model.state(), model.control()
         t_mid = clip.start + 0.4 * clip.duration  # the arm: 2 s, flexed, forearm pressing
-        initial_state(builder, a, rig.skinning_matrices(clip, t_mid))
+        initial_state(model, a, rig.skinning_matrices(clip, t_mid))
         c.set_pose(rig.skinning_matrices(clip, t_mid + 0.01))
-        dt, limit = largest_step([builder], model, params)  # the step simulate takes
+        dt, limit = largest_step(model, params)  # the step simulate takes
         solver.step(a, b, c, contacts, dt)  # compile / load outside the timed regions
         solver.step(b, a, c, contacts, dt)
 
@@ -282,7 +282,7 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         plan = FramePlan.at_times(list(range(frames)), [t_mid + k / scene.frame_rate for k in range(frames)], scene.frame_rate, max_dt=dt)
         sub = plan.substeps
         try:
-            st = PhysicsStepper(builder, SkinSolver(model, params), plan, clip, label=f"bench {builder.rig.name}")
+            st = PhysicsStepper(builder.rig, SkinSolver(model, params), plan, clip, label=f"bench {builder.rig.name}")
             for k in range(3):  # compile, capture, grow the contact buffers outside the timed region
                 st.advance(k)
             nxt = iter(range(3, frames))
@@ -389,7 +389,7 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
         except (WarpskinError, OSError) as exc:  # a scene without its assets, a model the batch refuses
             out["scenes"][target] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
-        dt, limit = largest_step([builder] * count, batch, params)  # gravity's limit applies to a batch as well
+        dt, limit = largest_step(batch, params)  # gravity's limit applies to a batch as well
         clip = rig.clip(scene.clip)
         times = [clip.start + (0.3 + 0.4 * k / max(count, 1)) * clip.duration for k in range(count)]
         poses = [rig.skinning_matrices(clip, t) for t in times]
@@ -398,10 +398,7 @@ def run_batch_bench(targets: list[str], count: int, *, device: str | None = None
             solver = SkinSolver(model, params)
             a, b, c = model.state(), model.state(), model.control()
             contacts = model.contacts()
-            if model.characters:
-                batch_initial_state([builder] * len(mats), model, a, mats)
-            else:
-                initial_state(builder, a, mats[0])
+            initial_state(model, a, np.concatenate(mats))
             c.set_pose(np.concatenate(mats))
             states = [a, b]
             for k in range(4):  # compile, and grow the contact buffers, outside the timed region

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -33,10 +34,13 @@ from .device import resolve_device
 from .preprocess.sub_volumes import SubVolumes, build_subvolumes
 from .settings import check_settings, setting
 from .rig import Rig
+from .skinning import dual_quaternions
+from .transforms import linear_blend_skin
 from .units import extent
 from .volume import upload_volume_layout, volume_layout
 
-__all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts", "model_host_arrays"]
+__all__ = ["ModelParams", "SkinModelBuilder", "SkinModel", "State", "Control", "Contacts", "RestLayers",
+           "model_host_arrays"]
 
 
 @dataclass
@@ -328,9 +332,44 @@ class SkinModelBuilder:
         return out
 
     def finalize(self, device=None) -> SkinModel:
-        """Build (if needed) and upload everything once. Returns the :class:`SkinModel`."""
+        """Build (if needed) and upload everything once. Returns the :class:`SkinModel`.
+
+        The same path as a batch of characters (:func:`warpskin.batch_model.batch_model`):
+        :func:`model_host_arrays`, then one :class:`SkinModel` upload."""
         self.build()
-        return SkinModel(self, resolve_device(device))
+        return SkinModel(model_host_arrays(self), resolve_device(device))
+
+
+@dataclass(frozen=True)
+class RestLayers:
+    """One character's layers at rest and its skin weights on the host (float64, as built):
+    what puts a state at a pose (:meth:`skin`, :func:`warpskin.run.physics.initial_state`).
+
+    Attributes:
+        points: ``[4 V_c, 3]`` the particles at rest, layer-major.
+        joint_indices, joint_weights: ``[V_c, K]`` the skin's influences (the rig's).
+        bone: ``[V_c]`` the joint each vertex's column is oriented by (its dominant bone).
+        joint_start: Its first joint in the model's joints (0 for one character).
+        joint_count: Its joints.
+    """
+
+    points: np.ndarray
+    joint_indices: np.ndarray
+    joint_weights: np.ndarray
+    bone: np.ndarray
+    joint_start: int = 0
+    joint_count: int = 0
+
+    def skin(self, skin_matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(x [4 V_c, 3], q [4 V_c, 4])`` float32: every particle skinned with its vertex's
+        weights at its own joints' ``skin_matrices`` ``[joint_count, 4, 4]`` (LBS in float64),
+        and oriented like its vertex's bone."""
+        ji = np.tile(self.joint_indices, (4, 1))
+        jw = np.tile(self.joint_weights, (4, 1))
+        x = linear_blend_skin(self.points, ji, jw, skin_matrices)
+        q_joint, _, _ = dual_quaternions(skin_matrices)  # rotation part of every joint
+        q = np.tile(q_joint[self.bone], (4, 1))
+        return x.astype(np.float32), q.astype(np.float32)
 
 
 def _i32(a) -> np.ndarray:
@@ -349,7 +388,12 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
     loaded mesh of a refined skin with volume, else ``None``) and ``vertex_written_volume``
     ``[V]`` (1 where it applies), ``rest_drive`` (``[G, M, 3]``
     or ``None``), ``subvolume_count``, ``volume_layout`` and ``volume_centres`` (the
-    :class:`~warpskin.preprocess.sub_volumes.SubVolumes`, or ``None``)."""
+    :class:`~warpskin.preprocess.sub_volumes.SubVolumes`, or ``None``), and per character (one
+    here; a batch's in order) ``rest`` (its :class:`RestLayers`), ``mean_edges`` (its simulated
+    skin's mean rest edge) and ``character_diagonals`` (its rest diagonal) ; ``collision``: the
+    self-collision's host form (``topology``, ``params``, ``vertices``, ``triangles``,
+    ``output_triangles``; a batch adds ``rigid_bone`` and ``characters``), ``None`` with it off,
+    and ``collision_params`` (its :class:`~warpskin.params.CollisionParams`, on or off)."""
     rig = b.rig
     reg = b.regions
     lay = b.solver_layout
@@ -403,6 +447,14 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
         "vertex_loaded": (np.arange(v) < rig.output_count).astype(np.int32),
         "written_surface": written_surface(rig) if (rig.refined_skin and b.subvolumes is not None) else None,
         "vertex_written_volume": np.full(v, int(rig.refined_skin and b.subvolumes is not None), dtype=np.int32),
+        "rest": [RestLayers(np.asarray(b.layers.flat(), dtype=np.float64), np.asarray(rig.joint_indices),
+                            np.asarray(rig.joint_weights), np.asarray(b.layers.bone), 0, joints)],
+        "mean_edges": [mean_edge(rig.vertices, rig.triangles)],
+        "character_diagonals": [rig.size()],
+        "collision_params": b.params.collision,
+        "collision": {"topology": b.collision_topology, "params": b.params.collision, "vertices": rig.vertices,
+                      "triangles": rig.triangles, "output_triangles": rig.output_triangles}
+        if b.params.collision.enabled else None,
     }
 
 
@@ -415,15 +467,16 @@ class SkinModel:
     projection's layout, see :class:`~warpskin.volume.VolumeLayout`), ``edge_*``/``tri_*``
     (collision topology); ``rest_drive_offsets`` ``[G, M]`` for a muscle-driven rest shape.
     Built by :meth:`SkinModelBuilder.finalize` (the builder stays the host view) or, for
-    several characters, by :func:`warpskin.batch_model.batch_model`.
+    several characters, by :func:`warpskin.batch_model.batch_model`: both upload host arrays of
+    :func:`model_host_arrays`' layout here, once. Beside the device arrays the model keeps, on
+    the host, only what puts a state at a pose (``rest``: each character's :class:`RestLayers`)
+    and the written surface's definition (``written_surface``).
     """
 
-    def __init__(self, builder: SkinModelBuilder | None, device, *, host: dict | None = None) -> None:
-        """Upload ``builder``'s model to ``device``; with ``host`` (and no builder), upload those
-        host arrays instead (:func:`model_host_arrays`' layout; a batch of characters,
-        :func:`warpskin.batch_model.batch_model`, which adds its collision data after)."""
-        b = builder
-        h = model_host_arrays(b) if host is None else host
+    def __init__(self, host: dict, device) -> None:
+        """Upload ``host`` (:func:`model_host_arrays`' layout: one character's, or a batch's,
+        :func:`warpskin.batch_model.batch_host_arrays`) to ``device``."""
+        h = host
         self.device = device
         self.vertex_count = int(h["vertex_count"])
         self.particle_count = 4 * self.vertex_count
@@ -489,17 +542,15 @@ class SkinModel:
         #: ``[V]`` 1 where the vertex's character has the written mesh's volume constraint
         self.vertex_written_volume = wp.array(np.asarray(h["vertex_written_volume"], dtype=np.int32), dtype=wp.int32,
                                               device=device)
-        self.collision_params = CollisionParams(enabled=False)
-        self.collision = None
-        if b is not None:
-            rig = b.rig
-            self.collision_params = b.params.collision
-            self.collision = upload_collision(b.collision_topology, rig, b.params.collision, device) \
-                if b.params.collision.enabled else None
-        #: the characters of a batch (:func:`warpskin.batch_model.batch_model`) and their body
-        #: diagonals [m]; empty for one
+        self.collision_params = h.get("collision_params") or CollisionParams(enabled=False)
+        self.collision = _upload_collision(h["collision"], device) if h.get("collision") is not None else None
+        #: the characters of a batch (:func:`warpskin.batch_model.batch_model`); empty for one
         self.characters = list(h.get("characters", []))
-        self.character_diagonals: list[float] = []
+        #: per character (one, or a batch's in order): its body diagonal [m], its simulated
+        #: skin's mean rest edge, and its layers at rest (:class:`RestLayers`, on the host)
+        self.character_diagonals = [float(d) for d in h["character_diagonals"]]
+        self.mean_edges = [float(e) for e in h["mean_edges"]]
+        self.rest: list[RestLayers] = list(h["rest"])
 
     def state(self) -> State:
         """A rest state: positions at rest, zero velocities, identity orientations."""
@@ -522,6 +573,19 @@ class SkinModel:
         if self.collision is None:
             return None
         return Contacts(self, capacity if capacity is not None else int(self.collision_params.capacity), pair_capacity)
+
+
+def _upload_collision(c: dict, device):
+    """The self-collision's device data from its host form (:func:`model_host_arrays`'
+    ``collision``); a batch's ``rigid_bone`` and per-character ``characters`` replace the first
+    character's."""
+    surface = SimpleNamespace(vertices=c["vertices"], triangles=c["triangles"], output_triangles=c["output_triangles"])
+    data = upload_collision(c["topology"], surface, c["params"], device)
+    if c.get("rigid_bone") is not None:
+        data.rigid_bone = wp.array(np.asarray(c["rigid_bone"], dtype=np.int32), dtype=wp.int32, device=device)
+    if c.get("characters") is not None:
+        data.characters = list(c["characters"])
+    return data
 
 
 class State:

@@ -73,29 +73,23 @@ def gravity_step_limit(mean_edge: float, gravity, unit: float) -> float:
 CHORD_PASSES = 4
 
 
-def skin_step_limit(builders, model: SkinModel, params: SolverParams) -> float:
-    """The longest step [s] :func:`gravity_step_limit` allows ``model`` (one character, or a
-    batch of ``builders`` in its order): the smallest over its characters, each from its own
-    simulated skin's mean rest edge and file unit (:func:`length_units` with ``params.units``);
-    ``inf`` without gravity. Every driver that steps a model (``simulate``, ``bench``) splits its
-    steps to this."""
-    from .collision import mean_edge
-
+def skin_step_limit(model: SkinModel, params: SolverParams) -> float:
+    """The longest step [s] :func:`gravity_step_limit` allows ``model`` (one character or a
+    batch): the smallest over its characters, each from its own simulated skin's mean rest edge
+    (``model.mean_edges``) and file unit (:func:`length_units` with ``params.units``); ``inf``
+    without gravity. Every driver that steps a model (``simulate``, ``bench``) splits its steps
+    to this."""
     units = length_units(model, params.units)
-    edges: dict[int, float] = {}  # a batch of one builder repeated measures its skin once
-    for b in builders:
-        if id(b) not in edges:
-            edges[id(b)] = mean_edge(b.rig.vertices, b.rig.triangles)
-    limits = [gravity_step_limit(edges[id(b)], params.gravity, u) for b, u in zip(builders, units)]
+    limits = [gravity_step_limit(e, params.gravity, u) for e, u in zip(model.mean_edges, units)]
     return min(limits, default=math.inf)
 
 
-def largest_step(builders, model: SkinModel, params: SolverParams) -> tuple[float, float]:
+def largest_step(model: SkinModel, params: SolverParams) -> tuple[float, float]:
     """``(dt, limit)`` [s]: the longest step a run of ``model`` takes, ``params.dt`` or, where it
     is shorter, the limit gravity allows (:func:`skin_step_limit`, ``inf`` without gravity), and
     that limit. The one place the step is resolved: ``simulate`` splits its frames into steps no
     longer than ``dt`` (and pre-rolls with it), ``bench`` times steps of ``dt``."""
-    limit = skin_step_limit(builders, model, params)
+    limit = skin_step_limit(model, params)
     return min(params.dt, limit), limit
 
 

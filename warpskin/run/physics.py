@@ -18,12 +18,10 @@ from collections.abc import Callable
 import numpy as np
 import warp as wp
 
-from ..errors import SceneError, SimulationError
+from ..errors import InputError, SceneError, SimulationError
 from ..metrics import self_intersections
 from ..preprocess.layers import LAYER_NAMES
-from ..skinning import dual_quaternions
 from ..solver import SkinSolver
-from ..transforms import linear_blend_skin
 from .plan import FramePlan
 from .runner import first_non_finite
 
@@ -36,36 +34,39 @@ MAX_GROWTHS = 8
 PAIR_LIMIT = 64
 
 
-def initial_state(builder, state, skin_matrices: np.ndarray) -> None:
-    """Put ``state`` at the pose ``skin_matrices`` ``[J, 4, 4]``: every particle skinned with
-    its vertex's weights (LBS, on the host in float64 from the builder's layers), at rest (zero
-    velocities), oriented like its dominant bone."""
-    x, q = linear_blend_skin_layers(builder, skin_matrices)
+def initial_state(model, state, skin_matrices: np.ndarray) -> None:
+    """Put ``state`` (of ``model``) at the pose ``skin_matrices`` ``[J, 4, 4]`` (the model's
+    joints; a batch's, character after character): every particle skinned with its vertex's
+    weights (LBS on the host in float64 from the model's layers at rest,
+    :meth:`~warpskin.model.RestLayers.skin`), at rest (zero velocities), oriented like its
+    dominant bone. A batch's characters come out as each does alone.
+
+    Raises:
+        InputError: ``skin_matrices`` is not ``[J, 4, 4]``.
+    """
+    m = np.asarray(skin_matrices)
+    if m.shape != (model.joint_count, 4, 4):
+        raise InputError(f"expected skinning matrices of shape {(model.joint_count, 4, 4)}, got {m.shape}")
+    if len(model.rest) == 1:
+        x, q = model.rest[0].skin(m)
+    else:
+        total = model.vertex_count
+        x = np.zeros((4 * total, 3), dtype=np.float32)
+        q = np.zeros((4 * total, 4), dtype=np.float32)
+        for rest, r in zip(model.rest, model.characters):
+            at = r.particles(total)
+            x[at], q[at] = rest.skin(m[rest.joint_start:rest.joint_start + rest.joint_count])
     state.x.assign(x)
     state.q.assign(q)
     state.v.zero_()
     state.omega.zero_()
 
 
-def linear_blend_skin_layers(builder, skin_matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(x [4V, 3], q [4V, 4])`` float32: every particle of ``builder``'s layers skinned with
-    its vertex's weights at ``skin_matrices`` ``[J, 4, 4]`` (LBS in float64 on the host), and
-    oriented like its dominant bone (:func:`initial_state`)."""
-    b = builder
-    rig = b.rig
-    ji = np.tile(rig.joint_indices, (4, 1))
-    jw = np.tile(rig.joint_weights, (4, 1))
-    x = linear_blend_skin(b.layers.flat(), ji, jw, skin_matrices)
-    q_joint, _, _ = dual_quaternions(skin_matrices)  # rotation part of every joint
-    q = np.tile(q_joint[b.layers.bone], (4, 1))
-    return x.astype(np.float32), q.astype(np.float32)
-
-
 class PhysicsStepper:
     """Advances the multi-layer model through a :class:`FramePlan`.
 
     Args:
-        builder: The built :class:`~warpskin.model.SkinModelBuilder` (host view: rig, layers).
+        rig: The simulated rig (its clips give the poses).
         solver: The :class:`~warpskin.solver.SkinSolver` of its model (``builder.finalize(device)``)
             and settings (``dt`` is the plan's substep).
         plan: The frames.
@@ -79,11 +80,11 @@ class PhysicsStepper:
             ``"simulate <rig name>"``).
     """
 
-    def __init__(self, builder, solver: SkinSolver, plan: FramePlan, clip, *, use_graph: bool = True,
+    def __init__(self, rig, solver: SkinSolver, plan: FramePlan, clip, *, use_graph: bool = True,
                  preroll: float = 0.0, activation: Callable | None = None, label: str | None = None) -> None:
         model, params = solver.model, solver.params
-        self.builder, self.model, self.plan, self.clip = builder, model, plan, clip
-        rig = self.rig = builder.rig
+        self.model, self.plan, self.clip = model, plan, clip
+        self.rig = rig
         self.solver = solver
         self.collision = solver.collision
         self.contacts = model.contacts()  # None when the model has no collision data
@@ -109,7 +110,7 @@ class PhysicsStepper:
             self.act_dev = wp.array(acts.reshape(-1), dtype=wp.float32, device=dev)
             self.act_staging = wp.zeros(max(substeps * g, 1), dtype=wp.float32, device=dev)
             self.control.set_activation(np.asarray(activation(plan.times[0]), np.float32).reshape(g))
-        initial_state(builder, self.state_a, self.frame_poses[0])
+        initial_state(model, self.state_a, self.frame_poses[0])
         if not (math.isfinite(preroll) and preroll >= 0):
             raise SceneError(f"preroll must be a number of seconds >= 0, got {preroll!r}")
         self.preroll = float(preroll)
@@ -150,7 +151,7 @@ class PhysicsStepper:
         return out
 
     def _preroll(self) -> None:
-        rig, builder = self.rig, self.builder
+        rig = self.rig
         bind_pairs = len(self_intersections(rig.vertices, rig.triangles))
         if bind_pairs:
             warnings.warn(f"{rig.name}: the bind pose itself has {bind_pairs} intersecting skin triangle pairs; the "
@@ -166,7 +167,7 @@ class PhysicsStepper:
         a = self.state_a
         for attempt in range(MAX_GROWTHS + 1):
             # from the bind pose into the first frame's pose (plain launches, once)
-            initial_state(builder, a, start)
+            initial_state(self.model, a, start)
             sa, sb = a, self.state_b
             for s in range(n):
                 wp.copy(self.control.skin_matrices, pre_dev, dest_offset=0, src_offset=s * j, count=j)

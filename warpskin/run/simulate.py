@@ -367,14 +367,14 @@ def _meshes_to_write(character, builder, render, with_lbs: bool, with_layers: bo
     return meshes
 
 
-def _steps_gravity_allows(scene, builder, model, params: SolverParams, plan: FramePlan, frames, start_frame):
+def _steps_gravity_allows(scene, model, params: SolverParams, plan: FramePlan, frames, start_frame):
     """``(params, plan, limit)``: the solver settings and frame plan with steps no longer than
     :func:`~warpskin.solver.gravity_step_limit` of the simulated skin (``limit`` [s], ``inf``
     without gravity), with one warning where that splits the frames into more steps than
     ``params.dt`` asked; unchanged where it does not."""
     from dataclasses import replace
 
-    dt, limit = largest_step([builder], model, params)
+    dt, limit = largest_step(model, params)
     if not dt < params.dt:
         return params, plan, limit
     asked = plan
@@ -542,7 +542,7 @@ class _Simulation:
         self.render = rig  # what is written
         self._bind(scene, rig)
         builder, model = self.builder, self.model
-        self.params, self.plan, self.gravity_limit = _steps_gravity_allows(scene, builder, model, params, plan,
+        self.params, self.plan, self.gravity_limit = _steps_gravity_allows(scene, model, params, plan,
                                                                            o.frames, o.start_frame)
         self.pop = o.overlay(self.character, builder, self.plan) if o.overlay is not None else None
         self.build_s = time.perf_counter() - t_build
@@ -579,7 +579,7 @@ class _Simulation:
         is written."""
         o, character, plan = self.o, self.character, self.plan
         check_intersections = o.report_dir is not None if o.check_intersections is None else o.check_intersections
-        self.stepper = PhysicsStepper(self.builder, SkinSolver(self.model, self.params), plan, self.clip,
+        self.stepper = PhysicsStepper(self.builder.rig, SkinSolver(self.model, self.params), plan, self.clip,
                                       use_graph=o.use_graph,
                                       preroll=self.scene.preroll if o.preroll is None else float(o.preroll),
                                       activation=o.activation,
