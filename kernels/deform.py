@@ -287,16 +287,6 @@ def room_kernel(
 
 
 @wp.kernel
-def copy_vec3_kernel(
-    src: wp.array(dtype=wp.vec3),
-    # output
-    dst: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()
-    dst[i] = src[i]
-
-
-@wp.kernel
 def push_out_kernel(
     mesh: wp.uint64,
     points: wp.array(dtype=wp.int32),
