@@ -67,6 +67,10 @@ from .params import GuardParams, WRITTEN_FLIPPED, WRITTEN_STRAINED, as_written, 
 
 __all__ = ["SurfaceGuard"]
 
+#: Bisection steps of :meth:`SurfaceGuard.keep`'s share of the way back to the guard's result
+#: (a 256th of the way: finer is not seen).
+KEEP_BISECTIONS = 8
+
 
 class SurfaceGuard:
     """The guard of one written mesh (see the module docstring), holding its weight between
@@ -524,9 +528,12 @@ class SurfaceGuard:
         frame's :meth:`apply`) keeps better, against ``lbs``: more than :data:`WRITTEN_STRAINED`
         of its edges past :data:`~warpskin.quality.STRAIN_LIMIT` beyond LBS's, or more than
         :data:`WRITTEN_FLIPPED` of its triangles turned over against LBS, and more of them than
-        ``guarded``. Then the points of the edges and triangles that make it worse go to
+        ``guarded``. Then the points of the edges and triangles that make it worse go towards
         ``guarded``, and a smooth ramp around them part way (:meth:`_falloff`; a group moves as a
-        whole, by its largest share), jumping by more than the limit there. Within the bounds
+        whole, by its largest share), by the least share of the way (bisection,
+        :data:`KEEP_BISECTIONS` steps) at which no edge is strained and no triangle turned
+        over that is not in ``guarded`` (or LBS, for the edges), else all the way; they jump
+        by more than the limit there. Within the bounds
         the limit's cut stands: it keeps points from jumping. ``limited`` itself where nothing
         is taken back."""
         if not self.params.enabled or self.count == 0 or limited is guarded:
@@ -558,7 +565,21 @@ class SurfaceGuard:
             high = np.zeros(int(self.group.max()) + 1)
             np.maximum.at(high, self.group, ramp)
             ramp = high[self.group]
-        out = xw + ramp[:, None] * (gw - xw)
+
+        def within(share: float) -> bool:  # no edge or triangle worse than guarded's, the ramp taken this far
+            y = xw + share * ramp[:, None] * (gw - xw)
+            return not (np.any((self._strain(y) > STRAIN_LIMIT) & ~g_over & ~lbs_over) or
+                        np.any((self._cosines(y, n_lbs, len_lbs) < 0.0) & ~g_flip))
+
+        # the least share of the way to ``guarded`` at which no edge or triangle is worse than
+        # there (bisection): the rest of the limit's cut stands, so the points jump no farther
+        # than they must
+        lo, hi = 0.0, 1.0
+        if within(hi):
+            for _ in range(KEEP_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (lo, mid) if within(mid) else (mid, hi)
+        out = xw + hi * ramp[:, None] * (gw - xw)
         return as_written(out[mesh.weld])
 
     def blend(self, p: np.ndarray, lb: np.ndarray, g: np.ndarray) -> np.ndarray:
