@@ -45,13 +45,17 @@ def tether_kernel(
     skin_matrices: wp.array(dtype=wp.mat44),
     tether_radius: wp.array(dtype=wp.float32),
     vertex_count: int,
+    reach: wp.array(dtype=wp.float32),
     # outputs
     x: wp.array(dtype=wp.vec3),
     clamped: wp.array(dtype=wp.int32),
     targets: wp.array(dtype=wp.vec3),
 ):
-    """One thread per particle; the skin's targets (``p < vertex_count``) are written to
-    ``targets`` for the caps in the volume loop (:func:`warpskin.kernels.volume.volume_correction_kernel`)."""
+    """One thread per particle: ``x[p]`` no farther than ``tether_radius[i]`` [m] (``i`` its
+    vertex) from its LBS target, a skin particle farther by its contact reach ``reach[i]`` [m]
+    (``reach`` of length 1: none has one); ``clamped`` counts the particles moved. The skin's targets (``p < vertex_count``) are written
+    to ``targets`` for the caps in the volume loop
+    (:func:`warpskin.kernels.volume.volume_correction_kernel`)."""
     p = wp.tid()
     i = p % vertex_count
     t = lbs_point(particle_q0[p], joint_indices, joint_weights, i, skin_matrices)
@@ -59,10 +63,42 @@ def tether_kernel(
         targets[p] = t
     d = x[p] - t
     r = tether_radius[i]
+    if p < vertex_count and reach.shape[0] > 1:
+        r = r + reach[i]
     dl = wp.length(d)
     if dl > r:
         x[p] = t + d * (r / dl)
         wp.atomic_add(clamped, 0, 1)
+
+
+@wp.kernel
+def contact_reach_kernel(
+    tether_cap: wp.array(dtype=wp.float32),
+    contact_cap: wp.array(dtype=wp.float32),
+    colliding: wp.array(dtype=wp.int32),
+    shrink: float,
+    written: wp.array(dtype=wp.int32),
+    reach_in: wp.array(dtype=wp.float32),
+    # outputs
+    reach_out: wp.array(dtype=wp.float32),
+    cap: wp.array(dtype=wp.float32),
+    written_cap: wp.array(dtype=wp.float32),
+):
+    """One thread per skin vertex: its contact reach [m] after a step, ``e = contact_cap -
+    tether_cap`` (at least 0) where the skin particle is in contact (``colliding``, ``[4V]``;
+    of length 1: none is), else its reach before (``reach_in``) less ``shrink`` x ``e``, at
+    least 0; the step's cap ``tether_cap + reach`` and ``written_cap`` the same where
+    ``written`` is 1 (the characters with a written mesh's volume), else unbounded."""
+    i = wp.tid()
+    base = tether_cap[i]
+    full = wp.max(contact_cap[i] - base, 0.0)
+    e = wp.max(reach_in[i] - shrink * full, 0.0)
+    if colliding.shape[0] > 1:
+        if colliding[i] != 0:
+            e = full
+    reach_out[i] = e
+    cap[i] = base + e
+    written_cap[i] = wp.where(written[i] != 0, base + e, 1.0e30)
 
 
 @wp.kernel

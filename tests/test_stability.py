@@ -52,7 +52,8 @@ def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
     targets = wp.zeros(model.vertex_count, dtype=wp.vec3, device=model.device)
     wp.launch(k.tether_kernel, dim=model.particle_count,
               inputs=[model.particle_q0, model.coupling_joint_indices, model.coupling_joint_weights, ctrl.skin_matrices,
-                      solver.tether_radius, model.vertex_count], outputs=[xw, clamped, targets], device=model.device)
+                      solver.tether_radius, model.vertex_count, wp.zeros(1, dtype=wp.float32, device=model.device)],
+              outputs=[xw, clamped, targets], device=model.device)
     out = xw.numpy().astype(np.float64)
     # the skin's targets, kept for the volume loop's caps, are its LBS positions
     np.testing.assert_allclose(targets.numpy(), target[: model.vertex_count], atol=1e-5)
@@ -65,6 +66,60 @@ def test_tether_clamps_every_particle_to_its_radius_around_lbs(device):
     near = np.setdiff1d(np.arange(model.particle_count), far)
     np.testing.assert_array_equal(out[near], x[near].astype(np.float32))
     assert int(clamped.numpy()[0]) == 40
+
+
+def test_a_skin_particle_in_contact_reaches_farther_and_its_reach_shrinks_after(device):
+    # contact_reach_kernel against its formula in NumPy (generic reaches, half the skin in
+    # contact): in contact, e = contact cap - tether cap; else the reach before less shrink x
+    # that, at least 0; the step's caps are tether cap + e (the written one unbounded off the
+    # written mesh's vertices). The tether kernel then holds a skin particle thrown far on the
+    # sphere of its radius + its reach, and a deeper particle of the same vertex on its radius
+    from warpskin.kernels import constraints as k
+
+    rig = coarse_arm()
+    builder = SkinModelBuilder(rig)
+    model = builder.finalize(device)
+    v, n, dev = model.vertex_count, model.particle_count, model.device
+    rng = np.random.default_rng(7)
+    base = rng.uniform(0.01, 0.02, v)
+    full = np.where(rng.random(v) < 0.8, 0.03, 0.005)  # contact caps, some below the tether's
+    colliding = np.zeros(n, dtype=np.int32)
+    colliding[:v] = rng.random(v) < 0.5
+    reach_in = rng.uniform(0.0, 0.02, v)
+    written = (rng.random(v) < 0.5).astype(np.int32)
+    shrink = 0.3
+    f32 = lambda a: wp.array(np.asarray(a, dtype=np.float32), dtype=wp.float32, device=dev)
+    reach, cap, wcap = (wp.zeros(v, dtype=wp.float32, device=dev) for _ in range(3))
+    wp.launch(k.contact_reach_kernel, dim=v,
+              inputs=[f32(base), f32(full), wp.array(colliding, dtype=wp.int32, device=dev), shrink,
+                      wp.array(written, dtype=wp.int32, device=dev), f32(reach_in)],
+              outputs=[reach, cap, wcap], device=dev)
+    b32, r32 = base.astype(np.float32), reach_in.astype(np.float32)
+    e_full = np.maximum(full.astype(np.float32) - b32, 0.0)
+    expect = np.where(colliding[:v] != 0, e_full, np.maximum(r32 - shrink * e_full, 0.0))
+    np.testing.assert_allclose(reach.numpy(), expect, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(cap.numpy(), b32 + expect, rtol=1e-6)
+    np.testing.assert_allclose(wcap.numpy()[written == 1], (b32 + expect)[written == 1], rtol=1e-6)
+    assert np.all(wcap.numpy()[written == 0] > 1e29)
+    # the tether with those reaches: skin particle i and its bone particle 3V + i thrown 1 m out
+    solver = SkinSolver(model, SolverParams(tether=1.5, tether_floor=0.01, tether_max=1.0))
+    mats = rig.skinning_matrices("flex", 1.0)
+    ctrl = model.control()
+    ctrl.set_pose(mats)
+    target = lbs(builder.layers.flat(), np.tile(rig.joint_indices, (4, 1)), np.tile(rig.joint_weights, (4, 1)), mats)
+    thrown = rng.choice(v, 20, replace=False)
+    x = target.copy()
+    for p in (thrown, 3 * v + thrown):
+        x[p] += rng.normal(size=(20, 3))
+    xw = wp.array(x.astype(np.float32), dtype=wp.vec3, device=dev)
+    wp.launch(k.tether_kernel, dim=n,
+              inputs=[model.particle_q0, model.coupling_joint_indices, model.coupling_joint_weights, ctrl.skin_matrices,
+                      solver.tether_radius, v, reach],
+              outputs=[xw, wp.zeros(1, dtype=wp.int32, device=dev), wp.zeros(v, dtype=wp.vec3, device=dev)], device=dev)
+    dist = np.linalg.norm(xw.numpy().astype(np.float64) - target, axis=1)
+    radius = solver.tether_radius.numpy().astype(np.float64)
+    np.testing.assert_allclose(dist[thrown], radius[thrown] + expect[thrown], rtol=1e-4)
+    np.testing.assert_allclose(dist[3 * v + thrown], radius[thrown], rtol=1e-4)
 
 
 def test_no_tether_radius_exceeds_tether_max_of_the_diagonal(device):
@@ -335,8 +390,11 @@ def test_a_head_folding_down_is_not_taken_for_a_volume_error(tmp_path, assets):
     from warpskin.scene import Scene
 
     scene = Scene.from_rig_file(assets / "RobotExpressive" / "RobotExpressive.glb", clip="Death")
+    # the cage's skin in contact held at the tether's cap, as the rule was found on this clip (with
+    # the contact reach, tether_contact, the physics lags LBS's recovery less)
+    solver = dataclasses.replace(scene.solver_params(), tether_contact=scene.solver_params().tether_max)
     with pytest.warns(Warning):
-        result = simulate(scene, tmp_path / "death.usdc", progress=False, cage="always")
+        result = simulate(scene, tmp_path / "death.usdc", progress=False, cage="always", solver_params=solver)
     first, last = scene.frame_range()
     assert len(result.frames) == last - first + 1
     m = result.metrics
@@ -357,8 +415,12 @@ def test_a_small_sub_volume_is_measured_against_a_hundredth_of_the_body(tmp_path
     from warpskin.scene import Scene
 
     scene = Scene.from_rig_file(assets / "RobotExpressive" / "RobotExpressive.glb", clip="Running")
+    # the cage's skin in contact held at the tether's cap, as the case was found (the contact
+    # reach, tether_contact, keeps this foot from turning inside out)
+    solver = dataclasses.replace(scene.solver_params(), tether_contact=scene.solver_params().tether_max)
     with pytest.warns(Warning):
-        result = simulate(scene, tmp_path / "run.usdc", progress=False, cage="always", frames=(0, 3))
+        result = simulate(scene, tmp_path / "run.usdc", progress=False, cage="always", frames=(0, 3),
+                          solver_params=solver)
     assert len(result.frames) == 4
     m = result.metrics
     rest = np.abs(np.array(m["subvolume_rest"]))
@@ -406,3 +468,37 @@ def test_steps_longer_than_gravity_allows_are_split_and_the_arm_keeps_its_surfac
     assert s["gravity_step_limit_s"] == pytest.approx(limit, rel=1e-6)
     assert s["substeps_per_frame"] == 6 and s["dt_s"] == pytest.approx(1.0 / 180.0)
     assert s["written"]["arm"]["max_strained_excess"] <= 0.005
+
+
+def test_only_a_skin_free_of_crossings_at_rest_reaches_farther_in_contact():
+    # clean_at_rest against the brute-force pair count of each character's rest skin: the arm
+    # has none (every vertex clean); a copy of it with one ring of vertices pushed through the
+    # opposite side of its tube crosses itself, and in a batch only that character's vertices
+    # are not clean
+    from types import SimpleNamespace
+
+    from oracles import intersecting_pairs_brute_force
+    from warpskin.batch_model import batch_model
+    from warpskin.collision import CollisionParams
+    from warpskin.model import RestLayers
+    from warpskin.solver import clean_at_rest
+
+    off = CollisionParams(enabled=False)
+    builder = SkinModelBuilder(coarse_arm(), ModelParams(collision=off, refine=False, volume=False))
+    model = builder.finalize("cpu")
+    rig = builder.rig
+    assert intersecting_pairs_brute_force(rig.vertices, rig.triangles) == 0
+    assert clean_at_rest(model).all()
+    batch = batch_model([builder, builder], "cpu")
+    v = rig.vertex_count
+    dented = np.array(batch.rest[1].points, dtype=np.float64)
+    axis_point = rig.vertices.mean(axis=0)
+    ring = np.argsort(np.abs(rig.vertices[:, 0] - rig.vertices[:, 0].mean()))[:12]  # around mid-arm
+    dented[ring] = 2.0 * axis_point - dented[ring] + 0.013 * np.arange(1, 13)[:, None]  # through to the other side
+    assert intersecting_pairs_brute_force(dented[:v], rig.triangles) > 0
+    fake = SimpleNamespace(tri_indices=batch.tri_indices, characters=batch.characters, vertex_count=batch.vertex_count,
+                           rest=[batch.rest[0], RestLayers(dented, *[getattr(batch.rest[1], k) for k in
+                                                                     ("joint_indices", "joint_weights", "bone",
+                                                                      "joint_start", "joint_count")])])
+    clean = clean_at_rest(fake)
+    assert clean[:v].all() and not clean[v:].any()

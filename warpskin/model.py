@@ -590,7 +590,9 @@ def _upload_collision(c: dict, device):
 
 class State:
     """What the solver advances: particle positions ``x`` [m], velocities ``v`` [m/s],
-    orientations ``q`` and angular velocities ``omega`` [rad/s], all ``[4V]``."""
+    orientations ``q`` and angular velocities ``omega`` [rad/s], all ``[4V]``, and each skin
+    vertex's contact reach ``contact_reach`` ``[V]`` [m] (how much farther than the tether's
+    cap recent contacts let it be from LBS: ``SolverParams.tether_contact``; 0 at rest)."""
 
     def __init__(self, model: SkinModel) -> None:
         n = model.particle_count
@@ -599,10 +601,11 @@ class State:
             self.v = wp.zeros(n, dtype=wp.vec3)
             self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
             self.omega = wp.zeros(n, dtype=wp.vec3)
+            self.contact_reach = wp.zeros(model.vertex_count, dtype=wp.float32)
 
     def assign(self, other: State) -> None:
         """Copy ``other`` into this state (device copies, no allocation)."""
-        for name in ("x", "v", "q", "omega"):
+        for name in ("x", "v", "q", "omega", "contact_reach"):
             wp.copy(getattr(self, name), getattr(other, name))
 
 

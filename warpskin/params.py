@@ -74,6 +74,19 @@ class SolverParams:
             this from its LBS target at the end of a step. A flex as deep as the procedural
             arm's 150 degrees, whose crease skin lies far from its collapsed LBS, needs more
             than the default (the arm scene sets its own).
+        tether_contact, tether_release: A skin particle in contact in a step (within the
+            detection margin of another part of the skin:
+            :attr:`~warpskin.model.Contacts.colliding`) reaches ``e = tether_contact -
+            tether_max`` (x the diagonal, at least 0) farther: its tether radius and its cap
+            grow by ``e``. Where LBS drives one part into another (a leg into the belly), the
+            contacts push the skin farther from LBS than the tether lets it swing, and a tether
+            that pulled it back pulled it into the crossing. Once the contact ends, the reach
+            shrinks to 0 over ``tether_release`` seconds (``State.contact_reach``), so that the
+            tether takes the skin back smoothly rather than in one step. Only on a character
+            whose simulated skin has no intersecting pair at rest
+            (:func:`~warpskin.solver.clean_at_rest`): where pieces cross at rest the contacts
+            start inside what they should keep apart. Keep ``tether_contact`` below
+            ``max_offset``.
         chord_strain, chord_area: A refined skin (a coarse mesh simulated on a refined copy,
             written with its own triangles: chords of the simulated surface) keeps its written
             edges within ``chord_strain`` of their rest length (or of LBS's, where LBS strains
@@ -108,6 +121,10 @@ class SolverParams:
     tether_floor: float = setting(0.01, "number", "added to the tether radius, x the body's diagonal", low=0.0)
     tether_max: float = setting(0.05, "number", "no tether radius is longer than this, x the body's diagonal",
                                 low=0.0)
+    tether_contact: float = setting(0.07, "number", "the cap of a skin particle in contact, x the body's diagonal "
+                                    "(contacts push the skin past the tether)", low=0.0)
+    tether_release: float = setting(0.25, "number", "seconds in which a particle's contact cap shrinks back to "
+                                    "tether_max once its contact ends", low=0.0, open_low=True)
     chord_strain: float = setting(1.4, "number", "a refined skin's written edges stay within this strain of their "
                                   "rest length, or of LBS's where LBS strains them more (0: off)", low=0.0,
                                   must="0 (off) or > 1")

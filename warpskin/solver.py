@@ -24,11 +24,12 @@ from .kernels import constraints as k_con
 from .kernels import integrate as k_int
 from .kernels import shape_matching as k_sm
 from .kernels import skinning as k_skin
+from .metrics import self_intersections
 from .model import Contacts, Control, SkinModel, State
 from .units import UNITS, metres_per_unit
 from .volume import VolumeConstraints
 
-__all__ = ["SolverParams", "SkinSolver", "largest_step", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
+__all__ = ["SolverParams", "SkinSolver", "largest_step", "clean_at_rest", "SimulationError", "length_units", "particle_gravity", "GRAVITY_STEP",
            "gravity_step_limit", "skin_step_limit"]
 
 #: The most a step may let gravity move a free particle (``g dt^2``), as a share of the skin's
@@ -91,6 +92,23 @@ def largest_step(model: SkinModel, params: SolverParams) -> tuple[float, float]:
     longer than ``dt`` (and pre-rolls with it), ``bench`` times steps of ``dt``."""
     limit = skin_step_limit(model, params)
     return min(params.dt, limit), limit
+
+
+def clean_at_rest(model: SkinModel) -> np.ndarray:
+    """``[V]`` bool: the vertices of the characters whose simulated skin has no intersecting
+    triangle pair at rest (:func:`~warpskin.metrics.self_intersections` of each one's rest skin,
+    ``model.rest``). Only there do contacts push the skin past the tether's cap
+    (``tether_contact``): where pieces cross at rest (a hand sunk into a sleeve, a tube's end in
+    a ball joint) the contacts start inside what they should keep apart, and reaching farther
+    pushed the cut CesiumMan's pieces through each other (189 pairs where LBS has 67)."""
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    ranges = [(r.vertex_start, r.vertex_count, r.triangle_start, r.triangle_count) for r in model.characters] or \
+        [(0, model.vertex_count, 0, len(tris))]
+    clean = np.zeros(model.vertex_count, dtype=bool)
+    for rest, (v0, vc, t0, tc) in zip(model.rest, ranges):
+        mine = tris[t0:t0 + tc] - v0
+        clean[v0:v0 + vc] = len(self_intersections(rest.points[:vc], mine)) == 0
+    return clean
 
 
 def particle_gravity(model: SkinModel, gravity, units: list[float]) -> np.ndarray:
@@ -160,6 +178,9 @@ class SkinSolver:
                 # the hard bound after the volume loop: the cap alone (see tether_max)
                 self.tether_cap = wp.array((p.tether_max * diagonal).astype(np.float32), dtype=wp.float32)
             self.tether_clamped = wp.zeros(1, dtype=wp.int32)
+            self._no_contacts = wp.zeros(1, dtype=wp.int32)
+            self._no_reach = wp.zeros(1, dtype=wp.float32)
+            self.contact_cap = self.contact_written_cap = None
             # the skin's LBS targets of the step (written by the tether, read by the volume loop's caps)
             self.tether_targets = wp.zeros(v, dtype=wp.vec3)
             # fast summation buffers
@@ -196,6 +217,14 @@ class SkinSolver:
             self.collision = None
             if model.collision is not None:
                 self.collision = SelfCollision(model)
+                # the caps of a step with contacts (tether_contact): the skin in contact may be
+                # pushed farther from LBS than the tether's cap
+                if self.tether_radius is not None:
+                    diagonal = model.vertex_diagonal.numpy()
+                    reach = np.where(clean_at_rest(model), p.tether_contact, p.tether_max) * diagonal
+                    self.contact_max = wp.array(reach.astype(np.float32), dtype=wp.float32)
+                    self.contact_cap = wp.clone(self.tether_cap)
+                    self.contact_written_cap = wp.clone(self.tether_cap)
                 # the skin between the fail-safe and the volume loop: what the pass after the
                 # volume loop puts a pair's vertices back to
                 self.x_before_volume = wp.zeros(v, dtype=wp.vec3) if self.volume is not None else None
@@ -301,7 +330,8 @@ class SkinSolver:
         self.volume.project(x, self.volume_inv_mass, w, self.volume_centres, p.volume_iterations,
                             p.volume_stiffness, cap=cap)
 
-    def _written_volume(self, x: wp.array, control: Control, collide: bool = False) -> None:
+    def _written_volume(self, x: wp.array, control: Control, collide: bool = False,
+                        cap_radius: wp.array | None = None) -> None:
         """A refined skin is written with the loaded mesh's triangles, chords of the simulated
         surface, which lose volume where the added vertices bulge between them while the
         refined surface keeps its own. One projection of the written mesh's volume on the
@@ -326,17 +356,19 @@ class SkinSolver:
                           min_move=col.default_min_move)
         wp.launch(k_con.split_weights_kernel, dim=m.vertex_count, inputs=[self.volume_weight_scale, m.vertex_loaded, 1],
                   outputs=[self.split_weight_scale], device=dev)
-        self._volume_loop(x, self.split_weight_scale, self.split_cap)
+        self._volume_loop(x, self.split_weight_scale, self.split_cap if cap_radius is None else cap_radius)
 
-    def _tether(self, x: wp.array, control: Control, cap_only: bool = False) -> None:
+    def _tether(self, x: wp.array, control: Control, cap_only: bool = False, reach: wp.array | None = None) -> None:
         """The tether on every particle, or with ``cap_only`` its cap (``tether_max`` x the
-        diagonal) on the skin particles; writes the skin's LBS targets of ``control`` that the
-        volume loop's caps use (so it runs first in a step)."""
+        diagonal) on the skin particles; with ``reach`` ``[V]`` [m] (``State.contact_reach``),
+        each skin particle's radius is longer by its reach (``tether_contact``).
+        Writes the skin's LBS targets of ``control`` that the volume loop's caps use (so it
+        runs first in a step)."""
         m = self.model
         radius, dim = (self.tether_cap, m.vertex_count) if cap_only else (self.tether_radius, m.particle_count)
         wp.launch(k_con.tether_kernel, dim=dim,
                   inputs=[m.particle_q0, m.coupling_joint_indices, m.coupling_joint_weights, control.skin_matrices,
-                          radius, m.vertex_count],
+                          radius, m.vertex_count, self._no_reach if reach is None else reach],
                   outputs=[x, self.tether_clamped, self.tether_targets], device=self.device)
 
     def _chords_setup(self, model: SkinModel) -> None:
@@ -427,8 +459,18 @@ class SkinSolver:
             wp.copy(state_out.q, q_src)
         # the tether: no particle farther from its LBS target than its radius (before the volume
         # loop, which restores what the clamp took from a sub-volume)
+        # the skin in contact reaches farther (tether_contact), and back over tether_release
+        reach = cap = written_cap = None
+        if self.contact_cap is not None:
+            shrink = min(dt / p.tether_release, 1.0)
+            wp.launch(k_con.contact_reach_kernel, dim=m.vertex_count,
+                      inputs=[self.tether_cap, self.contact_max,
+                              contacts.colliding if col is not None else self._no_contacts, shrink,
+                              m.vertex_written_volume, state_in.contact_reach],
+                      outputs=[state_out.contact_reach, self.contact_cap, self.contact_written_cap], device=dev)
+            reach, cap, written_cap = state_out.contact_reach, self.contact_cap, self.contact_written_cap
         if self.tether_radius is not None:
-            self._tether(state_out.x, control)
+            self._tether(state_out.x, control, reach=reach)
         # the fail-safe: a skin triangle pair the constraints let through is put back where the
         # step's start was free of it (before the volume loop, which restores the volume around
         # what it put back: after it, held parts would lose their volume; what the volume loop
@@ -449,7 +491,7 @@ class SkinSolver:
                 col.volume_weights(contacts, self.volume_weight_scale)
             if fail_safe:
                 wp.copy(self.x_before_volume, state_out.x, count=m.vertex_count)
-            self._volume_loop(state_out.x)
+            self._volume_loop(state_out.x, cap_radius=cap)
             # the volume loop can push a pair through (which then stays): a second fail-safe
             # pass puts those vertices back where the loop found them, pinned, and the loop runs
             # again so that the others restore what they gave up
@@ -457,11 +499,11 @@ class SkinSolver:
                 col.fail_safe(self.x_before_volume, state_out.x, control.skin_matrices, carry=False,
                               min_move=col.default_min_move, contacts=contacts)
                 col.pin_reverted(self.volume_weight_scale)
-                self._volume_loop(state_out.x)
+                self._volume_loop(state_out.x, cap_radius=cap)
         if self.written_volume is not None:
-            self._written_volume(state_out.x, control, col is not None)
+            self._written_volume(state_out.x, control, col is not None, written_cap)
         if self.tether_radius is not None and col is not None and self.volume is None:
-            self._tether(state_out.x, control, cap_only=True)  # what the fail-safe held back stays within the cap
+            self._tether(state_out.x, control, cap_only=True, reach=reach)  # what the fail-safe held back stays within the cap
         # 14-17: velocities, angular velocities, damping
         wp.launch(k_int.update_velocity_kernel, dim=n,
                   inputs=[state_in.x, state_out.x, state_in.q, state_out.q, 1.0 / dt, math.exp(-p.damping * dt)],

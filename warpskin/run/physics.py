@@ -60,6 +60,7 @@ def initial_state(model, state, skin_matrices: np.ndarray) -> None:
     state.q.assign(q)
     state.v.zero_()
     state.omega.zero_()
+    state.contact_reach.zero_()
 
 
 class PhysicsStepper:
@@ -174,7 +175,7 @@ class PhysicsStepper:
                 self.solver.step(sa, sb, self.control, self.contacts, self.preroll / n)
                 sa, sb = sb, sa
             if sa is not a:
-                for name in ("x", "q"):
+                for name in ("x", "q", "contact_reach"):
                     wp.copy(getattr(a, name), getattr(sa, name))
             a.v.zero_()
             a.omega.zero_()
