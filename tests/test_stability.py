@@ -97,7 +97,10 @@ def test_a_skin_particle_in_contact_reaches_farther_and_its_reach_shrinks_after(
     b32, r32 = base.astype(np.float32), reach_in.astype(np.float32)
     e_full = np.maximum(full.astype(np.float32) - b32, 0.0)
     expect = np.where(colliding[:v] != 0, e_full, np.maximum(r32 - shrink * e_full, 0.0))
-    np.testing.assert_allclose(reach.numpy(), expect, rtol=1e-6, atol=1e-9)
+    # float32 arithmetic on values up to 0.03 (the kernel may fuse the multiply-add): a few of
+    # its units in the last place, also where a reach shrinks to near 0
+    ulps = 4.0 * float(np.finfo(np.float32).eps) * 0.03
+    np.testing.assert_allclose(reach.numpy(), expect, rtol=0.0, atol=ulps)
     np.testing.assert_allclose(cap.numpy(), b32 + expect, rtol=1e-6)
     np.testing.assert_allclose(wcap.numpy()[written == 1], (b32 + expect)[written == 1], rtol=1e-6)
     assert np.all(wcap.numpy()[written == 0] > 1e29)

@@ -449,7 +449,7 @@ def model_host_arrays(b: SkinModelBuilder) -> dict:
         "vertex_written_volume": np.full(v, int(rig.refined_skin and b.subvolumes is not None), dtype=np.int32),
         "rest": [RestLayers(np.asarray(b.layers.flat(), dtype=np.float64), np.asarray(rig.joint_indices),
                             np.asarray(rig.joint_weights), np.asarray(b.layers.bone), 0, joints)],
-        "mean_edges": [mean_edge(rig.vertices, rig.triangles)],
+        "mean_edges": [b.collision_topology.mean_edge],
         "character_diagonals": [rig.size()],
         "collision_params": b.params.collision,
         "collision": {"topology": b.collision_topology, "params": b.params.collision, "vertices": rig.vertices,

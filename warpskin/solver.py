@@ -16,7 +16,7 @@ import math
 import numpy as np
 import warp as wp
 
-from .collision import SelfCollision
+from .collision import SelfCollision, skin_edges
 from .errors import InputError, SceneError, SimulationError
 from .params import SolverParams
 from .kernels import chords as k_chord
@@ -382,7 +382,7 @@ class SkinSolver:
             return
         dev = self.device
         tris = np.asarray(surface.triangles, dtype=np.int64)
-        edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+        edges, _ = skin_edges(tris)
         rest = model.particle_q0.numpy()[: model.vertex_count].astype(np.float64)
         self.chords = {
             "triangles": wp.array(tris.astype(np.int32), dtype=wp.int32, device=dev),

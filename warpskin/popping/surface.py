@@ -373,7 +373,7 @@ def surface_swelling(points: np.ndarray, triangles: np.ndarray, dense_weights: n
     # for the belly (outward), any way for the thinning
     clear = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)))
     ahead = _clearance(points, tris, piece, 3.0 * swell * float(depth.max(initial=0.0)), directions=direction)
-    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    edges, _ = skin_edges(tris)
     lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
     edges, lengths = edges[lengths > 0.0], lengths[lengths > 0.0]
     muscles, fields = [], []
