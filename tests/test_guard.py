@@ -473,6 +473,14 @@ def test_pairs_between_meshes_are_every_crossing_of_two_meshes_and_no_other():
     assert m["pairs_across"] == len(want) and m["pairs_across_lbs"] == len(want_rest)
     assert m["pairs_across_new"] == int(beyond.sum()) and m["pairs_across_new_lbs"] == 0
     assert m["pairs_across_worst"][:2] in (("a", "b"), ("b", "c"))
+    # then c alone moves again (onto a's other side, off b): only its triangles query the
+    # refitted tree, the pairs of a and b kept from the last count, the same as brute force
+    later = dict(pose)
+    later["c"] = np.concatenate([vc, vc2]) + np.array([1.77, 0.93, 0.05])
+    moved = cross.keys(later, [2], keys)
+    want_later = _cross_pairs_brute_force([a, b, c], later)
+    assert {(int(k // t), int(k % t)) for k in moved} == want_later
+    assert any(2 in (lab[i], lab[j]) for i, j in want_later) and want_later != want
 
 
 def _box(centre, size, seed: int):

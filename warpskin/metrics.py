@@ -173,6 +173,11 @@ class PairQuery:
             self._pairs = wp.empty(c, dtype=wp.vec2i, device="cpu")
             self._hits = wp.empty(c, dtype=wp.int32, device="cpu")
 
+    @property
+    def has_tree(self) -> bool:
+        """Whether a whole count built the tree :meth:`active` refits."""
+        return self._bvh is not None
+
     def _whole(self, exact: int) -> tuple[np.ndarray, np.ndarray]:
         import warp as wp
 

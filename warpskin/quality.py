@@ -266,11 +266,24 @@ class CrossPairs:
         a, b = self._query.of_two(self._stack(points), self._stack(lbs))
         return self._keys(a), self._keys(b)
 
-    def keys(self, points: dict) -> np.ndarray:
-        """The pairs between meshes of ``points`` (``{name: [N, 3]}``), as keys."""
+    def keys(self, points: dict, moved: list[int] | None = None, previous: np.ndarray | None = None) -> np.ndarray:
+        """The pairs between meshes of ``points`` (``{name: [N, 3]}``), as keys.
+
+        With ``moved`` (rows of ``meshes``) and ``previous`` (the keys of this counter's last
+        count): only the meshes of ``moved`` changed since that count, so the pairs of two
+        other meshes are kept from ``previous`` and only the moved meshes' triangles query the
+        last count's tree, refitted (:meth:`~warpskin.metrics.PairQuery.active`): the same
+        keys as a whole count, found at the cost of the moved triangles."""
         if self._query is None:
             return np.zeros(0, np.int64)
-        return self._keys(self._query.pairs(self._stack(points)))
+        if moved is None or previous is None or not self._query.has_tree:
+            return self._keys(self._query.pairs(self._stack(points)))
+        act = np.isin(self.label, np.asarray(moved, dtype=np.int64))
+        prev = np.asarray(previous, dtype=np.int64)
+        t = len(self.triangles)
+        kept = prev[~(act[prev // t] | act[prev % t])]
+        found = self._query.active(self._stack(points), act)
+        return np.union1d(kept, self._keys(found))
 
     def counts(self, keys: np.ndarray) -> np.ndarray:
         """``[M * M]`` the pairs of ``keys`` per (lower, higher) pair of meshes."""

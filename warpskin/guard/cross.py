@@ -115,9 +115,13 @@ class CrossGuard:
                 return as_written(carried + c * (now - carried))
             return as_written((carried - centre) @ quat_to_matrix(quat_slerp(q0, q1, c)).T + centre + c * shift)
 
+        none = np.zeros(0, dtype=np.int64)
+
         def crosses(c: float) -> bool:
-            trial = {ns: place(c), nl: out[nl]}
-            return bool(two.beyond_rest(two.keys(trial))[1] > allowed[pair])
+            # every pair of the two has a triangle of ``small``: its triangles alone query the
+            # counter's tree (built at rest), refitted to the trial
+            keys = two.keys({ns: place(c), nl: out[nl]}, [int(small > large)], none)
+            return bool(two.beyond_rest(keys)[1] > allowed[pair])
 
         joints = cross.meshes[small].joint_points
         bound = np.inf
@@ -217,6 +221,6 @@ class CrossGuard:
             if not moved:
                 break
             self.rounds += 1
-            keys = cross.keys(out)
+            keys = cross.keys(out, sorted(set(moved)), keys)  # only the moved meshes query again
         self.keys = (keys, keys_lbs)
         return out
