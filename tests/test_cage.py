@@ -384,14 +384,19 @@ def test_bench_times_what_simulate_simulates_on_an_open_character(tmp_path):
     # the shipped mannequin is open (its pieces are capped and simulated): the bench times the
     # same surface simulate steps, not the open skin (which has no closed surface to time)
     from warpskin.bench import run_solver_bench
-    from warpskin.run import simulate
 
-    row = run_solver_bench(["mannequin"], device="cpu", steps=1, repeat=1)["scenes"]["mannequin"]
+    row = run_solver_bench(["mannequin"], device="cpu", steps=1, repeat=1, frames_timed=2)["scenes"]["mannequin"]
     assert "error" not in row, row
     # timed in a state the simulation reaches (the clip stepped from its start), not one the
     # timing loops crumpled (the bench's loops once drove a state to 15k pairs): about LBS's
     # crossings at that time (its pieces cross at rest and slide, by up to a quarter: limits)
     assert row["warmup_frames"] > 1 and row["intersecting_pairs"] <= 1.25 * row["intersecting_pairs_lbs"]
-    run = simulate("mannequin", tmp_path / "m.usdc", frames=(0, 1), progress=False, device="cpu")
-    assert row["particles"] == run.summary["particles"]
+    # the bench's own simulate run there (one frame stepped) simulated as many particles
+    assert row["simulate_particles"] == row["particles"] and row["simulate_frames"] == 2
     assert row["total_ms"] > 0 and row["total_graph_ms"] > 0
+    # a frame is its steps and the host's work around them: more than its steps, the share in (0, 1)
+    assert row["simulate_frame_ms"] > row["simulate_steps_ms"] > 0 and 0 < row["host_share"] < 1
+    assert row["host_share"] == pytest.approx(1 - row["simulate_steps_ms"] / row["simulate_frame_ms"], rel=1e-9)
+    # a step in plain launches launches kernels; a frame replays its graph (one launch) and reads
+    # the state back at least once
+    assert row["launches_per_step"] > 10 and row["launches_per_frame"] >= 1 and row["readbacks_per_frame"] >= 1

@@ -51,6 +51,94 @@ def _best_ms(fn, frames: int, repeat: int, device) -> float:
     return best
 
 
+class _CallCount:
+    """Counts, while entered, the calls of Warp's ``launch`` and ``copy`` (the launches: kernel
+    and memory) and of ``array.numpy`` (the reads of device arrays to the host). A measuring
+    tool only: it wraps those three module attributes and restores them on exit."""
+
+    def __enter__(self):
+        self.launches = self.readbacks = 0
+        self._saved = (wp.launch, wp.copy, wp.array.numpy)
+        launch, copy, numpy = self._saved
+
+        def counted_launch(*args, **kwargs):
+            self.launches += 1
+            return launch(*args, **kwargs)
+
+        def counted_copy(*args, **kwargs):
+            self.launches += 1
+            return copy(*args, **kwargs)
+
+        def counted_numpy(arr, *args, **kwargs):
+            self.readbacks += 1
+            return numpy(arr, *args, **kwargs)
+
+        wp.launch, wp.copy, wp.array.numpy = counted_launch, counted_copy, counted_numpy
+        return self
+
+    def __exit__(self, *exc):
+        wp.launch, wp.copy, wp.array.numpy = self._saved
+        return False
+
+
+def _simulate_timing(scene, device, first: int, count: int) -> dict:
+    """A ``simulate`` run of ``count`` frames from ``first`` (its pre-roll first; the file
+    written to a temporary folder, removed): ``simulate_frame_ms`` (a frame after the first as
+    a whole: steps, read-back, guard and checks, writing), ``simulate_steps_ms`` (its steps and
+    read-back), ``host_share`` (the share of the frame around the steps), and per frame after
+    the first: ``launches_per_frame`` (kernel launches and copies; a captured graph's replay is
+    one) and ``readbacks_per_frame`` (reads of device arrays to the host)."""
+    import tempfile
+
+    from .run import simulate
+    from .run.runner import FrameRunner
+
+    counts: list[tuple[int, int]] = []
+    run_frames = FrameRunner.run
+
+    def counted(self, **kwargs):  # each frame after the first: its steps, read-back, guard, checks
+        advance, frame = self.stepper.advance, self.stepper.frame
+        tally = _CallCount()
+
+        def advance_counted(i):
+            if i < 1:
+                return advance(i)
+            tally.__enter__()
+            try:
+                return advance(i)
+            except BaseException:
+                tally.__exit__(None, None, None)
+                raise
+
+        def frame_counted(i):
+            if i < 1:
+                return frame(i)
+            try:
+                return frame(i)
+            finally:
+                tally.__exit__(None, None, None)
+                counts.append((tally.launches, tally.readbacks))
+
+        self.stepper.advance, self.stepper.frame = advance_counted, frame_counted
+        try:
+            return run_frames(self, **kwargs)
+        finally:
+            del self.stepper.advance, self.stepper.frame
+
+    with tempfile.TemporaryDirectory(prefix="warpskin-bench-") as tmp:
+        FrameRunner.run = counted
+        try:
+            run = simulate(scene, os.path.join(tmp, "bench.usdc"), frames=(first, first + count - 1), progress=False,
+                           device=str(device))
+        finally:
+            FrameRunner.run = run_frames
+    s = run.summary
+    launches, reads = [c[0] for c in counts] or [0], [c[1] for c in counts] or [0]
+    return {"simulate_frames": s["frames"], "simulate_particles": s["particles"], "simulate_frame_ms": s["mean_frame_ms"],
+            "simulate_steps_ms": s["mean_step_ms"] * s["substeps_per_frame"], "host_share": s["host_share"],
+            "launches_per_frame": float(np.mean(launches)), "readbacks_per_frame": float(np.mean(reads))}
+
+
 def run_skinning_bench(targets: list[str], *, device: str | None = None, frames: int = 60, repeat: int = 3) -> dict:
     """Time LBS and DQS per frame for each scene.
 
@@ -195,7 +283,8 @@ def _cage_build(rig) -> dict:
     return row
 
 
-def run_solver_bench(targets: list[str], *, device: str | None = None, steps: int = 10, repeat: int = 3) -> dict:
+def run_solver_bench(targets: list[str], *, device: str | None = None, steps: int = 10, repeat: int = 3,
+                     frames_timed: int = 6) -> dict:
     """Milliseconds per solver step, split as the paper's Table 1, per scene.
 
     Per scene, on the surface ``simulate`` simulates (the skin where it is one closed manifold,
@@ -219,8 +308,14 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     ``total_graph_ms`` (a whole step as ``warpskin simulate`` runs it: the frame runner's
     physics stepper replaying each frame's captured graph, with the per-frame read-back and
     overflow check, per substep); ``lbs_ms`` (the LBS kernel on the skin vertices, the
-    kinematic baseline) and ``total_over_lbs``.
+    kinematic baseline) and ``total_over_lbs``; ``launches_per_step`` (kernel launches and
+    copies of one step in plain launches). Then ``simulate`` runs ``frames_timed`` frames from
+    the timed pose (:func:`_simulate_timing`): ``simulate_frame_ms``, ``simulate_steps_ms``,
+    ``host_share`` (the share of a frame spent around its steps: guard, checks, writing),
+    ``launches_per_frame`` and ``readbacks_per_frame``.
     """
+    if frames_timed < 2:
+        raise ValueError(f"frames_timed must be >= 2 (the first frame is not stepped), got {frames_timed}")
     dev = resolve_device(device)
     out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
            "cpu_count": os.cpu_count(), "steps": steps, "repeat": repeat, "scenes": {}}
@@ -323,6 +418,12 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         row["lbs_ms"] = _best_ms(lambda f: lbs.launch(), steps, repeat, dev)
         best_total = row["total_graph_ms"] or row["total_ms"]
         row["total_over_lbs"] = best_total / row["lbs_ms"] if row["lbs_ms"] > 0 else None
+        with _CallCount() as tally:  # one step in plain launches
+            solver.step(a, b, c, contacts, dt)
+        row["launches_per_step"] = tally.launches
+        # a whole simulate frame there: how much of it is the steps, how much the host's work
+        first = int(round(t_mid * scene.frame_rate))  # the timed pose's frame (time code)
+        row.update(_simulate_timing(scene, dev, first, frames_timed))
         out["scenes"][scene.name] = row
     return out
 

@@ -323,7 +323,8 @@ def cmd_simulate(args) -> int:
     worst = max(delivered.values(), key=lambda d: d["volume"]) if delivered else None
     line = (
         f"wrote {result.path} ({s['frames']} frames, {s['particles']} particles, {s['substeps_per_frame']} substeps "
-        f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']})"
+        f"of {s['dt_s'] * 1e3:.2f} ms, {s['mean_step_ms']:.1f} ms per step on {s['device']}, "
+        f"{s['mean_frame_ms']:.0f} ms per frame of which {100 * s['host_share']:.0f} % around the steps)"
     )
     if worst is not None:
         line += (f"; largest volume change of what is written after the first frame: warpskin "

@@ -44,6 +44,9 @@ class RunRecord:
         frames: Frame numbers written.
         step_ms: Milliseconds per step of every frame (advance and read-back, divided by the
             substeps; 0 for a frame that needed no step).
+        frame_ms: Milliseconds of every frame as a whole: its steps and read-back, then what the
+            host does with the result (the stepper's ``frame``: guard, checks), writing it and
+            the measures.
         failure: The error that stopped the run early, if one did (already re-raised by
             :meth:`FrameRunner.run` unless ``keep_failure``): a
             :class:`~warpskin.errors.SimulationError`, or the
@@ -52,6 +55,7 @@ class RunRecord:
 
     frames: list[int] = field(default_factory=list)
     step_ms: list[float] = field(default_factory=list)
+    frame_ms: list[float] = field(default_factory=list)
     failure: SimulationError | Stopped | None = None
 
 
@@ -130,6 +134,7 @@ class FrameRunner:
                 rec.step_ms.append(step_ms)
                 for measure in self.measures:
                     measure(i, f, points, step_ms)
+                rec.frame_ms.append((time.perf_counter() - t0) * 1e3)
                 bar.update(extra=f"{1e3 / step_ms:6.1f} steps/s" if step_ms > 0 else "")
         except BaseException:
             if writer is not None:

@@ -512,6 +512,7 @@ def simulate(scene: Scene | str, out_path, options: SimulationOptions | None = N
     record = FrameRunner(run.plan, run, writer=run.writer, measures=[run.measures], progress=run.o.progress,
                          output=run.output).run(keep_failure=True)
     summary = _summary(run, record.frames)
+    summary.update(_frame_timing(record, run.plan.substeps))
     result = SimulationResult(path=Path(run.writer.path), frames=record.frames, metrics=run.measures.m, summary=summary)
     if run.o.report_dir is not None:
         _write_report(run, summary)
@@ -721,6 +722,17 @@ def _summary(run: _Simulation, written: list[int]) -> dict:
                 summary[name] = float(subs.volume_errors(np.array(metrics[key][1:])).max())
         summary["subvolume_names"] = list(subs.names)
     return summary
+
+
+def _frame_timing(record, substeps: int) -> dict:
+    """``mean_frame_ms``: the wall time of a frame after the first (its steps and read-back,
+    the guard and checks, writing, measures), and ``host_share``: the share of that not spent
+    stepping (the per-frame work around the steps; on the CPU the steps are host time too)."""
+    frame = np.asarray(record.frame_ms[1:], dtype=np.float64)
+    steps = np.asarray(record.step_ms[1:len(record.frame_ms)], dtype=np.float64) * substeps
+    if not frame.size or frame.sum() <= 0.0:
+        return {"mean_frame_ms": 0.0, "host_share": 0.0}
+    return {"mean_frame_ms": float(frame.mean()), "host_share": float(max(1.0 - steps.sum() / frame.sum(), 0.0))}
 
 
 def _cage_summary(caged, rigid_pieces: str, cage_file) -> dict:
