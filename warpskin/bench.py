@@ -53,8 +53,14 @@ def _best_ms(fn, frames: int, repeat: int, device) -> float:
 
 class _CallCount:
     """Counts, while entered, the calls of Warp's ``launch`` and ``copy`` (the launches: kernel
-    and memory) and of ``array.numpy`` (the reads of device arrays to the host). A measuring
-    tool only: it wraps those three module attributes and restores them on exit."""
+    and memory) and of ``array.numpy`` on arrays of ``device`` (the reads to the host; on a GPU
+    the host's own arrays, such as the guard's pair queries, are not counted, on the CPU every
+    read is). A measuring tool only: it wraps those three module attributes and restores them
+    on exit."""
+
+    def __init__(self, device=None) -> None:
+        self.device = device
+        self.launches = self.readbacks = 0
 
     def __enter__(self):
         self.launches = self.readbacks = 0
@@ -70,7 +76,8 @@ class _CallCount:
             return copy(*args, **kwargs)
 
         def counted_numpy(arr, *args, **kwargs):
-            self.readbacks += 1
+            if self.device is None or arr.device == self.device:
+                self.readbacks += 1
             return numpy(arr, *args, **kwargs)
 
         wp.launch, wp.copy, wp.array.numpy = counted_launch, counted_copy, counted_numpy
@@ -87,7 +94,8 @@ def _simulate_timing(scene, device, first: int, count: int) -> dict:
     a whole: steps, read-back, guard and checks, writing), ``simulate_steps_ms`` (its steps and
     read-back), ``host_share`` (the share of the frame around the steps), and per frame after
     the first: ``launches_per_frame`` (kernel launches and copies; a captured graph's replay is
-    one) and ``readbacks_per_frame`` (reads of device arrays to the host)."""
+    one) and ``readbacks_per_frame`` (reads of the device's arrays to the host: on the CPU every
+    read of a Warp array, the guard's pair queries included)."""
     import tempfile
 
     from .run import simulate
@@ -98,7 +106,7 @@ def _simulate_timing(scene, device, first: int, count: int) -> dict:
 
     def counted(self, **kwargs):  # each frame after the first: its steps, read-back, guard, checks
         advance, frame = self.stepper.advance, self.stepper.frame
-        tally = _CallCount()
+        tally = _CallCount(device)
 
         def advance_counted(i):
             if i < 1:
