@@ -234,6 +234,49 @@ def project_edge_edge_kernel(
 
 
 @wp.kernel
+def project_contacts_kernel(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    ee_count: wp.array(dtype=wp.int32),
+    ee_a: wp.array(dtype=wp.int32),
+    ee_b: wp.array(dtype=wp.int32),
+    ee_sign: wp.array(dtype=wp.float32),
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
+    chunk: int,
+    pt_threads: int,
+    # outputs
+    delta: wp.array(dtype=wp.vec3),
+    delta_count: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+):
+    """One Jacobi pass's corrections of both kinds of contacts in one launch: threads
+    ``[0, pt_threads)`` take the point-triangle contacts of their chunk
+    (:func:`project_point_triangle_kernel`), the others the edge-edge contacts of chunk
+    ``thread - pt_threads`` (:func:`project_edge_edge_kernel`). Both only read ``x`` and add
+    into ``delta``, so the pass is the two launches' (on the CPU, whose threads run in order,
+    the same sums in the same order)."""
+    tid = wp.tid()
+    if tid < pt_threads:
+        first, last = contact_range(tid, chunk, pt_count[0], pt_vertex.shape[0])
+        for k in range(first, last):
+            thickness = params[vertex_tree[pt_vertex[k]]].thickness
+            project_point_triangle(k, x, inv_mass, tri_indices, pt_vertex, pt_triangle, thickness, delta,
+                                   delta_count, active)
+    else:
+        first, last = contact_range(tid - pt_threads, chunk, ee_count[0], ee_a.shape[0])
+        for k in range(first, last):
+            thickness = params[vertex_tree[edge_indices[ee_a[k], 0]]].thickness
+            project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count,
+                              active)
+
+
+@wp.kernel
 def apply_deltas_kernel(
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),

@@ -190,6 +190,52 @@ def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h
     return x.numpy().astype(np.float64), int(active.numpy()[0])
 
 
+@pytest.mark.parametrize("chunk", [1, 3])
+def test_one_launch_projects_both_kinds_of_contacts_as_two_launches_do(device, chunk):
+    # the solver's pass launches both kinds of contacts at once (project_contacts_kernel): the
+    # same corrections as the point-triangle launch then the edge-edge one (_project_once), on
+    # a generic cloud of contacts, the last buffer slots beyond the counts left out
+    rng = np.random.default_rng(7)
+    n = 40
+    points = rng.normal(size=(n, 3)) * 0.05
+    inv_mass = rng.uniform(0.5, 2.0, size=n)
+    tri = np.array([rng.choice(n, size=3, replace=False) for _ in range(12)])
+    edges = np.array([rng.choice(n, size=2, replace=False) for _ in range(20)])
+    pt = [(int(v), int(t)) for v, t in zip(rng.integers(0, n, 30), rng.integers(0, 12, 30)) if v not in tri[t]]
+    ee = [(int(a), int(b), float(rng.choice([-1.0, 1.0]))) for a, b in zip(rng.integers(0, 20, 30), rng.integers(0, 20, 30))
+          if not set(edges[a]) & set(edges[b])]
+    h = 0.03
+    want, want_active = _project_once(device, points, inv_mass, tri, pt=pt, ee=ee, edges=edges, h=h, chunk=chunk)
+    assert want_active > 0
+    x = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
+    w = wp.array(inv_mass.astype(np.float32), dtype=wp.float32, device=device)
+    delta = wp.zeros(n, dtype=wp.vec3, device=device)
+    count = wp.zeros(n, dtype=wp.int32, device=device)
+    active = wp.zeros(1, dtype=wp.int32, device=device)
+    params, tree = _contact_scalars(device, n, thickness=h)
+    capacity = max(len(pt), len(ee)) + 5  # both buffers as long, the slots past the counts unused
+
+    def buffer(values, dtype):
+        return wp.array(list(values) + [0] * (capacity - len(values)), dtype=dtype, device=device)
+
+    threads = -(-capacity // chunk)
+    wp.launch(kp.project_contacts_kernel, dim=2 * threads,
+              inputs=[x, w, wp.array(tri.astype(np.int32), dtype=wp.int32, device=device),
+                      wp.array([len(pt)], dtype=wp.int32, device=device), buffer([v for v, _ in pt], wp.int32),
+                      buffer([t for _, t in pt], wp.int32), wp.array(edges.astype(np.int32), dtype=wp.int32, device=device),
+                      wp.array([len(ee)], dtype=wp.int32, device=device), buffer([a for a, _, _ in ee], wp.int32),
+                      buffer([b for _, b, _ in ee], wp.int32), buffer([sg for _, _, sg in ee], wp.float32), params, tree,
+                      chunk, threads],
+              outputs=[delta, count, active], device=device)
+    wp.launch(kp.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
+    got = x.numpy().astype(np.float64)
+    assert int(active.numpy()[0]) == want_active
+    if wp.get_device(device).is_cpu:  # threads in order: the same sums in the same order
+        assert np.array_equal(got, want)
+    else:  # a GPU's atomics add in any order
+        np.testing.assert_allclose(got, want, atol=1e-6)
+
+
 def test_point_pushed_through_a_triangle_is_separated_by_one_projection(device):
     tri = [0, 1, 2]  # in the plane z = 0, normal +z (counter-clockwise from above)
     points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.25, 0.25, -0.03]], dtype=float)

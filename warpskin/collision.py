@@ -390,14 +390,11 @@ class SelfCollision:
         c = self.data
         m = self.model
         contacts.active.zero_()
-        dim = self._threads(contacts.capacity)
-        wp.launch(kp.project_point_triangle_kernel, dim=dim,
+        dim = self._threads(contacts.capacity)  # per kind: both buffers hold ``capacity`` contacts
+        wp.launch(kp.project_contacts_kernel, dim=2 * dim,
                   inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
-                          self.params, self.vertex_tree, self.chunk],
-                  outputs=[self.delta, self.delta_count, contacts.active], device=dev)
-        wp.launch(kp.project_edge_edge_kernel, dim=dim,
-                  inputs=[x, inv_mass, c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
-                          self.params, self.vertex_tree, self.chunk],
+                          c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
+                          self.params, self.vertex_tree, self.chunk, dim],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(kp.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
