@@ -68,6 +68,31 @@ def project_point_triangle(
     wp.atomic_add(active, 0, 1)
 
 
+@wp.func
+def point_triangle_chunk(
+    thread: int,
+    chunk: int,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    pt_count: wp.array(dtype=wp.int32),
+    pt_vertex: wp.array(dtype=wp.int32),
+    pt_triangle: wp.array(dtype=wp.int32),
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
+    delta: wp.array(dtype=wp.vec3),
+    delta_count: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+):
+    """:func:`project_point_triangle` over the contacts of chunk ``thread`` that exist
+    (:func:`contact_range`), each at its character's thickness."""
+    first, last = contact_range(thread, chunk, pt_count[0], pt_vertex.shape[0])
+    for k in range(first, last):
+        thickness = params[vertex_tree[pt_vertex[k]]].thickness
+        project_point_triangle(k, x, inv_mass, tri_indices, pt_vertex, pt_triangle, thickness, delta, delta_count,
+                               active)
+
+
 @wp.kernel
 def project_point_triangle_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -86,11 +111,8 @@ def project_point_triangle_kernel(
 ):
     """The point-triangle contacts ``chunk`` x thread ... (thread + 1) x ``chunk`` that exist
     (``pt_count``): see :func:`contact_range`; each at its character's thickness."""
-    first, last = contact_range(wp.tid(), chunk, pt_count[0], pt_vertex.shape[0])
-    for k in range(first, last):
-        thickness = params[vertex_tree[pt_vertex[k]]].thickness
-        project_point_triangle(k, x, inv_mass, tri_indices, pt_vertex, pt_triangle, thickness, delta, delta_count,
-                               active)
+    point_triangle_chunk(wp.tid(), chunk, x, inv_mass, tri_indices, pt_count, pt_vertex, pt_triangle, params,
+                         vertex_tree, delta, delta_count, active)
 
 
 # --------------------------------------------------------------------------------------------
@@ -208,6 +230,31 @@ def project_edge_edge(
     wp.atomic_add(active, 0, 1)
 
 
+@wp.func
+def edge_edge_chunk(
+    thread: int,
+    chunk: int,
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    ee_count: wp.array(dtype=wp.int32),
+    ee_a: wp.array(dtype=wp.int32),
+    ee_b: wp.array(dtype=wp.int32),
+    ee_sign: wp.array(dtype=wp.float32),
+    params: wp.array(dtype=CollisionScalars),
+    vertex_tree: wp.array(dtype=wp.int32),
+    delta: wp.array(dtype=wp.vec3),
+    delta_count: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+):
+    """:func:`project_edge_edge` over the contacts of chunk ``thread`` that exist
+    (:func:`contact_range`), each at its character's thickness."""
+    first, last = contact_range(thread, chunk, ee_count[0], ee_a.shape[0])
+    for k in range(first, last):
+        thickness = params[vertex_tree[edge_indices[ee_a[k], 0]]].thickness
+        project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count, active)
+
+
 @wp.kernel
 def project_edge_edge_kernel(
     x: wp.array(dtype=wp.vec3),
@@ -227,10 +274,8 @@ def project_edge_edge_kernel(
 ):
     """The edge-edge contacts of this thread's chunk (see :func:`contact_range`); each at its
     character's thickness."""
-    first, last = contact_range(wp.tid(), chunk, ee_count[0], ee_a.shape[0])
-    for k in range(first, last):
-        thickness = params[vertex_tree[edge_indices[ee_a[k], 0]]].thickness
-        project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count, active)
+    edge_edge_chunk(wp.tid(), chunk, x, inv_mass, edge_indices, ee_count, ee_a, ee_b, ee_sign, params, vertex_tree,
+                    delta, delta_count, active)
 
 
 @wp.kernel
@@ -263,17 +308,11 @@ def project_contacts_kernel(
     the same sums in the same order)."""
     tid = wp.tid()
     if tid < pt_threads:
-        first, last = contact_range(tid, chunk, pt_count[0], pt_vertex.shape[0])
-        for k in range(first, last):
-            thickness = params[vertex_tree[pt_vertex[k]]].thickness
-            project_point_triangle(k, x, inv_mass, tri_indices, pt_vertex, pt_triangle, thickness, delta,
-                                   delta_count, active)
+        point_triangle_chunk(tid, chunk, x, inv_mass, tri_indices, pt_count, pt_vertex, pt_triangle, params,
+                             vertex_tree, delta, delta_count, active)
     else:
-        first, last = contact_range(tid - pt_threads, chunk, ee_count[0], ee_a.shape[0])
-        for k in range(first, last):
-            thickness = params[vertex_tree[edge_indices[ee_a[k], 0]]].thickness
-            project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count,
-                              active)
+        edge_edge_chunk(tid - pt_threads, chunk, x, inv_mass, edge_indices, ee_count, ee_a, ee_b, ee_sign, params,
+                        vertex_tree, delta, delta_count, active)
 
 
 @wp.kernel

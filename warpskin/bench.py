@@ -37,8 +37,6 @@ from .solver import SkinSolver, largest_step
 __all__ = ["run_skinning_bench", "run_build_bench", "run_solver_bench", "run_popping_bench", "run_batch_bench"]
 
 
-
-
 def _best_ms(fn, frames: int, repeat: int, device) -> float:
     best = float("inf")
     for _ in range(repeat):
@@ -94,8 +92,9 @@ def _simulate_timing(scene, device, first: int, count: int) -> dict:
     a whole: steps, read-back, guard and checks, writing), ``simulate_steps_ms`` (its steps and
     read-back), ``host_share`` (the share of the frame around the steps), and per frame after
     the first: ``launches_per_frame`` (kernel launches and copies, not an array's ``zero_``
-    memsets; a captured graph's replay is one) and ``readbacks_per_frame`` (reads of the device's arrays to the host: on the CPU every
-    read of a Warp array, the guard's pair queries included)."""
+    memsets; a captured graph's replay is one) and ``readbacks_per_frame`` (reads of the
+    device's arrays to the host: on the CPU every read of a Warp array, the guard's pair
+    queries included)."""
     import tempfile
 
     from .run import simulate
@@ -317,8 +316,8 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     physics stepper replaying each frame's captured graph, with the per-frame read-back and
     overflow check, per substep); ``lbs_ms`` (the LBS kernel on the skin vertices, the
     kinematic baseline) and ``total_over_lbs``; ``launches_per_step`` (kernel launches and
-    copies of one step in plain launches, not the memsets of ``zero_``). Then ``simulate`` runs ``frames_timed`` frames from
-    the timed pose (:func:`_simulate_timing`): ``simulate_frame_ms``, ``simulate_steps_ms``,
+    copies of one step in plain launches, not the memsets of ``zero_``). Then ``simulate``
+    runs ``frames_timed`` frames from the timed pose (:func:`_simulate_timing`): ``simulate_frame_ms``, ``simulate_steps_ms``,
     ``host_share`` (the share of a frame spent around its steps: guard, checks, writing),
     ``launches_per_frame`` and ``readbacks_per_frame``.
     """
