@@ -41,6 +41,7 @@ from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
 from .guard import CrossGuard, GarmentSway, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, WornRepair
 from .guard.sway import piece_room
+from .guard.swing import LoosePiece, PieceSwing, loose_pieces
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
 from .io.usd_export import valid_prim_name
 from .mesh import vertex_normals
@@ -376,6 +377,9 @@ class Character:
                                            self.meshes[p.name], self.pieces.piece_of_point[p.start:p.start + p.count])
                         if sway.enabled:
                             self.sways[p.name] = sway
+        #: Per mesh with loose pieces (a hair bun on the skull), its
+        #: :class:`~warpskin.guard.PieceSwing` (after its garments' sway).
+        self.swings = self._piece_swings(cap, params) if self.pieces is not None else {}
         #: Per mesh written by capture from its own pieces, its
         #: :class:`~warpskin.guard.PieceVolume` (before its worn repair and guard): the written
         #: pieces keep the volume their simulation keeps.
@@ -578,6 +582,8 @@ class Character:
             carriers = self._carriers(physical)
             for name, sway in self.sways.items():
                 physical[name] = sway.apply(physical[name], lbs_by[name], t, carriers[self.repairs[name][1]])
+        for name, swing in self.swings.items():  # loose pieces swing about where they hang
+            physical[name] = swing.apply(physical[name], lbs_by[name], t)
         for name, repair in self.volumes.items():  # before the worn points' carriers are taken
             physical[name] = repair.apply(physical[name])
         carriers = self._carriers(physical) if self.repairs else None
@@ -601,6 +607,35 @@ class Character:
             out[name] = guard.keep(limited, guarded[name], lbs_by[name])
             if out[name] is not limited:  # the limit goes on from what is written
                 self.limits[name].written(out[name], lbs_by[name])
+        return out
+
+    def _piece_swings(self, cap: Capture, params: GuardParams) -> dict:
+        """``{mesh name: PieceSwing}`` for the meshes with loose pieces
+        (:func:`~warpskin.guard.swing.loose_pieces`: pieces LBS moves rigidly, not carried in an
+        assembly, hung from a closed simulated piece); empty with the guard off or ``[guard]
+        swing`` 0."""
+        if not (params.enabled and params.swing > 0.0):
+            return {}
+        ps, soup = self.pieces, self.soup
+        closed = {}
+        tri_piece = ps.vertex_piece[ps.triangles[:, 0]]
+        for k in np.nonzero(ps.simulated & ps.closable)[0]:
+            tris = ps.triangles[tri_piece == k]
+            used, local = np.unique(tris, return_inverse=True)
+            closed[int(k)] = (ps.vertices[used], local.reshape(-1, 3))
+        joint = np.argmax(soup.dense_weights, axis=1)
+        loose = loose_pieces(soup.points, ps.piece_of_point, joint, ps.rigid & ~ps.small & ~ps.carried, closed, ps.edge)
+        out = {}
+        for p in self.parts:
+            mine = [LoosePiece(lp.piece, lp.points - p.start, lp.visible, lp.pivot, lp.carrier, lp.touching) for lp in loose
+                    if p.physics and p.start <= lp.points[0] < p.start + p.count]
+            if not mine:
+                continue
+            swing = PieceSwing(mine, soup.points[p.start:p.start + p.count], ps.piece_of_point[p.start:p.start + p.count],
+                               cap.physics_weight[p.start:p.start + p.count], params.swing_frequency,
+                               params.swing_damping, params.swing)
+            if swing.enabled:
+                out[p.name] = swing
         return out
 
     def _carriers(self, points: dict) -> np.ndarray:

@@ -8,6 +8,8 @@
   repaired where they cross;
 * :class:`GarmentSway` (:mod:`warpskin.guard.sway`): loose garments swing after the body's
   motion and settle after it stops;
+* :class:`PieceSwing` (:mod:`warpskin.guard.swing`): loose pieces (a hair bun) swing about
+  where they hang;
 * :class:`PieceVolume` (:mod:`warpskin.guard.volume`): pieces written by capture keep the
   volume their simulation keeps;
 * :class:`JumpLimit` (:mod:`warpskin.guard.jump`): no written point's offset from LBS jumps from
@@ -22,8 +24,10 @@ from .jump import JumpLimit
 from .params import WRITTEN_FLIPPED, WRITTEN_STRAINED, GuardParams
 from .surface import SurfaceGuard
 from .sway import GarmentSway
+from .swing import PieceSwing
 from .volume import PieceVolume
 from .worn import WornRepair
 
-__all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WornRepair", "PieceVolume", "GarmentSway", "WRITTEN_STRAINED",
+__all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WornRepair", "PieceVolume", "GarmentSway", "PieceSwing",
+           "WRITTEN_STRAINED",
            "WRITTEN_FLIPPED"]

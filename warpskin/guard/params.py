@@ -39,6 +39,10 @@ class GuardParams:
       damped oscillator per point driven by its LBS's acceleration, within ``sway`` x its room
       (:class:`~warpskin.guard.GarmentSway`); with the guard off (``enabled`` false) garments
       ride on the body, as written by the wrap.
+    * ``swing``, ``swing_frequency``, ``swing_damping``: a loose piece
+      (:func:`~warpskin.guard.swing.loose_pieces`) swings as a damped pendulum about where it
+      hangs, by at most ``swing`` radians and half its room
+      (:class:`~warpskin.guard.PieceSwing`); with the guard off it moves with what carries it.
     """
 
     _section = "guard"
@@ -82,6 +86,13 @@ class GuardParams:
                                     open_low=True, must="> 0")
     sway_damping: float = setting(0.2, "number", "damping ratio of a garment point's swing (1: critical)", low=0.0,
                                   must=">= 0")
+    swing: float = setting(0.3, "number", "a loose piece (a hair bun LBS moves rigidly with the head) swings about "
+                           "where it hangs by at most this angle (0: it moves with what carries it)", unit="radians",
+                           low=0.0, high=1.5, must="in [0, 1.5]")
+    swing_frequency: float = setting(4.0, "number", "natural frequency of a loose piece's swing", unit="Hz", low=0.0,
+                                     open_low=True, must="> 0")
+    swing_damping: float = setting(0.1, "number", "damping ratio of a loose piece's swing (1: critical)", low=0.0,
+                                   must=">= 0")
 
     def check(self, where: str = "guard") -> None:
         """Every setting in its declared range (:func:`~warpskin.settings.check_settings`).

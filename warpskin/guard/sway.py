@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GarmentSway", "piece_room", "soft_limit"]
+__all__ = ["GarmentSway", "damped_step", "piece_room", "soft_limit"]
 
 
 def piece_room(points: np.ndarray, piece: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -78,6 +78,34 @@ def soft_limit(size: np.ndarray, limit: np.ndarray) -> np.ndarray:
     out[over] = np.where(k > 0.0, (k + k * np.tanh((size[over] - k) / np.maximum(k, 1e-300)))
                          / np.maximum(size[over], 1e-300), 0.0)
     return out
+
+
+def damped_step(u: np.ndarray, v: np.ndarray, force: np.ndarray, dt: float, omega: float,
+                zeta: float) -> tuple[np.ndarray, np.ndarray]:
+    """The state ``(u, v)`` after ``dt`` [s] of ``u'' + 2 zeta omega u' + omega^2 u = force``
+    with ``force`` constant over the step (arrays of one shape, any unit of ``u``; ``omega``
+    [rad/s] > 0, ``zeta`` >= 0): the exact solution about the static offset ``force / omega^2``,
+    under-, critically or over-damped alike."""
+    w, z = float(omega), float(zeta)
+    rest = np.asarray(force, dtype=np.float64) / (w * w)
+    x0, v0 = u - rest, v
+    if z < 1.0:
+        wd = w * np.sqrt(1.0 - z * z)
+        e, c, s = np.exp(-z * w * dt), np.cos(wd * dt), np.sin(wd * dt)
+        x = e * (x0 * c + (v0 + z * w * x0) / wd * s)
+        xv = e * (v0 * c - (w * x0 + z * v0) / np.sqrt(1.0 - z * z) * s)
+    elif z == 1.0:
+        e = np.exp(-w * dt)
+        x = e * (x0 + (v0 + w * x0) * dt)
+        xv = e * (v0 - w * (v0 + w * x0) * dt)
+    else:
+        r = np.sqrt(z * z - 1.0)
+        l1, l2 = -w * (z - r), -w * (z + r)
+        c2 = (v0 - l1 * x0) / (l2 - l1)
+        c1 = x0 - c2
+        x = c1 * np.exp(l1 * dt) + c2 * np.exp(l2 * dt)
+        xv = c1 * l1 * np.exp(l1 * dt) + c2 * l2 * np.exp(l2 * dt)
+    return rest + x, xv
 
 
 def _across(x: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -171,28 +199,8 @@ class GarmentSway:
 
     def step(self, u: np.ndarray, v: np.ndarray, a: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """The oscillator's state ``(u, v)`` (``[K, 3]`` [m], [m/s]) after ``dt`` [s] under the
-        constant acceleration ``a`` ``[K, 3]`` [m/s^2]: the exact solution about the static
-        offset ``-a / w^2`` (under-, critically or over-damped alike)."""
-        w, z = self.omega, self.zeta
-        rest = -a / (w * w)
-        x0, v0 = u - rest, v
-        if z < 1.0:
-            wd = w * np.sqrt(1.0 - z * z)
-            e, c, s = np.exp(-z * w * dt), np.cos(wd * dt), np.sin(wd * dt)
-            x = e * (x0 * c + (v0 + z * w * x0) / wd * s)
-            xv = e * (v0 * c - (w * x0 + z * v0) / np.sqrt(1.0 - z * z) * s)
-        elif z == 1.0:
-            e = np.exp(-w * dt)
-            x = e * (x0 + (v0 + w * x0) * dt)
-            xv = e * (v0 - w * (v0 + w * x0) * dt)
-        else:
-            r = np.sqrt(z * z - 1.0)
-            l1, l2 = -w * (z - r), -w * (z + r)
-            c2 = (v0 - l1 * x0) / (l2 - l1)
-            c1 = x0 - c2
-            x = c1 * np.exp(l1 * dt) + c2 * np.exp(l2 * dt)
-            xv = c1 * l1 * np.exp(l1 * dt) + c2 * l2 * np.exp(l2 * dt)
-        return rest + x, xv
+        constant acceleration ``a`` ``[K, 3]`` [m/s^2] (:func:`damped_step`)."""
+        return damped_step(u, v, -a, dt, self.omega, self.zeta)
 
     def apply(self, points: np.ndarray, lbs: np.ndarray, t: float, carriers: np.ndarray | None = None) -> np.ndarray:
         """The mesh's points with its garment points swung, ``[N, 3]`` (``points``: as the wrap

@@ -750,6 +750,7 @@ def piece_surface(points: np.ndarray, triangles: np.ndarray, dense_weights: np.n
     notes["simulated"] = [names[k] for k in np.nonzero(simulated)[0]]
     notes["decimated"] = [names[k] for k in np.nonzero(decimated)[0]]
     notes["points_before"] = int(total)
+    notes["names"] = list(names)
 
     # the surface: every simulated piece's points, then all caps' points
     vertices, weights, vpiece, vcap, origin_cls = [], [], [], [], []
