@@ -352,6 +352,25 @@ def test_piece_volume_moves_no_point_of_weight_zero_and_leaves_unweighted_pieces
     assert abs(trimesh.Trimesh(out, faces, process=False).volume / v_rest - 1.0) < 1e-4
 
 
+def test_piece_volume_holds_the_points_it_is_told_to_and_restores_the_volume_with_the_rest():
+    # after the worn repair: the points it moved keep where it put them, the others restore the
+    # piece's volume (trimesh's, an independent reference)
+    from warpskin.guard import PieceVolume
+
+    rest, tri, piece = _two_spheres(8)
+    mesh = WrittenMesh("spheres", tri, rest)
+    repair = PieceVolume(mesh, np.ones(len(rest)))
+    squashed = _squashed(rest, piece, 9)
+    hold = (piece == 0) & (rest[:, 0] > np.median(rest[piece == 0, 0]))  # half of the big sphere
+    out = repair.apply(squashed, hold=hold)
+    assert np.array_equal(out[hold], squashed[hold])
+    assert np.abs(out[(piece == 0) & ~hold] - squashed[(piece == 0) & ~hold]).max() > 0.0
+    for k in (0, 1):
+        faces = tri[piece[tri[:, 0]] == k]
+        v_rest = trimesh.Trimesh(rest, faces, process=False).volume
+        assert abs(trimesh.Trimesh(out, faces, process=False).volume / v_rest - 1.0) < 1e-4
+
+
 def test_piece_volume_closes_a_hole_as_the_measure_does_and_keeps_seam_copies_together():
     from warpskin.guard import PieceVolume
 

@@ -116,7 +116,9 @@ def test_written_volume_against_lbs_by_trimesh(dancer_bake):
     theirs = max(abs(volume(p) / v0 - 1.0) for p in lbs[1::4])
     assert ours < theirs
     (name, d), = summary["delivered"].items()
-    assert d["volume"] < d["volume_lbs"]
+    # closed as the measures close them (fans to each loop's centre: trimesh closes a loop that
+    # bends out of its plane otherwise), the bound: at most a third of LBS's change
+    assert d["volume"] <= d["volume_lbs"] / 3.0
 
 
 def test_each_written_piece_keeps_its_volume_within_a_third_of_lbs_change(dancer_bake):

@@ -595,7 +595,13 @@ class Character:
             pts = physical[name]
             if name in self.repairs:
                 repair, rows = self.repairs[name]
-                pts = repair.apply(pts, carriers[rows])
+                repaired = repair.apply(pts, carriers[rows])
+                if repaired is not pts and name in self.volumes:  # the volume the repair took, back
+                    # from the points it did not move (it rewrites the others to within rounding)
+                    tol = 1e-3 * float(np.median(self.meshes[name].rest_length))
+                    moved = np.linalg.norm(repaired - pts, axis=1) > tol
+                    repaired = self.volumes[name].apply(repaired, hold=moved)
+                pts = repaired
             guarded[name] = guard.apply(pts, lbs_by[name], skinned.get(name))
         if self.cross is not None:
             shown = {p.name: self.display_name(p.name) for p in self.parts}

@@ -5,7 +5,7 @@ A character simulated on its own pieces is written by capture where they are den
 the volume constraints hold, but the written surface between them is interpolated and the
 volume of a written piece drifts where its simulated one does not. Per frame, per mesh written
 by capture (on the host, in the mesh's welded topology), before the worn repair and the surface
-guard:
+guard, and once more after the worn repair, the points it moved held (weight 0):
 
     C_k = V_k(W) - V0_k,    W_i <- W_i - w_i g_i C_k / sum_{j in k} w_j |g_j|^2
 
@@ -72,7 +72,7 @@ class PieceVolume:
         #: ``[K]`` the pieces that are repaired.
         self.active = active
         self.weight = np.where(active[self.piece], w, 0.0) if c else w
-        #: The largest relative volume change of a repaired piece before the last frame's
+        #: The largest relative volume change of a repaired piece before the last call's
         #: repair (0 where none is repaired).
         self.error = 0.0
 
@@ -105,9 +105,11 @@ class PieceVolume:
         r, p = np.concatenate(rows), np.concatenate(parts)
         return np.stack([np.bincount(r, weights=p[:, j], minlength=c) for j in range(3)], axis=1) / 6.0
 
-    def apply(self, points: np.ndarray) -> np.ndarray:
+    def apply(self, points: np.ndarray, hold: np.ndarray | None = None) -> np.ndarray:
         """The repaired points ``[N, 3]`` (file order) of ``points`` ``[N, 3]`` [m]; ``points``
-        itself where no piece is repaired."""
+        itself where no piece is repaired. ``hold``: ``[N]`` bool per point (file order), points
+        that keep where they are (weight 0: where the worn repair has just taken a garment's
+        layers apart), or None."""
         if not self.active.any():
             self.error = 0.0
             return points
@@ -115,6 +117,10 @@ class PieceVolume:
         x = mesh.welded(np.asarray(points, dtype=np.float64))
         x0 = x.copy()
         w = self.weight
+        if hold is not None:
+            held = np.zeros(x.shape[0], dtype=bool)
+            held[mesh.weld[np.asarray(hold, dtype=bool)]] = True
+            w = np.where(held, 0.0, w)
         for r in range(self.ROUNDS):
             v = piece_volumes(x, self._tri, self.piece, self.count, self.fans)
             c = np.where(self.active, v - self.rest_volumes, 0.0)
