@@ -109,23 +109,26 @@ class PieceVolume:
         """The repaired points ``[N, 3]`` (file order) of ``points`` ``[N, 3]`` [m]; ``points``
         itself where no piece is repaired. ``hold``: ``[N]`` bool per point (file order), points
         that keep where they are (weight 0: where the worn repair has just taken a garment's
-        layers apart), or None."""
+        layers apart); only the pieces that hold one are repaired then. None: every piece."""
         if not self.active.any():
             self.error = 0.0
             return points
         mesh = self.mesh
         x = mesh.welded(np.asarray(points, dtype=np.float64))
         x0 = x.copy()
-        w = self.weight
+        w, active = self.weight, self.active
         if hold is not None:
             held = np.zeros(x.shape[0], dtype=bool)
             held[mesh.weld[np.asarray(hold, dtype=bool)]] = True
             w = np.where(held, 0.0, w)
+            active = active & (np.bincount(self.piece, weights=held, minlength=self.count) > 0)
+            if not active.any():
+                return points
         for r in range(self.ROUNDS):
             v = piece_volumes(x, self._tri, self.piece, self.count, self.fans)
-            c = np.where(self.active, v - self.rest_volumes, 0.0)
+            c = np.where(active, v - self.rest_volumes, 0.0)
             if r == 0:
-                self.error = float(np.max(np.abs(c[self.active] / self.rest_volumes[self.active])))
+                self.error = float(np.max(np.abs(c[active] / self.rest_volumes[active])))
             g = self.gradients(x)
             denom = np.bincount(self.piece, weights=w * np.einsum("ij,ij->i", g, g), minlength=self.count)
             s = np.where(denom > 0.0, c / np.where(denom > 0.0, denom, 1.0), 0.0)
