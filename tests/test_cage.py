@@ -400,3 +400,8 @@ def test_bench_times_what_simulate_simulates_on_an_open_character(tmp_path):
     # a step in plain launches launches kernels; a frame replays its graph (one launch) and reads
     # the state back at least once
     assert row["launches_per_step"] > 10 and row["launches_per_frame"] >= 1 and row["readbacks_per_frame"] >= 1
+    # the bytes a step's launches take hold the elasticity loop's (the step runs that loop);
+    # the rates are those bytes over the timings, against the copy's bandwidth
+    assert row["step_bytes"] > row["elasticity_bytes"] > 0
+    assert row["elasticity_gbs"] == pytest.approx(row["elasticity_bytes"] / row["elasticity_ms"] / 1e6, rel=1e-9)
+    assert 0 < row["step_bandwidth_share"] < 10

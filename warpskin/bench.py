@@ -49,29 +49,57 @@ def _best_ms(fn, frames: int, repeat: int, device) -> float:
     return best
 
 
+def memory_bandwidth_gbs(device, mib: int = 64, repeat: int = 5) -> float:
+    """The device's memory bandwidth [GB/s] as a copy of ``mib`` MiB between two of its arrays
+    sees it (bytes read plus bytes written over the best of ``repeat`` copies): the ceiling a
+    kernel that streams its arrays can reach."""
+    n = mib * (1 << 20) // 4
+    src = wp.zeros(n, dtype=wp.float32, device=device)
+    dst = wp.empty(n, dtype=wp.float32, device=device)
+    wp.copy(dst, src)  # first touch of the pages outside the timing
+    ms = _best_ms(lambda f: wp.copy(dst, src), 1, repeat, device)
+    return 2.0 * n * 4 / (ms * 1e-3) / 1e9
+
+
+def _array_bytes(arr) -> int:
+    """The bytes of a Warp array's elements (0 for anything else)."""
+    if not isinstance(arr, wp.array):
+        return 0
+    return int(arr.size) * int(wp.types.type_size_in_bytes(arr.dtype))
+
+
 class _CallCount:
     """Counts, while entered, the calls of Warp's ``launch`` and ``copy`` (the launches: kernel
     and memory) and of ``array.numpy`` on arrays of ``device`` (the reads to the host; on a GPU
     the host's own arrays, such as the guard's pair queries, are not counted, on the CPU every
-    read is). A measuring tool only: it wraps those three module attributes and restores them
-    on exit."""
+    read is), and ``bytes``: per launch, the sizes of the distinct arrays it takes (inputs and
+    outputs), per copy what it reads and writes; the traffic of launches that stream each of
+    their arrays once (more than a launch moves where it reads part of an array, such as
+    contact buffers sized by their capacity; less where it gathers an element more than once).
+    A measuring tool only: it wraps those three module attributes and restores them on exit."""
 
     def __init__(self, device=None) -> None:
         self.device = device
-        self.launches = self.readbacks = 0
+        self.launches = self.readbacks = self.bytes = 0
 
     def __enter__(self):
-        self.launches = self.readbacks = 0
+        self.launches = self.readbacks = self.bytes = 0
         self._saved = (wp.launch, wp.copy, wp.array.numpy)
         launch, copy, numpy = self._saved
 
-        def counted_launch(*args, **kwargs):
+        def counted_launch(kernel, dim=None, inputs=(), outputs=(), *args, **kwargs):
             self.launches += 1
-            return launch(*args, **kwargs)
+            seen = {id(a): a for a in (*(inputs or ()), *(outputs or ())) if isinstance(a, wp.array)}
+            self.bytes += sum(_array_bytes(a) for a in seen.values())
+            return launch(kernel, dim, inputs, outputs, *args, **kwargs)
 
-        def counted_copy(*args, **kwargs):
+        def counted_copy(dest, src, dest_offset=0, src_offset=0, count=0, *args, **kwargs):
             self.launches += 1
-            return copy(*args, **kwargs)
+            size = _array_bytes(src)
+            if count and isinstance(src, wp.array) and src.size:
+                size = size // int(src.size) * int(count)
+            self.bytes += 2 * size
+            return copy(dest, src, dest_offset, src_offset, count, *args, **kwargs)
 
         def counted_numpy(arr, *args, **kwargs):
             if self.device is None or arr.device == self.device:
@@ -316,7 +344,11 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
     physics stepper replaying each frame's captured graph, with the per-frame read-back and
     overflow check, per substep); ``lbs_ms`` (the LBS kernel on the skin vertices, the
     kinematic baseline) and ``total_over_lbs``; ``launches_per_step`` (kernel launches and
-    copies of one step in plain launches, not the memsets of ``zero_``). Then ``simulate``
+    copies of one step in plain launches, not the memsets of ``zero_``); ``step_bytes`` and
+    ``elasticity_bytes`` (the arrays one step's and one elasticity loop's launches take, each
+    once per launch: :class:`_CallCount`), ``step_gbs`` and ``elasticity_gbs`` (those bytes over
+    ``total_ms`` and ``elasticity_ms``) and their ``..._bandwidth_share`` of the device's
+    ``memory_gbs`` (:func:`memory_bandwidth_gbs`, once per bench, at the top level). Then ``simulate``
     runs ``frames_timed`` frames from the timed pose (:func:`_simulate_timing`): ``simulate_frame_ms``, ``simulate_steps_ms``,
     ``host_share`` (the share of a frame spent around its steps: guard, checks, writing),
     ``launches_per_frame`` and ``readbacks_per_frame``.
@@ -325,7 +357,8 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         raise ValueError(f"frames_timed must be >= 2 (the first frame is not stepped), got {frames_timed}")
     dev = resolve_device(device)
     out = {"device": str(dev), "device_name": getattr(dev, "name", str(dev)), "warp": wp.config.version,
-           "cpu_count": os.cpu_count(), "steps": steps, "repeat": repeat, "scenes": {}}
+           "cpu_count": os.cpu_count(), "steps": steps, "repeat": repeat,
+           "memory_gbs": memory_bandwidth_gbs(dev), "scenes": {}}
     for target in targets:
         try:
             scene = resolve_scene(target)
@@ -428,6 +461,16 @@ def run_solver_bench(targets: list[str], *, device: str | None = None, steps: in
         with _CallCount() as tally:  # one step in plain launches
             solver.step(a, b, c, contacts, dt)
         row["launches_per_step"] = tally.launches
+        row["step_bytes"] = tally.bytes
+        with _CallCount() as tally:
+            elasticity(False)
+        row["elasticity_bytes"] = tally.bytes
+        bandwidth = out["memory_gbs"]
+        for key, bytes_, ms in (("elasticity", row["elasticity_bytes"], row["elasticity_ms"]),
+                                ("step", row["step_bytes"], row["total_ms"])):
+            gbs = bytes_ / (ms * 1e-3) / 1e9 if ms > 0 else None
+            row[f"{key}_gbs"] = gbs
+            row[f"{key}_bandwidth_share"] = gbs / bandwidth if gbs is not None and bandwidth > 0 else None
         # a whole simulate frame there: how much of it is the steps, how much the host's work
         first = int(round(t_mid * scene.frame_rate))  # the timed pose's frame (time code)
         row.update(_simulate_timing(scene, dev, first, frames_timed))
