@@ -93,28 +93,6 @@ def point_triangle_chunk(
                                active)
 
 
-@wp.kernel
-def project_point_triangle_kernel(
-    x: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=wp.float32),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    pt_count: wp.array(dtype=wp.int32),
-    pt_vertex: wp.array(dtype=wp.int32),
-    pt_triangle: wp.array(dtype=wp.int32),
-    params: wp.array(dtype=CollisionScalars),
-    vertex_tree: wp.array(dtype=wp.int32),
-    chunk: int,
-    # outputs
-    delta: wp.array(dtype=wp.vec3),
-    delta_count: wp.array(dtype=wp.int32),
-    active: wp.array(dtype=wp.int32),
-):
-    """The point-triangle contacts ``chunk`` x thread ... (thread + 1) x ``chunk`` that exist
-    (``pt_count``): see :func:`contact_range`; each at its character's thickness."""
-    point_triangle_chunk(wp.tid(), chunk, x, inv_mass, tri_indices, pt_count, pt_vertex, pt_triangle, params,
-                         vertex_tree, delta, delta_count, active)
-
-
 # --------------------------------------------------------------------------------------------
 # Edge-edge projection (Deul & Bender 2013, section 4.5):
 #   C = sgn (p4 - p1) . n / |n| - h >= 0,   n = (p2 - p1) x (p4 - p3),
@@ -256,29 +234,6 @@ def edge_edge_chunk(
 
 
 @wp.kernel
-def project_edge_edge_kernel(
-    x: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=wp.float32),
-    edge_indices: wp.array2d(dtype=wp.int32),
-    ee_count: wp.array(dtype=wp.int32),
-    ee_a: wp.array(dtype=wp.int32),
-    ee_b: wp.array(dtype=wp.int32),
-    ee_sign: wp.array(dtype=wp.float32),
-    params: wp.array(dtype=CollisionScalars),
-    vertex_tree: wp.array(dtype=wp.int32),
-    chunk: int,
-    # outputs
-    delta: wp.array(dtype=wp.vec3),
-    delta_count: wp.array(dtype=wp.int32),
-    active: wp.array(dtype=wp.int32),
-):
-    """The edge-edge contacts of this thread's chunk (see :func:`contact_range`); each at its
-    character's thickness."""
-    edge_edge_chunk(wp.tid(), chunk, x, inv_mass, edge_indices, ee_count, ee_a, ee_b, ee_sign, params, vertex_tree,
-                    delta, delta_count, active)
-
-
-@wp.kernel
 def project_contacts_kernel(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=wp.float32),
@@ -302,10 +257,10 @@ def project_contacts_kernel(
 ):
     """One Jacobi pass's corrections of both kinds of contacts in one launch: threads
     ``[0, pt_threads)`` take the point-triangle contacts of their chunk
-    (:func:`project_point_triangle_kernel`), the others the edge-edge contacts of chunk
-    ``thread - pt_threads`` (:func:`project_edge_edge_kernel`). Both only read ``x`` and add
-    into ``delta``, so the pass is the two launches' (on the CPU, whose threads run in order,
-    the same sums in the same order)."""
+    (:func:`point_triangle_chunk`), the others the edge-edge contacts of chunk ``thread -
+    pt_threads`` (:func:`edge_edge_chunk`). Both only read ``x`` and add into ``delta``, so the
+    pass is that of each kind launched alone, one after the other (on the CPU, whose threads run
+    in order, the same sums in the same order)."""
     tid = wp.tid()
     if tid < pt_threads:
         point_triangle_chunk(tid, chunk, x, inv_mass, tri_indices, pt_count, pt_vertex, pt_triangle, params,

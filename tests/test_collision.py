@@ -160,41 +160,54 @@ def _contact_scalars(device, n: int, *, thickness=0.0, radius=0.0, friction=0.0,
     return wp.array([s], dtype=k.CollisionScalars, device=device), wp.zeros(n, dtype=wp.int32, device=device)
 
 
+def _project_launch(device, x, w, tri, delta, count, active, pt=None, ee=None, edges=None, h=0.01, chunk=1,
+                    counted=None):
+    """One launch of the solver's contact pass (:func:`~warpskin.kernels.contact_projection.
+    project_contacts_kernel`) over the given contacts into ``delta``, ``count`` and ``active``
+    (not applied): ``counted`` of each kind counted (default all), a thread per ``chunk``
+    contacts, both buffers five slots longer than the longer list (slots past the counts
+    unused)."""
+    pt, ee = list(pt or ()), list(ee or ())
+    capacity = max(len(pt), len(ee)) + 5
+    params, tree = _contact_scalars(device, len(w), thickness=h)
+
+    def buffer(values, dtype):
+        return wp.array(list(values) + [0] * (capacity - len(values)), dtype=dtype, device=device)
+
+    def counts(values):
+        return wp.array([len(values) if counted is None or not values else counted], dtype=wp.int32, device=device)
+
+    e = np.asarray(edges if edges is not None else [[0, 1]], dtype=np.int32)
+    threads = -(-capacity // chunk)
+    wp.launch(kp.project_contacts_kernel, dim=2 * threads,
+              inputs=[x, w, wp.array(np.asarray(tri, dtype=np.int32).reshape(-1, 3), dtype=wp.int32, device=device),
+                      counts(pt), buffer([v for v, _ in pt], wp.int32), buffer([t for _, t in pt], wp.int32),
+                      wp.array(e, dtype=wp.int32, device=device), counts(ee), buffer([a for a, _, _ in ee], wp.int32),
+                      buffer([b for _, b, _ in ee], wp.int32), buffer([sg for _, _, sg in ee], wp.float32), params,
+                      tree, chunk, threads],
+              outputs=[delta, count, active], device=device)
+
+
 def _project_once(device, points, inv_mass, tri, pt=None, ee=None, edges=None, h=0.01, chunk=1, counted=None):
-    """One Jacobi pass over the given contacts (``counted`` of them counted, default all), a
-    thread per ``chunk`` contacts."""
+    """One Jacobi pass over the given contacts as the solver makes it (one launch of both kinds,
+    then the averaged corrections applied): ``(positions [N, 3], constraints active)``."""
     x = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
     w = wp.array(inv_mass.astype(np.float32), dtype=wp.float32, device=device)
-    tris = wp.array(np.asarray(tri, dtype=np.int32).reshape(-1, 3), dtype=wp.int32, device=device)
     n = len(points)
     delta = wp.zeros(n, dtype=wp.vec3, device=device)
     count = wp.zeros(n, dtype=wp.int32, device=device)
     active = wp.zeros(1, dtype=wp.int32, device=device)
-    threads = -(-max(len(pt or ()), len(ee or ())) // chunk)
-    params, tree = _contact_scalars(device, n, thickness=h)
-    if pt is not None:
-        cnt = wp.array([len(pt) if counted is None else counted], dtype=wp.int32, device=device)
-        wp.launch(kp.project_point_triangle_kernel, dim=threads,
-                  inputs=[x, w, tris, cnt, wp.array([v for v, _ in pt], dtype=wp.int32, device=device),
-                          wp.array([t for _, t in pt], dtype=wp.int32, device=device), params, tree, chunk],
-                  outputs=[delta, count, active], device=device)
-    if ee is not None:
-        cnt = wp.array([len(ee) if counted is None else counted], dtype=wp.int32, device=device)
-        e = wp.array(np.asarray(edges, dtype=np.int32), dtype=wp.int32, device=device)
-        wp.launch(kp.project_edge_edge_kernel, dim=threads,
-                  inputs=[x, w, e, cnt, wp.array([a for a, _, _ in ee], dtype=wp.int32, device=device),
-                          wp.array([b for _, b, _ in ee], dtype=wp.int32, device=device),
-                          wp.array([s for _, _, s in ee], dtype=wp.float32, device=device), params, tree, chunk],
-                  outputs=[delta, count, active], device=device)
+    _project_launch(device, x, w, tri, delta, count, active, pt, ee, edges, h, chunk, counted)
     wp.launch(kp.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
     return x.numpy().astype(np.float64), int(active.numpy()[0])
 
 
 @pytest.mark.parametrize("chunk", [1, 3])
-def test_one_launch_projects_both_kinds_of_contacts_as_two_launches_do(device, chunk):
-    # the solver's pass launches both kinds of contacts at once (project_contacts_kernel): the
-    # same corrections as the point-triangle launch then the edge-edge one (_project_once), on
-    # a generic cloud of contacts, the last buffer slots beyond the counts left out
+def test_one_launch_projects_both_kinds_of_contacts_as_one_launch_each_does(device, chunk):
+    # the solver's pass launches both kinds of contacts at once: its first threads take the
+    # point-triangle chunks, the rest the edge-edge ones. The same corrections as the point-
+    # triangle contacts launched alone, then the edge-edge ones alone, into the same sums, on a
+    # generic cloud of contacts, the last buffer slots beyond the counts left out
     rng = np.random.default_rng(7)
     n = 40
     points = rng.normal(size=(n, 3)) * 0.05
@@ -205,31 +218,22 @@ def test_one_launch_projects_both_kinds_of_contacts_as_two_launches_do(device, c
     ee = [(int(a), int(b), float(rng.choice([-1.0, 1.0]))) for a, b in zip(rng.integers(0, 20, 30), rng.integers(0, 20, 30))
           if not set(edges[a]) & set(edges[b])]
     h = 0.03
-    want, want_active = _project_once(device, points, inv_mass, tri, pt=pt, ee=ee, edges=edges, h=h, chunk=chunk)
-    assert want_active > 0
-    x = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
-    w = wp.array(inv_mass.astype(np.float32), dtype=wp.float32, device=device)
-    delta = wp.zeros(n, dtype=wp.vec3, device=device)
-    count = wp.zeros(n, dtype=wp.int32, device=device)
-    active = wp.zeros(1, dtype=wp.int32, device=device)
-    params, tree = _contact_scalars(device, n, thickness=h)
-    capacity = max(len(pt), len(ee)) + 5  # both buffers as long, the slots past the counts unused
 
-    def buffer(values, dtype):
-        return wp.array(list(values) + [0] * (capacity - len(values)), dtype=dtype, device=device)
+    def run(*kinds):
+        x = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
+        w = wp.array(inv_mass.astype(np.float32), dtype=wp.float32, device=device)
+        delta = wp.zeros(n, dtype=wp.vec3, device=device)
+        count = wp.zeros(n, dtype=wp.int32, device=device)
+        active = wp.zeros(1, dtype=wp.int32, device=device)
+        for p, e in kinds:
+            _project_launch(device, x, w, tri, delta, count, active, p, e, edges, h, chunk)
+        wp.launch(kp.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
+        return x.numpy().astype(np.float64), int(active.numpy()[0])
 
-    threads = -(-capacity // chunk)
-    wp.launch(kp.project_contacts_kernel, dim=2 * threads,
-              inputs=[x, w, wp.array(tri.astype(np.int32), dtype=wp.int32, device=device),
-                      wp.array([len(pt)], dtype=wp.int32, device=device), buffer([v for v, _ in pt], wp.int32),
-                      buffer([t for _, t in pt], wp.int32), wp.array(edges.astype(np.int32), dtype=wp.int32, device=device),
-                      wp.array([len(ee)], dtype=wp.int32, device=device), buffer([a for a, _, _ in ee], wp.int32),
-                      buffer([b for _, b, _ in ee], wp.int32), buffer([sg for _, _, sg in ee], wp.float32), params, tree,
-                      chunk, threads],
-              outputs=[delta, count, active], device=device)
-    wp.launch(kp.apply_deltas_kernel, dim=n, inputs=[delta, count], outputs=[x], device=device)
-    got = x.numpy().astype(np.float64)
-    assert int(active.numpy()[0]) == want_active
+    want, want_active = run((pt, None), (None, ee))
+    got, got_active = run((pt, ee))
+    assert want_active > 0 and got_active == want_active
+    assert np.abs(want - points).max() > 1e-3  # the contacts moved the points
     if wp.get_device(device).is_cpu:  # threads in order: the same sums in the same order
         assert np.array_equal(got, want)
     else:  # a GPU's atomics add in any order

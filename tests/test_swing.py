@@ -74,7 +74,7 @@ def test_only_a_piece_hanging_off_one_place_of_its_own_joint_is_loose():
 def _bun_swing(frequency, damping, angle):
     points, _, piece, joint, closed = _head_scene()
     mine = np.isin(piece, (0, 1))
-    loose = [p for p in loose_pieces(points, piece, joint, np.ones(6, dtype=bool), closed, touch=0.08)]
+    loose = loose_pieces(points, piece, joint, np.ones(6, dtype=bool), closed, touch=0.08)
     keep = np.nonzero(mine)[0]
     remap = np.full(len(points), -1)
     remap[keep] = np.arange(keep.size)
@@ -83,9 +83,9 @@ def _bun_swing(frequency, damping, angle):
     return swing, bun, points[keep]
 
 
-def _angle(rest, moved):
-    r, _ = rigid_fit(rest, moved)
-    return r
+def _rotation(before, after):
+    """``[3, 3]`` the rotation of the best rigid fit of ``before`` onto ``after``."""
+    return rigid_fit(before, after)[0]
 
 
 def test_a_constant_acceleration_deflects_the_piece_by_the_static_angle():
@@ -101,7 +101,7 @@ def test_a_constant_acceleration_deflects_the_piece_by_the_static_angle():
         t = f / fps
         lbs = rest + 0.5 * a * t * t
         out = swing.apply(lbs, lbs, t)
-    r = _angle(lbs[bun.points], out[bun.points])
+    r = _rotation(lbs[bun.points], out[bun.points])
     got = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0  # sin(angle) x axis
     np.testing.assert_allclose(got, np.sin(np.linalg.norm(expected)) * expected / np.linalg.norm(expected),
                                atol=2e-4)
@@ -131,7 +131,7 @@ def test_the_swing_after_a_stop_is_the_pendulum_integrated_by_scipy():
     for f, t in enumerate(times):
         lbs = rest + np.array([x[f], 0.0, 0.0])
         out = swing.apply(lbs, lbs, t)
-        r = _angle(lbs[bun.points], out[bun.points])
+        r = _rotation(lbs[bun.points], out[bun.points])
         written.append(np.arctan2(r[1, 0] - r[0, 1], r[0, 0] + r[1, 1]))  # about z
     # the reference: the same forcing (the LBS's second differences, constant over each frame)
     theta, rate, ref = 0.0, 0.0, [0.0, 0.0]

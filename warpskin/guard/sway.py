@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GarmentSway", "damped_step", "piece_room", "soft_limit"]
+__all__ = ["GarmentSway", "LbsAcceleration", "damped_step", "piece_room", "soft_limit"]
 
 
 def piece_room(points: np.ndarray, piece: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -108,6 +108,35 @@ def damped_step(u: np.ndarray, v: np.ndarray, force: np.ndarray, dt: float, omeg
     return rest + x, xv
 
 
+class LbsAcceleration:
+    """The acceleration of tracked LBS positions from their last three frames: second
+    differences over unequal frame spans, ``2 ((L2 - L1) / h1 - (L1 - L0) / h0) / (h1 + h0)``,
+    taken as constant over the latest span ``h1`` (the swing integrates it exactly there)."""
+
+    def __init__(self) -> None:
+        self._frames: list[tuple[float, np.ndarray]] = []  # the last two frames' (time, positions)
+
+    def reset(self) -> None:
+        """No history: the next two frames give no acceleration."""
+        self._frames = []
+
+    def stale(self, t: float) -> bool:
+        """Whether clip time ``t`` [s] does not advance past the last frame's (a restart)."""
+        return bool(self._frames) and not t > self._frames[-1][0]
+
+    def push(self, t: float, now: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """Record positions ``now`` (any shape, [m]) at ``t`` [s], later than the last frame's;
+        ``(acceleration [m/s^2] shaped as now, h1 [s])``, or None on the first two frames."""
+        if len(self._frames) < 2:
+            self._frames.append((float(t), now))
+            return None
+        (t0, l0), (t1, l1) = self._frames
+        h1, h0 = float(t) - t1, t1 - t0
+        accel = 2.0 * ((now - l1) / h1 - (l1 - l0) / h0) / (h1 + h0)
+        self._frames = [(t1, l1), (float(t), now)]
+        return accel, h1
+
+
 def _across(x: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Rows of ``x`` ``[K, 3]`` less their part along the unit rows of ``n``."""
     return x - np.einsum("ij,ij->i", x, n)[:, None] * n
@@ -153,7 +182,7 @@ class GarmentSway:
         self.enabled = bool(k) and self.omega > 0.0 and bool((self.limit * self.weight > 0.0).any())
         self._u = np.zeros((k, 3))
         self._v = np.zeros((k, 3))
-        self._history: list[tuple[float, np.ndarray]] = []  # the last two frames' (time, LBS)
+        self._lbs = LbsAcceleration()
         #: The largest written swing [m] of the last frame (0 where none).
         self.largest = 0.0
 
@@ -195,7 +224,7 @@ class GarmentSway:
         """At rest, with no history: the next two frames are written as given."""
         self._u[:] = 0.0
         self._v[:] = 0.0
-        self._history = []
+        self._lbs.reset()
 
     def step(self, u: np.ndarray, v: np.ndarray, a: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """The oscillator's state ``(u, v)`` (``[K, 3]`` [m], [m/s]) after ``dt`` [s] under the
@@ -209,17 +238,12 @@ class GarmentSway:
         self.largest = 0.0
         if not self.enabled:
             return points
-        now = np.asarray(lbs, dtype=np.float64)[self.worn]
-        hist = self._history
-        if hist and not t > hist[-1][0]:
+        if self._lbs.stale(t):
             self.reset()
-            hist = self._history
-        if len(hist) < 2:
-            hist.append((float(t), now))
+        pushed = self._lbs.push(t, np.asarray(lbs, dtype=np.float64)[self.worn])
+        if pushed is None:
             return points
-        (t2, l2), (t1, l1) = hist
-        h1, h2 = float(t) - t1, t1 - t2
-        a = 2.0 * ((now - l1) / h1 - (l1 - l2) / h2) / (h1 + h2)
+        a, h1 = pushed
         lim = self.limit
         n = None
         if carriers is not None:  # along the body: the swing in the plane across the point's offset
@@ -235,7 +259,6 @@ class GarmentSway:
             u, v = _across(u, n), _across(v, n)
         scale = soft_limit(np.linalg.norm(u, axis=1), lim)
         self._u, self._v = u * scale[:, None], v * scale[:, None]
-        self._history = [(t1, l1), (float(t), now)]
         swing = self._u
         if self._smooth is not None:  # neighbours swing alike: a few rounds of the ring mean
             m, ids = self._smooth

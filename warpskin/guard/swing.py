@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..transforms import rigid_fit
-from .sway import damped_step, soft_limit
+from .sway import LbsAcceleration, damped_step, soft_limit
 
 __all__ = ["LoosePiece", "PieceSwing", "loose_pieces", "winding_numbers"]
 
@@ -213,7 +213,7 @@ class PieceSwing:
         k = len(self.pieces)
         self._theta = np.zeros((k, 3))
         self._rate = np.zeros((k, 3))
-        self._history: list[tuple[float, np.ndarray]] = []  # the last two frames' (time, LBS centroids)
+        self._lbs = LbsAcceleration()  # of the shown parts' LBS centroids
         #: The largest written swing [rad] of the last frame (0 where none).
         self.largest = 0.0
 
@@ -221,7 +221,7 @@ class PieceSwing:
         """At rest, with no history: the next two frames are written as given."""
         self._theta[:] = 0.0
         self._rate[:] = 0.0
-        self._history = []
+        self._lbs.reset()
 
     def _room(self, points: np.ndarray, p: LoosePiece) -> float:
         """The distance [m] from ``p`` to the nearest point of a piece it does not touch at rest
@@ -241,18 +241,12 @@ class PieceSwing:
         if not self.enabled:
             return points
         lbs = np.asarray(lbs, dtype=np.float64)
-        now = np.array([lbs[p.points[p.visible]].mean(axis=0) for p in self.pieces])
-        hist = self._history
-        if hist and not t > hist[-1][0]:
+        if self._lbs.stale(t):
             self.reset()
-            hist = self._history
-        if len(hist) < 2:
-            hist.append((float(t), now))
+        pushed = self._lbs.push(t, np.array([lbs[p.points[p.visible]].mean(axis=0) for p in self.pieces]))
+        if pushed is None:
             return points
-        (t2, l2), (t1, l1) = hist
-        h1, h2 = float(t) - t1, t1 - t2
-        accel = 2.0 * ((now - l1) / h1 - (l1 - l2) / h2) / (h1 + h2)
-        self._history = [(t1, l1), (float(t), now)]
+        accel, h1 = pushed
         x = np.asarray(points, dtype=np.float64)
         out = None
         for i, p in enumerate(self.pieces):
