@@ -6,16 +6,19 @@ the test meshes).
 * :func:`neighbour_sets`, :func:`omega_rings`, :func:`omega_ring`: omega-rings by
   breadth-first search over the triangle edges.
 * :func:`coarse_arm`: the procedural arm at a coarse resolution (fast to build and simulate).
+* :func:`flip_flat_edges_one_by_one`: Delaunay flips of coplanar triangle pairs, edge by edge.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
 
 __all__ = ["lbs", "rig_lbs", "neighbour_sets", "omega_rings", "omega_ring", "coarse_arm", "COARSE", "winding_numbers",
-           "triangles_intersect_sat", "intersecting_pairs_brute_force", "strain_and_flips"]
+           "triangles_intersect_sat", "intersecting_pairs_brute_force", "strain_and_flips",
+           "flip_flat_edges_one_by_one"]
 
 #: Rings and segments of the coarse arm most solver tests use (1200 particles).
 COARSE = {"rings": 30, "segments": 20}
@@ -362,3 +365,62 @@ def strain_and_flips(rest: np.ndarray, points: np.ndarray, lbs: np.ndarray, tria
     n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
     m = np.cross(q[f[:, 1]] - q[f[:, 0]], q[f[:, 2]] - q[f[:, 0]])
     return share(p), share(q), float(np.mean(np.einsum("ij,ij->i", n, m) < 0.0))
+
+
+def _flip_angle(x: np.ndarray, apex: int, a: int, b: int) -> float:
+    u, w = x[a] - x[apex], x[b] - x[apex]
+    return math.atan2(float(np.linalg.norm(np.cross(u, w))), float(np.dot(u, w)))
+
+
+def flip_flat_edges_one_by_one(x: np.ndarray, triangles: np.ndarray, *, coplanar_cos: float = 1.0 - 1e-10,
+                    max_passes: int = 50) -> np.ndarray:
+    """Delaunay flips of coplanar triangle pairs, one edge at a time in plain Python (the
+    reference for ``warpskin.preprocess.refine.flip_flat_edges``): every edge shared by two
+    coplanar, equally oriented triangles whose opposite angles sum to more than pi is flipped,
+    in order of the directed edges' first appearance, skipping triangles a flip of the same pass
+    changed and diagonals that are edges already; passes until none flips."""
+    tris = [list(t) for t in np.asarray(triangles, dtype=np.int64)]
+    normals = []
+    for a, b, c in tris:
+        n = np.cross(x[b] - x[a], x[c] - x[a])
+        ln = np.linalg.norm(n)
+        normals.append(n / ln if ln > 0 else n)
+    for _ in range(max_passes):
+        edge_tri: dict[tuple[int, int], int] = {}  # directed edge -> its triangle
+        for k, (a, b, c) in enumerate(tris):
+            edge_tri[(a, b)] = k
+            edge_tri[(b, c)] = k
+            edge_tri[(c, a)] = k
+        undirected = {tuple(sorted(e)) for e in edge_tri}
+        flipped = 0
+        touched: set[int] = set()
+        for a, b in list(edge_tri):
+            if a > b or (b, a) not in edge_tri:
+                continue
+            k1, k2 = edge_tri[(a, b)], edge_tri[(b, a)]
+            if k1 in touched or k2 in touched:
+                continue
+            if float(np.dot(normals[k1], normals[k2])) < coplanar_cos:
+                continue
+            t1, t2 = tris[k1], tris[k2]
+            c = next(v for v in t1 if v != a and v != b)
+            d = next(v for v in t2 if v != a and v != b)
+            if c == d or tuple(sorted((c, d))) in undirected:
+                continue
+            if _flip_angle(x, c, a, b) + _flip_angle(x, d, a, b) <= math.pi + 1e-9:
+                continue
+            # (a, b, c) and (b, a, d) become (c, a, d) and (d, b, c): both keep the orientation
+            n1 = np.cross(x[a] - x[c], x[d] - x[c])
+            n2 = np.cross(x[b] - x[d], x[c] - x[d])
+            if np.dot(n1, normals[k1]) <= 0 or np.dot(n2, normals[k1]) <= 0:
+                continue  # the quad is not convex there: a flip would fold it
+            tris[k1], tris[k2] = [c, a, d], [d, b, c]
+            normals[k1] = n1 / np.linalg.norm(n1)
+            normals[k2] = n2 / np.linalg.norm(n2)
+            undirected.discard((min(a, b), max(a, b)))
+            undirected.add((min(c, d), max(c, d)))
+            touched.update((k1, k2))
+            flipped += 1
+        if not flipped:
+            break
+    return np.array(tris, dtype=np.int64).reshape(-1, 3)

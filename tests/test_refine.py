@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from oracles import rig_lbs
+from oracles import flip_flat_edges_one_by_one, rig_lbs
 from warpskin.model import ModelParams, SkinModelBuilder, refine_coarse
 from warpskin.preprocess.layers import folded_triangles
 from warpskin.preprocess.refine import extend_midpoints, flip_flat_edges, refine_long_edges
@@ -107,6 +107,62 @@ def test_flat_flips_keep_the_surface_and_fix_a_fan():
     xb = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0.3], [0.5, -1, 0.3]], float)
     tb = np.array([[0, 1, 2], [1, 0, 3]])
     np.testing.assert_array_equal(flip_flat_edges(xb, tb), tb)
+
+
+def test_flips_reach_scipys_delaunay_triangulation_of_a_plane():
+    """A planar triangulation of generic points that is Delaunay only for points stretched 6x
+    along x: the flips reach the Delaunay triangulation of the points as given (unique for
+    generic points), which scipy computes independently; the orientation is kept."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(11)
+    p = rng.uniform(-1.0, 1.0, size=(80, 2))
+    start = Delaunay(p * [6.0, 1.0]).simplices
+    x = np.concatenate([p, np.zeros((len(p), 1))], axis=1)
+
+    def ccw(t):
+        t = np.array(t, dtype=np.int64)
+        z = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])[:, 2]
+        t[z < 0] = t[z < 0][:, [0, 2, 1]]
+        return t
+
+    start = ccw(start)
+    want = {tuple(sorted(t)) for t in Delaunay(p).simplices}
+    assert {tuple(sorted(t)) for t in start} != want  # the start is not Delaunay
+    f = flip_flat_edges(x, start)
+    assert {tuple(sorted(t)) for t in f} == want
+    z = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])[:, 2]
+    assert (z > 0).all()
+
+
+@pytest.mark.parametrize("case", ["plane", "cylinder", "sphere"])
+def test_flips_over_arrays_are_the_edge_by_edge_flips(case):
+    """The flips, tested over arrays of edges a pass at a time, flip the same edges in the same
+    order as one edge at a time in plain Python: the same triangles, row for row, on a stretched
+    plane, the flat fan caps of a low-poly elliptic cylinder and a closed curved surface (nothing coplanar:
+    no flip)."""
+    rng = np.random.default_rng(5)
+    if case == "plane":
+        from scipy.spatial import Delaunay
+
+        p = rng.uniform(-1.0, 1.0, size=(60, 2))
+        t = Delaunay(p * [5.0, 1.0]).simplices
+        x = np.concatenate([p, np.zeros((len(p), 1))], axis=1)
+        z = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])[:, 2]
+        t[z < 0] = t[z < 0][:, [0, 2, 1]]
+    elif case == "cylinder":
+        v, t = _coarse_cylinder(around=12)
+        x = v * [2.5, 1.0, 1.0]  # elliptic: the caps' fans are far from Delaunay
+    else:
+        s = trimesh.creation.icosphere(subdivisions=2)
+        x, t = np.asarray(s.vertices) * [1.0, 1.3, 0.8], np.asarray(s.faces)
+    want = flip_flat_edges_one_by_one(x, t)
+    got = flip_flat_edges(x, t)
+    np.testing.assert_array_equal(got, want)
+    if case == "sphere":
+        np.testing.assert_array_equal(got, t)
+    else:
+        assert (got != np.asarray(t)).any()
 
 
 def test_extend_midpoints_against_a_loop():

@@ -150,59 +150,94 @@ def refine_long_edges(vertices: np.ndarray, triangles: np.ndarray, max_edge: flo
     return RefinedSurface(x, tris, par, n0)
 
 
-def _angle(x: np.ndarray, apex: int, a: int, b: int) -> float:
-    u, w = x[a] - x[apex], x[b] - x[apex]
-    return math.atan2(float(np.linalg.norm(np.cross(u, w))), float(np.dot(u, w)))
-
-
 def flip_flat_edges(x: np.ndarray, triangles: np.ndarray, *, coplanar_cos: float = 1.0 - 1e-10,
                     max_passes: int = 50) -> np.ndarray:
     """Flip every edge shared by two coplanar, equally oriented triangles whose opposite angles
     sum to more than pi (the Delaunay criterion), until none is left or ``max_passes``. Only
     coplanar pairs are flipped, so the surface (every point of it) is unchanged; the
-    orientation of each triangle is kept."""
-    tris = [list(t) for t in np.asarray(triangles, dtype=np.int64)]
-    normals = []
-    for a, b, c in tris:
-        n = np.cross(x[b] - x[a], x[c] - x[a])
-        ln = np.linalg.norm(n)
-        normals.append(n / ln if ln > 0 else n)
+    orientation of each triangle is kept.
+
+    Each pass tests every interior edge at once (arrays over the edges), then flips the edges
+    that pass in the order of their first appearance (triangle by triangle, ``ab, bc, ca``),
+    skipping an edge whose triangles a flip of this pass already changed or whose new diagonal
+    is already an edge: a triangle is flipped at most once a pass.
+
+    Args:
+        x: Vertex positions ``[V, 3]``.
+        triangles: ``[T, 3]`` vertex indices, consistently oriented where edges are flipped.
+
+    Returns:
+        The triangles ``[T, 3]`` (int64), same count and order, flipped edges replaced.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3).copy()
+    if len(tris) == 0:
+        return tris
+    span = int(max(x.shape[0], int(tris.max()) + 1))
     for _ in range(max_passes):
-        edge_tri: dict[tuple[int, int], int] = {}  # directed edge -> its triangle
-        for k, (a, b, c) in enumerate(tris):
-            edge_tri[(a, b)] = k
-            edge_tri[(b, c)] = k
-            edge_tri[(c, a)] = k
-        undirected = {tuple(sorted(e)) for e in edge_tri}
-        flipped = 0
+        t = len(tris)
+        n = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
+        ln = np.linalg.norm(n, axis=1)
+        normals = n / np.where(ln > 0, ln, 1.0)[:, None]
+        # directed edges a -> b of triangle k, c opposite; numbered in order of appearance
+        a = tris.reshape(-1)
+        b = tris[:, [1, 2, 0]].reshape(-1)
+        c = tris[:, [2, 0, 1]].reshape(-1)
+        owner = np.repeat(np.arange(t), 3)
+        key = a * span + b
+        # a directed edge met twice (a non-manifold fan) belongs to its last triangle and keeps
+        # its first place in the order
+        uniq, first = np.unique(key, return_index=True)
+        _, last_rev = np.unique(key[::-1], return_index=True)
+        last = len(key) - 1 - last_rev
+        ua, ub = uniq // span, uniq % span
+        rev = ub * span + ua
+        pos = np.searchsorted(uniq, rev)
+        pos = np.minimum(pos, len(uniq) - 1)
+        has_twin = uniq[pos] == rev
+        cand = np.nonzero((ua < ub) & has_twin)[0]
+        if cand.size == 0:
+            break
+        e1, e2 = last[cand], last[pos[cand]]
+        k1, k2 = owner[e1], owner[e2]
+        ea, eb, ec, ed = ua[cand], ub[cand], c[e1], c[e2]
+        undirected = np.unique(np.minimum(a, b) * span + np.maximum(a, b))
+        cd = np.minimum(ec, ed) * span + np.maximum(ec, ed)
+        j = np.minimum(np.searchsorted(undirected, cd), len(undirected) - 1)
+        is_edge = undirected[j] == cd  # the new diagonal is an edge already (a flip may change that)
+        ok = (np.einsum("ij,ij->i", normals[k1], normals[k2]) >= coplanar_cos) & (ec != ed)
+        xa, xb, xc, xd = x[ea], x[eb], x[ec], x[ed]
+
+        def angle(apex, p, q):
+            u, w = p - apex, q - apex
+            return np.arctan2(np.linalg.norm(np.cross(u, w), axis=1), np.einsum("ij,ij->i", u, w))
+
+        ok &= angle(xc, xa, xb) + angle(xd, xa, xb) > math.pi + 1e-9
+        # (a, b, c) and (b, a, d) become (c, a, d) and (d, b, c), both keeping the orientation;
+        # where the quad is not convex a flip would fold it
+        n1 = np.cross(xa - xc, xd - xc)
+        n2 = np.cross(xb - xd, xc - xd)
+        ok &= (np.einsum("ij,ij->i", n1, normals[k1]) > 0) & (np.einsum("ij,ij->i", n2, normals[k1]) > 0)
+        todo = np.nonzero(ok)[0]
+        todo = todo[np.argsort(first[cand[todo]], kind="stable")]
         touched: set[int] = set()
-        for a, b in list(edge_tri):
-            if a > b or (b, a) not in edge_tri:
+        added: set[int] = set()
+        removed: set[int] = set()
+        flipped = 0
+        for i in todo.tolist():
+            t1, t2 = int(k1[i]), int(k2[i])
+            if t1 in touched or t2 in touched:
                 continue
-            k1, k2 = edge_tri[(a, b)], edge_tri[(b, a)]
-            if k1 in touched or k2 in touched:
+            e = int(cd[i])
+            if e in added or (is_edge[i] and e not in removed):
                 continue
-            if float(np.dot(normals[k1], normals[k2])) < coplanar_cos:
-                continue
-            t1, t2 = tris[k1], tris[k2]
-            c = next(v for v in t1 if v != a and v != b)
-            d = next(v for v in t2 if v != a and v != b)
-            if c == d or tuple(sorted((c, d))) in undirected:
-                continue
-            if _angle(x, c, a, b) + _angle(x, d, a, b) <= math.pi + 1e-9:
-                continue
-            # (a, b, c) and (b, a, d) become (c, a, d) and (d, b, c): both keep the orientation
-            n1 = np.cross(x[a] - x[c], x[d] - x[c])
-            n2 = np.cross(x[b] - x[d], x[c] - x[d])
-            if np.dot(n1, normals[k1]) <= 0 or np.dot(n2, normals[k1]) <= 0:
-                continue  # the quad is not convex there: a flip would fold it
-            tris[k1], tris[k2] = [c, a, d], [d, b, c]
-            normals[k1] = n1 / np.linalg.norm(n1)
-            normals[k2] = n2 / np.linalg.norm(n2)
-            undirected.discard((min(a, b), max(a, b)))
-            undirected.add((min(c, d), max(c, d)))
-            touched.update((k1, k2))
+            va, vb, vc, vd = int(ea[i]), int(eb[i]), int(ec[i]), int(ed[i])
+            tris[t1] = (vc, va, vd)
+            tris[t2] = (vd, vb, vc)
+            removed.add(min(va, vb) * span + max(va, vb))
+            added.add(e)
+            touched.update((t1, t2))
             flipped += 1
         if not flipped:
             break
-    return np.array(tris, dtype=np.int64).reshape(-1, 3)
+    return tris
