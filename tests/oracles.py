@@ -83,20 +83,28 @@ def coarse_arm(**overrides):
     return make_arm(**{**COARSE, **overrides})
 
 
-def winding_numbers(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 256) -> np.ndarray:
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, block: int = 1 << 16) -> np.ndarray:
     """Generalised winding number of every point ``[P]`` with respect to a triangle mesh: the sum
     of the triangles' signed solid angles over 4 pi (Van Oosterom and Strackee 1983). About 1
-    inside a closed, outward-wound surface, 0 outside."""
+    inside a closed, outward-wound surface, 0 outside. Evaluated over every point-triangle pair
+    in float64, component by component, about ``block`` pairs at a time (blocks that stay in
+    the cache: a few points against all triangles)."""
     p = np.asarray(points, dtype=np.float64)
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)]  # [T, corner, xyz]
+    corners = [[np.ascontiguousarray(tri[:, k, d]) for d in range(3)] for k in range(3)]
+    chunk = max(1, int(block) // max(len(tri), 1))
     out = np.empty(len(p))
     for s in range(0, len(p), chunk):
-        a, b, c = (tri[None, :, k] - p[s:s + chunk, None] for k in range(3))  # [C, T, 3]
-        la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
-        det = np.einsum("ctk,ctk->ct", a, np.cross(b, c))
-        den = la * lb * lc + np.einsum("ctk,ctk->ct", a, b) * lc + np.einsum("ctk,ctk->ct", b, c) * la \
-            + np.einsum("ctk,ctk->ct", c, a) * lb
-        out[s:s + chunk] = (2.0 * np.arctan2(det, den)).sum(axis=1) / (4.0 * np.pi)
+        q = p[s:s + chunk]
+        (ax, ay, az), (bx, by, bz), (cx, cy, cz) = ([v[None, :] - q[:, d, None] for d, v in enumerate(corner)]
+                                                    for corner in corners)  # [C, T] each
+        la = np.sqrt(ax * ax + ay * ay + az * az)
+        lb = np.sqrt(bx * bx + by * by + bz * bz)
+        lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+        det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        den = la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la \
+            + (cx * ax + cy * ay + cz * az) * lb
+        out[s:s + chunk] = np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
     return out
 
 
@@ -231,18 +239,22 @@ def gltf_reference_points(path, t: float, animation: str | None = None) -> dict[
     return out
 
 
-def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 64) -> np.ndarray:
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
+                        chunk: int | None = None) -> np.ndarray:
     """Brute-force unsigned distance ``[N]`` from every point to a triangle mesh (see
     :func:`closest_on_mesh`)."""
     return closest_on_mesh(points, vertices, triangles, chunk)[0]
 
 
-def closest_on_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int = 64) -> tuple:
+def closest_on_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, chunk: int | None = None) -> tuple:
     """Brute-force closest points on a triangle mesh: the closest point on each triangle by
     Ericson's region test (Real-Time Collision Detection, 5.1.5), the minimum over all
-    triangles. Returns ``(distance [N], triangle [N], barycentric weights [N, 3])``."""
+    triangles. Returns ``(distance [N], triangle [N], barycentric weights [N, 3])``. ``chunk``
+    points at a time (default: about 16k point-triangle pairs a block, which stay in the cache)."""
     p = np.asarray(points, dtype=np.float64)
     a, b, c = (np.asarray(vertices, dtype=np.float64)[np.asarray(triangles)[:, i]] for i in range(3))
+    if chunk is None:
+        chunk = max(1, (1 << 14) // max(len(a), 1))
     ab, ac = b - a, c - a
     out = np.empty(len(p))
     tri = np.empty(len(p), dtype=np.int64)
