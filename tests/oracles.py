@@ -320,24 +320,44 @@ def triangles_intersect_sat(a: np.ndarray, b: np.ndarray) -> bool:
     return True
 
 
-def intersecting_pair_list_brute_force(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def _sat_disjoint(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`triangles_intersect_sat`'s test over many pairs at once: ``a``, ``b`` ``[N, 3, 3]``;
+    True where some of the eleven axes separates the pair."""
+    ea, eb = a[:, [1, 2, 0]] - a, b[:, [1, 2, 0]] - b
+    axes = [np.cross(ea[:, 0], ea[:, 1]), np.cross(eb[:, 0], eb[:, 1])]
+    axes += [np.cross(ea[:, u], eb[:, v]) for u in range(3) for v in range(3)]
+    disjoint = np.zeros(len(a), dtype=bool)
+    for ax in axes:
+        pa, pb = np.einsum("nkd,nd->nk", a, ax), np.einsum("nkd,nd->nk", b, ax)
+        apart = (pa.max(axis=1) < pb.min(axis=1)) | (pb.max(axis=1) < pa.min(axis=1))
+        disjoint |= apart & (np.einsum("nd,nd->n", ax, ax) >= 1e-30)
+    return disjoint
+
+
+def intersecting_pair_list_brute_force(points: np.ndarray, triangles: np.ndarray, block: int = 256) -> np.ndarray:
     """The intersecting triangle pairs ``(i, j)``, ``i < j``, of a mesh that share no vertex,
-    ``[P, 2]`` in lexicographic order, over every pair (boxes first, then
-    :func:`triangles_intersect_sat`)."""
+    ``[P, 2]`` in lexicographic order, over every pair: boxes first (``block`` triangles against
+    all at a time), then the separating axis test of :func:`triangles_intersect_sat` over the
+    pairs whose boxes overlap, all at once."""
     p = np.asarray(points, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     corners = p[t]
     lo, hi = corners.min(axis=1), corners.max(axis=1)
     out = []
-    for i in range(len(t)):
-        j = np.arange(i + 1, len(t))
-        overlap = np.all((lo[j] <= hi[i]) & (hi[j] >= lo[i]), axis=1)
-        for k in j[overlap]:
-            if set(t[i].tolist()) & set(t[k].tolist()):
-                continue
-            if triangles_intersect_sat(corners[i], corners[k]):
-                out.append((i, int(k)))
-    return np.array(out, dtype=np.int64).reshape(-1, 2)
+    for s in range(0, len(t), block):
+        i = np.arange(s, min(s + block, len(t)))
+        overlap = np.all((lo[None, :] <= hi[i, None]) & (hi[None, :] >= lo[i, None]), axis=2)  # [B, T]
+        overlap &= np.arange(len(t))[None, :] > i[:, None]
+        ii, jj = np.nonzero(overlap)
+        ii = i[ii]
+        shared = (t[ii][:, :, None] == t[jj][:, None, :]).any(axis=(1, 2))
+        ii, jj = ii[~shared], jj[~shared]
+        hit = ~_sat_disjoint(corners[ii], corners[jj])
+        out.append(np.stack([ii[hit], jj[hit]], axis=1))
+    if not out:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = np.concatenate(out).astype(np.int64)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
 
 def intersecting_pairs_brute_force(points: np.ndarray, triangles: np.ndarray) -> int:

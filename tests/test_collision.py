@@ -800,9 +800,12 @@ def test_detected_edge_edge_pairs_match_brute_force(device):
     vol = np.abs(np.einsum("ij,ij->i", d3, np.cross(d1, d2)))
     keep &= vol >= 1e-9 * np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1) * np.linalg.norm(d3, axis=1)
     e, f = e[keep], f[keep]
-    u = p[e][:, None] + s[None, :, None] * (q[e] - p[e])[:, None]  # [P, S, 3]
-    v = p[f][:, None] + s[None, :, None] * (q[f] - p[f])[:, None]
-    dist = np.linalg.norm(u[:, :, None] - v[:, None], axis=3).min(axis=(1, 2))
+    dist = np.empty(len(e))
+    for at in range(0, len(e), 256):  # blocks of pairs that stay in the cache
+        eb, fb = e[at:at + 256], f[at:at + 256]
+        u = p[eb][:, None] + s[None, :, None] * (q[eb] - p[eb])[:, None]  # [B, S, 3]
+        v = p[fb][:, None] + s[None, :, None] * (q[fb] - p[fb])[:, None]
+        dist[at:at + 256] = np.sqrt(((u[:, :, None] - v[:, None]) ** 2).sum(axis=3)).min(axis=(1, 2))
     expected = set(zip(e[dist < 0.98 * col.radius].tolist(), f[dist < 0.98 * col.radius].tolist()))
     assert len(expected) > 50
     assert expected <= ee

@@ -89,12 +89,15 @@ def test_limits_name_the_mesh_and_the_files_vertex():
 
 
 def _widest_split_by_loops(rest: np.ndarray, points: np.ndarray) -> float:
-    """The farthest two written vertices with one rest position lie apart (every pair)."""
+    """The farthest two written vertices with one rest position lie apart: every pair of copies
+    of each rest position (grouped by exact equality, -0.0 as 0.0), by scipy's pdist."""
+    from scipy.spatial.distance import pdist
+
+    _, group = np.unique(np.asarray(rest, dtype=np.float64) + 0.0, axis=0, return_inverse=True)
+    group = group.reshape(-1)
     worst = 0.0
-    for i in range(len(rest)):
-        for j in range(i):
-            if tuple(rest[i]) == tuple(rest[j]):
-                worst = max(worst, float(np.linalg.norm(points[i] - points[j])))
+    for g in np.nonzero(np.bincount(group) > 1)[0]:
+        worst = max(worst, float(pdist(np.asarray(points, dtype=np.float64)[group == g]).max()))
     return worst
 
 
