@@ -31,8 +31,10 @@ def project_point_triangle(
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
+    count_active: int,
 ):
-    """Contact ``k``'s point-triangle constraint, projected into ``delta``/``delta_count``."""
+    """Contact ``k``'s point-triangle constraint, projected into ``delta``/``delta_count``;
+    counted in ``active[0]`` where violated if ``count_active`` != 0."""
     i = pt_vertex[k]
     t = pt_triangle[k]
     ia = tri_indices[t, 0]
@@ -65,7 +67,8 @@ def project_point_triangle(
     wp.atomic_add(delta_count, ia, 1)
     wp.atomic_add(delta_count, ib, 1)
     wp.atomic_add(delta_count, ic, 1)
-    wp.atomic_add(active, 0, 1)
+    if count_active != 0:
+        wp.atomic_add(active, 0, 1)
 
 
 @wp.func
@@ -83,6 +86,7 @@ def point_triangle_chunk(
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
+    count_active: int,
 ):
     """:func:`project_point_triangle` over the contacts of chunk ``thread`` that exist
     (:func:`contact_range`), each at its character's thickness."""
@@ -90,7 +94,7 @@ def point_triangle_chunk(
     for k in range(first, last):
         thickness = params[vertex_tree[pt_vertex[k]]].thickness
         project_point_triangle(k, x, inv_mass, tri_indices, pt_vertex, pt_triangle, thickness, delta, delta_count,
-                               active)
+                               active, count_active)
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,8 +184,10 @@ def project_edge_edge(
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
+    count_active: int,
 ):
-    """Contact ``k``'s edge-edge constraint, projected into ``delta``/``delta_count``."""
+    """Contact ``k``'s edge-edge constraint, projected into ``delta``/``delta_count``; counted
+    in ``active[0]`` where violated if ``count_active`` != 0."""
     i1 = edge_indices[ee_a[k], 0]
     i2 = edge_indices[ee_a[k], 1]
     i3 = edge_indices[ee_b[k], 0]
@@ -205,7 +211,8 @@ def project_edge_edge(
     wp.atomic_add(delta_count, i2, 1)
     wp.atomic_add(delta_count, i3, 1)
     wp.atomic_add(delta_count, i4, 1)
-    wp.atomic_add(active, 0, 1)
+    if count_active != 0:
+        wp.atomic_add(active, 0, 1)
 
 
 @wp.func
@@ -224,13 +231,15 @@ def edge_edge_chunk(
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),
     active: wp.array(dtype=wp.int32),
+    count_active: int,
 ):
     """:func:`project_edge_edge` over the contacts of chunk ``thread`` that exist
     (:func:`contact_range`), each at its character's thickness."""
     first, last = contact_range(thread, chunk, ee_count[0], ee_a.shape[0])
     for k in range(first, last):
         thickness = params[vertex_tree[edge_indices[ee_a[k], 0]]].thickness
-        project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count, active)
+        project_edge_edge(k, x, inv_mass, edge_indices, ee_a, ee_b, ee_sign, thickness, delta, delta_count, active,
+                          count_active)
 
 
 @wp.kernel
@@ -250,6 +259,7 @@ def project_contacts_kernel(
     vertex_tree: wp.array(dtype=wp.int32),
     chunk: int,
     pt_threads: int,
+    count_active: int,
     # outputs
     delta: wp.array(dtype=wp.vec3),
     delta_count: wp.array(dtype=wp.int32),
@@ -260,14 +270,16 @@ def project_contacts_kernel(
     (:func:`point_triangle_chunk`), the others the edge-edge contacts of chunk ``thread -
     pt_threads`` (:func:`edge_edge_chunk`). Both only read ``x`` and add into ``delta``, so the
     pass is that of each kind launched alone, one after the other (on the CPU, whose threads run
-    in order, the same sums in the same order)."""
+    in order, the same sums in the same order). With ``count_active`` != 0 the violated
+    constraints are counted into ``active[0]`` (the caller zeroes it): only the last pass of a
+    projection counts, so the passes before it take no atomic on that one address."""
     tid = wp.tid()
     if tid < pt_threads:
         point_triangle_chunk(tid, chunk, x, inv_mass, tri_indices, pt_count, pt_vertex, pt_triangle, params,
-                             vertex_tree, delta, delta_count, active)
+                             vertex_tree, delta, delta_count, active, count_active)
     else:
         edge_edge_chunk(tid - pt_threads, chunk, x, inv_mass, edge_indices, ee_count, ee_a, ee_b, ee_sign, params,
-                        vertex_tree, delta, delta_count, active)
+                        vertex_tree, delta, delta_count, active, count_active)
 
 
 @wp.kernel

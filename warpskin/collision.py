@@ -377,24 +377,25 @@ class SelfCollision:
 
     def project(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
         """``passes`` Jacobi passes over all point-triangle and edge-edge constraints;
-        ``contacts.active`` counts the constraints still violated in the last pass."""
-        for _ in range(self.data.passes):
-            self._project_pass(x, inv_mass, contacts)
+        ``contacts.active`` counts the constraints still violated in the last pass (zeroed
+        once, counted by that pass alone)."""
+        contacts.active.zero_()
+        for k in range(self.data.passes):
+            self._project_pass(x, inv_mass, contacts, count_active=k == self.data.passes - 1)
 
     def _threads(self, items: int) -> int:
         """Threads of a chunked kernel over ``items`` slots or triangles: one per :attr:`chunk`."""
         return -(-items // self.chunk)
 
-    def _project_pass(self, x: wp.array, inv_mass: wp.array, contacts) -> None:
+    def _project_pass(self, x: wp.array, inv_mass: wp.array, contacts, count_active: bool) -> None:
         dev = self.device
         c = self.data
         m = self.model
-        contacts.active.zero_()
         dim = self._threads(contacts.capacity)  # per kind: both buffers hold ``capacity`` contacts
         wp.launch(kp.project_contacts_kernel, dim=2 * dim,
                   inputs=[x, inv_mass, m.tri_indices, contacts.pt_count, contacts.pt_vertex, contacts.pt_triangle,
                           c.edge_indices, contacts.ee_count, contacts.ee_a, contacts.ee_b, contacts.ee_sign,
-                          self.params, self.vertex_tree, self.chunk, dim],
+                          self.params, self.vertex_tree, self.chunk, dim, int(count_active)],
                   outputs=[self.delta, self.delta_count, contacts.active], device=dev)
         wp.launch(kp.apply_deltas_kernel, dim=m.vertex_count, inputs=[self.delta, self.delta_count], outputs=[x], device=dev)
 
