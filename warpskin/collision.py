@@ -380,8 +380,8 @@ class SelfCollision:
         ``contacts.active`` counts the constraints still violated in the last pass (zeroed
         once, counted by that pass alone)."""
         contacts.active.zero_()
-        for k in range(self.data.passes):
-            self._project_pass(x, inv_mass, contacts, count_active=k == self.data.passes - 1)
+        for n in range(self.data.passes):
+            self._project_pass(x, inv_mass, contacts, count_active=n == self.data.passes - 1)
 
     def _threads(self, items: int) -> int:
         """Threads of a chunked kernel over ``items`` slots or triangles: one per :attr:`chunk`."""
