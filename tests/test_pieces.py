@@ -184,3 +184,47 @@ def test_decimation_keeps_the_loops_and_the_shape(device):
         # every reduced vertex lies on (within a small share of the radius of) the piece as it was
         dist = point_mesh_distance(small.vertices[(small.vertex_piece == k) & ~small.cap], full.vertices, t_full)
         assert dist.max() < 0.05 * 0.08
+
+
+@pytest.mark.parametrize("bony", [0.25, 1.0])
+def test_the_tissue_beneath_a_rigid_piece_is_thinned_on_its_joint_only(device, bony):
+    # a head (a sphere, strongest joint "head", not rigid), a neck tube below it (strongest
+    # joint "neck"), a bead rigid on "head" sunk into the side of the head, and a bead rigid on
+    # "neck" beside the head: each head vertex's factor is bony + (1 - bony) smoothstep(d / s - 1)
+    # with d its distance to the head's bead (nearest point, brute force) and s that bead's
+    # half-diagonal; the neck bead, on another joint, lowers no head vertex, and the neck keeps 1
+    head = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    head_p = np.asarray(head.vertices) * [1.0, 1.1, 0.95] + [0.0, 1.0, 0.0]
+    neck_p, neck_t = _tube([0, 0.55, 0], [0, 0.93, 0], 0.05, segments=20, rings=20, jitter=1e-4, seed=4)
+    bead = trimesh.creation.icosphere(subdivisions=2, radius=0.02)
+    bead_p = np.asarray(bead.vertices) * [1.0, 0.9, 1.1] + [0.113, 1.012, 0.004]
+    other_p = np.asarray(bead.vertices) + [-0.16, 0.97, 0.01]
+    parts = [(head_p, np.asarray(head.faces), [0.0, 0.1, 0.9]), (neck_p, neck_t, None),
+             (bead_p, np.asarray(bead.faces), [0.0, 0.0, 1.0]), (other_p, np.asarray(bead.faces), [0.0, 1.0, 0.0])]
+    points, tris, dense, base = [], [], [], 0
+    for pts, t, w in parts:
+        if w is None:  # spine to neck along the tube
+            s = np.clip((pts[:, 1] - 0.55) / 0.38, 0.0, 1.0)
+            w = np.stack([0.8 - 0.5 * s, 0.2 + 0.5 * s, np.zeros(len(pts))], axis=1)
+        points.append(pts)
+        tris.append(t + base)
+        dense.append(np.broadcast_to(np.asarray(w, dtype=np.float64), (len(pts), 3)))
+        base += len(pts)
+    points, tris, dense = np.concatenate(points), np.concatenate(tris), np.concatenate(dense)
+    ps = piece_surface(points, tris, dense, np.zeros(len(points), dtype=np.int64), ["guy"],
+                       joint_names=["spine", "neck", "head"], params=PieceParams(max_vertices=None, bony_depth=bony),
+                       device=device)
+    assert ps is not None
+    f = ps.groups.depth_factor
+    assert f.shape == (ps.vertex_count,)
+    on_head = np.isin(ps.origin, np.arange(len(head_p))) & ~ps.cap
+    on_neck = np.isin(ps.origin, len(head_p) + np.arange(len(neck_p)))
+    assert on_head.sum() == len(head_p) and on_neck.any()
+    d = np.linalg.norm(ps.vertices[on_head][:, None] - bead_p[None], axis=2).min(axis=1)
+    s = 0.5 * np.linalg.norm(np.ptp(bead_p, axis=0))
+    u = np.clip(d / s - 1.0, 0.0, 1.0)
+    np.testing.assert_allclose(f[on_head], bony + (1.0 - bony) * u * u * (3.0 - 2.0 * u), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(f[on_neck], 1.0)
+    if bony < 1.0:
+        assert (f[on_head] == bony).sum() > 5 and (f[on_head] == 1.0).sum() > 100  # thinned beneath, not beyond
+        assert ((f[on_head] > bony) & (f[on_head] < 1.0)).any()  # blended between

@@ -524,7 +524,9 @@ class Rig:
         groups, labels = self.surface_groups, self.surface_labels
         if groups is not None:  # an added vertex in its parents' group (a cap's, where one parent is)
             g = np.asarray(groups.group)
-            groups = dataclasses.replace(groups, group=np.concatenate([g, g[ref.parents].max(axis=1)]))
+            f = groups.depth_factor
+            groups = dataclasses.replace(groups, group=np.concatenate([g, g[ref.parents].max(axis=1)]),
+                                         depth_factor=None if f is None else extend_midpoints(f, ref.parents))
         if labels is not None:
             f, m, mn, pc, pn = labels
             labels = (np.concatenate([f, np.full(ref.added, -1)]), np.concatenate([m, m[ref.parents[:, 0]]]), mn,

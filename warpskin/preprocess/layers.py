@@ -143,7 +143,9 @@ class Layers:
 
 
 def build_layers(rig: Rig, params: LayerParams | None = None, *, bones: Bones | None = None) -> Layers:
-    """Project every skin vertex toward its bone to make the fat, muscle and bone layers.
+    """Project every skin vertex toward its bone to make the fat, muscle and bone layers, at
+    the scene's projection parameters (``params``, per bone where it sets them), times a surface
+    of pieces' ``surface_groups.depth_factor`` elsewhere (thinner tissue beneath rigid pieces).
 
     Raises:
         RigError: parameters out of order, an override naming an unknown joint.
@@ -155,9 +157,16 @@ def build_layers(rig: Rig, params: LayerParams | None = None, *, bones: Bones | 
     bone = dominant_bone(rig)
     foot, t = closest_point_on_segments(rig.vertices, bones.start[bone], bones.end[bone])
     per_joint = np.tile([params.fat, params.muscle, params.bone], (rig.joint_count, 1)).astype(np.float64)
+    overridden = np.zeros(rig.joint_count, dtype=bool)
     for name, p in params.per_bone.items():
         per_joint[rig.skeleton.index(name)] = p
+        overridden[rig.skeleton.index(name)] = True
     p = per_joint[bone]
+    # a surface of pieces: thinner tissue beneath pieces rigid on the same joint
+    # (PieceParams.bony_depth), where the scene does not set that bone's parameters itself
+    factor = getattr(getattr(rig, "surface_groups", None), "depth_factor", None)
+    if factor is not None:
+        p = p * np.where(overridden[bone], 1.0, np.asarray(factor, dtype=np.float64))[:, None]
     seg = foot - rig.vertices
     positions = np.empty((4, rig.vertex_count, 3))
     positions[0] = rig.vertices

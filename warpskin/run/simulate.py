@@ -320,7 +320,9 @@ class _WrittenQuality:
 def _surface_summary(character) -> dict:
     """What was simulated: ``kind`` (``skin``, ``pieces`` or ``cage``) and, for the character's
     own pieces, which were simulated and which attached, the holes capped, the pairs of pieces
-    kept from colliding and the loose pieces that swing (:class:`~warpskin.guard.PieceSwing`)."""
+    kept from colliding, the loose pieces that swing (:class:`~warpskin.guard.PieceSwing`) and the
+    rigid pieces whose joint's tissue beneath them is thinned (``bony_under``:
+    ``PieceParams.bony_depth``)."""
     out = {"kind": character.surface, "vertices": int(character.sim_rig.vertex_count)}
     ps = character.pieces
     if ps is not None:
@@ -328,7 +330,8 @@ def _surface_summary(character) -> dict:
         out.update({"pieces": int(ps.piece_count), "simulated": list(n["simulated"]), "attached": list(n["attached"]),
                     "capped_holes": int(n["capped_loops"]), "cap_vertices": int(ps.cap.sum()),
                     "apart": [list(p) for p in n["excluded_pairs"]], "edge_m": float(ps.edge),
-                    "swinging": [n["names"][p.piece] for s in character.swings.values() for p in s.pieces]})
+                    "swinging": [n["names"][p.piece] for s in character.swings.values() for p in s.pieces],
+                    "bony_under": list(n.get("bony_under", []))})
     return out
 
 
