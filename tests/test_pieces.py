@@ -202,7 +202,8 @@ def test_the_tissue_beneath_a_rigid_piece_is_thinned_on_its_joint_only(device, b
     # joint "neck"), a hair cap (a patch of a sphere over the crown, rigid on "head": a sheet,
     # worn, not simulated) and a patch on the side of the head rigid on "neck": each head
     # vertex's factor is bony + (1 - bony) smoothstep(d / s - 1) with d its distance to the cap
-    # (nearest point, brute force) and s the cap's half-diagonal; the side patch, on another
+    # (nearest point, brute force) and s the cap's half-diagonal, at most a worn piece's largest
+    # gap; the side patch, on another
     # joint, lowers no head vertex but the neck's near it, and the spine's keep 1
     centre = np.array([0.0, 1.0, 0.0])
     head = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
@@ -234,14 +235,17 @@ def test_the_tissue_beneath_a_rigid_piece_is_thinned_on_its_joint_only(device, b
     on_neck = np.isin(ps.origin, len(head_p) + np.arange(len(neck_p)))
     assert on_head.sum() == len(head_p) and on_neck.any()
     d = np.linalg.norm(ps.vertices[on_head][:, None] - cap_p[None], axis=2).min(axis=1)
+    reach = PieceParams().garment_gap * np.ptp(points, axis=0).max()  # a worn piece's largest gap
     s = 0.5 * np.linalg.norm(np.ptp(cap_p, axis=0))
+    assert s > reach  # the cap's half-diagonal is cut to the reach
+    s = reach
     u = np.clip(d / s - 1.0, 0.0, 1.0)
     np.testing.assert_allclose(f[on_head], bony + (1.0 - bony) * u * u * (3.0 - 2.0 * u), rtol=0, atol=1e-12)
     # the neck's points whose strongest joint is the neck, beside the side patch: by it alone;
     # those whose strongest joint is the spine: 1
     on_neck_joint = on_neck & (np.argmax(ps.dense_weights, axis=1) == 1)
     d = np.linalg.norm(ps.vertices[on_neck_joint][:, None] - side_p[None], axis=2).min(axis=1)
-    u = np.clip(d / (0.5 * np.linalg.norm(np.ptp(side_p, axis=0))) - 1.0, 0.0, 1.0)
+    u = np.clip(d / min(0.5 * np.linalg.norm(np.ptp(side_p, axis=0)), reach) - 1.0, 0.0, 1.0)
     np.testing.assert_allclose(f[on_neck_joint], bony + (1.0 - bony) * u * u * (3.0 - 2.0 * u), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(f[on_neck & ~on_neck_joint], 1.0)
     assert (on_neck & ~on_neck_joint).sum() > 100

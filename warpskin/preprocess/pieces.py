@@ -88,8 +88,9 @@ class PieceParams:
         bony_depth: The factor on the layers' projection parameters of the simulated skin
             beneath a piece LBS moves rigidly on the same joint and that is not simulated
             itself (worn or carried: a hair cap on the skull, an eye in its socket, a fringe on
-            the brow), within the piece's half-diagonal of it and blending back to 1 over as
-            much again: such a piece moves with the best rigid motion of the surface beneath,
+            the brow), within the piece's half-diagonal of it (at most ``garment_gap`` of the
+            height: a belt thins the tissue under it, not the whole pelvis) and blending back
+            to 1 over as much again: such a piece moves with the best rigid motion of the surface beneath,
             which must then move with its joint as a skull does, so the tissue there is as thin
             as over a bone (0.25: the paper's bone layer at 0.2 of the way to the bone's line
             instead of 0.8). 1 leaves the layers as the scene sets them.
@@ -814,7 +815,7 @@ def piece_surface(points: np.ndarray, triangles: np.ndarray, dense_weights: np.n
     edge = float(np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1).mean())
     groups = _groups(vertices, tris_all, written_tris, vertex_piece, cap, count, simulated, edge, names, device)
     groups.depth_factor, bony = _bony_depths(vertices, weights, vertex_piece, q, piece, dominant, rigid & ~simulated,
-                                             prm.bony_depth)
+                                             prm.bony_depth, prm.garment_gap * height)
     notes["bony_under"] = [names[k] for k in bony]
     notes["excluded_pairs"] = [(names[a], names[b]) for a, b in sorted({tuple(sorted(p)) for p in groups.seams})]
     return PieceSurface(vertices=vertices, triangles=tris_all, written_triangles=written_tris, dense_weights=weights,
@@ -825,11 +826,12 @@ def piece_surface(points: np.ndarray, triangles: np.ndarray, dense_weights: np.n
 
 
 def _bony_depths(vertices: np.ndarray, weights: np.ndarray, vertex_piece: np.ndarray, q: np.ndarray, piece: np.ndarray,
-                 dominant: np.ndarray, rigid: np.ndarray, bony: float) -> tuple[np.ndarray, list[int]]:
+                 dominant: np.ndarray, rigid: np.ndarray, bony: float, reach: float) -> tuple[np.ndarray, list[int]]:
     """The factor on the layers' projection parameters of every simulated vertex ``[V]`` (see
     ``PieceParams.bony_depth``): for each piece ``r`` LBS moves rigidly on joint ``j`` (``rigid``:
-    the caller passes the rigid pieces that are not simulated,
-    its welded points ``q[piece == r]``, half-diagonal ``s``), every vertex of another piece whose
+    the caller passes the rigid pieces that are not simulated; its welded points ``q[piece ==
+    r]``, ``s`` its half-diagonal, at most ``reach``, a worn piece's largest gap [m]: a belt
+    thins the tissue under it, not the whole pelvis), every vertex of another piece whose
     strongest joint is ``j``, at distance ``d`` from the nearest point of ``r``, takes
     ``bony + (1 - bony) smoothstep(d / s - 1)``: ``bony`` within ``s``, 1 beyond ``2 s``; the
     smallest over the rigid pieces. Returns the factors and the rigid pieces that lowered any."""
@@ -843,7 +845,7 @@ def _bony_depths(vertices: np.ndarray, weights: np.ndarray, vertex_piece: np.nda
     for r in np.nonzero(rigid)[0]:
         members = np.nonzero(piece == r)[0]
         pts = q[members]
-        size = 0.5 * float(np.linalg.norm(np.ptp(pts, axis=0)))
+        size = min(0.5 * float(np.linalg.norm(np.ptp(pts, axis=0))), reach)
         sel = np.nonzero((strongest == dominant[members[0]]) & (vertex_piece != r))[0]
         if sel.size == 0 or not size > 0.0:
             continue
