@@ -164,7 +164,7 @@ def build_layers(rig: Rig, params: LayerParams | None = None, *, bones: Bones | 
     p = per_joint[bone]
     # a surface of pieces: thinner tissue beneath pieces rigid on the same joint
     # (PieceParams.bony_depth), where the scene does not set that bone's parameters itself
-    factor = getattr(getattr(rig, "surface_groups", None), "depth_factor", None)
+    factor = rig.surface_groups.depth_factor if rig.surface_groups is not None else None
     if factor is not None:
         p = p * np.where(overridden[bone], 1.0, np.asarray(factor, dtype=np.float64))[:, None]
     seg = foot - rig.vertices

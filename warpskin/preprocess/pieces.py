@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..capture import shape_diameter, welded_pieces
+from ..capture import shape_diameter, smoothstep, welded_pieces
 from ..kernels import pieces as k_pieces
 from ..mesh import mesh_edge_report, summed_face_normals, surface_area, vertex_normals
 from ..metrics import self_intersections
@@ -90,10 +90,10 @@ class PieceParams:
             itself (worn or carried: a hair cap on the skull, an eye in its socket, a fringe on
             the brow), within the piece's half-diagonal of it (at most ``garment_gap`` of the
             height: a belt thins the tissue under it, not the whole pelvis) and blending back
-            to 1 over as much again: such a piece moves with the best rigid motion of the surface beneath,
-            which must then move with its joint as a skull does, so the tissue there is as thin
-            as over a bone (0.25: the paper's bone layer at 0.2 of the way to the bone's line
-            instead of 0.8). 1 leaves the layers as the scene sets them.
+            to 1 over as much again: such a piece moves with the best rigid motion of the
+            surface beneath, which must then move with its joint as a skull does, so the
+            tissue there is as thin as over a bone (0.25: the paper's bone layer at 0.2 of the
+            way to the bone's line instead of 0.8). 1 leaves the layers as the scene sets them.
     """
 
     max_planarity: float = 1.0
@@ -833,7 +833,7 @@ def _bony_depths(vertices: np.ndarray, weights: np.ndarray, vertex_piece: np.nda
     r]``, ``s`` its half-diagonal, at most ``reach``, a worn piece's largest gap [m]: a belt
     thins the tissue under it, not the whole pelvis), every vertex of another piece whose
     strongest joint is ``j``, at distance ``d`` from the nearest point of ``r``, takes
-    ``bony + (1 - bony) smoothstep(d / s - 1)``: ``bony`` within ``s``, 1 beyond ``2 s``; the
+    ``bony + (1 - bony) smoothstep(d; s, 2 s)``: ``bony`` within ``s``, 1 beyond ``2 s``; the
     smallest over the rigid pieces. Returns the factors and the rigid pieces that lowered any."""
     from scipy.spatial import cKDTree
 
@@ -850,8 +850,7 @@ def _bony_depths(vertices: np.ndarray, weights: np.ndarray, vertex_piece: np.nda
         if sel.size == 0 or not size > 0.0:
             continue
         d, _ = cKDTree(pts).query(vertices[sel])
-        u = np.clip(d / size - 1.0, 0.0, 1.0)
-        f = bony + (1.0 - bony) * u * u * (3.0 - 2.0 * u)
+        f = bony + (1.0 - bony) * smoothstep(d, size, 2.0 * size)
         if (f < 1.0).any():
             used.append(int(r))
         factor[sel] = np.minimum(factor[sel], f)
