@@ -30,7 +30,10 @@ on triangle ``t``), at its rest offset ``o``
 expressed as ``alpha e_1 + beta e_2 + gamma n`` in that triangle's edges ``e_1, e_2`` and the
 surface's unit normal ``n`` there (the vertex normals blended by ``b``): where the surface
 stretches, bends or swells the worn point follows at its own distance from it, so a garment keeps
-its gap to the body and crosses it no more than the body crosses itself. Then
+its gap to the body and crosses it no more than the body crosses itself. A point skinned to two
+joints whose skins lie apart (the web of baggy trousers between the knees) rides on a carrier on
+each, blended by their skinning similarity with it, as LBS blends the two joints
+(:func:`~warpskin.capture.wrap_carriers`). Then
 (:func:`push_out_kernel`) a worn point that another part of the surface has come nearer than
 its clearance (the thigh and the calf meeting at a bent knee, under the trousers) is put back
 out to it, along the closest surface point's side: the overlap present at rest is kept (a point
@@ -234,22 +237,32 @@ def wrap_kernel(
     mesh: wp.uint64,
     share: float,
     points: wp.array(dtype=wp.int32),
+    carriers: int,
     tri_vertices: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3),
     coef: wp.array(dtype=wp.vec3),
+    carrier_share: wp.array(dtype=wp.float32),
     room0: wp.array(dtype=wp.float32),
     physics_weight: wp.array(dtype=wp.float32),
     # output
     out: wp.array(dtype=wp.vec3),
 ):
     """Wrapped point ``k`` (written point ``points[k]``, whose ``out`` holds its LBS): ``out =
-    LBS + phi (wrapped - LBS)``, ``wrapped`` by :func:`wrapped_point` on the written surface
-    ``x`` with its vertex ``normals`` (``mesh``: the same surface, refitted; ``room0``: the room
-    along its normal at rest, 0 where there was none within its reach)."""
+    LBS + phi (wrapped - LBS)``, ``wrapped`` the blend by ``carrier_share`` of the point as each of
+    its ``carriers`` carries it (:func:`wrapped_point`; carrier ``c`` of point ``k`` at entry ``k
+    carriers + c`` of ``bary``, ``coef``, ``carrier_share``, ``room0`` and, times 3, of
+    ``tri_vertices``) on the written surface ``x`` with its vertex ``normals`` (``mesh``: the same
+    surface, refitted; ``room0``: the room along the carrier's normal at rest, 0 where there was
+    none within its reach). A carrier with share 0 is not evaluated."""
     k = wp.tid()
     i = points[k]
-    w = wrapped_point(x, normals, mesh, tri_vertices[3 * k], tri_vertices[3 * k + 1], tri_vertices[3 * k + 2], bary[k],
-                      coef[k], share, room0[k])
+    w = wp.vec3(0.0, 0.0, 0.0)
+    for c in range(carriers):
+        e = k * carriers + c
+        a = carrier_share[e]
+        if a > 0.0:
+            w += a * wrapped_point(x, normals, mesh, tri_vertices[3 * e], tri_vertices[3 * e + 1],
+                                   tri_vertices[3 * e + 2], bary[e], coef[e], share, room0[e])
     lb = out[i]
     out[i] = lb + physics_weight[i] * (w - lb)
 
@@ -266,8 +279,9 @@ def room_kernel(
     # output
     room: wp.array(dtype=wp.float32),
 ):
-    """The room along the normal at rest of wrapped point ``k`` (see :func:`wrapped_point`): the
-    distance to the surface ``mesh`` within ``gamma / share`` of its surface point, else 0."""
+    """The room along the normal at rest of wrap entry ``k`` (a point's carrier, see
+    :func:`wrapped_point`): the distance to the surface ``mesh`` within ``gamma / share`` of its
+    surface point, else 0."""
     k = wp.tid()
     i0 = tri_vertices[3 * k]
     i1 = tri_vertices[3 * k + 1]

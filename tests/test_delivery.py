@@ -183,10 +183,11 @@ def test_wrap_follows_a_rigid_motion_and_keeps_within_the_free_space(device):
             mesh = wp.Mesh(points=wp.array(surf.astype(np.float32), dtype=wp.vec3),
                            indices=wp.array(st.astype(np.int32).ravel(), dtype=wp.int32))
             out = wp.array(np.zeros((3, 3), dtype=np.float32), dtype=wp.vec3)
-            wp.launch(k.wrap_kernel, dim=3, inputs=[xa, normals, mesh.id, 0.5, wp.array([0, 1, 2], dtype=wp.int32),
+            wp.launch(k.wrap_kernel, dim=3, inputs=[xa, normals, mesh.id, 0.5, wp.array([0, 1, 2], dtype=wp.int32), 1,
                                                     wp.array(corners.astype(np.int32).ravel(), dtype=wp.int32),
                                                     wp.array(bary.astype(np.float32), dtype=wp.vec3),
                                                     wp.array(coef.astype(np.float32), dtype=wp.vec3),
+                                                    wp.array(np.ones(3, dtype=np.float32), dtype=wp.float32),
                                                     wp.array(np.full(3, room0, dtype=np.float32), dtype=wp.float32),
                                                     wp.array(np.ones(3, dtype=np.float32), dtype=wp.float32)],
                       outputs=[out])
@@ -203,6 +204,80 @@ def test_wrap_follows_a_rigid_motion_and_keeps_within_the_free_space(device):
     # where the lid lay there at rest (8 mm up) and came down to 4 mm: the gap in proportion, half
     out = wrapped(x, (lid_v, np.asarray(lid.faces)), room0=0.008)
     assert np.allclose(out[:, 2], 0.05 + 0.0025, atol=2e-6)
+
+
+def test_wrap_rides_on_two_carriers_as_its_skin_weights_blend_them(device):
+    """A worn point between two boxes (two legs), skinned to both, rides on each as much as it
+    shares its skinning with it: under one box's rigid motion it moves by the blend of staying
+    and of that motion, by its share (closed form); a point skinned like its closest box alone
+    keeps that one carrier."""
+    from scipy.spatial.transform import Rotation
+
+    from warpskin.capture import smoothstep, wrap_carriers
+    from warpskin.kernels import deform as k
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2)).subdivide().subdivide()
+    bv, bf = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    x = np.concatenate([bv - [0.15, 0.0, 0.0], bv + [0.15, 0.0, 0.0]])  # faces at x = -0.05, 0.05
+    tris = np.concatenate([bf, bf + len(bv)])
+    wx = np.zeros((len(x), 2))
+    wx[:len(bv), 0] = 1.0
+    wx[len(bv):, 1] = 1.0
+    worn = np.array([[-0.021, 0.013, 0.021], [0.017, -0.018, 0.007], [-0.012, 0.027, -0.011],
+                     [-0.033, -0.009, 0.016], [-0.028, 0.022, -0.017]])
+    ww = np.array([[0.7, 0.3], [0.5, 0.5], [1.0, 0.0], [0.9, 0.1], [0.6, 0.4]])
+    reach = np.array([0.1, 0.1, 0.1, 0.1, 0.05])
+    out = [wrap_carriers(worn[i:i + 1], ww[i:i + 1], x, wx, tris, reach=float(reach[i]), device=device)
+           for i in range(len(worn))]
+    corners, bary, coef, share, dist = (np.concatenate(a) for a in zip(*out))
+    d_a, d_b = worn[:, 0] + 0.05, 0.05 - worn[:, 0]
+    assert np.allclose(dist, np.minimum(d_a, d_b), atol=1e-6)
+    # closed forms: the first carrier is the nearer box, similarity = the shared weight
+    near_a = d_a < d_b
+    s_near = np.where(near_a, ww[:, 0], ww[:, 1])
+    s_far = np.where(near_a, ww[:, 1], ww[:, 0]) * smoothstep(np.where(near_a, ww[:, 1], ww[:, 0]), 0.05, 0.15)
+    s_far *= [1.0 - smoothstep(max(a, b), r, 2.0 * r) for a, b, r in zip(d_a, d_b, reach)]
+    expect = s_far / (s_near + s_far)
+    assert np.allclose(share[:, 1], expect, atol=1e-9) and np.allclose(share.sum(axis=1), 1.0)
+    assert share[2, 1] == 0.0 and 0.0 < share[3, 1] < 0.1 / 0.9 and 0.0 < share[4, 1] < 0.4
+    # the second carrier lies on the other box, at the point's distance from it
+    far_pts = np.einsum("mk,mkc->mc", bary[:, 1], x[corners[:, 1]])
+    has = share[:, 1] > 0.0
+    assert np.all((far_pts[has, 0] > 0.0) == near_a[has])
+    assert np.allclose(np.linalg.norm(worn - far_pts, axis=1)[has], np.maximum(d_a, d_b)[has], atol=1e-6)
+
+    with wp.ScopedDevice(device):
+        flat = wp.array(tris.astype(np.int32).ravel(), dtype=wp.int32)
+
+        def surface(xs):
+            xa = wp.array(xs.astype(np.float32), dtype=wp.vec3)
+            normals = wp.zeros(len(xs), dtype=wp.vec3)
+            wp.launch(k.surface_normals_kernel, dim=len(tris), inputs=[xa, flat], outputs=[normals])
+            return xa, normals, wp.Mesh(points=xa, indices=flat)
+
+        n = len(worn)
+        args = [wp.array(corners.astype(np.int32).ravel(), dtype=wp.int32),
+                wp.array(bary.reshape(-1, 3).astype(np.float32), dtype=wp.vec3),
+                wp.array(coef.reshape(-1, 3).astype(np.float32), dtype=wp.vec3),
+                wp.array(share.ravel().astype(np.float32), dtype=wp.float32)]
+        xa, normals, mesh = surface(x)
+        room0 = wp.zeros(2 * n, dtype=wp.float32)
+        wp.launch(k.room_kernel, dim=2 * n, inputs=[xa, normals, mesh.id, 0.5, *args[:3]], outputs=[room0])
+        # box b turns a little about its centre and moves away from box a: the room grows
+        rot = Rotation.from_rotvec([0.03, -0.05, 0.04]).as_matrix()
+        move = np.array([0.031, 0.012, -0.009])
+        centre = np.array([0.15, 0.0, 0.0])
+        moved = x.copy()
+        moved[len(bv):] = (x[len(bv):] - centre) @ rot.T + centre + move
+        xa, normals, mesh = surface(moved)
+        res = wp.array(np.zeros((n, 3), dtype=np.float32), dtype=wp.vec3)
+        wp.launch(k.wrap_kernel, dim=n, inputs=[xa, normals, mesh.id, 0.5, wp.array(np.arange(n, dtype=np.int32)), 2,
+                                                *args, room0, wp.array(np.ones(n, dtype=np.float32))],
+                  outputs=[res])
+        got = res.numpy().astype(np.float64)
+    share_b = np.where(near_a, share[:, 1], share[:, 0])
+    expect = worn + share_b[:, None] * ((worn - centre) @ rot.T + centre + move - worn)
+    assert np.allclose(got, expect, atol=3e-6)
 
 
 def _two_layers(slope: float):

@@ -251,3 +251,45 @@ def test_the_hair_buns_swing_rigidly_about_the_skull(dancer_bake):
         angle, residual = turned(bun)
         assert angle > 3.0  # the head's bounces swing it by degrees (0.1 degrees without the swing)
         assert residual < 5e-4 * height  # and it stays rigid (0.9 mm on 1.8 m: the physics weight's blend)
+
+
+def test_the_trousers_web_moves_between_the_legs_as_lbs_moves_it(tmp_path):
+    """Baggy trousers join their legs in a web between the knees, skinned to both thighs. Worn
+    on the body, a web point rides on both legs as its skinning blends them
+    (:func:`~warpskin.capture.wrap_carriers`), so in a walk, where the legs swing against each
+    other, it stays near its LBS as the rest of the written skin does; riding on the nearer leg
+    alone, the other leg met it (the first 10 frames: 10 % of the height from its LBS, where the
+    other written points' 99th percentile is 2 %). The web points are found from the file's own
+    weights (both thighs at least 0.1) at knee height."""
+    import warnings
+
+    from gltf_builder import write_rig_glb
+    from scipy.spatial import cKDTree
+
+    from warpskin.run import simulate
+    from warpskin.scene import Scene
+    from warpskin.scenes.dancer import make_dancer
+
+    rig = make_dancer(cell=0.035, shell=6)
+    path = write_rig_glb(rig, tmp_path / "dancer.glb", root_scale=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        simulate(Scene.from_rig_file(str(path), clip="walk"), tmp_path / "walk.usdc", device="cpu", frames=(0, 10),
+                 with_lbs=True, progress=False)
+    tris, rest, pts, lbs = _frames(tmp_path / "walk.usdc")
+    names = list(rig.skeleton.joint_names)
+    dense = np.zeros((len(rig.vertices), len(names)))
+    np.add.at(dense, (np.repeat(np.arange(len(rig.vertices)), rig.joint_indices.shape[1]), rig.joint_indices.ravel()),
+              rig.joint_weights.ravel())
+    height = float(np.ptp(rest, axis=0).max())
+    scale = height / float(np.ptp(rig.vertices, axis=0).max())
+    gap, of = cKDTree(rig.vertices * scale).query(rest)  # the bake's points are the file's, in its unit
+    assert gap.max() < 1e-6 * height
+    both = np.minimum(dense[of, names.index("thigh_l")], dense[of, names.index("thigh_r")])
+    y = rig.vertices[of, 1] / float(np.ptp(rig.vertices, axis=0).max())
+    web = (both > 0.1) & (y > 0.17) & (y < 0.38)
+    assert web.sum() >= 10
+    offsets = [np.linalg.norm(p - q, axis=1) / height for p, q in zip(pts, lbs)]
+    web_worst = max(o[web].max() for o in offsets)
+    others = max(np.percentile(o[~web], 99) for o in offsets)
+    assert web_worst <= 1.5 * others

@@ -45,7 +45,7 @@ from .mesh import summed_face_normals, vertex_normals
 from .preprocess.cage import closest_faces
 
 __all__ = ["CaptureParams", "Capture", "capture_points", "identity_capture", "shape_diameter",
-           "welded_pieces", "wrap_points", "smoothstep"]
+           "welded_pieces", "wrap_points", "wrap_carriers", "Wrap", "smoothstep"]
 
 
 @dataclass
@@ -88,10 +88,8 @@ class Capture:
             or -1.
         notes: What set weights to 0 or moved pieces as a whole, for the run's summary.
         wrap: The points wrapped onto the written surface of the simulated pieces instead (a
-            worn piece, :func:`~warpskin.kernels.deform.wrap_kernel`), ``(points [M], triangle
-            corners [M, 3] (written points), barycentric [M, 3], offset coefficients [M, 3],
-            clearance [M], the surface's triangles [B, 3])``, or ``None``; their capture rows are
-            empty.
+            worn piece, :func:`~warpskin.kernels.deform.wrap_kernel`): a :class:`Wrap`, or
+            ``None``; their capture rows are empty.
     """
 
     indices: np.ndarray
@@ -101,7 +99,7 @@ class Capture:
     confidence: np.ndarray
     group: np.ndarray | None = None
     notes: dict = field(default_factory=dict)
-    wrap: tuple | None = None
+    wrap: "Wrap | None" = None
 
     def __post_init__(self) -> None:
         if self.group is None:
@@ -396,6 +394,29 @@ def identity_capture(count: int, physics_weight: np.ndarray | None = None) -> Ca
                    thickness=np.full(count, np.inf), confidence=np.ones(count))
 
 
+def _wrap_offsets(p: np.ndarray, x: np.ndarray, corners: np.ndarray, bary: np.ndarray,
+                  vn: np.ndarray) -> np.ndarray:
+    """``[M, 3]`` the coefficients ``(alpha, beta, gamma)`` of ``p - c`` in the basis ``(e_1, e_2,
+    n)`` of each point's triangle ``corners`` at its surface point ``c`` (``bary``), ``n`` the
+    vertex normals ``vn`` blended by ``bary`` and normalised."""
+    c = np.einsum("mk,mkj->mj", bary, x[corners])
+    n = np.einsum("mk,mkj->mj", bary, vn[corners])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    e1 = x[corners[:, 1]] - x[corners[:, 0]]
+    e2 = x[corners[:, 2]] - x[corners[:, 0]]
+    basis = np.stack([e1, e2, n], axis=2)  # columns
+    return np.linalg.solve(basis, (p - c)[:, :, None])[:, :, 0]
+
+
+def _closest(p: np.ndarray, x: np.ndarray, t: np.ndarray, device) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's closest triangle of ``t`` on ``x``: ``(corners [M, 3], barycentric [M, 3])``."""
+    far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([p, x]), axis=0))) + 1.0
+    face, bary = closest_faces(p, x, t, far, device)
+    bary = np.clip(bary, 0.0, None)
+    bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-300)
+    return t[np.maximum(face, 0)], bary
+
+
 def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, all_triangles: np.ndarray, *,
                 device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """How each of ``points`` ``[M, 3]`` rides on the simulated ``surface`` ``[V, 3]`` (both at
@@ -406,19 +427,102 @@ def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, 
     ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
     p = np.asarray(points, dtype=np.float64)
     x = np.asarray(surface, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([p, x]), axis=0))) + 1.0
-    face, bary = closest_faces(p, x, t, far, device)
-    corners = t[np.maximum(face, 0)]
-    bary = np.clip(bary, 0.0, None)
-    bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-300)
+    corners, bary = _closest(p, x, np.asarray(triangles, dtype=np.int64), device)
     vn = summed_face_normals(x, np.asarray(all_triangles, dtype=np.int64))
-    c = np.einsum("mk,mkj->mj", bary, x[corners])
-    n = np.einsum("mk,mkj->mj", bary, vn[corners])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    e1 = x[corners[:, 1]] - x[corners[:, 0]]
-    e2 = x[corners[:, 2]] - x[corners[:, 0]]
-    basis = np.stack([e1, e2, n], axis=2)  # columns
-    offset = p - c
-    coef = np.linalg.solve(basis, offset[:, :, None])[:, :, 0]
-    return corners, bary, coef, np.linalg.norm(offset, axis=1)
+    coef = _wrap_offsets(p, x, corners, bary, vn)
+    return corners, bary, coef, np.linalg.norm(p - np.einsum("mk,mkj->mj", bary, x[corners]), axis=1)
+
+
+@dataclass
+class Wrap:
+    """The worn points of a character and the surface points they ride on
+    (:func:`~warpskin.kernels.deform.wrap_kernel`); ``K`` carriers a point.
+
+    Attributes:
+        points: ``[M]`` written points that are wrapped.
+        corners: ``[M, K, 3]`` each carrier's triangle (written points of the surface).
+        bary: ``[M, K, 3]`` each carrier's barycentric coordinates on it.
+        coef: ``[M, K, 3]`` the point's offset from each carrier, ``(alpha, beta, gamma)``.
+        share: ``[M, K]`` how much the point rides on each carrier (each row sums to 1).
+        clearance: ``[M]`` the clearance [m] it keeps from the surface.
+        body: ``[B, 3]`` the surface's triangles.
+    """
+
+    points: np.ndarray
+    corners: np.ndarray
+    bary: np.ndarray
+    coef: np.ndarray
+    share: np.ndarray
+    clearance: np.ndarray
+    body: np.ndarray
+
+    @property
+    def gamma(self) -> np.ndarray:
+        """``[M]`` each point's height [m] along the normal over its closest carrier (the first)."""
+        return self.coef[:, 0, 2]
+
+    def carrier_points(self, surface: np.ndarray) -> np.ndarray:
+        """``[M, 3]`` the blend of each point's carriers by ``share`` on ``surface`` ``[V, 3]``."""
+        c = np.einsum("mkj,mkjc->mkc", self.bary, np.asarray(surface)[self.corners])
+        return np.einsum("mk,mkc->mc", self.share, c)
+
+
+def wrap_carriers(points: np.ndarray, point_weights: np.ndarray, surface: np.ndarray, surface_weights: np.ndarray,
+                  triangles: np.ndarray, *, reach: float, deficit: tuple[float, float] = (0.05, 0.15),
+                  device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two carriers for each worn point of ``points`` ``[M, 3]`` on ``surface`` ``[V, 3]`` (its
+    ``triangles`` ``[T, 3]``, closed or not), so that a point skinned to two joints whose skins
+    lie apart (the web of baggy trousers between the knees, skinned to both thighs) rides on
+    both as LBS blends them, instead of on one leg that the other then meets.
+
+    The first carrier is the closest point (:func:`wrap_points`). Its skin weights (the corners'
+    dense weights ``surface_weights`` ``[V, J]`` blended barycentrically) are compared with the
+    point's own (``point_weights`` ``[M, J]``): the joint the point is skinned to most beyond its
+    carrier, by ``d = max_j (w_pj - w_cj)``, has the second carrier, the closest point on the
+    triangles that joint dominates (the largest summed weight of their corners). The point rides
+    on the carriers in proportion to their skinning similarity with it (the histogram
+    intersection ``sum_j min(w_pj, w_cj)``), the second's faded in over ``deficit`` (by ``d``) and
+    out from ``reach`` to ``2 reach`` [m] of distance: a point skinned like its closest surface
+    keeps one carrier. Every carrier's offset is exact at rest, so the blend is the point there.
+
+    Returns ``(corners [M, 2, 3], barycentric [M, 2, 3], coefficients [M, 2, 3], share [M, 2],
+    distance to the first [M])``; a point without a second carrier repeats its first with share 0.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    x = np.asarray(surface, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    wpt = np.asarray(point_weights, dtype=np.float64)
+    wsf = np.asarray(surface_weights, dtype=np.float64)
+    vn = summed_face_normals(x, t)
+    c0, b0, f0, dist = wrap_points(p, x, t, t, device=device)
+    m = p.shape[0]
+    corners = np.repeat(c0[:, None], 2, axis=1)
+    bary = np.repeat(b0[:, None], 2, axis=1)
+    coef = np.repeat(f0[:, None], 2, axis=1)
+    share = np.zeros((m, 2))
+    share[:, 0] = 1.0
+    if m == 0 or t.shape[0] == 0:
+        return corners, bary, coef, share, dist
+    w0 = np.einsum("mk,mkj->mj", b0, wsf[c0])
+    lack = np.maximum(wpt - w0, 0.0)
+    joint = np.argmax(lack, axis=1)
+    need = lack[np.arange(m), joint]
+    ramp = smoothstep(need, *deficit)
+    dominant = np.argmax(wsf[t].sum(axis=1), axis=1)
+    s1 = np.zeros(m)
+    for j in np.unique(joint[ramp > 0.0]):
+        sel = np.nonzero((joint == j) & (ramp > 0.0))[0]
+        tj = t[dominant == j]
+        if tj.shape[0] == 0:
+            continue
+        cj, bj = _closest(p[sel], x, tj, device)
+        corners[sel, 1], bary[sel, 1] = cj, bj
+        coef[sel, 1] = _wrap_offsets(p[sel], x, cj, bj, vn)
+        dj = np.linalg.norm(p[sel] - np.einsum("mk,mkj->mj", bj, x[cj]), axis=1)
+        wj = np.einsum("mk,mkj->mj", bj, wsf[cj])
+        s1[sel] = (np.minimum(wpt[sel], wj).sum(axis=1) * ramp[sel] * (1.0 - smoothstep(dj, reach, 2.0 * reach)))
+    s0 = np.minimum(wpt, w0).sum(axis=1)
+    total = s0 + s1
+    share[:, 1] = np.where(total > 0.0, s1 / np.maximum(total, 1e-300), 0.0)
+    share[:, 0] = 1.0 - share[:, 1]
+    return corners, bary, coef, share, dist

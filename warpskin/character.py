@@ -35,7 +35,7 @@ import numpy as np
 
 from .capture import (
     Capture, CaptureParams, smoothstep, capture_points, identity_capture, shape_diameter,
-    welded_pieces, wrap_points,
+    welded_pieces, Wrap, wrap_carriers,
 )
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
@@ -359,8 +359,8 @@ class Character:
         #: worn repair): loose garments swing after the body and settle after it stops.
         self.sways = {}
         if cap.wrap is not None and self.pieces is not None:
-            worn = np.asarray(cap.wrap[0], dtype=np.int64)
-            gamma, clearance = np.asarray(cap.wrap[3])[:, 2], np.asarray(cap.wrap[4])
+            worn = np.asarray(cap.wrap.points, dtype=np.int64)
+            gamma, clearance = cap.wrap.gamma, np.asarray(cap.wrap.clearance)
             garment = self.pieces.garment[self.pieces.piece_of_point[worn]]
             # a point keeps its rest clearance over the surface it is worn on (floor 1: a point
             # at or under that surface at rest is not moved)
@@ -473,7 +473,9 @@ class Character:
         if candidates.size:
             # on the written surface of the simulated pieces (what shows beneath a garment)
             body = soup.triangles[ps.simulated[piece[soup.triangles[:, 0]]]]
-            corners, bary, coef, dist = wrap_points(soup.points[candidates], soup.points, body, body, device=device)
+            corners, bary, coef, share, dist = wrap_carriers(
+                soup.points[candidates], soup.dense_weights[candidates], soup.points, soup.dense_weights, body,
+                reach=reach, device=device)
             for k in np.unique(piece[candidates]):
                 sel = piece[candidates] == k
                 if ps.garment[k] or float(np.percentile(dist[sel], 90)) <= reach:
@@ -481,11 +483,11 @@ class Character:
             keep = worn[candidates]
             if keep.any():
                 points = candidates[keep]
-                corners, bary, coef, dist = corners[keep], bary[keep], coef[keep], dist[keep]
+                corners, bary, coef, share, dist = corners[keep], bary[keep], coef[keep], share[keep], dist[keep]
                 # the clearance a worn point keeps from the written simulated pieces (none where it
                 # is inside one at rest: a hair cap through a bun)
                 clearance = _clearance(soup.points[points], soup.points, body, None, 0.1, 0.05 * ps.edge, device)
-                wrap = (points, corners, bary, coef, clearance, body)
+                wrap = Wrap(points, corners, bary, coef, share, clearance, body)
                 phi[points] = 1.0 - smoothstep(dist, reach, 2.0 * reach)  # beyond a garment's gap: less and less
                 notes["wrapped_points"] = int(points.size)
         sets.append((np.nonzero(~on & ~ps.simulated[piece] & ~worn)[0], anywhere, prm))
@@ -646,10 +648,8 @@ class Character:
 
     def _carriers(self, points: dict) -> np.ndarray:
         """``[K, 3]`` the carrier point of every worn point (``cap.wrap``'s rows) on the written
-        surface ``points`` (``{mesh name: [N, 3]}``) as it is."""
-        _, corners, bary = self.capture_result.wrap[:3]
-        whole = np.concatenate([points[p.name] for p in self.parts])
-        return np.einsum("kj,kjc->kc", bary, whole[corners])
+        surface ``points`` (``{mesh name: [N, 3]}``) as it is: the blend of its carriers."""
+        return self.capture_result.wrap.carrier_points(np.concatenate([points[p.name] for p in self.parts]))
 
     def painted(self) -> np.ndarray:
         """``[N]`` the file's painted physics weight of every written point (NaN: none)."""

@@ -213,11 +213,14 @@ class WrittenDeformer:
                                     wp.array(gid, dtype=wp.int32))
             self.wrap = None
             if cap.wrap is not None:  # worn pieces: the surface's vertex normals, then each point on them
-                points, corners, bary, coef, clearance, body = cap.wrap
-                self.wrap = (wp.array(points.astype(np.int32), dtype=wp.int32),
-                             wp.array(corners.astype(np.int32).ravel(), dtype=wp.int32),
-                             wp.array(bary.astype(np.float32), dtype=wp.vec3),
-                             wp.array(coef.astype(np.float32), dtype=wp.vec3))
+                wr = cap.wrap
+                kc = wr.share.shape[1]
+                self.wrap = (wp.array(wr.points.astype(np.int32), dtype=wp.int32), kc,
+                             wp.array(wr.corners.astype(np.int32).ravel(), dtype=wp.int32),
+                             wp.array(wr.bary.reshape(-1, 3).astype(np.float32), dtype=wp.vec3),
+                             wp.array(wr.coef.reshape(-1, 3).astype(np.float32), dtype=wp.vec3),
+                             wp.array(wr.share.ravel().astype(np.float32), dtype=wp.float32))
+                body = wr.body
                 # the written simulated pieces as they are (over the written points): their normals,
                 # the free space along them, and the push-out
                 self.body_triangles = wp.array(np.asarray(body, dtype=np.int32).ravel(), dtype=wp.int32)
@@ -229,11 +232,11 @@ class WrittenDeformer:
                 rest_normals = wp.zeros(n, dtype=wp.vec3)
                 wp.launch(kd.surface_normals_kernel, dim=self.body_triangles.shape[0] // 3,
                           inputs=[rest_pts, self.body_triangles], outputs=[rest_normals])
-                self.room0 = wp.zeros(len(points), dtype=wp.float32)
-                wp.launch(kd.room_kernel, dim=len(points),
-                          inputs=[rest_pts, rest_normals, rest_mesh.id, WRAP_SHARE, self.wrap[1], self.wrap[2],
-                                  self.wrap[3]], outputs=[self.room0])
-                self.clearance = wp.array(np.asarray(clearance, dtype=np.float32), dtype=wp.float32)
+                self.room0 = wp.zeros(wr.share.size, dtype=wp.float32)
+                wp.launch(kd.room_kernel, dim=wr.share.size,
+                          inputs=[rest_pts, rest_normals, rest_mesh.id, WRAP_SHARE, self.wrap[2], self.wrap[3],
+                                  self.wrap[4]], outputs=[self.room0])
+                self.clearance = wp.array(np.asarray(wr.clearance, dtype=np.float32), dtype=wp.float32)
                 self.far = 2.0 * float(np.linalg.norm(np.ptp(sim.vertices, axis=0))) + 1.0
                 self.max_push = float(character.pieces.edge)  # one edge of the simulated surface
         self.sim_vertex_count = v
