@@ -300,9 +300,28 @@ def room_kernel(
             room[k] = q.t + start
 
 
+@wp.func
+def side_of_closest(mesh: wp.uint64, normals: wp.array(dtype=wp.vec3), tri_vertices: wp.array(dtype=wp.int32),
+                    p: wp.vec3, face: int, u: float, v: float) -> float:
+    """The side of ``mesh`` (over points whose vertex ``normals`` are given, its triangles
+    ``tri_vertices``) that ``p`` lies on, from its closest point ``(face, u, v)``: the sign of
+    ``(p - s) . n_s`` with ``s`` the closest point and ``n_s`` the vertex normals interpolated
+    there (1: in front, -1: behind). Unlike the query's own sign by the closest face's normal,
+    a point about as far from two parts of the surface that face each other (a shirt between
+    the torso and a hanging arm) gets the side of the one it was found on."""
+    s = wp.mesh_eval_position(mesh, face, u, v)
+    n = (u * normals[tri_vertices[3 * face]] + v * normals[tri_vertices[3 * face + 1]]
+         + (1.0 - u - v) * normals[tri_vertices[3 * face + 2]])
+    if wp.dot(p - s, n) < 0.0:
+        return -1.0
+    return 1.0
+
+
 @wp.kernel
 def push_out_kernel(
     mesh: wp.uint64,
+    normals: wp.array(dtype=wp.vec3),
+    tri_vertices: wp.array(dtype=wp.int32),
     points: wp.array(dtype=wp.int32),
     clearance: wp.array(dtype=wp.float32),
     max_dist: float,
@@ -311,32 +330,33 @@ def push_out_kernel(
     out: wp.array(dtype=wp.vec3),
 ):
     """Worn point ``k`` (written point ``points[k]``) nearer the written surface of the simulated
-    pieces (``mesh``, over the written points as they are) than its ``clearance`` [m], or behind
-    it by at most ``max_push`` [m], goes out to that clearance from its closest surface point; a
-    clearance of 0 or less leaves it, and so does a point deeper behind the surface (where two
-    parts of the body press together its closest face may be the other part's: the sign of an
-    open surface is not to be trusted that far in)."""
+    pieces (``mesh`` over the written points as they are, its triangles ``tri_vertices`` and
+    their vertex ``normals``) than its ``clearance`` [m], or behind it by at most ``max_push``
+    [m], goes out to that clearance from its closest surface point; a clearance of 0 or less
+    leaves it, and so does a point deeper behind the surface (where two parts of the body press
+    together its closest face may be the other part's: the side of an open surface is not to
+    be trusted that far in). The side is :func:`side_of_closest`'s."""
     k = wp.tid()
     c = clearance[k]
     if c <= 0.0:
         return
     i = points[k]
     p = out[i]
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
     if not q.result:
         return
     s = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-    # (the surface is open where pieces meet: its sign is the side of the closest face)
+    sign = side_of_closest(mesh, normals, tri_vertices, p, q.face, q.u, q.v)
     d = p - s
     ld = wp.length(d)
-    if q.sign >= 0.0 and ld >= c:
+    if sign >= 0.0 and ld >= c:
         return
-    if q.sign < 0.0 and ld > max_push:
+    if sign < 0.0 and ld > max_push:
         return
     n = wp.mesh_eval_face_normal(mesh, q.face)
     if ld > 1.0e-9 * c:
         n = d / ld
-        if q.sign < 0.0:
+        if sign < 0.0:
             n = -n
     out[i] = s + c * n
 
@@ -344,18 +364,23 @@ def push_out_kernel(
 @wp.kernel
 def signed_distance_kernel(
     mesh: wp.uint64,
+    normals: wp.array(dtype=wp.vec3),
+    tri_vertices: wp.array(dtype=wp.int32),
     points: wp.array(dtype=wp.vec3),
     max_dist: float,
     # output
     dist: wp.array(dtype=wp.float32),
 ):
-    """The distance [m] of ``points[i]`` to ``mesh``, negative behind its closest face."""
+    """The distance [m] of ``points[i]`` to ``mesh`` (its triangles ``tri_vertices``, their
+    vertex ``normals``), negative behind it (:func:`side_of_closest`); ``max_dist`` where
+    nothing is that near."""
     i = wp.tid()
     p = points[i]
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
     dist[i] = max_dist
     if q.result:
-        dist[i] = q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+        sign = side_of_closest(mesh, normals, tri_vertices, p, q.face, q.u, q.v)
+        dist[i] = sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
 
 
 @wp.kernel

@@ -280,6 +280,46 @@ def test_wrap_rides_on_two_carriers_as_its_skin_weights_blend_them(device):
     assert np.allclose(got, expect, atol=3e-6)
 
 
+def test_push_out_takes_the_side_of_the_surface_it_finds(device):
+    """The push-out of worn points (:func:`~warpskin.kernels.deform.push_out_kernel`) between two
+    boxes that face each other 40 mm apart (a torso and a hanging arm): a point about as far
+    from both (their distances 5 um apart, inside the query's tie tolerance) is in front of
+    either and stays where it is; a point nearer one than its clearance goes out to the
+    clearance along that box's normal, and one 3 mm behind a face goes out to the clearance in
+    front of it (closed forms). The query's own sign by the nearest face's normal took the
+    first for a point behind the surface and, within the push's reach (25 mm, an edge of the
+    dancer's simulated surface), put it on the torso."""
+    from warpskin.kernels import deform as k
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2)).subdivide().subdivide()
+    bv, bf = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    x = np.concatenate([bv - [0.12, 0.0, 0.0], bv + [0.12, 0.0, 0.0]])  # faces at x = -0.02, 0.02
+    tris = np.concatenate([bf, bf + len(bv)])
+    worn = np.array([[0.0000025, 0.0131, 0.0217],  # 19.9975 mm from a, 20.0025 mm from b
+                     [-0.0193, -0.0114, 0.0072],  # 0.7 mm in front of a
+                     [-0.0230, 0.0087, -0.0161],  # 3 mm behind a's face
+                     [0.0124, 0.0203, -0.0058]])  # 7.6 mm in front of b
+    clearance = np.full(len(worn), 0.0012)
+    with wp.ScopedDevice(device):
+        flat = wp.array(tris.astype(np.int32).ravel(), dtype=wp.int32)
+        xa = wp.array(x.astype(np.float32), dtype=wp.vec3)
+        normals = wp.zeros(len(x), dtype=wp.vec3)
+        wp.launch(k.surface_normals_kernel, dim=len(tris), inputs=[xa, flat], outputs=[normals])
+        mesh = wp.Mesh(points=xa, indices=flat)
+        out = wp.array(worn.astype(np.float32), dtype=wp.vec3)
+        wp.launch(k.push_out_kernel, dim=len(worn),
+                  inputs=[mesh.id, normals, flat, wp.array(np.arange(len(worn), dtype=np.int32)),
+                          wp.array(clearance.astype(np.float32)), 1.0, 0.025], outputs=[out])
+        got = out.numpy().astype(np.float64)
+        dist = wp.zeros(len(worn), dtype=wp.float32)
+        wp.launch(k.signed_distance_kernel, dim=len(worn),
+                  inputs=[mesh.id, normals, flat, wp.array(worn.astype(np.float32), dtype=wp.vec3), 1.0], outputs=[dist])
+    expect = worn.copy()
+    expect[1, 0] = expect[2, 0] = -0.02 + 0.0012
+    assert np.allclose(got, expect, atol=2e-6)
+    assert np.allclose(dist.numpy(), [0.0199975, 0.0007, -0.003, 0.0076], atol=2e-6)
+
+
 def _two_layers(slope: float):
     """Two worn grid sheets over x, z in [0, 1]: ``B`` 15 mm above its carriers on a curved
     surface, ``A`` below its carriers on the same surface 30 mm higher, by 5 mm + ``slope`` x. With a slope

@@ -44,7 +44,7 @@ from .guard.sway import piece_room
 from .guard.swing import LoosePiece, PieceSwing, loose_pieces
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
 from .io.usd_export import valid_prim_name
-from .mesh import vertex_normals
+from .mesh import summed_face_normals, vertex_normals
 from .preprocess.cage import strongest_influences, build_cage, cage_from_mesh, cage_rig, character_parts
 from .preprocess.pieces import PieceParams, piece_surface
 from .quality import CrossPairs, WrittenMesh
@@ -794,11 +794,14 @@ def _clearance(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, d
     from .kernels import deform as k
 
     with wp.ScopedDevice(device):
-        mesh = wp.Mesh(points=wp.array(np.asarray(surface, dtype=np.float32), dtype=wp.vec3),
-                       indices=wp.array(np.asarray(triangles, dtype=np.int32).ravel(), dtype=wp.int32))
+        flat = wp.array(np.asarray(triangles, dtype=np.int32).ravel(), dtype=wp.int32)
+        mesh = wp.Mesh(points=wp.array(np.asarray(surface, dtype=np.float32), dtype=wp.vec3), indices=flat)
+        normals = wp.array(summed_face_normals(np.asarray(surface, dtype=np.float64),
+                                               np.asarray(triangles, dtype=np.int64)).astype(np.float32), dtype=wp.vec3)
         far = 2.0 * float(np.linalg.norm(np.ptp(np.concatenate([points, surface]), axis=0))) + 1.0
         d = wp.zeros(len(points), dtype=wp.float32)
         wp.launch(k.signed_distance_kernel, dim=len(points),
-                  inputs=[mesh.id, wp.array(np.asarray(points, dtype=np.float32), dtype=wp.vec3), far], outputs=[d])
+                  inputs=[mesh.id, normals, flat, wp.array(np.asarray(points, dtype=np.float32), dtype=wp.vec3), far],
+                  outputs=[d])
         d = d.numpy().astype(np.float64)
     return np.where(d > 0.0, np.minimum(share * d, edge), 0.0)

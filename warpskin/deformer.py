@@ -321,7 +321,8 @@ class WrittenDeformer:
                                       self.phi],
                               outputs=[self.out], device=self.device, record_cmd=True),
                     wp.launch(k.push_out_kernel, dim=self.wrap[0].shape[0],
-                              inputs=[self.body_mesh.id, self.wrap[0], self.clearance, self.far, self.max_push],
+                              inputs=[self.body_mesh.id, self.body_normals, self.body_triangles, self.wrap[0],
+                                      self.clearance, self.far, self.max_push],
                               outputs=[self.out], device=self.device, record_cmd=True))
             else:
                 after = ()
