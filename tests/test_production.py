@@ -214,9 +214,10 @@ def test_the_garments_swing_after_the_body(dancer_bake, tmp_path):
 
 def test_the_hair_buns_swing_rigidly_about_the_skull(dancer_bake):
     """The buns (:class:`~warpskin.guard.PieceSwing`): rigid in the file, sunk into the skull,
-    they swing against their LBS as pendulums, by degrees, and stay rigid; they are the only
-    loose pieces (the eyes, rigid on the same joint, are inside the head). Pieces are found as
-    connected triangles in the file's vertex order (:data:`~warpskin.scenes.dancer.PIECES`)."""
+    they swing against their LBS as pendulums (sliding over the skull) and stay rigid; they are
+    the only loose pieces (the eyes, rigid on the same joint, are inside the head). Pieces are
+    found as connected triangles in the file's vertex order
+    (:data:`~warpskin.scenes.dancer.PIECES`)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
@@ -235,21 +236,23 @@ def test_the_hair_buns_swing_rigidly_about_the_skull(dancer_bake):
     label = label[index]
     order = np.argsort([np.nonzero(label == k)[0].min() for k in range(label.max() + 1)])
 
-    def turned(name):
-        """The largest angle [degrees] between the piece as written and its LBS, and the
-        largest RMS distance of its points from the rigid motion of its LBS shape."""
+    def swung(name):
+        """The largest distance [m] of the piece's centroid from its LBS's, and the largest RMS
+        distance of its points from the rigid motion of its LBS shape."""
         m = label == order[PIECES.index(name)]
-        angles, residual = [], []
+        moved, residual = [], []
         for p, lb in zip(pts, lbs):
             r, t = rigid_fit(lb[m], p[m])
-            angles.append(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+            moved.append(np.linalg.norm(p[m].mean(axis=0) - lb[m].mean(axis=0)))
             residual.append(np.sqrt(np.mean(np.sum((lb[m] @ r.T + t - p[m]) ** 2, axis=1))))
-        return max(angles), max(residual)
+        return max(moved), max(residual)
 
     height = float(np.ptp(rest, axis=0).max())
     for bun in ("bun_l", "bun_r"):
-        angle, residual = turned(bun)
-        assert angle > 3.0  # the head's bounces swing it by degrees (0.1 degrees without the swing)
+        moved, residual = swung(bun)
+        # the head's bounces swing it by millimetres at human scale (1e-4 of the height without
+        # the swing: what the head's tissue moves it)
+        assert moved > 5e-4 * height
         assert residual < 5e-4 * height  # and it stays rigid (0.9 mm on 1.8 m: the physics weight's blend)
 
 

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.integrate import solve_ivp
 
-from warpskin.guard.swing import LoosePiece, PieceSwing, loose_pieces, winding_numbers
+from warpskin.guard.swing import LoosePiece, PieceSwing, curvature_centre, loose_pieces, winding_numbers
 from warpskin.transforms import rigid_fit
 
 
@@ -66,6 +66,8 @@ def test_only_a_piece_hanging_off_one_place_of_its_own_joint_is_loose():
     assert np.all(np.linalg.norm(points[bun.points[bun.visible]], axis=1) > 1.0 - 0.01)
     cos = shown @ bun.pivot / (np.linalg.norm(shown) * np.linalg.norm(bun.pivot))
     assert cos > 0.999
+    # it turns about the head's centre (the sphere fitted to the head about the pivot)
+    assert np.linalg.norm(bun.centre) < 0.01
     # nothing is loose where no piece is rigid, or where the carrier is not closed
     assert loose_pieces(points, piece, joint, np.zeros(6, dtype=bool), closed, touch=0.08) == []
     assert loose_pieces(points, piece, joint, np.ones(6, dtype=bool), {1: closed[1]}, touch=0.08) == []
@@ -81,6 +83,57 @@ def _bun_swing(frequency, damping, angle):
     bun = LoosePiece(loose[0].piece, remap[loose[0].points], loose[0].visible, loose[0].pivot, 0, loose[0].touching)
     swing = PieceSwing([bun], points[keep], piece[keep], np.ones(keep.size), frequency, damping, angle)
     return swing, bun, points[keep]
+
+
+def test_the_curvature_centre_of_a_cap_and_none_of_a_flat_or_a_saddle():
+    rng = np.random.default_rng(11)
+    centre, radius = np.array([0.3, -0.1, 0.2]), 0.7
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    sphere = centre + radius * d
+    pivot = sphere[np.argmax(d[:, 1])]  # the top of the sphere
+    up = (pivot - centre) / radius
+    np.testing.assert_allclose(curvature_centre(pivot, up, sphere, 0.4, 2.0), centre, atol=1e-9)
+    assert curvature_centre(pivot, -up, sphere, 0.4, 2.0) is None  # seen from inside: concave
+    assert curvature_centre(pivot, up, sphere, 0.4, 0.5) is None  # rounder than allowed
+    assert curvature_centre(pivot, up, sphere, 0.02, 2.0) is None  # too few vertices near
+    u, v = rng.uniform(-0.3, 0.3, (2, 300))
+    flat = np.stack([u, np.full_like(u, 0.2), v], axis=1)
+    saddle = np.stack([u, 0.2 + 0.5 * (u * u - v * v), v], axis=1)
+    top = np.array([0.0, 0.2, 0.0])
+    for surface in (flat, saddle):
+        assert curvature_centre(top, np.array([0.0, 1.0, 0.0]), surface, 0.25, 2.0) is None
+
+
+def test_a_sunk_piece_slides_over_its_round_carrier_keeping_its_depth():
+    """The bun on its head scene, swung about the head's centre: every point keeps its distance
+    from that centre (its depth in the head is the rest depth), and its centroid moves as far
+    as the same swing about the pivot on the head's surface would move it."""
+    points, _, piece, joint, closed = _head_scene()
+    loose = loose_pieces(points, piece, joint, np.ones(6, dtype=bool), closed, touch=0.08)
+    keep = np.nonzero(np.isin(piece, (0, 1)))[0]
+    remap = np.full(len(points), -1)
+    remap[keep] = np.arange(keep.size)
+    lp = loose[0]
+    rest = points[keep]
+    make = lambda centre: PieceSwing([LoosePiece(lp.piece, remap[lp.points], lp.visible, lp.pivot, 0, lp.touching,
+                                                 centre)], rest, piece[keep], np.ones(keep.size), 4.0, 1.0, 1.5)
+    about_centre, about_pivot = make(lp.centre), make(None)
+    a = np.array([20.0, 0.0, 7.0])
+    for f in range(40):
+        t = f / 30.0
+        lbs = rest + 0.5 * a * t * t
+        slid, tilted = about_centre.apply(lbs, lbs, t), about_pivot.apply(lbs, lbs, t)
+    bun = remap[lp.points]
+    moved = slid[bun] - lbs[bun]
+    assert np.linalg.norm(moved, axis=1).max() > 0.005  # it swings
+    shift = 0.5 * a * t * t
+    np.testing.assert_allclose(np.linalg.norm(slid[bun] - shift - lp.centre, axis=1),
+                               np.linalg.norm(rest[bun] - lp.centre, axis=1), atol=1e-12)
+    vis = bun[lp.visible]
+    c_slid, c_tilted = slid[vis].mean(axis=0) - lbs[vis].mean(axis=0), tilted[vis].mean(axis=0) - lbs[vis].mean(axis=0)
+    np.testing.assert_allclose(np.linalg.norm(c_slid), np.linalg.norm(c_tilted), rtol=0.02)
+    assert c_slid @ c_tilted > 0.99 * np.linalg.norm(c_slid) * np.linalg.norm(c_tilted)
 
 
 def _rotation(before, after):

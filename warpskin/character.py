@@ -635,7 +635,8 @@ class Character:
         loose = loose_pieces(soup.points, ps.piece_of_point, joint, ps.rigid & ~ps.small & ~ps.carried, closed, ps.edge)
         out = {}
         for p in self.parts:
-            mine = [LoosePiece(lp.piece, lp.points - p.start, lp.visible, lp.pivot, lp.carrier, lp.touching) for lp in loose
+            mine = [LoosePiece(lp.piece, lp.points - p.start, lp.visible, lp.pivot, lp.carrier, lp.touching,
+                               lp.centre) for lp in loose
                     if p.physics and p.start <= lp.points[0] < p.start + p.count]
             if not mine:
                 continue

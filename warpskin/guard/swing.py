@@ -22,8 +22,14 @@ before the surface guard, which judges the result):
 The swing is limited smoothly (:func:`~warpskin.guard.sway.soft_limit`) to the least of
 ``angle`` and :attr:`PieceSwing.ROOM` x the room of the piece over its reach: the room is the distance this
 frame from the piece to the nearest point of a piece it does not touch at rest, the reach the
-distance of its farthest point from ``q``. What is written is ``q + R(phi theta) (x - q)``
-(``phi`` the piece's physics weight in [0, 1]): exactly rigid.
+distance of its farthest point from ``q``. What is written is ``o + R(phi k theta) (x - o)``
+(``phi`` the piece's physics weight in [0, 1]): exactly rigid. It turns about ``o``, the centre
+of the carrier's curvature beneath ``q`` (:func:`curvature_centre`: the sphere fitted to the
+carrier's surface about ``q`` at rest, carried as ``q`` is), by the angle that moves ``c`` as far
+as ``theta`` about ``q`` would, ``k = |c - q| / |c - o|`` at rest: a piece sunk into a round
+carrier (a bun into the skull) slides over it and keeps its depth in it and in what lies
+parallel to it (a hair cap), so its crossing with them moves with it instead of growing as it
+tilts. Where the surface there is not round and convex, ``o = q`` and ``k = 1``.
 
 Invariants: with no LBS acceleration (a pose held from the start) the points are written as
 given; the first two frames, and any frame whose time does not advance, are written as given
@@ -41,7 +47,7 @@ import numpy as np
 from ..transforms import rigid_fit
 from .sway import LbsAcceleration, damped_step, soft_limit
 
-__all__ = ["LoosePiece", "PieceSwing", "loose_pieces", "winding_numbers"]
+__all__ = ["LoosePiece", "PieceSwing", "curvature_centre", "loose_pieces", "winding_numbers"]
 
 
 @dataclass(frozen=True)
@@ -54,7 +60,9 @@ class LoosePiece:
         visible: The rows of ``points`` outside its carrier at rest (a bun sunk into the skull:
             the part that shows), whose centroid the swing's arm reaches and whose LBS drives it.
         pivot: ``[3]`` where it is attached at rest [m]: the point of its carrier's closed
-            surface nearest its centroid.
+            surface nearest its centroid (the pendulum's pivot).
+        centre: ``[3]`` what it turns about [m]: the centre of its carrier's curvature
+            beneath ``pivot`` (:func:`curvature_centre`), or ``pivot`` (``None``: ``pivot``).
         carrier: The piece it hangs from (the largest closed piece it touches at rest).
         touching: The pieces it touches or crosses at rest (its carrier among them): they do
             not limit its swing.
@@ -66,6 +74,11 @@ class LoosePiece:
     pivot: np.ndarray
     carrier: int
     touching: tuple[int, ...]
+    centre: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.centre is None:
+            object.__setattr__(self, "centre", np.asarray(self.pivot, dtype=np.float64))
 
 
 def winding_numbers(query: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -97,6 +110,36 @@ def _closest_on_triangles(p: np.ndarray, vertices: np.ndarray, triangles: np.nda
     reach = 2.0 * float(np.linalg.norm(np.ptp(np.vstack([v, np.reshape(p, (1, 3))]), axis=0))) + 1.0
     face, bary = closest_faces(np.reshape(p, (1, 3)), v, t, reach, device="cpu")
     return bary[0] @ v[t[face[0]]]
+
+
+def curvature_centre(pivot: np.ndarray, outward: np.ndarray, vertices: np.ndarray, radius: float,
+                     largest: float) -> np.ndarray | None:
+    """``[3]`` the centre of the sphere fitted (algebraically, by least squares) to ``vertices``
+    ``[V, 3]`` within ``radius`` [m] of ``pivot`` ``[3]``, a point of that surface whose outward
+    direction is ``outward`` ``[3]``; ``None`` where the surface there is not a convex cap of a
+    sphere of radius at most ``largest`` [m]: fewer than 10 vertices, the centre not behind the
+    pivot, the pivot off the sphere or the vertices off it by more than a tenth of its radius
+    (RMS), a saddle or a flat."""
+    v = np.asarray(vertices, dtype=np.float64)
+    p = np.asarray(pivot, dtype=np.float64)
+    near = v[np.linalg.norm(v - p, axis=1) <= radius]
+    if len(near) < 10:
+        return None
+    a = np.hstack([2.0 * (near - p), np.ones((len(near), 1))])  # about the pivot: well conditioned
+    b = np.sum((near - p) ** 2, axis=1)
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    o = sol[:3]
+    r2 = float(sol[3] + o @ o)
+    if not np.isfinite(r2) or r2 <= 0.0:
+        return None
+    r = np.sqrt(r2)
+    if r > largest or o @ np.asarray(outward, dtype=np.float64) >= 0.0:
+        return None
+    if abs(np.linalg.norm(o) - r) > 0.1 * r:
+        return None
+    if np.sqrt(np.mean((np.linalg.norm(near - p - o, axis=1) - r) ** 2)) > 0.1 * r:
+        return None
+    return p + o
 
 
 def loose_pieces(points: np.ndarray, piece: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
@@ -176,7 +219,9 @@ def loose_pieces(points: np.ndarray, piece: np.ndarray, joint: np.ndarray, rigid
         close = np.linalg.norm(points[attached] - q, axis=1) <= 1.5 * float(np.linalg.norm(points[mine] - c, axis=1).max())
         if not (below.all() and close.all()):
             continue
-        out.append(LoosePiece(int(k), mine, rows, q, carrier, tuple(int(m) for m in touching)))
+        reach = 1.5 * float(np.linalg.norm(points[mine] - c, axis=1).max())
+        centre = curvature_centre(q, arm / d, verts, reach, 0.5 * float(np.linalg.norm(np.ptp(verts, axis=0))))
+        out.append(LoosePiece(int(k), mine, rows, q, carrier, tuple(int(m) for m in touching), centre))
     return out
 
 
@@ -206,6 +251,10 @@ class PieceSwing:
         self.weight = np.array([float(w[p.points].mean()) for p in self.pieces])
         shown = [self.rest[p.points[p.visible]] for p in self.pieces]
         self.gyration = np.array([float(np.mean(np.sum((v - v.mean(axis=0)) ** 2, axis=1))) for v in shown])
+        # the angle about the centre that moves the centroid as far as the swing about the pivot
+        self.ratio = np.array([float(np.linalg.norm(v.mean(axis=0) - p.pivot))
+                               / max(float(np.linalg.norm(v.mean(axis=0) - p.centre)), 1e-300)
+                               for v, p in zip(shown, self.pieces)])
         self.omega = 2.0 * np.pi * float(frequency)
         self.zeta = float(damping)
         self.angle = float(angle)
@@ -270,10 +319,11 @@ class PieceSwing:
             if size == 0.0:
                 continue
             self.largest = max(self.largest, size)
-            rot = _rotation(swing)
+            rot = _rotation(self.ratio[i] * swing)
+            o = r @ p.centre + tr
             if out is None:
                 out = x.copy()
-            out[p.points] = q + (cur - q) @ rot.T
+            out[p.points] = o + (cur - o) @ rot.T
         return points if out is None else out
 
 
