@@ -13,7 +13,9 @@ One skinned mesh of many separate pieces, none of them a closed body on its own:
   into the forearms;
 * two ``shoe`` s, open at the top, the ankles inside them;
 * baggy ``trousers`` (open at the waist and at both cuffs) and a short-sleeved ``shirt`` (open
-  at the collar, the hem and both sleeves), each lying outside the body at rest.
+  at the collar, the hem and both sleeves), each lying outside the body at rest; with ``skirt``
+  the trousers' piece is a flared skirt instead (one tube over both thighs, open at the waist
+  and at its hem above the knees, skinned to the hips and both thighs).
 
 Smooth surfaces (body, head, hands, trousers, shirt) are iso-surfaces of smooth unions of round
 cones (marching cubes on a grid of spacing ``cell``), cut open by planes, smoothed (Taubin) and
@@ -45,6 +47,7 @@ DANCER_DEFAULTS: dict = {
     "arm_angle": 45.0,  # [degrees] the arms' rest pose below the horizontal
     "key_rate": 30.0,  # keys per second
     "clothes": True,  # trousers and shirt
+    "skirt": False,  # with clothes: a flared skirt to above the knees in the trousers' place
     "hair": True,  # buns, hair cap and fringe
 }
 
@@ -523,6 +526,13 @@ def make_dancer(**overrides) -> Rig:
                       _Cone(f"shin_{side}", pos[f"shin_{side}"], pos[f"foot_{side}"] + [0, 0.05, 0], 0.082, 0.075)]
         cuts += [((sgn * STANCE, 0.17, 0), (0, 1, 0), 0.15) for sgn in (1.0, -1.0)]
         trousers = _Shape(cones, 0.05, cuts, over=[(legs, 0.007)])
+        if p["skirt"]:  # one tube over both thighs, flaring to its hem, skinned to the hips and thighs
+            cones = [_Cone("hips", (0, 0.92, 0), (0, 1.04, 0), 0.165, 0.150, 0.74)]
+            for side, sgn in (("l", 1.0), ("r", -1.0)):
+                hip, knee = pos[f"thigh_{side}"], pos[f"shin_{side}"]
+                cones.append(_Cone(f"thigh_{side}", hip, hip + 0.75 * (knee - hip) + [sgn * 0.04, 0, 0], 0.125, 0.165))
+            cuts = [((0, 1.035, 0), (0, -1, 0), 0.3), ((0, 0.60, 0), (0, 1, 0), None)]
+            trousers = _Shape(cones, 0.12, cuts, over=[(legs, 0.007)])
         v, f = _surface(trousers, cell)
         add("trousers", v, f, *trousers.weights(v, names, soft))
         cones = [_Cone("spine", (0, 0.97, 0), (0, 1.20, 0), 0.168, 0.158, 0.72),
