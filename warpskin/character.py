@@ -424,7 +424,8 @@ class Character:
         garment's by the simulated surface beneath it (within 1.5 x its gap), so that it follows
         the body's deformation; the other points (sheets, small rigid pieces) by the simulated
         surface near them, each rigid piece as a whole. A captured point's physics weight is the capture's confidence (its
-        skinning similarity, :class:`~warpskin.capture.CaptureParams` ``confidence``)."""
+        skinning similarity, :class:`~warpskin.capture.CaptureParams` ``confidence``); on a
+        reduced piece it ramps down over the parts thinner than its simulated copy resolves."""
         ps, soup = self.pieces, self.soup
         prm = self.capture or CaptureParams()
         n = self.point_count
@@ -536,11 +537,12 @@ class Character:
             group[members] = next_group
             next_group += 1
         notes["captured_points"] = int(n - on.sum())
-        # parts of a simulated piece thinner than the simulated surface resolves (a wrist, the
-        # fingers of a piece that was kept): their physics weight ramps down with the thickness
-        # (the shape diameter, CaptureParams thin and thick, in the surface's edges), smoothed
-        # over the written surface
-        sim_points = np.nonzero(ps.simulated[piece])[0]
+        # parts of a reduced piece thinner than its simulated copy resolves (a wrist, fingers):
+        # their physics weight ramps down with the thickness (the shape diameter, CaptureParams
+        # thin and thick, in the surface's edges). A piece simulated as it is keeps its weights,
+        # as a skin simulated directly does: its collisions keep its thin parts out of the rest
+        # (a hand that LBS drives into the hip)
+        sim_points = np.nonzero(ps.simulated[piece] & ps.decimated[piece])[0]
         if sim_points.size:
             first, cls, ctri, _ = welded_pieces(soup.points, soup.triangles, self.mesh_of_point)
             q = soup.points[first]
