@@ -303,7 +303,8 @@ def test_a_skirted_dancer_keeps_the_bounds_with_defaults(tmp_path):
     thighs, its hem 12 cm out from the legs) instead of trousers: a loose garment over two limbs
     that move against each other, of the kind users bring. With defaults, over the dance's first
     25 frames, what is written keeps the issue's bounds against its own LBS (the summary's
-    figures, measured on the written mesh)."""
+    figures, measured on the written mesh). The deep crouch later in the dance does not: the
+    thighs rise through the skirt as in LBS (docs/limits.md, "A skirt in a deep crouch")."""
     import warnings
 
     from warpskin.run import simulate
