@@ -417,6 +417,15 @@ def _closest(p: np.ndarray, x: np.ndarray, t: np.ndarray, device) -> tuple[np.nd
     return t[np.maximum(face, 0)], bary
 
 
+def _wrap_on(p: np.ndarray, x: np.ndarray, t: np.ndarray, vn: np.ndarray,
+             device) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each of ``p`` on its closest triangle of ``t`` on ``x`` (vertex normals ``vn``):
+    ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
+    corners, bary = _closest(p, x, t, device)
+    coef = _wrap_offsets(p, x, corners, bary, vn)
+    return corners, bary, coef, np.linalg.norm(p - np.einsum("mk,mkj->mj", bary, x[corners]), axis=1)
+
+
 def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, all_triangles: np.ndarray, *,
                 device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """How each of ``points`` ``[M, 3]`` rides on the simulated ``surface`` ``[V, 3]`` (both at
@@ -425,12 +434,9 @@ def wrap_points(points: np.ndarray, surface: np.ndarray, triangles: np.ndarray, 
     gamma n`` in that triangle's edges and the unit normal blended from the vertex normals of
     ``all_triangles`` (the whole closed surface, as the kernel computes them). Returns
     ``(corners [M, 3], barycentric [M, 3], coefficients [M, 3], distance [M])``."""
-    p = np.asarray(points, dtype=np.float64)
     x = np.asarray(surface, dtype=np.float64)
-    corners, bary = _closest(p, x, np.asarray(triangles, dtype=np.int64), device)
     vn = summed_face_normals(x, np.asarray(all_triangles, dtype=np.int64))
-    coef = _wrap_offsets(p, x, corners, bary, vn)
-    return corners, bary, coef, np.linalg.norm(p - np.einsum("mk,mkj->mj", bary, x[corners]), axis=1)
+    return _wrap_on(np.asarray(points, dtype=np.float64), x, np.asarray(triangles, dtype=np.int64), vn, device)
 
 
 @dataclass
@@ -494,7 +500,7 @@ def wrap_carriers(points: np.ndarray, point_weights: np.ndarray, surface: np.nda
     wpt = np.asarray(point_weights, dtype=np.float64)
     wsf = np.asarray(surface_weights, dtype=np.float64)
     vn = summed_face_normals(x, t)
-    c0, b0, f0, dist = wrap_points(p, x, t, t, device=device)
+    c0, b0, f0, dist = _wrap_on(p, x, t, vn, device)
     m = p.shape[0]
     corners = np.repeat(c0[:, None], 2, axis=1)
     bary = np.repeat(b0[:, None], 2, axis=1)
@@ -515,10 +521,8 @@ def wrap_carriers(points: np.ndarray, point_weights: np.ndarray, surface: np.nda
         tj = t[dominant == j]
         if tj.shape[0] == 0:
             continue
-        cj, bj = _closest(p[sel], x, tj, device)
+        cj, bj, coef[sel, 1], dj = _wrap_on(p[sel], x, tj, vn, device)
         corners[sel, 1], bary[sel, 1] = cj, bj
-        coef[sel, 1] = _wrap_offsets(p[sel], x, cj, bj, vn)
-        dj = np.linalg.norm(p[sel] - np.einsum("mk,mkj->mj", bj, x[cj]), axis=1)
         wj = np.einsum("mk,mkj->mj", bj, wsf[cj])
         s1[sel] = (np.minimum(wpt[sel], wj).sum(axis=1) * ramp[sel] * (1.0 - smoothstep(dj, reach, 2.0 * reach)))
     s0 = np.minimum(wpt, w0).sum(axis=1)
