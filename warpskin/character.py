@@ -39,7 +39,7 @@ from .capture import (
 )
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
-from .guard import CrossGuard, GarmentSway, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, WornRepair
+from .guard import CrossGuard, GarmentSway, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, Untangle, WornRepair
 from .guard.sway import piece_room
 from .guard.swing import LoosePiece, PieceSwing, loose_pieces
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
@@ -401,6 +401,15 @@ class Character:
                                             direct=not self.caged, chords=chords and p.name == "skin",
                                             intended=None if intended is None else intended[p.start:p.start + p.count])
                        for p in self.parts if p.physics}
+        #: Per mesh written with physics, its :class:`~warpskin.guard.Untangle` (after its guard;
+        #: none with the guard or its pair checks off, or ``[guard] untangle`` 0).
+        diag = float(np.linalg.norm(np.ptp(self.soup.points, axis=0)))
+        self.untangles = {}
+        if params.enabled and params.pairs and params.untangle > 0:
+            self.untangles = {name: Untangle(g, cap.group[p.start:p.start + p.count], rounds=params.untangle,
+                                             max_step=params.untangle_step * diag,
+                                             max_offset=params.untangle_offset * diag)
+                              for p in self.parts if (name := p.name) in self.guards and (g := self.guards[name])}
         # pieces written as separate meshes keep apart as their LBS keeps them (after each
         # mesh's own guard)
         cross = CrossPairs([self.meshes.get(p.name) or WrittenMesh(self.display_name(p.name), p.triangles, p.rest,
@@ -607,6 +616,11 @@ class Character:
                     repaired = self.volumes[name].apply(repaired, hold=moved)
                 pts = repaired
             guarded[name] = guard.apply(pts, lbs_by[name], skinned.get(name))
+            if name in self.untangles:  # the crossings that LBS drives too, repaired pair by pair
+                untangled = self.untangles[name].apply(guarded[name], lbs_by[name], counted=True)
+                if untangled is not guarded[name]:
+                    guard.pair_keys = guard.pair_counts = None  # counted again on what is written
+                    guarded[name] = untangled
         if self.cross is not None:
             shown = {p.name: self.display_name(p.name) for p in self.parts}
             across = self.cross.apply({shown[n]: guarded.get(n, out[n]) for n in shown},
@@ -615,6 +629,8 @@ class Character:
         for name, guard in self.guards.items():
             limited = self.limits[name].apply(guarded[name], lbs_by[name])
             out[name] = guard.keep(limited, guarded[name], lbs_by[name])
+            if out[name] is not guarded[name]:
+                guard.pair_keys = guard.pair_counts = None  # counted again on what is written
             if out[name] is not limited:  # the limit goes on from what is written
                 self.limits[name].written(out[name], lbs_by[name])
         return out

@@ -2,6 +2,8 @@
 
 * :class:`SurfaceGuard` (:mod:`warpskin.guard.surface`): every written mesh keeps the surface its
   LBS has;
+* :class:`Untangle` (:mod:`warpskin.guard.untangle`): the crossings LBS drives too (a leg into
+  the belly) are repaired pair by pair, after the surface guard;
 * :class:`CrossGuard` (:mod:`warpskin.guard.cross`): written meshes keep apart as their LBS keeps
   them;
 * :class:`WornRepair` (:mod:`warpskin.guard.worn`): garments worn over the simulated surface are
@@ -25,9 +27,11 @@ from .params import WRITTEN_FLIPPED, WRITTEN_STRAINED, GuardParams
 from .surface import SurfaceGuard
 from .sway import GarmentSway
 from .swing import PieceSwing
+from .untangle import Untangle
 from .volume import PieceVolume
 from .worn import WornRepair
 
 __all__ = ["GuardParams", "SurfaceGuard", "CrossGuard", "JumpLimit", "WornRepair", "PieceVolume", "GarmentSway", "PieceSwing",
+           "Untangle",
            "WRITTEN_STRAINED",
            "WRITTEN_FLIPPED"]

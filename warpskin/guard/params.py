@@ -79,6 +79,14 @@ class GuardParams:
     max_jump: float = setting(0.015, "number", "a written point's offset from LBS changes by at most this share of "
                               "the character's height from one frame to the next (0: no limit)", low=0.0, high=1.0,
                               must="in [0, 1]")
+    untangle: int = setting(8, "integer", "rounds per frame of the pair-by-pair repair of the crossings the guard "
+                            "leaves (those LBS drives too: a leg into the belly, a thigh through a skirt; 0: off)",
+                            low=0, high=64, must="an integer in [0, 64]")
+    untangle_step: float = setting(0.01, "number", "one round moves a crossing pair apart by at most this share of "
+                                   "the character's diagonal", low=0.0, open_low=True, high=1.0, must="in (0, 1]")
+    untangle_offset: float = setting(0.05, "number", "the repair moves no point farther than this share of the "
+                                     "character's diagonal from its LBS", low=0.0, open_low=True, high=1.0,
+                                     must="in (0, 1]")
     sway: float = setting(0.35, "number", "a loose garment's points swing after the body's motion by at most this "
                           "share of their rest gap over the body (0: garments ride on the body)", low=0.0, high=1.0,
                           must="in [0, 1]")

@@ -1,0 +1,226 @@
+"""The pair-by-pair crossing repair (warpskin.guard.Untangle, warpskin.kernels.untangle): what LBS
+drives through itself is separated, each side where the reference pose had it, by about the
+depth of the crossing and only near it, rigid pieces kept still, crossings present at rest left.
+Judged by the independent references of oracles.py (separating-axis pair counts over every pair,
+plain-loop strain and flips) and closed forms, on spheres in generic positions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+from oracles import intersecting_pairs_brute_force, strain_and_flips
+from warpskin.guard import GuardParams, SurfaceGuard, Untangle
+from warpskin.kernels import untangle as k
+from warpskin.quality import WrittenMesh
+
+
+def _rotation(seed: int) -> np.ndarray:
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _sphere(centre, radius: float, seed: int, subdivisions: int = 3):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    rng = np.random.default_rng(seed)
+    v = s.vertices @ _rotation(seed).T
+    v = v * (1.0 + 0.005 * rng.uniform(-1, 1, size=(len(v), 1)))  # generic: no symmetry, no ties
+    return v + np.asarray(centre, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
+
+
+def _two(a, b):
+    (pa, ta), (pb, tb) = a, b
+    return np.concatenate([pa, pb]), np.concatenate([ta, tb + len(pa)]), len(pa)
+
+
+def _untangle(rest, tris, groups=None, **kw):
+    mesh = WrittenMesh("m", tris, rest)
+    return Untangle(SurfaceGuard(mesh, GuardParams()), groups, **kw)
+
+
+def _distance_to_points(p: np.ndarray, points: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points).query(p)[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_sphere_driven_into_another_is_pushed_out_by_about_the_depth_and_only_there(seed):
+    r = 0.1
+    rest, tris, n = _two(_sphere((0, 0, 0), r, seed), _sphere((0.26, 0.0, 0.0), r, seed + 10))
+    # LBS drives the second into the first by 0.012 along x (what the guard leaves: LBS has it too)
+    depth = 0.012
+    lbs = rest.copy()
+    lbs[n:, 0] -= 0.26 - (2 * r - depth)
+    assert intersecting_pairs_brute_force(lbs, tris) > 0
+    u = _untangle(rest, tris, rounds=16, max_step=0.005)
+    out = u.apply(lbs, lbs)
+    assert intersecting_pairs_brute_force(out, tris) == 0
+    assert u.stats["before"] > 0 and u.stats["after"] == 0
+    strained, _, flipped = strain_and_flips(rest, out, lbs, tris)
+    assert strained == 0.0 and flipped == 0.0
+    move = out - lbs
+    # apart along x: the first sphere back, the second forward, each by part of the depth
+    assert move[:n, 0].min() < -0.2 * depth and move[n:, 0].max() > 0.2 * depth
+    assert move[:n, 0].max() <= 1e-7 and move[n:, 0].min() >= -1e-7
+    # by about the depth, not more: no point moves farther than twice it
+    assert np.linalg.norm(move, axis=1).max() < 2.0 * depth
+    # only near the contact: points farther than 4 depths and an edge from the other sphere stay
+    edge = np.linalg.norm(rest[tris[:, 0]] - rest[tris[:, 1]], axis=1).max()
+    far = np.concatenate([_distance_to_points(lbs[:n], lbs[n:]), _distance_to_points(lbs[n:], lbs[:n])]) > 4 * depth + edge
+    assert far.sum() > 0.5 * len(lbs)  # most of both spheres
+    assert np.array_equal(out[far], np.asarray(lbs[far], np.float32).astype(np.float64))
+
+
+def test_a_rigid_piece_keeps_still_and_the_other_gives_way():
+    r = 0.1
+    rest, tris, n = _two(_sphere((0, 0, 0), r, 3), _sphere((0.25, 0.02, 0.0), r, 4))
+    lbs = rest.copy()
+    lbs[n:, 0] -= 0.25 - (2 * r - 0.01)
+    groups = np.full(len(rest), -1)
+    groups[n:] = 0  # the second sphere moves as a whole (a fist)
+    u = _untangle(rest, tris, groups, rounds=16, max_step=0.005)
+    out = u.apply(lbs, lbs)
+    assert intersecting_pairs_brute_force(out, tris) == 0
+    assert np.array_equal(out[n:], np.asarray(lbs[n:], np.float32).astype(np.float64))
+    assert (out[:n, 0] - lbs[:n, 0]).min() < -0.005
+
+
+def test_each_side_is_where_the_reference_pose_had_it():
+    # a sheet hanging in front of a ball (a skirt before a thigh): the same outward direction,
+    # not facing each other; the ball moves forward through it
+    ball, bt = _sphere((0, 0, 0), 0.1, 5)
+    m = 17
+    y, z = np.meshgrid(np.linspace(-0.15, 0.15, m), np.linspace(-0.15, 0.15, m), indexing="ij")
+    sv = np.stack([np.full(y.size, 0.125), y.ravel(), z.ravel()], axis=1)
+    sv += np.random.default_rng(6).uniform(-2e-4, 2e-4, size=sv.shape) + np.array([0.0, 0.003, -0.002])
+    q = (np.arange(m - 1)[:, None] * m + np.arange(m - 1)[None, :]).ravel()
+    st = np.concatenate([np.stack([q, q + m, q + m + 1], 1), np.stack([q, q + m + 1, q + 1], 1)])
+    st = st if np.cross(sv[st[0, 1]] - sv[st[0, 0]], sv[st[0, 2]] - sv[st[0, 0]])[0] > 0 else st[:, ::-1]
+    rest, tris, n = _two((ball, bt), (sv, st))
+    lbs = rest.copy()
+    lbs[:n, 0] += 0.032  # the ball's front at about 0.132: through the sheet at 0.125
+    before = intersecting_pairs_brute_force(lbs, tris)
+    assert before > 0
+    u = _untangle(rest, tris, rounds=24, max_step=0.004)
+    out = u.apply(lbs, lbs)
+    after = intersecting_pairs_brute_force(out, tris)
+    assert after < 0.25 * before
+    move = out - lbs
+    # the sheet goes forward, in front of the ball as at rest, the ball back: never the sheet behind
+    assert move[n:, 0].max() > 0.002 and move[n:, 0].min() >= -1e-7
+    assert move[:n, 0].max() <= 1e-7
+    front = out[:n, 0].max()
+    hit = np.abs(out[n:, 1]) + np.abs(out[n:, 2]) < 0.03  # the sheet's points before the ball's front
+    assert out[n:][hit, 0].min() > front - 0.004
+
+
+def test_nothing_crossing_is_returned_itself():
+    rest, tris, n = _two(_sphere((0, 0, 0), 0.1, 7), _sphere((0.3, 0, 0), 0.1, 8))
+    lbs = rest + np.array([0.01, 0.02, -0.03])
+    u = _untangle(rest, tris)
+    assert u.apply(lbs, lbs) is lbs
+    assert u.stats == {"before": 0, "after": 0, "rounds": 0}
+
+
+@pytest.mark.parametrize("degrees", [20.0, 35.0])
+def test_pieces_that_cross_at_rest_are_left_to_slide(degrees):
+    # a ball joint in a socket's end, crossing by design at rest; the ball turns about its centre
+    # (a generic axis) and its crossing slides over it
+    rest, tris, n = _two(_sphere((0, 0, 0), 0.1, 9), _sphere((0.15, 0.01, 0), 0.08, 10))
+    assert intersecting_pairs_brute_force(rest, tris) > 0
+    axis = np.array([0.3, 0.8, 0.52])
+    axis /= np.linalg.norm(axis)
+    a = np.radians(degrees)
+    kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    turn = np.eye(3) + np.sin(a) * kx + (1 - np.cos(a)) * kx @ kx
+    lbs = rest.copy()
+    c = np.array([0.15, 0.01, 0])
+    lbs[n:] = (rest[n:] - c) @ turn.T + c
+    assert intersecting_pairs_brute_force(lbs, tris) > 0
+    u = _untangle(rest, tris)
+    assert u.apply(lbs, lbs) is lbs
+    assert u.stats["before"] == 0
+
+
+def test_the_repair_off_with_no_rounds():
+    rest, tris, n = _two(_sphere((0, 0, 0), 0.1, 0), _sphere((0.26, 0.0, 0.0), 0.1, 10))
+    lbs = rest.copy()
+    lbs[n:, 0] -= 0.07
+    u = _untangle(rest, tris, rounds=0)
+    assert u.apply(lbs, lbs) is lbs
+
+
+@wp.kernel
+def _closest_kernel(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = k.from_a_to_b(a[3 * i], a[3 * i + 1], a[3 * i + 2], b[3 * i], b[3 * i + 1], b[3 * i + 2])
+
+
+def test_closest_points_of_two_triangles_match_dense_sampling(device):
+    rng = np.random.default_rng(12)
+    count = 40
+    a = rng.normal(size=(count, 3, 3)) * 0.5
+    b = rng.normal(size=(count, 3, 3)) * 0.5 + rng.normal(size=(count, 1, 3)) * 1.5
+    out = wp.zeros(count, dtype=wp.vec3, device=device)
+    wp.launch(_closest_kernel, dim=count, inputs=[wp.array(a.reshape(-1, 3), dtype=wp.vec3, device=device),
+                                                  wp.array(b.reshape(-1, 3), dtype=wp.vec3, device=device)],
+              outputs=[out], device=device)
+    d = np.linalg.norm(out.numpy(), axis=1)
+    # the reference: the least distance between dense barycentric samples of the two
+    m = 60
+    u, v = np.meshgrid(np.linspace(0, 1, m), np.linspace(0, 1, m))
+    keep = u + v <= 1.0
+    bary = np.stack([1 - u[keep] - v[keep], u[keep], v[keep]], axis=1)
+    from scipy.spatial import cKDTree
+
+    for i in range(count):
+        pa, pb = bary @ a[i], bary @ b[i]
+        ref = cKDTree(pb).query(pa)[0].min()
+        spacing = max(np.ptp(a[i], axis=0).max(), np.ptp(b[i], axis=0).max()) / (m - 1)
+        if ref < 2 * spacing:
+            continue  # crossing or nearly: the samples cannot tell the distance
+        assert d[i] <= ref + 1e-5
+        assert d[i] >= ref - 2 * spacing
+
+
+@pytest.mark.parametrize("mobile_a, size_b", [(1.0, 1.0), (0.0, 1.0), (1.0, 5.0)])
+def test_one_crossing_pair_is_pushed_apart_by_the_depth_past_the_separating_plane(device, mobile_a, size_b):
+    # A in the plane z = 0 (normal +z); B a small tilted triangle through it, above A in the
+    # reference pose: B belongs in front of A, A behind B
+    a = np.array([[0.0, 0.0, 0.0], [1.0, 0.03, 0.0], [0.02, 1.0, 0.0]])
+    b = np.array([[0.2, 0.2, -0.03], [0.45, 0.25, 0.05], [0.25, 0.43, 0.06]])
+    x = np.concatenate([a, b])
+    ref = x + np.array([[0, 0, 0]] * 3 + [[0, 0, 0.3]] * 3)
+    gap, max_step = 1e-3, 1.0
+    tris = np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int32)
+    arrays = dict(x=wp.array(x, dtype=wp.vec3, device=device), ref=wp.array(ref, dtype=wp.vec3, device=device),
+                  tri=wp.array(tris, dtype=wp.vec3i, device=device),
+                  pairs=wp.array(np.array([[0, 1]], np.int32), dtype=wp.vec2i, device=device),
+                  mobility=wp.array(np.array([mobile_a] * 3 + [1.0] * 3, np.float32), dtype=float, device=device),
+                  size=wp.array(np.array([1.0, size_b], np.float32), dtype=float, device=device))
+    push = wp.zeros(6, dtype=wp.vec3, device=device)
+    count = wp.zeros(6, dtype=float, device=device)
+    depths = wp.zeros(1, dtype=float, device=device)
+    wp.launch(k.separate_pairs_kernel, dim=1, inputs=[*arrays.values(), gap, max_step], outputs=[push, count, depths],
+              device=device)
+    p = push.numpy()
+    assert np.array_equal(count.numpy(), np.ones(6))
+    nb = np.cross(b[1] - b[0], b[2] - b[0])
+    nb /= np.linalg.norm(nb)
+    depth_b = 0.03  # B's lowest corner below A's plane
+    depth_a = max(0.0, np.max(((a - b[0]) @ nb)))  # A belongs behind B's plane: its corners in front
+    share_a = mobile_a / (mobile_a + 1.0)
+    if size_b > 2.0:  # B's piece is the larger: its plane separates them, A goes behind it
+        step = depth_a + gap
+        np.testing.assert_allclose(p[:3], np.tile(-nb * step * share_a, (3, 1)), atol=1e-6)
+        np.testing.assert_allclose(p[3:], np.tile(nb * step * (1 - share_a), (3, 1)), atol=1e-6)
+        assert depths.numpy()[0] == pytest.approx(depth_a, abs=1e-6)
+    else:  # the shallower plane, A's: B goes up out of it, A down
+        assert depth_b < depth_a
+        step = depth_b + gap
+        np.testing.assert_allclose(p[:3], np.tile([0, 0, -step * share_a], (3, 1)), atol=1e-6)
+        np.testing.assert_allclose(p[3:], np.tile([0, 0, step * (1 - share_a)], (3, 1)), atol=1e-6)
+        assert depths.numpy()[0] == pytest.approx(depth_b, abs=1e-6)

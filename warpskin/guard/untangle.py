@@ -1,0 +1,309 @@
+"""Crossings repaired pair by pair: :class:`Untangle`.
+
+The surface guard (:class:`~warpskin.guard.surface.SurfaceGuard`) takes physics back where the
+written mesh crosses itself more than its LBS; where LBS itself drives one part through
+another (a leg into the belly, a thigh through a skirt, a hand into the hip), the guard accepts
+as many crossings as LBS has, and physics that merely matches LBS there is no better than it.
+:class:`Untangle` repairs those crossings where they are: after the guard, every pair of the
+written mesh's triangles that intersect (the exact test of
+:func:`~warpskin.metrics.self_intersections`), other than those that cross at rest or lie
+where pieces cross at rest (a tube's end in a ball joint, a bun sunk into the skull: their
+crossing is the design and slides), is separated along the normal of the plane that
+separates it at least depth (:mod:`warpskin.kernels.untangle`). Which side each triangle
+belongs on is read from the last frame written (the rest pose before the first frame), where
+the pair did not cross. A point's pushes from its pairs are averaged, half of it spreads to its
+unpushed neighbours (a dent, not a spike), and the rounds repeat on the pairs of the moved
+triangles. The points of the edges a round would strain past
+:data:`~warpskin.quality.STRAIN_LIMIT`, or of the triangles it would turn over against LBS,
+where the input does not, keep still; a point is never moved farther than ``max_offset`` from
+its LBS (or its input's offset, where that is farther). A round goes on where it crosses more
+for now (a skirt pushed back off a hand into the thigh beneath frees itself over the next
+rounds); the round with the fewest pairs beyond the rest pose's (those where pieces cross at
+rest included) is written. Points of a rigid piece (a
+group: a shoe, a fist) do not move: the other side gives way.
+
+Invariants: with nothing to repair the input is returned itself; the result never has more
+pairs beyond the rest pose's than the input, nor an edge strained or a triangle turned over
+against LBS that the input does not have. Limits: a crossing deeper
+than the rounds' steps (``rounds`` x ``max_step``) is only reduced; a pair whose reference
+pose crossed too (a crossing carried over from a frame it could not be repaired in) has no
+side there to read: it takes the sides of its closest points, which can be either, so it may be
+pushed the wrong way (such a round is written only where it leaves fewer pairs); a coarse mesh whose
+crossing edges are already near the strain limit (a low-poly leg driven into the belly) has
+few points free to move.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..quality import STRAIN_LIMIT
+from .params import as_written, pair_keys
+
+__all__ = ["Untangle"]
+
+
+class Untangle:
+    """The crossing repair of one written mesh (module docstring), after its guard.
+
+    Args:
+        guard: The mesh's :class:`~warpskin.guard.surface.SurfaceGuard` (its welded topology,
+            where pieces cross at rest, its rest pairs and pair counter are shared).
+        groups: ``[N]`` per written point, the rigid group it moves with (-1: none); grouped
+            points do not move.
+        rounds: Rounds of separation per frame (0: off).
+        max_step: The most [m] one pair's push may be in one round.
+        max_offset: The most [m] a point repaired may lie from its LBS (the tether's cap).
+    """
+
+    #: Tries per round: the points of the edges the push strains and the triangles it turns
+    #: over (that the input did not) keep still.
+    ATTEMPTS = 6
+    #: Rings of points around the pushed ones that take a share of their neighbours' push, that
+    #: share per ring: the dent a push makes spreads over the surface.
+    RINGS = 1
+    RING_SHARE = 0.5
+    #: Where pieces cross at rest, crossings within this share of the smaller piece's diagonal
+    #: of the rest crossing are left to slide (:meth:`_rest_zone`).
+    REST_REACH = 0.25
+
+    def __init__(self, guard, groups: np.ndarray | None = None, rounds: int = 8, max_step: float = np.inf,
+                 max_offset: float = np.inf) -> None:
+        import warp as wp
+
+        self.guard = guard
+        mesh = guard.mesh
+        self.mesh = mesh
+        self.rounds = int(rounds)
+        self.max_step = float(max_step)
+        self.max_offset = float(max_offset)
+        c = mesh.first.size
+        e = mesh.edges
+        self._adjacency = sp.csr_matrix((np.ones(2 * len(e)), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                                np.concatenate([e[:, 1], e[:, 0]]))), shape=(c, c))
+        from scipy.sparse.csgraph import connected_components
+
+        # the welded pieces and their rest diagonals [m]
+        _, self._piece = connected_components(self._adjacency, directed=False)
+        rest = mesh.welded(mesh.rest)
+        count = int(self._piece.max()) + 1 if c else 0
+        lo = np.full((count, 3), np.inf)
+        hi = np.full((count, 3), -np.inf)
+        np.minimum.at(lo, self._piece, rest)
+        np.maximum.at(hi, self._piece, rest)
+        self._piece_size = np.linalg.norm(hi - lo, axis=1)
+        mobility = np.ones(c, dtype=np.float32)
+        if groups is not None:
+            mobility[np.asarray(groups, dtype=np.int64)[mesh.first] >= 0] = 0.0
+        tris = guard._all_tri
+        self._tri_count = len(tris)
+        #: the clearance added to a pair's depth [m]: a hundredth of the median rest edge
+        self.gap = 0.01 * guard.edge
+        with wp.ScopedDevice("cpu"):
+            self._tri = wp.array(tris.astype(np.int32), dtype=wp.vec3i)
+            self._mobility = wp.array(mobility, dtype=wp.float32)
+            self._size = wp.array(self._piece_size[self._piece[tris[:, 0]]].astype(np.float32) if len(tris)
+                                  else np.zeros(1, np.float32), dtype=wp.float32)
+            self._x = wp.zeros(c, dtype=wp.vec3)
+            self._ref = wp.zeros(c, dtype=wp.vec3)
+            self._push = wp.zeros(c, dtype=wp.vec3)
+            self._count = wp.zeros(c, dtype=wp.float32)
+            self._pairs = wp.zeros(1, dtype=wp.vec2i)
+            self._depths = wp.zeros(1, dtype=wp.float32)
+        self._zone = self._rest_zone(self.REST_REACH)
+        self._last: np.ndarray | None = None  # the last frame's result, welded
+        self._repair: np.ndarray | None = None  # the last frame's repair (result - input), welded
+        #: Per frame: the repairable pairs before and after, and the rounds kept.
+        self.stats = {"before": 0, "after": 0, "rounds": 0}
+
+    def reset(self) -> None:
+        """Forget the last frame (the next takes its sides from the rest pose and starts from
+        its own input)."""
+        self._last = self._repair = None
+
+    def _rest_zone(self, reach: float) -> np.ndarray:
+        """``[T]`` bool: the triangles within ``reach`` x the smaller piece's rest diagonal (along
+        the surface) of a triangle that crosses another piece's at rest, or within the guard's
+        two median edges of where pieces cross or touch at rest. A crossing there slides as the
+        pieces turn (a tube's end in its ball joint); one beyond it (a thigh through a skirt's
+        hem, the skirt's waist sunk into the hips at rest) is repaired."""
+        from scipy.sparse.csgraph import dijkstra
+
+        g = self.guard
+        t, n = g._all_tri, self._tri_count
+        zone = g._crossing.copy()
+        keys = g._rest_pairs
+        if not keys.size:
+            return zone
+        piece, size = self._piece, self._piece_size
+        a, b = keys // n, keys % n
+        pa, pb = piece[t[a, 0]], piece[t[b, 0]]
+        radius = reach * np.minimum(size[pa], size[pb])
+        near = np.zeros(len(piece), dtype=bool)
+        for r in np.unique(radius):
+            sel = radius == r
+            src = np.unique(t[np.concatenate([a[sel], b[sel]])].ravel())
+            near |= np.isfinite(dijkstra(g._graph, directed=False, indices=src, min_only=True, limit=float(r)))
+        return zone | near[t].all(axis=1)
+
+    def _repairable(self, keys: np.ndarray) -> np.ndarray:
+        """The keys of ``keys`` that are repaired: not crossing at rest, not both where pieces
+        cross at rest (:meth:`_rest_zone`)."""
+        n = self._tri_count
+        keys = np.setdiff1d(keys, self.guard._rest_pairs, assume_unique=True)
+        both = self._zone[keys // n] & self._zone[keys % n]
+        return keys[~both]
+
+    def _measures(self, x: np.ndarray, lbs_side: tuple, base: tuple | None = None,
+                  moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(strained, turned)``: the edges of ``x`` past STRAIN_LIMIT where LBS's are not, the
+        judged triangles turned over against LBS. ``lbs_side``: :meth:`_lbs_side` of the frame;
+        with ``base`` (the measures of a pose that differs from ``x`` only at the points
+        ``moved``), only the edges and triangles of those points are measured again."""
+        g = self.guard
+        lbs_ok, n_lbs, len_lbs = lbs_side
+        if base is None or moved is None:
+            return (g._strain(x) > STRAIN_LIMIT) & lbs_ok, g._cosines(x, n_lbs, len_lbs) < 0.0
+        strained, turned = base[0].copy(), base[1].copy()
+        ce, ct = moved[self.mesh.edges].any(axis=1), moved[g._tri].any(axis=1)
+        strained[ce] = (g._strain(x, ce) > STRAIN_LIMIT) & lbs_ok[ce]
+        turned[ct] = g._cosines(x, n_lbs, len_lbs, ct) < 0.0
+        return strained, turned
+
+    def _lbs_side(self, lw: np.ndarray) -> tuple:
+        """What :meth:`_measures` takes from the frame's LBS ``lw`` (welded): the edges within
+        STRAIN_LIMIT, the judged triangles' normals and their lengths."""
+        g = self.guard
+        n_lbs = g._normals(lw)
+        return g._strain(lw) <= STRAIN_LIMIT, n_lbs, np.linalg.norm(n_lbs, axis=1)
+
+    def _separate(self, x: np.ndarray, work: np.ndarray) -> float:
+        """Launch the separation of the pairs ``work`` (keys) at ``x`` (welded, ``[C, 3]``) into
+        the push buffers; returns the sum of their depths [m]."""
+        import warp as wp
+
+        from ..kernels import untangle as k
+
+        n = self._tri_count
+        pairs = np.stack([work // n, work % n], axis=1).astype(np.int32)
+        if self._pairs.shape[0] < len(pairs):
+            self._pairs = wp.zeros(2 * len(pairs), dtype=wp.vec2i, device="cpu")
+            self._depths = wp.zeros(2 * len(pairs), dtype=wp.float32, device="cpu")
+        self._pairs.assign(np.concatenate([pairs, np.zeros((self._pairs.shape[0] - len(pairs), 2), np.int32)]))
+        self._x.assign(x.astype(np.float32))
+        self._push.zero_()
+        self._count.zero_()
+        wp.launch(k.separate_pairs_kernel, dim=len(pairs),
+                  inputs=[self._x, self._ref, self._tri, self._pairs, self._mobility, self._size, self.gap,
+                          self.max_step],
+                  outputs=[self._push, self._count, self._depths], device="cpu")
+        return float(self._depths.numpy()[:len(pairs)].astype(np.float64).sum())
+
+    def _moved(self, x: np.ndarray, d: np.ndarray, lw: np.ndarray, harm: tuple, crossing: np.ndarray,
+               lbs_side: tuple, now: tuple):
+        """``x + d`` (welded, ``[C, 3]`` [m]) less what harms: a point is not moved past
+        ``max_offset`` from its LBS ``lw`` (or past its offset in ``x``), and the points of the
+        edges it strains and the triangles it turns over that ``harm`` (the input's
+        ``(strained, turned)``) does not have keep still, up to :attr:`ATTEMPTS` times
+        (``lbs_side``: :meth:`_lbs_side`; ``now``: the measures of ``x``). Returns ``(y, pairs
+        of y beyond the rest pose's, the measures of y)``, the pairs found from ``crossing``
+        (``x``'s) and the moved triangles'; ``None`` where nothing moves."""
+        g, mesh, n = self.guard, self.mesh, self._tri_count
+        tris, e, t = g._all_tri, mesh.edges, g._tri
+        d = d.copy()
+        for _ in range(self.ATTEMPTS):
+            y = x + d
+            off = np.linalg.norm(y - lw, axis=1)
+            over = off > np.maximum(self.max_offset, np.linalg.norm(x - lw, axis=1))
+            y[over] = x[over]
+            y = as_written(y)
+            moved = (y != x).any(axis=1)
+            if not moved.any():
+                return None
+            strained, turned = self._measures(y, lbs_side, now, moved)
+            bad = np.zeros(len(x), dtype=bool)
+            bad[e[strained & ~harm[0]].ravel()] = True
+            bad[t[turned & ~harm[1]].ravel()] = True
+            if bad.any():  # the points of what it strains or turns over keep still
+                d[bad] = 0.0
+                continue
+            active = moved[tris].any(axis=1)
+            a, b = crossing // n, crossing % n
+            kept = crossing[~(active[a] | active[b])]
+            found = np.setdiff1d(pair_keys(g._query.active(y, active), n), g._rest_pairs, assume_unique=True)
+            return y, np.union1d(kept, found), (strained, turned)
+        return None
+
+    def apply(self, points: np.ndarray, lbs: np.ndarray, counted: bool = False) -> np.ndarray:
+        """The repaired points of one frame, ``[N, 3]`` [m] in the mesh's file order (``points``:
+        the guarded result, ``lbs``: the mesh's LBS); call once per frame, in frame order.
+        ``counted``: ``points`` is the guard's result of this frame as it returned it, whose
+        pairs it counted (:attr:`SurfaceGuard.pair_keys`, where not ``None``): they are not
+        counted again. Returns ``points`` itself where nothing is repaired, else the result
+        rounded to float32 as USD stores it."""
+        mesh, g = self.mesh, self.guard
+        self.stats = {"before": 0, "after": 0, "rounds": 0}
+        x = mesh.welded(as_written(points))
+        ref = mesh.welded(mesh.rest) if self._last is None else self._last
+        carried, self._repair = self._repair, None
+        if self.rounds <= 0 or self._tri_count < 2 or not g.params.enabled:
+            self._last = x
+            return points
+        # every pair but the rest pose's (judged: a push may cross where pieces cross at rest
+        # too), and of them the ones repaired
+        found = g.pair_keys[0] if g.pair_keys is not None and counted else pair_keys(g._query.pairs(x),
+                                                                                          self._tri_count)
+        crossing = np.setdiff1d(found, g._rest_pairs, assume_unique=True)
+        work = self._repairable(crossing)
+        self.stats["before"] = self.stats["after"] = int(work.size)
+        if not work.size:
+            self._last = x
+            return points
+        lw = mesh.welded(as_written(lbs))
+        lbs_side = self._lbs_side(lw)
+        harm = now = self._measures(x, lbs_side)
+        self._ref.assign(ref.astype(np.float32))
+        given = x
+        best = (x, crossing)
+        if carried is not None:  # the last frame's repair first, where it still helps
+            start = self._moved(x, carried, lw, harm, crossing, lbs_side, now)
+            if start is not None and start[1].size < crossing.size:
+                x, crossing, now = start
+                best = (x, crossing)
+                work = self._repairable(crossing)
+        for _ in range(self.rounds):
+            if not work.size:
+                break
+            self._separate(x, work)
+            cnt = self._count.numpy().astype(np.float64)
+            pushed = cnt > 0
+            d = np.zeros_like(x)
+            d[pushed] = self._push.numpy()[pushed] / cnt[pushed, None]
+            # a share of it to the unpushed points around, ring by ring: a dent, not a spike
+            done = pushed.copy()
+            for _ in range(self.RINGS):
+                near = self._adjacency @ done.astype(np.float64)
+                ring = ~done & (near > 0)
+                if not ring.any():
+                    break
+                d[ring] = self.RING_SHARE * (self._adjacency @ d)[ring] / near[ring, None]
+                done |= ring
+            d *= self._mobility.numpy()[:, None]
+            step = self._moved(x, d, lw, harm, crossing, lbs_side, now)
+            if step is None:
+                break
+            # the round goes on even where it crosses more for now: a crossing pushed into a
+            # third surface (a skirt pushed off a hand into the thigh) frees itself over rounds
+            x, crossing, now = step
+            work = self._repairable(crossing)
+            self.stats["rounds"] += 1
+            if crossing.size < best[1].size:
+                best = (x, crossing)
+        x, crossing = best
+        self.stats["after"] = int(self._repairable(crossing).size)
+        self._last = x
+        if x is given:
+            return points
+        self._repair = x - given
+        return x[mesh.weld]
