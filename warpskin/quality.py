@@ -498,7 +498,7 @@ class QualityLog:
                 row["max_pairs_excess"] = int((p - pl).max())
                 pn, pnl = np.asarray(s["pairs_new"]), np.asarray(s["pairs_new_lbs"])
                 row["max_pairs_new"], row["max_pairs_new_lbs"] = int(pn.max()), int(pnl.max())
-            for k in ("guarded", "held", "jump_limited", "worn_repaired"):
+            for k in ("guarded", "held", "jump_limited", "worn_repaired", "untangled"):
                 if s.get(k):
                     row[f"max_{k}"] = float(np.max(s[k]))
             if s.get("guard_fallbacks"):

@@ -250,6 +250,7 @@ class _WrittenQuality:
         self.guards = {self.names[name]: g for name, g in character.guards.items()}
         self.limits = {self.names[name]: lim for name, lim in character.limits.items()}
         self.repairs = {self.names[name]: r for name, r in getattr(character, "repairs", {}).items()}
+        self.untangles = {self.names[name]: u for name, u in getattr(character, "untangles", {}).items()}
         self.log = QualityLog(self.meshes, QualityLimits(limits.max_strained, limits.max_flipped),
                               cross=None if character.cross is None else character.cross.cross)
         from ..delivery import DeliveryLog
@@ -279,6 +280,9 @@ class _WrittenQuality:
                                    pairs={k: g.pair_keys for k, g in guards.items() if g.pair_keys is not None},
                                    extra={k: {"guarded": g.guarded, "held": g.held, "guard_fallbacks": g.fallbacks,
                                               "jump_limited": self.limits[k].limited,
+                                              **({"untangled": self.untangles[k].stats["before"]
+                                                  - self.untangles[k].stats["after"]}
+                                                 if k in self.untangles else {}),
                                               **({"worn_repaired": self.repairs[k][0].repaired}
                                                  if k in self.repairs else {})}
                                           for k, g in guards.items()},
