@@ -158,18 +158,30 @@ class Untangle:
     def _measures(self, x: np.ndarray, lbs_side: tuple, base: tuple | None = None,
                   moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(strained, turned)``: the edges of ``x`` past STRAIN_LIMIT where LBS's are not, the
-        judged triangles turned over against LBS. ``lbs_side``: :meth:`_lbs_side` of the frame;
+        judged triangles turned over against LBS's (normal against normal: where LBS folds a
+        crease over, a triangle the repair turns back counts too; it stays as the guard left
+        it). ``lbs_side``: :meth:`_lbs_side` of the frame;
         with ``base`` (the measures of a pose that differs from ``x`` only at the points
         ``moved``), only the edges and triangles of those points are measured again."""
         g = self.guard
         lbs_ok, n_lbs, len_lbs = lbs_side
         if base is None or moved is None:
-            return (g._strain(x) > STRAIN_LIMIT) & lbs_ok, g._cosines(x, n_lbs, len_lbs) < 0.0
+            return (g._strain(x) > STRAIN_LIMIT) & lbs_ok, self._turned(x, n_lbs, len_lbs)
         strained, turned = base[0].copy(), base[1].copy()
         ce, ct = moved[self.mesh.edges].any(axis=1), moved[g._tri].any(axis=1)
         strained[ce] = (g._strain(x, ce) > STRAIN_LIMIT) & lbs_ok[ce]
-        turned[ct] = g._cosines(x, n_lbs, len_lbs, ct) < 0.0
+        turned[ct] = self._turned(x, n_lbs[ct], len_lbs[ct], ct)
         return strained, turned
+
+    def _turned(self, x: np.ndarray, n_lbs: np.ndarray, len_lbs: np.ndarray,
+                which: np.ndarray | None = None) -> np.ndarray:
+        """The judged triangles (or those ``which`` selects) whose normal in ``x`` points against
+        LBS's (``n_lbs``, lengths ``len_lbs``, of the same triangles); never a degenerate one."""
+        g = self.guard
+        n = g._normals(x, which)
+        ln = np.linalg.norm(n, axis=1)
+        ok = (ln > g._floor) & (len_lbs > g._floor)
+        return ok & (np.einsum("ij,ij->i", n, n_lbs) < 0.0)
 
     def _lbs_side(self, lw: np.ndarray) -> tuple:
         """What :meth:`_measures` takes from the frame's LBS ``lw`` (welded): the edges within
