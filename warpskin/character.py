@@ -617,14 +617,21 @@ class Character:
                 pts = repaired
             guarded[name] = guard.apply(pts, lbs_by[name], skinned.get(name))
             if name in self.untangles:  # the crossings that LBS drives too, repaired pair by pair
-                untangled = self.untangles[name].apply(guarded[name], lbs_by[name], counted=True)
+                untangle = self.untangles[name]
+                untangled = untangle.apply(guarded[name], lbs_by[name], counted=True)
                 if untangled is not guarded[name]:
                     guard.pair_keys = guard.pair_counts = None  # counted again on what is written
                     guarded[name] = untangled
+                elif guard.pair_keys is None and untangle.pair_keys is not None:  # its count, for the measures
+                    guard.pair_keys = untangle.pair_keys
+                    guard.pair_counts = (int(untangle.pair_keys[0].size), int(untangle.pair_keys[1].size))
         if self.cross is not None:
             shown = {p.name: self.display_name(p.name) for p in self.parts}
             across = self.cross.apply({shown[n]: guarded.get(n, out[n]) for n in shown},
                                       {shown[n]: lbs_by[n] for n in shown})
+            for name in guarded:
+                if across[shown[name]] is not guarded[name]:  # carried or taken back: counted again
+                    self.guards[name].pair_keys = self.guards[name].pair_counts = None
             guarded = {name: across[shown[name]] for name in guarded}
         for name, guard in self.guards.items():
             limited = self.limits[name].apply(guarded[name], lbs_by[name])

@@ -116,6 +116,10 @@ class Untangle:
         self._repair: np.ndarray | None = None  # the last frame's repair (result - input), welded
         #: Per frame: the repairable pairs before and after, and the rounds kept.
         self.stats = {"before": 0, "after": 0, "rounds": 0}
+        #: After :meth:`apply` left its input as it was: the keys of the intersecting pairs of
+        #: that input and of its LBS (as :attr:`SurfaceGuard.pair_keys`, for the frame's
+        #: measures); ``None`` where it repaired or counted nothing.
+        self.pair_keys: tuple[np.ndarray, np.ndarray] | None = None
 
     def reset(self) -> None:
         """Forget the last frame (the next takes its sides from the rest pose and starts from
@@ -256,23 +260,27 @@ class Untangle:
         rounded to float32 as USD stores it."""
         mesh, g = self.mesh, self.guard
         self.stats = {"before": 0, "after": 0, "rounds": 0}
+        self.pair_keys = None
         x = mesh.welded(as_written(points))
         ref = mesh.welded(mesh.rest) if self._last is None else self._last
         carried, self._repair = self._repair, None
         if self.rounds <= 0 or self._tri_count < 2 or not g.params.enabled:
             self._last = x
             return points
+        lw = mesh.welded(as_written(lbs))
         # every pair but the rest pose's (judged: a push may cross where pieces cross at rest
-        # too), and of them the ones repaired
-        found = g.pair_keys[0] if g.pair_keys is not None and counted else pair_keys(g._query.pairs(x),
-                                                                                          self._tri_count)
-        crossing = np.setdiff1d(found, g._rest_pairs, assume_unique=True)
+        # too), and of them the ones repaired; counted with LBS's in one pass where the guard
+        # did not count them, so that a frame left as it is needs no count of its own after
+        if g.pair_keys is not None and counted:
+            self.pair_keys = g.pair_keys
+        else:
+            self.pair_keys = g._pairs_of_two(x, lw)
+        crossing = np.setdiff1d(self.pair_keys[0], g._rest_pairs, assume_unique=True)
         work = self._repairable(crossing)
         self.stats["before"] = self.stats["after"] = int(work.size)
         if not work.size:
             self._last = x
             return points
-        lw = mesh.welded(as_written(lbs))
         lbs_side = self._lbs_side(lw)
         harm = now = self._measures(x, lbs_side)
         self._ref.assign(ref.astype(np.float32))
@@ -317,5 +325,6 @@ class Untangle:
         self._last = x
         if x is given:
             return points
+        self.pair_keys = None
         self._repair = x - given
         return x[mesh.weld]
