@@ -9,7 +9,8 @@ written mesh's triangles that intersect (the exact test of
 :func:`~warpskin.metrics.self_intersections`), other than those that cross at rest or lie
 where pieces cross at rest (a tube's end in a ball joint, a bun sunk into the skull: their
 crossing is the design and slides), is separated along the normal of the plane that
-separates it at least depth (:mod:`warpskin.kernels.untangle`). Which side each triangle
+separates it least deep, or of the larger piece's triangle where one piece is more than twice
+the other's size (:mod:`warpskin.kernels.untangle`). Which side each triangle
 belongs on is read from the last frame written (the rest pose before the first frame), where
 the pair did not cross. A point's pushes from its pairs are averaged, half of it spreads to its
 unpushed neighbours (a dent, not a spike), and the rounds repeat on the pairs of the moved
@@ -19,8 +20,10 @@ where the input does not, keep still; a point is never moved farther than ``max_
 its LBS (or its input's offset, where that is farther). A round goes on where it crosses more
 for now (a skirt pushed back off a hand into the thigh beneath frees itself over the next
 rounds); the round with the fewest pairs beyond the rest pose's (those where pieces cross at
-rest included) is written. Points of a rigid piece (a
-group: a shoe, a fist) do not move: the other side gives way.
+rest included) is written. Points of a rigid piece (a group: a shoe, a fist) do not move: the
+other side gives way. A frame starts from the last frame's repair (its displacement, the same
+checks made) where that leaves fewer pairs than its own input: a crossing that lasts is not
+repaired from nothing every frame.
 
 Invariants: with nothing to repair the input is returned itself; the result never has more
 pairs beyond the rest pose's than the input, nor an edge strained or a triangle turned over
@@ -28,9 +31,9 @@ against LBS that the input does not have. Limits: a crossing deeper
 than the rounds' steps (``rounds`` x ``max_step``) is only reduced; a pair whose reference
 pose crossed too (a crossing carried over from a frame it could not be repaired in) has no
 side there to read: it takes the sides of its closest points, which can be either, so it may be
-pushed the wrong way (such a round is written only where it leaves fewer pairs); a coarse mesh whose
-crossing edges are already near the strain limit (a low-poly leg driven into the belly) has
-few points free to move.
+pushed the wrong way (such a round is written only where it leaves fewer pairs); a coarse
+mesh whose crossing edges are already near the strain limit (a low-poly leg driven into the
+belly) has few points free to move. It changes only what is written, never the simulation.
 """
 
 from __future__ import annotations
