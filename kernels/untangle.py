@@ -24,6 +24,21 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
+def nearer(pa: wp.vec3, pb: wp.vec3, p: wp.vec3, q: wp.vec3):
+    """``(p, q)`` where they are closer to each other than ``pa`` to ``pb``, else ``(pa, pb)``."""
+    if wp.length_sq(p - q) < wp.length_sq(pa - pb):
+        return p, q
+    return pa, pb
+
+
+@wp.func
+def nearer_edges(pa: wp.vec3, pb: wp.vec3, p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3):
+    """:func:`nearer` with the closest points of the edges ``p1 p2`` and ``p3 p4``."""
+    st = segment_closest(p1, p2, p3, p4)
+    return nearer(pa, pb, p1 + st[0] * (p2 - p1), p3 + st[1] * (p4 - p3))
+
+
+@wp.func
 def point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
     """The point of triangle ``abc`` closest to ``p`` (its projection where that is inside, else
     the closest point of its edges)."""
@@ -31,21 +46,10 @@ def point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3
     if w[0] >= 0.0 and w[1] >= 0.0 and w[2] >= 0.0:
         return w[0] * a + w[1] * b + w[2] * c
     st = segment_closest(p, p, a, b)
-    best = a + st[1] * (b - a)
-    st = segment_closest(p, p, b, c)
-    q = b + st[1] * (c - b)
-    if wp.length_sq(q - p) < wp.length_sq(best - p):
-        best = q
-    st = segment_closest(p, p, c, a)
-    q = c + st[1] * (a - c)
-    if wp.length_sq(q - p) < wp.length_sq(best - p):
-        best = q
-    return best
-
-
-@wp.func
-def closer(p: wp.vec3, q: wp.vec3, best_p: wp.vec3, best_q: wp.vec3) -> bool:
-    return wp.length_sq(p - q) < wp.length_sq(best_p - best_q)
+    q = a + st[1] * (b - a)
+    _, q = nearer_edges(p, q, p, p, b, c)
+    _, q = nearer_edges(p, q, p, p, c, a)
+    return q
 
 
 @wp.func
@@ -55,50 +59,20 @@ def from_a_to_b(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.vec3,
     triangles is one of these)."""
     pa = a0
     pb = point_on_triangle(a0, b0, b1, b2)
-    q = point_on_triangle(a1, b0, b1, b2)
-    if closer(a1, q, pa, pb):
-        pa = a1
-        pb = q
-    q = point_on_triangle(a2, b0, b1, b2)
-    if closer(a2, q, pa, pb):
-        pa = a2
-        pb = q
-    q = point_on_triangle(b0, a0, a1, a2)
-    if closer(q, b0, pa, pb):
-        pa = q
-        pb = b0
-    q = point_on_triangle(b1, a0, a1, a2)
-    if closer(q, b1, pa, pb):
-        pa = q
-        pb = b1
-    q = point_on_triangle(b2, a0, a1, a2)
-    if closer(q, b2, pa, pb):
-        pa = q
-        pb = b2
-    for i in range(3):
-        for j in range(3):
-            p1 = a0
-            p2 = a1
-            if i == 1:
-                p1 = a1
-                p2 = a2
-            elif i == 2:
-                p1 = a2
-                p2 = a0
-            p3 = b0
-            p4 = b1
-            if j == 1:
-                p3 = b1
-                p4 = b2
-            elif j == 2:
-                p3 = b2
-                p4 = b0
-            st = segment_closest(p1, p2, p3, p4)
-            u = p1 + st[0] * (p2 - p1)
-            v = p3 + st[1] * (p4 - p3)
-            if closer(u, v, pa, pb):
-                pa = u
-                pb = v
+    pa, pb = nearer(pa, pb, a1, point_on_triangle(a1, b0, b1, b2))
+    pa, pb = nearer(pa, pb, a2, point_on_triangle(a2, b0, b1, b2))
+    pa, pb = nearer(pa, pb, point_on_triangle(b0, a0, a1, a2), b0)
+    pa, pb = nearer(pa, pb, point_on_triangle(b1, a0, a1, a2), b1)
+    pa, pb = nearer(pa, pb, point_on_triangle(b2, a0, a1, a2), b2)
+    pa, pb = nearer_edges(pa, pb, a0, a1, b0, b1)
+    pa, pb = nearer_edges(pa, pb, a0, a1, b1, b2)
+    pa, pb = nearer_edges(pa, pb, a0, a1, b2, b0)
+    pa, pb = nearer_edges(pa, pb, a1, a2, b0, b1)
+    pa, pb = nearer_edges(pa, pb, a1, a2, b1, b2)
+    pa, pb = nearer_edges(pa, pb, a1, a2, b2, b0)
+    pa, pb = nearer_edges(pa, pb, a2, a0, b0, b1)
+    pa, pb = nearer_edges(pa, pb, a2, a0, b1, b2)
+    pa, pb = nearer_edges(pa, pb, a2, a0, b2, b0)
     return pb - pa
 
 
@@ -133,16 +107,14 @@ def separate_pairs_kernel(
     max_step: float,
     push: wp.array(dtype=wp.vec3),
     count: wp.array(dtype=float),
-    depths: wp.array(dtype=float),
 ):
     """Per crossing pair (``pairs``: triangle indices): the translations that separate its two
     triangles (module docstring), added to ``push`` of their corners (``count`` + 1 each; the
-    caller averages) and its depth (the smaller of the two) to ``depths[k]``. ``x``: the points now, ``ref``: the reference pose (both ``[N]`` [m]);
+    caller averages). ``x``: the points now, ``ref``: the reference pose (both ``[N]`` [m]);
     ``mobility``: ``[N]`` in [0, 1], a triangle's the least of its corners'; ``size``: ``[T]``
     the diagonal [m] of the piece of every triangle; ``gap`` [m]: the
     clearance added to the depth; ``max_step`` [m]: the most a pair's push may be."""
     k = wp.tid()
-    depths[k] = 0.0
     ta = triangles[pairs[k][0]]
     tb = triangles[pairs[k][1]]
     ma = wp.min(mobility[ta[0]], wp.min(mobility[ta[1]], mobility[ta[2]]))
@@ -180,7 +152,6 @@ def separate_pairs_kernel(
     if sa > 2.0 * sb or (sb <= 2.0 * sa and depth_b < depth_a):
         axis = -s_ba * na
         depth = depth_b
-    depths[k] = depth
     step = wp.min(depth + gap, max_step)
     if wp.length_sq(axis) == 0.0:
         return

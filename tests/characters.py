@@ -11,7 +11,9 @@ have (nothing is written to the repo):
   foot (a mesh of its own, bending at the toe) and a fist block on each hand (a mesh of its own
   on the hand joint).
 * :func:`pressed_arm`: the coarse procedural arm's skin at LBS 150 degrees, the forearm pressed
-  into the upper arm, with one detection run on it (the contacts and fail-safe tests' scene).
+  into the upper arm, with one detection run on it (the contacts and fail-safe tests' scene);
+* :func:`generic_sphere`, :func:`random_rotation`: an icosphere in a generic position (turned
+  and jittered: no symmetry, no ties), the guards' test pieces.
 """
 
 from __future__ import annotations
@@ -21,6 +23,24 @@ from pathlib import Path
 import numpy as np
 
 from gltf_builder import write_rig_glb
+
+
+def random_rotation(seed: int) -> np.ndarray:
+    """A proper rotation ``[3, 3]`` drawn from ``seed``."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def generic_sphere(centre, radius: float, seed: int, subdivisions: int = 3, jitter: float = 0.01):
+    """An icosphere of ``radius`` about ``centre``, turned by :func:`random_rotation` and each
+    vertex's radius jittered by up to ``jitter`` of it: ``(points [N, 3], triangles [T, 3])``."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    rng = np.random.default_rng(seed)
+    v = s.vertices @ random_rotation(seed).T
+    v = v * (1.0 + jitter * rng.uniform(-1, 1, size=(len(v), 1)))
+    return v + np.asarray(centre, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
 
 
 def dancer_file(tmp_path: Path, root_scale: float | None = 0.1, **params) -> Path:

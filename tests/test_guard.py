@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from characters import generic_sphere, random_rotation
 from oracles import intersecting_pairs_brute_force, strain_and_flips
 from warpskin.errors import SceneError
 from warpskin.guard import GuardParams, SurfaceGuard
@@ -21,17 +22,8 @@ def _f32(x: np.ndarray) -> np.ndarray:
     return np.asarray(x, dtype=np.float32).astype(np.float64)
 
 
-def _rotation(seed: int) -> np.ndarray:
-    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
-    return q * np.sign(np.linalg.det(q))
-
-
-def _sphere(centre, radius: float, seed: int, subdivisions: int = 3):
-    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    rng = np.random.default_rng(seed)
-    v = s.vertices @ _rotation(seed).T
-    v = v * (1.0 + 0.01 * rng.uniform(-1, 1, size=(len(v), 1)))  # generic: no symmetry, no ties
-    return v + np.asarray(centre, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
+_rotation = random_rotation
+_sphere = generic_sphere  # generic: no symmetry, no ties
 
 
 def _pose(points: np.ndarray, seed: int) -> np.ndarray:

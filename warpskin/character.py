@@ -406,10 +406,11 @@ class Character:
         diag = float(np.linalg.norm(np.ptp(self.soup.points, axis=0)))
         self.untangles = {}
         if params.enabled and params.pairs and params.untangle > 0:
-            self.untangles = {name: Untangle(g, cap.group[p.start:p.start + p.count], rounds=params.untangle,
-                                             max_step=params.untangle_step * diag,
-                                             max_offset=params.untangle_offset * diag)
-                              for p in self.parts if (name := p.name) in self.guards and (g := self.guards[name])}
+            for p in self.parts:
+                if p.name in self.guards:
+                    self.untangles[p.name] = Untangle(self.guards[p.name], cap.group[p.start:p.start + p.count],
+                                                      rounds=params.untangle, max_step=params.untangle_step * diag,
+                                                      max_offset=params.untangle_offset * diag)
         # pieces written as separate meshes keep apart as their LBS keeps them (after each
         # mesh's own guard)
         cross = CrossPairs([self.meshes.get(p.name) or WrittenMesh(self.display_name(p.name), p.triangles, p.rest,

@@ -39,7 +39,6 @@ belly) has few points free to move. It changes only what is written, never the s
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..quality import STRAIN_LIMIT
 from .params import as_written, pair_keys
@@ -63,10 +62,6 @@ class Untangle:
     #: Tries per round: the points of the edges the push strains and the triangles it turns
     #: over (that the input did not) keep still.
     ATTEMPTS = 6
-    #: Rings of points around the pushed ones that take a share of their neighbours' push, that
-    #: share per ring: the dent a push makes spreads over the surface.
-    RINGS = 1
-    RING_SHARE = 0.5
     #: Where pieces cross at rest, crossings within this share of the smaller piece's diagonal
     #: of the rest crossing are left to slide (:meth:`_rest_zone`).
     REST_REACH = 0.25
@@ -82,9 +77,7 @@ class Untangle:
         self.max_step = float(max_step)
         self.max_offset = float(max_offset)
         c = mesh.first.size
-        e = mesh.edges
-        self._adjacency = sp.csr_matrix((np.ones(2 * len(e)), (np.concatenate([e[:, 0], e[:, 1]]),
-                                                                np.concatenate([e[:, 1], e[:, 0]]))), shape=(c, c))
+        self._adjacency = (guard._graph != 0).astype(np.float64)  # the welded edges, both ways
         from scipy.sparse.csgraph import connected_components
 
         # the welded pieces and their rest diagonals [m]
@@ -113,7 +106,6 @@ class Untangle:
             self._push = wp.zeros(c, dtype=wp.vec3)
             self._count = wp.zeros(c, dtype=wp.float32)
             self._pairs = wp.zeros(1, dtype=wp.vec2i)
-            self._depths = wp.zeros(1, dtype=wp.float32)
         self._zone = self._rest_zone(self.REST_REACH)
         self._last: np.ndarray | None = None  # the last frame's result, welded
         self._repair: np.ndarray | None = None  # the last frame's repair (result - input), welded
@@ -123,11 +115,6 @@ class Untangle:
         #: that input and of its LBS (as :attr:`SurfaceGuard.pair_keys`, for the frame's
         #: measures); ``None`` where it repaired or counted nothing.
         self.pair_keys: tuple[np.ndarray, np.ndarray] | None = None
-
-    def reset(self) -> None:
-        """Forget the last frame (the next takes its sides from the rest pose and starts from
-        its own input)."""
-        self._last = self._repair = None
 
     def _rest_zone(self, reach: float) -> np.ndarray:
         """``[T]`` bool: the triangles within ``reach`` x the smaller piece's rest diagonal (along
@@ -197,9 +184,9 @@ class Untangle:
         n_lbs = g._normals(lw)
         return g._strain(lw) <= STRAIN_LIMIT, n_lbs, np.linalg.norm(n_lbs, axis=1)
 
-    def _separate(self, x: np.ndarray, work: np.ndarray) -> float:
+    def _separate(self, x: np.ndarray, work: np.ndarray) -> None:
         """Launch the separation of the pairs ``work`` (keys) at ``x`` (welded, ``[C, 3]``) into
-        the push buffers; returns the sum of their depths [m]."""
+        the push buffers."""
         import warp as wp
 
         from ..kernels import untangle as k
@@ -208,7 +195,6 @@ class Untangle:
         pairs = np.stack([work // n, work % n], axis=1).astype(np.int32)
         if self._pairs.shape[0] < len(pairs):
             self._pairs = wp.zeros(2 * len(pairs), dtype=wp.vec2i, device="cpu")
-            self._depths = wp.zeros(2 * len(pairs), dtype=wp.float32, device="cpu")
         self._pairs.assign(np.concatenate([pairs, np.zeros((self._pairs.shape[0] - len(pairs), 2), np.int32)]))
         self._x.assign(x.astype(np.float32))
         self._push.zero_()
@@ -216,8 +202,7 @@ class Untangle:
         wp.launch(k.separate_pairs_kernel, dim=len(pairs),
                   inputs=[self._x, self._ref, self._tri, self._pairs, self._mobility, self._size, self.gap,
                           self.max_step],
-                  outputs=[self._push, self._count, self._depths], device="cpu")
-        return float(self._depths.numpy()[:len(pairs)].astype(np.float64).sum())
+                  outputs=[self._push, self._count], device="cpu")
 
     def _moved(self, x: np.ndarray, d: np.ndarray, lw: np.ndarray, harm: tuple, crossing: np.ndarray,
                lbs_side: tuple, now: tuple):
@@ -303,15 +288,10 @@ class Untangle:
             pushed = cnt > 0
             d = np.zeros_like(x)
             d[pushed] = self._push.numpy()[pushed] / cnt[pushed, None]
-            # a share of it to the unpushed points around, ring by ring: a dent, not a spike
-            done = pushed.copy()
-            for _ in range(self.RINGS):
-                near = self._adjacency @ done.astype(np.float64)
-                ring = ~done & (near > 0)
-                if not ring.any():
-                    break
-                d[ring] = self.RING_SHARE * (self._adjacency @ d)[ring] / near[ring, None]
-                done |= ring
+            # half of it to the unpushed neighbours: a dent, not a spike
+            near = self._adjacency @ pushed.astype(np.float64)
+            ring = ~pushed & (near > 0)
+            d[ring] = 0.5 * (self._adjacency @ d)[ring] / near[ring, None]
             d *= self._mobility.numpy()[:, None]
             step = self._moved(x, d, lw, harm, crossing, lbs_side, now)
             if step is None:
