@@ -276,8 +276,10 @@ def test_an_open_character_pops_on_its_written_surface(tmp_path, capsys, device)
     from warpskin.scene import Scene
 
     glb = mannequin_file(tmp_path)
+    scene = tmp_path / "mannequin.toml"  # a tenth of a second's pre-roll (the file's default: half a second)
+    scene.write_text('[rig]\nfile = "mannequin.glb"\n[animation]\nclip = "walk"\npreroll = 0.1\n')
     out = tmp_path / "pop.usdc"
-    assert main(["pop", str(glb), "--clip", "walk", "--frames", "0:9", "--bpm", "120", "--offset", "0.2037",
+    assert main(["pop", str(scene), "--clip", "walk", "--frames", "0:9", "--bpm", "120", "--offset", "0.2037",
                  "--quiet", "--device", device, "-o", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["pop_on"] == "surface" and summary["surface"]["kind"] == "pieces"
@@ -319,7 +321,7 @@ def test_an_open_character_pops_on_its_written_surface(tmp_path, capsys, device)
     _assert_keeps_its_surface({k: v for k, v in q.items() if not k.endswith("_normal")}, 10, sliding=True)
     # the guide is what `warpskin simulate` writes of the same frames (bit for bit on the CPU)
     plain = tmp_path / "plain.usdc"
-    assert main(["simulate", str(glb), "--clip", "walk", "--frames", "0:9", "--quiet", "--device", device,
+    assert main(["simulate", str(scene), "--clip", "walk", "--frames", "0:9", "--quiet", "--device", device,
                  "-o", str(plain)]) == 0
     alone = Usd.Stage.Open(str(plain))
     skin = _meshes(alone)["body"].GetPointsAttr()
