@@ -11,7 +11,7 @@ import pytest
 import warp as wp
 
 from characters import generic_sphere, random_rotation
-from oracles import intersecting_pairs_brute_force, strain_and_flips
+from oracles import intersecting_pair_list_brute_force, intersecting_pairs_brute_force, strain_and_flips
 from warpskin.guard import GuardParams, SurfaceGuard, Untangle
 from warpskin.kernels import untangle as k
 from warpskin.quality import WrittenMesh
@@ -116,7 +116,7 @@ def test_nothing_crossing_is_returned_itself():
     lbs = rest + np.array([0.01, 0.02, -0.03])
     u = _untangle(rest, tris)
     assert u.apply(lbs, lbs) is lbs
-    assert u.stats == {"before": 0, "after": 0, "rounds": 0}
+    assert u.stats == {"before": 0, "after": 0, "rounds": 0, "seam": 0}
 
 
 @pytest.mark.parametrize("degrees", [20.0, 35.0])
@@ -137,6 +137,81 @@ def test_pieces_that_cross_at_rest_are_left_to_slide(degrees):
     u = _untangle(rest, tris)
     assert u.apply(lbs, lbs) is lbs
     assert u.stats["before"] == 0
+
+
+def _turn(axis, degrees: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    a = np.radians(degrees)
+    kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * kx + (1 - np.cos(a)) * kx @ kx
+
+
+def _beyond_rest(x, rest, tris, n_tris) -> int:
+    """Pairs beyond the rest pose's per pair of pieces (the report's measure), by brute force:
+    two pieces, the first ``n_tris`` triangles the first's."""
+    def counts(p):
+        pairs = intersecting_pair_list_brute_force(p, tris)
+        a, b = pairs[:, 0] >= n_tris, pairs[:, 1] >= n_tris
+        return np.bincount(a.astype(int) + b.astype(int), minlength=3)  # (0, 0), (0, 1), (1, 1)
+
+    return int(np.maximum(counts(x) - counts(rest), 0).sum())
+
+
+@pytest.mark.parametrize("rigid", [False, True])
+def test_a_joint_crossing_at_rest_that_wobbles_slides_as_lbs_slides_it(rigid):
+    # a ball in a socket's end, crossing by design at rest; LBS turns the socket 25 degrees about
+    # its centre. The written socket ripples where it passes through the ball (a soft tube's
+    # end wobbling in its joint), crossing it more than LBS does. Rigid: the ball is a rigid
+    # group written moved 4 degrees off its LBS, and the socket's ripple follows it there.
+    ball, bt = _sphere((0, 0, 0), 0.1, 9)
+    rest, tris, n = _two((ball, bt), _sphere((0.15, 0.01, 0), 0.08, 10))
+    c = np.array([0.15, 0.01, 0])
+    lbs = rest.copy()
+    lbs[n:] = (rest[n:] - c) @ _turn((0.3, 0.8, 0.52), 25.0).T + c
+    x = lbs.copy()
+    groups = None
+    if rigid:
+        groups = np.full(len(rest), -1)
+        groups[:n] = 0
+        m = _turn((0.7, -0.2, 0.4), 4.0)
+        x[:n] = lbs[:n] @ m.T
+    reference = x[:n]  # the ball as written
+    u_dir = x[n:] - c
+    u_dir /= np.linalg.norm(u_dir, axis=1)[:, None]
+    gap = np.linalg.norm(x[n:], axis=1) - np.linalg.norm(reference, axis=1).mean()
+    band = np.abs(gap) < 0.03
+    angle = np.arctan2(u_dir[:, 2], u_dir[:, 1])
+    ripple = np.where(band, 0.012 * np.sin(7 * angle) * (1 - np.abs(gap) / 0.03), 0.0)
+    x[n:] += ripple[:, None] * u_dir
+    if rigid:  # where the socket would be, carried with the ball
+        lbs_carried = lbs @ m.T
+        lbs_reference = np.concatenate([x[:n], lbs_carried[n:]])
+    else:
+        lbs_reference = lbs
+    nt = len(bt)
+    limit = _beyond_rest(lbs_reference, rest, tris, nt)
+    assert _beyond_rest(x, rest, tris, nt) > limit + 5  # the ripple crosses more
+    u = _untangle(rest, tris, groups)
+    out = u.apply(x, lbs)
+    assert _beyond_rest(out, rest, tris, nt) <= max(limit, _beyond_rest(lbs, rest, tris, nt))
+    assert u.stats["seam"] > 0 and u.stats["before"] == 0  # nothing repaired by the rounds
+    # the ball as it was (at its LBS, or rigid); away from the seam the socket as it was
+    as_input = np.asarray(x, np.float32).astype(np.float64)
+    assert np.array_equal(out[:n], as_input[:n])
+    far = np.abs(gap) > 0.09
+    assert far.sum() > 0.25 * (len(rest) - n)
+    assert np.array_equal(out[n:][far], as_input[n:][far])
+    # where it moved, toward where LBS slides it (carried with the ball where that is rigid)
+    moved = np.linalg.norm(out - as_input, axis=1) > 1e-6
+    assert moved.any()
+    target = lbs_carried if rigid else lbs
+    before = np.linalg.norm(x[moved] - target[moved], axis=1)
+    after = np.linalg.norm(out[moved] - target[moved], axis=1)
+    assert np.all(after <= before + 1e-6) and after.sum() < 0.5 * before.sum()
+    # and nothing strained or turned over that the input was not
+    s_in, _, f_in = strain_and_flips(rest, x, lbs, tris)
+    s_out, _, f_out = strain_and_flips(rest, out, lbs, tris)
+    assert s_out <= s_in and f_out <= f_in
 
 
 def test_the_repair_off_with_no_rounds():

@@ -40,6 +40,7 @@ from .capture import (
 from .deformer import WrittenDeformer, joint_points
 from .errors import RigWarning, SceneError
 from .guard import CrossGuard, GarmentSway, GuardParams, JumpLimit, PieceVolume, SurfaceGuard, Untangle, WornRepair
+from .guard.params import as_written
 from .guard.sway import piece_room
 from .guard.swing import LoosePiece, PieceSwing, loose_pieces
 from .io.cage_file import CAGE_EXTENSIONS, read_cage_mesh
@@ -622,6 +623,10 @@ class Character:
                 untangled = untangle.apply(guarded[name], lbs_by[name], counted=True)
                 if untangled is not guarded[name]:
                     guard.pair_keys = guard.pair_counts = None  # counted again on what is written
+                    if name in self.volumes:  # the volume its dents took, back from the points it left
+                        tol = 1e-3 * float(np.median(self.meshes[name].rest_length))
+                        moved = np.linalg.norm(untangled - guarded[name], axis=1) > tol
+                        untangled = as_written(self.volumes[name].apply(untangled, hold=moved))
                     guarded[name] = untangled
                 elif guard.pair_keys is None and untangle.pair_keys is not None:  # its count, for the measures
                     guard.pair_keys = untangle.pair_keys

@@ -65,6 +65,9 @@ class Untangle:
     #: Where pieces cross at rest, crossings within this share of the smaller piece's diagonal
     #: of the rest crossing are left to slide (:meth:`_rest_zone`).
     REST_REACH = 0.25
+    #: Tries per frame to bring the piece pairs that cross at rest to no more crossings than
+    #: LBS's there (:meth:`_seam`).
+    SEAM_TRIES = 3
 
     def __init__(self, guard, groups: np.ndarray | None = None, rounds: int = 8, max_step: float = np.inf,
                  max_offset: float = np.inf) -> None:
@@ -90,8 +93,11 @@ class Untangle:
         np.maximum.at(hi, self._piece, rest)
         self._piece_size = np.linalg.norm(hi - lo, axis=1)
         mobility = np.ones(c, dtype=np.float32)
+        #: ``[C]`` the rigid group of each welded point (-1: none)
+        self._group = np.full(c, -1, dtype=np.int64)
         if groups is not None:
-            mobility[np.asarray(groups, dtype=np.int64)[mesh.first] >= 0] = 0.0
+            self._group = np.asarray(groups, dtype=np.int64)[mesh.first]
+            mobility[self._group >= 0] = 0.0
         tris = guard._all_tri
         self._tri_count = len(tris)
         #: the clearance added to a pair's depth [m]: a hundredth of the median rest edge
@@ -107,10 +113,15 @@ class Untangle:
             self._count = wp.zeros(c, dtype=wp.float32)
             self._pairs = wp.zeros(1, dtype=wp.vec2i)
         self._zone = self._rest_zone(self.REST_REACH)
+        # the piece pair of each rest pair, and their counts at rest (the report's measure:
+        # pairs beyond the rest pose's, per pair of pieces)
+        self._piece_of_tri = self._piece[tris[:, 0]] if len(tris) else np.zeros(0, dtype=np.int64)
+        self._rest_count = self._per_piece_pair(guard._rest_pairs)
         self._last: np.ndarray | None = None  # the last frame's result, welded
         self._repair: np.ndarray | None = None  # the last frame's repair (result - input), welded
-        #: Per frame: the repairable pairs before and after, and the rounds kept.
-        self.stats = {"before": 0, "after": 0, "rounds": 0}
+        #: Per frame: the repairable pairs before and after, the rounds kept, and the pairs
+        #: taken off where pieces cross at rest (:meth:`_seam`).
+        self.stats = {"before": 0, "after": 0, "rounds": 0, "seam": 0}
         #: After :meth:`apply` left its input as it was: the keys of the intersecting pairs of
         #: that input and of its LBS (as :attr:`SurfaceGuard.pair_keys`, for the frame's
         #: measures); ``None`` where it repaired or counted nothing.
@@ -148,6 +159,74 @@ class Untangle:
         keys = np.setdiff1d(keys, self.guard._rest_pairs, assume_unique=True)
         both = self._zone[keys // n] & self._zone[keys % n]
         return keys[~both]
+
+    def _per_piece_pair(self, keys: np.ndarray) -> dict:
+        """``{piece pair id: pairs}`` of ``keys`` (ids ``lo * P + hi``, ``P`` pieces)."""
+        n, piece = self._tri_count, self._piece_of_tri
+        a, b = piece[keys // n], piece[keys % n]
+        ids, counts = np.unique(np.minimum(a, b) * (len(self._piece_size)) + np.maximum(a, b), return_counts=True)
+        return dict(zip(ids.tolist(), counts.tolist()))
+
+    def _beyond(self, keys: np.ndarray) -> dict:
+        """``{piece pair id: pairs beyond the rest pose's}`` of ``keys`` (every intersecting
+        pair of a pose, those of the rest pose included: a crossing that slides trades one
+        pair for another), only the piece pairs with some."""
+        rest = self._rest_count
+        return {k: c - rest.get(k, 0) for k, c in self._per_piece_pair(keys).items() if c > rest.get(k, 0)}
+
+    def _seam(self, x: np.ndarray, every: np.ndarray, lw: np.ndarray, lbs_keys: np.ndarray, harm: tuple,
+              lbs_side: tuple, now: tuple):
+        """Where pieces cross at rest (the rest zone, left to slide by the rounds), the piece
+        pairs that cross more than LBS's beyond the rest pose's (a soft tube's end wobbling
+        through its ball joint) slide as LBS slides them: the points of their pairs that LBS
+        does not have, and a ramp along the surface around them (the guard's falloff), move to
+        their LBS ``lw``, or, where the other piece is rigid (a group, written moved as a
+        whole), to their LBS carried by that piece's motion from its own LBS (the rigid fit);
+        rigid points never move. :meth:`_moved`'s checks apply. ``every``: the keys of every
+        pair of ``x`` (rest pairs included), ``lbs_keys``: LBS's. Returns :meth:`_moved`'s
+        ``(y, every pair of y, measures)`` and by how much that lowers the piece pairs' excess
+        over LBS (pairs), where it does, else ``None``."""
+        from ..transforms import rigid_fit
+
+        g, n, tris = self.guard, self._tri_count, self.guard._all_tri
+        lbs = self._beyond(lbs_keys)
+        mine = self._beyond(every)
+        over = [k for k, c in mine.items() if c > lbs.get(k, 0) and k in self._rest_count]
+        if not over:
+            return None
+        p = len(self._piece_size)
+        a, b = self._piece_of_tri[every // n], self._piece_of_tri[every % n]
+        pp = np.minimum(a, b) * p + np.maximum(a, b)
+        zoned = self._zone[every // n] & self._zone[every % n]
+        new = np.setdiff1d(every[np.isin(pp, over) & zoned], lbs_keys, assume_unique=True)
+        if not new.size:
+            return None
+        new_pp = pp[np.searchsorted(every, new)]
+        moved = np.linalg.norm(x - lw, axis=1)
+        mobility = self._mobility.numpy().astype(np.float64)
+        d = np.zeros_like(x)
+        reach = np.zeros(len(x))
+        for k in np.unique(new_pp):
+            keys = new[new_pp == k]
+            pts = tris[np.concatenate([keys // n, keys % n])].ravel()
+            flag = np.zeros(len(x), dtype=bool)
+            flag[pts] = True
+            target = lw
+            rigid = np.unique(self._group[pts[mobility[pts] == 0.0]])
+            if rigid.size == 1 and rigid[0] >= 0:  # the soft side follows the rigid piece
+                members = self._group == rigid[0]
+                r, t = rigid_fit(lw[members], x[members])
+                target = lw @ r.T + t
+            ramp = g._falloff(flag, moved) * mobility
+            take = ramp > reach
+            d[take] = ramp[take, None] * (target[take] - x[take])
+            reach = np.maximum(reach, ramp)
+        step = self._moved(x, d, lw, harm, every, lbs_side, now)
+        if step is None:
+            return None
+        excess = sum(max(c - lbs.get(k, 0), 0) for k, c in mine.items())
+        after = sum(max(c - lbs.get(k, 0), 0) for k, c in self._beyond(step[1]).items())
+        return (*step, excess - after) if after < excess else None
 
     def _measures(self, x: np.ndarray, lbs_side: tuple, base: tuple | None = None,
                   moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -204,15 +283,15 @@ class Untangle:
                           self.max_step],
                   outputs=[self._push, self._count], device="cpu")
 
-    def _moved(self, x: np.ndarray, d: np.ndarray, lw: np.ndarray, harm: tuple, crossing: np.ndarray,
+    def _moved(self, x: np.ndarray, d: np.ndarray, lw: np.ndarray, harm: tuple, every: np.ndarray,
                lbs_side: tuple, now: tuple):
         """``x + d`` (welded, ``[C, 3]`` [m]) less what harms: a point is not moved past
         ``max_offset`` from its LBS ``lw`` (or past its offset in ``x``), and the points of the
         edges it strains and the triangles it turns over that ``harm`` (the input's
         ``(strained, turned)``) does not have keep still, up to :attr:`ATTEMPTS` times
-        (``lbs_side``: :meth:`_lbs_side`; ``now``: the measures of ``x``). Returns ``(y, pairs
-        of y beyond the rest pose's, the measures of y)``, the pairs found from ``crossing``
-        (``x``'s) and the moved triangles'; ``None`` where nothing moves."""
+        (``lbs_side``: :meth:`_lbs_side`; ``now``: the measures of ``x``). Returns ``(y, every
+        intersecting pair of y, the measures of y)``, the pairs found from ``every`` (``x``'s)
+        and the moved triangles'; ``None`` where nothing moves."""
         g, mesh, n = self.guard, self.mesh, self._tri_count
         tris, e, t = g._all_tri, mesh.edges, g._tri
         d = d.copy()
@@ -233,10 +312,9 @@ class Untangle:
                 d[bad] = 0.0
                 continue
             active = moved[tris].any(axis=1)
-            a, b = crossing // n, crossing % n
-            kept = crossing[~(active[a] | active[b])]
-            found = np.setdiff1d(pair_keys(g._query.active(y, active), n), g._rest_pairs, assume_unique=True)
-            return y, np.union1d(kept, found), (strained, turned)
+            a, b = every // n, every % n
+            kept = every[~(active[a] | active[b])]
+            return y, np.union1d(kept, pair_keys(g._query.active(y, active), n)), (strained, turned)
         return None
 
     def apply(self, points: np.ndarray, lbs: np.ndarray, counted: bool = False) -> np.ndarray:
@@ -247,7 +325,7 @@ class Untangle:
         counted again. Returns ``points`` itself where nothing is repaired, else the result
         rounded to float32 as USD stores it."""
         mesh, g = self.mesh, self.guard
-        self.stats = {"before": 0, "after": 0, "rounds": 0}
+        self.stats = {"before": 0, "after": 0, "rounds": 0, "seam": 0}
         self.pair_keys = None
         x = mesh.welded(as_written(points))
         ref = mesh.welded(mesh.rest) if self._last is None else self._last
@@ -263,23 +341,30 @@ class Untangle:
             self.pair_keys = g.pair_keys
         else:
             self.pair_keys = g._pairs_of_two(x, lw)
-        crossing = np.setdiff1d(self.pair_keys[0], g._rest_pairs, assume_unique=True)
-        work = self._repairable(crossing)
+        every = self.pair_keys[0]
+        work = self._repairable(every)
+        # piece pairs crossing at rest that cross more than LBS's beyond the rest pose's
+        lbs_beyond = self._beyond(self.pair_keys[1])
+        zoned = any(c > lbs_beyond.get(k, 0) and k in self._rest_count for k, c in self._beyond(every).items())
         self.stats["before"] = self.stats["after"] = int(work.size)
-        if not work.size:
+        if not work.size and not zoned:
             self._last = x
             return points
         lbs_side = self._lbs_side(lw)
         harm = now = self._measures(x, lbs_side)
         self._ref.assign(ref.astype(np.float32))
         given = x
-        best = (x, crossing)
+
+        def beyond(keys):
+            return sum(self._beyond(keys).values())
+
+        best = (x, every, beyond(every))
         if carried is not None:  # the last frame's repair first, where it still helps
-            start = self._moved(x, carried, lw, harm, crossing, lbs_side, now)
-            if start is not None and start[1].size < crossing.size:
-                x, crossing, now = start
-                best = (x, crossing)
-                work = self._repairable(crossing)
+            start = self._moved(x, carried, lw, harm, every, lbs_side, now)
+            if start is not None and beyond(start[1]) < best[2]:
+                x, every, now = start
+                best = (x, every, beyond(every))
+                work = self._repairable(every)
         for _ in range(self.rounds):
             if not work.size:
                 break
@@ -293,18 +378,26 @@ class Untangle:
             ring = ~pushed & (near > 0)
             d[ring] = 0.5 * (self._adjacency @ d)[ring] / near[ring, None]
             d *= self._mobility.numpy()[:, None]
-            step = self._moved(x, d, lw, harm, crossing, lbs_side, now)
+            step = self._moved(x, d, lw, harm, every, lbs_side, now)
             if step is None:
                 break
             # the round goes on even where it crosses more for now: a crossing pushed into a
             # third surface (a skirt pushed off a hand into the thigh) frees itself over rounds
-            x, crossing, now = step
-            work = self._repairable(crossing)
+            x, every, now = step
+            work = self._repairable(every)
             self.stats["rounds"] += 1
-            if crossing.size < best[1].size:
-                best = (x, crossing)
-        x, crossing = best
-        self.stats["after"] = int(self._repairable(crossing).size)
+            count = beyond(every)
+            if count < best[2]:
+                best = (x, every, count)
+        x, every, count = best
+        if zoned:  # where pieces cross at rest: no more than LBS's, per pair of pieces
+            for _ in range(self.SEAM_TRIES):
+                step = self._seam(x, every, lw, self.pair_keys[1], harm, lbs_side, now)
+                if step is None:
+                    break
+                x, every, now = step[:3]
+                self.stats["seam"] += step[3]
+        self.stats["after"] = int(self._repairable(every).size)
         self._last = x
         if x is given:
             return points

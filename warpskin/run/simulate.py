@@ -281,7 +281,7 @@ class _WrittenQuality:
                                    extra={k: {"guarded": g.guarded, "held": g.held, "guard_fallbacks": g.fallbacks,
                                               "jump_limited": self.limits[k].limited,
                                               **({"untangled": self.untangles[k].stats["before"]
-                                                  - self.untangles[k].stats["after"]}
+                                                  - self.untangles[k].stats["after"] + self.untangles[k].stats["seam"]}
                                                  if k in self.untangles else {}),
                                               **({"worn_repaired": self.repairs[k][0].repaired}
                                                  if k in self.repairs else {})}
