@@ -8,7 +8,8 @@ as many crossings as LBS has, and physics that merely matches LBS there is no be
 written mesh's triangles that intersect (the exact test of
 :func:`~warpskin.metrics.self_intersections`), other than those that cross at rest or lie
 where pieces cross at rest (a tube's end in a ball joint, a bun sunk into the skull: their
-crossing is the design and slides), is separated along the normal of the plane that
+crossing is the design and slides: :meth:`Untangle._seam` makes it slide as LBS slides it
+where it crosses more than LBS there), is separated along the normal of the plane that
 separates it least deep, or of the larger piece's triangle where one piece is more than twice
 the other's size (:mod:`warpskin.kernels.untangle`). Which side each triangle
 belongs on is read from the last frame written (the rest pose before the first frame), where
@@ -224,9 +225,12 @@ class Untangle:
         step = self._moved(x, d, lw, harm, every, lbs_side, now)
         if step is None:
             return None
+        then = self._beyond(step[1])
         excess = sum(max(c - lbs.get(k, 0), 0) for k, c in mine.items())
-        after = sum(max(c - lbs.get(k, 0), 0) for k, c in self._beyond(step[1]).items())
-        return (*step, excess - after) if after < excess else None
+        after = sum(max(c - lbs.get(k, 0), 0) for k, c in then.items())
+        if after >= excess or sum(then.values()) > sum(mine.values()):
+            return None
+        return (*step, excess - after)
 
     def _measures(self, x: np.ndarray, lbs_side: tuple, base: tuple | None = None,
                   moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
