@@ -611,11 +611,8 @@ class Character:
             if name in self.repairs:
                 repair, rows = self.repairs[name]
                 repaired = repair.apply(pts, carriers[rows])
-                if repaired is not pts and name in self.volumes:  # the volume the repair took, back
-                    # from the points it did not move (it rewrites the others to within rounding)
-                    tol = 1e-3 * float(np.median(self.meshes[name].rest_length))
-                    moved = np.linalg.norm(repaired - pts, axis=1) > tol
-                    repaired = self.volumes[name].apply(repaired, hold=moved)
+                if repaired is not pts:  # the volume the repair took, back
+                    repaired = self._volume_back(name, repaired, pts)
                 pts = repaired
             guarded[name] = guard.apply(pts, lbs_by[name], skinned.get(name))
             if name in self.untangles:  # the crossings that LBS drives too, repaired pair by pair
@@ -623,11 +620,7 @@ class Character:
                 untangled = untangle.apply(guarded[name], lbs_by[name], counted=True)
                 if untangled is not guarded[name]:
                     guard.pair_keys = guard.pair_counts = None  # counted again on what is written
-                    if name in self.volumes:  # the volume its dents took, back from the points it left
-                        tol = 1e-3 * float(np.median(self.meshes[name].rest_length))
-                        moved = np.linalg.norm(untangled - guarded[name], axis=1) > tol
-                        untangled = as_written(self.volumes[name].apply(untangled, hold=moved))
-                    guarded[name] = untangled
+                    guarded[name] = as_written(self._volume_back(name, untangled, guarded[name]))  # its dents
                 elif guard.pair_keys is None and untangle.pair_keys is not None:  # its count, for the measures
                     guard.pair_keys = untangle.pair_keys
                     guard.pair_counts = (int(untangle.pair_keys[0].size), int(untangle.pair_keys[1].size))
@@ -647,6 +640,17 @@ class Character:
             if out[name] is not limited:  # the limit goes on from what is written
                 self.limits[name].written(out[name], lbs_by[name])
         return out
+
+    def _volume_back(self, name: str, repaired: np.ndarray, given: np.ndarray) -> np.ndarray:
+        """``repaired`` (``[N, 3]`` [m], mesh ``name``'s points after a repair of ``given``) with
+        the volume the repair took put back from the points it did not move (it rewrites the
+        others to within rounding: moved is more than a thousandth of the median rest edge), by
+        the mesh's :class:`~warpskin.guard.PieceVolume`; ``repaired`` itself where it has none."""
+        if name not in self.volumes:
+            return repaired
+        tol = 1e-3 * float(np.median(self.meshes[name].rest_length))
+        moved = np.linalg.norm(repaired - given, axis=1) > tol
+        return self.volumes[name].apply(repaired, hold=moved)
 
     def _piece_swings(self, cap: Capture, params: GuardParams) -> dict:
         """``{mesh name: PieceSwing}`` for the meshes with loose pieces

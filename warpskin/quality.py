@@ -194,6 +194,23 @@ class WrittenMesh:
         """How many more intersecting pairs ``keys`` has than the rest pose, per pair of pieces
         of the mesh (connected components of the welded mesh, each with itself too): the sum
         over piece pairs of the count above that pair's count at rest."""
+        return int(self.piece_pairs_beyond_rest(keys).sum())
+
+    def piece_pairs_beyond_rest(self, keys: np.ndarray) -> np.ndarray:
+        """``[P * P]`` per pair of pieces (row :meth:`piece_pair_ids`), how many more
+        intersecting pairs ``keys`` has there than the rest pose (0 where it has fewer)."""
+        return np.maximum(self._piece_pair_counts(keys) - self.rest_piece_pairs, 0)
+
+    @property
+    def rest_piece_pairs(self) -> np.ndarray:
+        """``[P * P]`` the rest pose's intersecting pairs per pair of pieces (computed once)."""
+        if getattr(self, "_rest_piece_pairs", None) is None:
+            self._rest_piece_pairs = self._piece_pair_counts(self.rest_pair_keys)
+        return self._rest_piece_pairs
+
+    def piece_pair_ids(self, keys: np.ndarray) -> np.ndarray:
+        """The pair of pieces of each pair of ``keys`` (:meth:`pair_keys_of_two`), as
+        ``lo * P + hi`` (``lo <= hi`` the pieces of its triangles, ``P`` the mesh's pieces)."""
         if getattr(self, "_piece_of_tri", None) is None:
             from scipy.sparse.csgraph import connected_components
             import scipy.sparse as sp
@@ -205,16 +222,15 @@ class WrittenMesh:
                                             directed=False)
             self._piece_of_tri = label[t[:, 0]]
             self._pieces = int(label.max()) + 1 if c else 0
-            self._rest_piece_pairs = self._piece_pair_counts(self.rest_pair_keys)
-        return int(np.maximum(self._piece_pair_counts(keys) - self._rest_piece_pairs, 0).sum())
-
-    def _piece_pair_counts(self, keys: np.ndarray) -> np.ndarray:
-        """``[P * P]`` the pairs of ``keys`` per (lower, higher) pair of pieces."""
         t = len(self.welded_triangles)
         k = np.asarray(keys, dtype=np.int64)
         a, b = self._piece_of_tri[k // t], self._piece_of_tri[k % t]
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        return np.bincount(lo * self._pieces + hi, minlength=self._pieces * self._pieces)
+        return np.minimum(a, b) * self._pieces + np.maximum(a, b)
+
+    def _piece_pair_counts(self, keys: np.ndarray) -> np.ndarray:
+        """``[P * P]`` the pairs of ``keys`` per (lower, higher) pair of pieces."""
+        ids = self.piece_pair_ids(keys)
+        return np.bincount(ids, minlength=self._pieces * self._pieces)
 
 
 class CrossPairs:

@@ -99,6 +99,8 @@ class Untangle:
         if groups is not None:
             self._group = np.asarray(groups, dtype=np.int64)[mesh.first]
             mobility[self._group >= 0] = 0.0
+        #: ``[C]`` each welded point's mobility: 0 in a rigid group, else 1
+        self._mobile = mobility.astype(np.float64)
         tris = guard._all_tri
         self._tri_count = len(tris)
         #: the clearance added to a pair's depth [m]: a hundredth of the median rest edge
@@ -114,10 +116,6 @@ class Untangle:
             self._count = wp.zeros(c, dtype=wp.float32)
             self._pairs = wp.zeros(1, dtype=wp.vec2i)
         self._zone = self._rest_zone(self.REST_REACH)
-        # the piece pair of each rest pair, and their counts at rest (the report's measure:
-        # pairs beyond the rest pose's, per pair of pieces)
-        self._piece_of_tri = self._piece[tris[:, 0]] if len(tris) else np.zeros(0, dtype=np.int64)
-        self._rest_count = self._per_piece_pair(guard._rest_pairs)
         self._last: np.ndarray | None = None  # the last frame's result, welded
         self._repair: np.ndarray | None = None  # the last frame's repair (result - input), welded
         #: Per frame: the repairable pairs before and after, the rounds kept, and the pairs
@@ -161,20 +159,6 @@ class Untangle:
         both = self._zone[keys // n] & self._zone[keys % n]
         return keys[~both]
 
-    def _per_piece_pair(self, keys: np.ndarray) -> dict:
-        """``{piece pair id: pairs}`` of ``keys`` (ids ``lo * P + hi``, ``P`` pieces)."""
-        n, piece = self._tri_count, self._piece_of_tri
-        a, b = piece[keys // n], piece[keys % n]
-        ids, counts = np.unique(np.minimum(a, b) * (len(self._piece_size)) + np.maximum(a, b), return_counts=True)
-        return dict(zip(ids.tolist(), counts.tolist()))
-
-    def _beyond(self, keys: np.ndarray) -> dict:
-        """``{piece pair id: pairs beyond the rest pose's}`` of ``keys`` (every intersecting
-        pair of a pose, those of the rest pose included: a crossing that slides trades one
-        pair for another), only the piece pairs with some."""
-        rest = self._rest_count
-        return {k: c - rest.get(k, 0) for k, c in self._per_piece_pair(keys).items() if c > rest.get(k, 0)}
-
     def _seam(self, x: np.ndarray, every: np.ndarray, lw: np.ndarray, lbs_keys: np.ndarray, harm: tuple,
               lbs_side: tuple, now: tuple):
         """Where pieces cross at rest (the rest zone, left to slide by the rounds), the piece
@@ -189,22 +173,19 @@ class Untangle:
         over LBS (pairs), where it does, else ``None``."""
         from ..transforms import rigid_fit
 
-        g, n, tris = self.guard, self._tri_count, self.guard._all_tri
-        lbs = self._beyond(lbs_keys)
-        mine = self._beyond(every)
-        over = [k for k, c in mine.items() if c > lbs.get(k, 0) and k in self._rest_count]
-        if not over:
+        g, mesh, n, tris = self.guard, self.mesh, self._tri_count, self.guard._all_tri
+        lbs = mesh.piece_pairs_beyond_rest(lbs_keys)
+        mine = mesh.piece_pairs_beyond_rest(every)
+        over = (mine > lbs) & (mesh.rest_piece_pairs > 0)
+        if not over.any():
             return None
-        p = len(self._piece_size)
-        a, b = self._piece_of_tri[every // n], self._piece_of_tri[every % n]
-        pp = np.minimum(a, b) * p + np.maximum(a, b)
         zoned = self._zone[every // n] & self._zone[every % n]
-        new = np.setdiff1d(every[np.isin(pp, over) & zoned], lbs_keys, assume_unique=True)
+        new = np.setdiff1d(every[over[mesh.piece_pair_ids(every)] & zoned], lbs_keys, assume_unique=True)
         if not new.size:
             return None
-        new_pp = pp[np.searchsorted(every, new)]
+        new_pp = mesh.piece_pair_ids(new)
         moved = np.linalg.norm(x - lw, axis=1)
-        mobility = self._mobility.numpy().astype(np.float64)
+        mobility = self._mobile
         d = np.zeros_like(x)
         reach = np.zeros(len(x))
         for k in np.unique(new_pp):
@@ -225,10 +206,9 @@ class Untangle:
         step = self._moved(x, d, lw, harm, every, lbs_side, now)
         if step is None:
             return None
-        then = self._beyond(step[1])
-        excess = sum(max(c - lbs.get(k, 0), 0) for k, c in mine.items())
-        after = sum(max(c - lbs.get(k, 0), 0) for k, c in then.items())
-        if after >= excess or sum(then.values()) > sum(mine.values()):
+        then = mesh.piece_pairs_beyond_rest(step[1])
+        excess, after = int(np.maximum(mine - lbs, 0).sum()), int(np.maximum(then - lbs, 0).sum())
+        if after >= excess or then.sum() > mine.sum():
             return None
         return (*step, excess - after)
 
@@ -348,8 +328,8 @@ class Untangle:
         every = self.pair_keys[0]
         work = self._repairable(every)
         # piece pairs crossing at rest that cross more than LBS's beyond the rest pose's
-        lbs_beyond = self._beyond(self.pair_keys[1])
-        zoned = any(c > lbs_beyond.get(k, 0) and k in self._rest_count for k, c in self._beyond(every).items())
+        zoned = bool(np.any((mesh.piece_pairs_beyond_rest(every) > mesh.piece_pairs_beyond_rest(self.pair_keys[1]))
+                            & (mesh.rest_piece_pairs > 0)))
         self.stats["before"] = self.stats["after"] = int(work.size)
         if not work.size and not zoned:
             self._last = x
@@ -358,10 +338,7 @@ class Untangle:
         harm = now = self._measures(x, lbs_side)
         self._ref.assign(ref.astype(np.float32))
         given = x
-
-        def beyond(keys):
-            return sum(self._beyond(keys).values())
-
+        beyond = mesh.pairs_beyond_rest
         best = (x, every, beyond(every))
         if carried is not None:  # the last frame's repair first, where it still helps
             start = self._moved(x, carried, lw, harm, every, lbs_side, now)
@@ -381,7 +358,7 @@ class Untangle:
             near = self._adjacency @ pushed.astype(np.float64)
             ring = ~pushed & (near > 0)
             d[ring] = 0.5 * (self._adjacency @ d)[ring] / near[ring, None]
-            d *= self._mobility.numpy()[:, None]
+            d *= self._mobile[:, None]
             step = self._moved(x, d, lw, harm, every, lbs_side, now)
             if step is None:
                 break
