@@ -152,7 +152,8 @@ def facing(u: wp.vec3, w: wp.vec3, d: wp.vec3, fold_cos: float) -> bool:
 
 @wp.func
 def segment_closest(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3) -> wp.vec2:
-    """Parameters (s, t) of the closest points p1 + s (p2 - p1) and p3 + t (p4 - p3)."""
+    """Parameters (s, t) of the closest points p1 + s (p2 - p1) and p3 + t (p4 - p3) (Ericson,
+    Real-Time Collision Detection, 5.1.9); a segment of length 0 is its point (s or t = 0)."""
     d1 = p2 - p1
     d2 = p4 - p3
     r = p1 - p3
@@ -161,6 +162,10 @@ def segment_closest(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, p4: wp.vec3) -> wp.ve
     f = wp.dot(d2, r)
     s = float(0.0)
     t = float(0.0)
+    if a <= 1.0e-30 and e > 1.0e-30:  # the first a point: its projection onto the second
+        t = wp.clamp(f / e, 0.0, 1.0)
+    elif e <= 1.0e-30 and a > 1.0e-30:  # the second a point
+        s = wp.clamp(-wp.dot(d1, r) / a, 0.0, 1.0)
     if a > 1.0e-30 and e > 1.0e-30:
         c = wp.dot(d1, r)
         b = wp.dot(d1, d2)

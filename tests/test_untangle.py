@@ -116,7 +116,7 @@ def test_nothing_crossing_is_returned_itself():
     lbs = rest + np.array([0.01, 0.02, -0.03])
     u = _untangle(rest, tris)
     assert u.apply(lbs, lbs) is lbs
-    assert u.stats == {"before": 0, "after": 0, "rounds": 0, "seam": 0}
+    assert u.stats == {"before": 0, "after": 0, "rounds": 0, "seam": 0, "press": 0}
 
 
 @pytest.mark.parametrize("degrees", [20.0, 35.0])
@@ -290,3 +290,166 @@ def test_one_crossing_pair_is_pushed_apart_by_the_depth_past_the_separating_plan
         step = depth_b + gap
         np.testing.assert_allclose(p[:3], np.tile([0, 0, -step * share_a], (3, 1)), atol=1e-6)
         np.testing.assert_allclose(p[3:], np.tile([0, 0, step * (1 - share_a)], (3, 1)), atol=1e-6)
+
+
+def _hull(seed: int, count: int = 60):
+    """A generic convex polyhedron (the hull of random points on an ellipsoid: every one a
+    vertex), outward-wound: ``(points, triangles, equations)``, ``equations`` its facets'
+    planes ``n . x + d <= 0`` inside."""
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(count, 3))
+    p = p / np.linalg.norm(p, axis=1)[:, None] * np.array([0.1, 0.07, 0.05])
+    h = ConvexHull(p)
+    used = np.unique(h.simplices)
+    remap = np.full(count, -1)
+    remap[used] = np.arange(used.size)
+    tris = remap[h.simplices]
+    pts = p[used]
+    centre = pts.mean(axis=0)
+    for i, t in enumerate(tris):  # outward winding
+        if np.dot(np.cross(pts[t[1]] - pts[t[0]], pts[t[2]] - pts[t[0]]), pts[t[0]] - centre) < 0:
+            tris[i] = t[::-1]
+    return pts, tris, h.equations
+
+
+def test_the_winding_number_and_nearest_point_of_a_closed_piece(device):
+    # press_kernel against the hull's own planes (inside: every facet's n . x + d < 0, kept a
+    # generic margin from them) and the nearest point against dense samples of every facet
+    pts, tris, eq = _hull(21)
+    rng = np.random.default_rng(22)
+    q = rng.normal(size=(400, 3)) * 0.08
+    signed = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1)  # > 0 outside, < 0 inside (convex)
+    q = q[np.abs(signed) > 2e-3]
+    w = wp.zeros(len(q), dtype=float, device=device)
+    near = wp.zeros(len(q), dtype=wp.vec3, device=device)
+    wp.launch(k.press_kernel, dim=len(q), inputs=[wp.array(q, dtype=wp.vec3, device=device),
+                                                   wp.array(pts, dtype=wp.vec3, device=device),
+                                                   wp.array(tris.astype(np.int32), dtype=wp.vec3i, device=device),
+                                                   len(tris)], outputs=[w, near], device=device)
+    w = w.numpy()
+    inside = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1) < 0.0
+    assert inside.sum() > 50 and (~inside).sum() > 50
+    np.testing.assert_allclose(w[inside], 1.0, atol=1e-3)
+    np.testing.assert_allclose(w[~inside], 0.0, atol=1e-3)
+    m = 40
+    u, v = np.meshgrid(np.linspace(0, 1, m), np.linspace(0, 1, m))
+    keep = u + v <= 1.0
+    bary = np.stack([1 - u[keep] - v[keep], u[keep], v[keep]], axis=1)
+    from scipy.spatial import cKDTree
+
+    samples = np.einsum("sk,tkd->tsd", bary, pts[tris]).reshape(-1, 3)
+    ref = cKDTree(samples).query(q)[0]
+    d = np.linalg.norm(near.numpy() - q, axis=1)
+    spacing = np.linalg.norm(pts[tris[:, 1]] - pts[tris[:, 0]], axis=1).max() / (m - 1)
+    assert np.all(d <= ref + 1e-6)
+    assert np.all(d >= ref - spacing)
+    # and the point lies on the surface: on a facet's plane, within float32 rounding
+    on = np.abs(near.numpy() @ eq[:, :3].T + eq[:, 3]).min(axis=1)
+    assert on.max() < 1e-6
+
+
+def test_a_ray_from_inside_leaves_a_closed_piece_where_its_planes_say(device):
+    # exit_kernel against the closed form for a convex polyhedron: from an inside point q along
+    # u, the least (-d - n . q) / (n . u) over the facets the ray heads out of (n . u > 0)
+    pts, tris, eq = _hull(23)
+    rng = np.random.default_rng(24)
+    q = rng.normal(size=(300, 3)) * 0.03
+    q = q[(q @ eq[:, :3].T + eq[:, 3]).max(axis=1) < -2e-3]
+    u = rng.normal(size=(len(q), 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    out = wp.zeros(len(q), dtype=float, device=device)
+    wp.launch(k.exit_kernel, dim=len(q), inputs=[wp.array(q, dtype=wp.vec3, device=device),
+                                                  wp.array(u, dtype=wp.vec3, device=device),
+                                                  wp.array(pts, dtype=wp.vec3, device=device),
+                                                  wp.array(tris.astype(np.int32), dtype=wp.vec3i, device=device)],
+              outputs=[out], device=device)
+    nu = u @ eq[:, :3].T
+    t = np.where(nu > 0, (-eq[:, 3][None, :] - q @ eq[:, :3].T) / np.where(nu > 0, nu, 1.0), np.inf).min(axis=1)
+    assert len(q) > 50
+    np.testing.assert_allclose(out.numpy(), t, rtol=1e-4, atol=1e-6)
+
+
+def test_a_closed_piece_with_a_small_hole_is_closed_by_its_caps_and_a_sheet_is_not():
+    # the hull without one vertex's fan (a wrist's opening): a closed piece, its cap over the
+    # hole; the winding number with the cap is the hull's inside test away from the hole. A
+    # sheet (a strip as wide as itself) is not a closed piece
+    pts, tris, eq = _hull(25, count=300)
+    cut = int(np.argmax(pts[:, 0]))
+    open_tris = tris[~(tris == cut).any(axis=1)]
+    m = 9
+    y, z = np.meshgrid(np.linspace(0, 0.2, m), np.linspace(0, 0.05, 3), indexing="ij")
+    sheet = np.stack([np.full(y.size, 0.5), y.ravel(), z.ravel()], axis=1)
+    sheet += np.random.default_rng(26).uniform(-1e-4, 1e-4, size=sheet.shape)
+    qd = (np.arange(m - 1)[:, None] * 3 + np.arange(2)[None, :]).ravel()
+    sheet_tris = np.concatenate([np.stack([qd, qd + 3, qd + 4], 1), np.stack([qd, qd + 4, qd + 1], 1)])
+    rest, all_tris, n = _two((pts, open_tris), (sheet, sheet_tris))
+    u = _untangle(rest, all_tris)
+    mesh = u.mesh
+    piece_of = {int(mesh.piece_of_triangle[i]) for i in range(len(open_tris))}
+    assert len(piece_of) == 1
+    hull_piece = piece_of.pop()
+    assert set(u._shells) == {hull_piece}
+    rng = np.random.default_rng(27)
+    q = rng.uniform(-1.2, 1.2, size=(1500, 3)) * np.array([0.1, 0.07, 0.05])
+    signed = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+    away = np.linalg.norm(q - pts[cut], axis=1) > 0.3 * np.linalg.norm(np.ptp(pts, axis=0))
+    q = q[(np.abs(signed) > 2e-3) & away]
+    w, _ = u._wind(q, mesh.welded(rest), u._shells[hull_piece])
+    inside = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1) < 0.0
+    assert inside.sum() > 20
+    np.testing.assert_allclose(np.abs(w[inside]), 1.0, atol=1e-3)
+    np.testing.assert_allclose(w[~inside], 0.0, atol=1e-3)
+
+
+def _sheet(x0: float, half: float, m: int, seed: int):
+    """A generic square sheet in the plane x = ``x0`` (jittered), its normal +x."""
+    y, z = np.meshgrid(np.linspace(-half, half, m), np.linspace(-half, half, m), indexing="ij")
+    sv = np.stack([np.full(y.size, x0), y.ravel(), z.ravel()], axis=1)
+    sv += np.random.default_rng(seed).uniform(-2e-4, 2e-4, size=sv.shape) + np.array([0.0, 0.003, -0.002])
+    q = (np.arange(m - 1)[:, None] * m + np.arange(m - 1)[None, :]).ravel()
+    st = np.concatenate([np.stack([q, q + m, q + m + 1], 1), np.stack([q, q + m + 1, q + 1], 1)])
+    return sv, (st if np.cross(sv[st[0, 1]] - sv[st[0, 0]], sv[st[0, 2]] - sv[st[0, 0]])[0] > 0 else st[:, ::-1])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_hand_swept_through_a_skirt_in_one_frame_dents_it_to_the_nearer_side(seed):
+    # a closed ball (a hand) behind a sheet (a skirt) at rest, the last frame written; this frame
+    # LBS has swept it through, its centre now 0.6 r in front: the sheet crosses the ball's back
+    # cap, 0.4 r deep. The rounds read from the last frame that the ball belongs behind, which
+    # would take pushing the sheet 1.6 r; the press takes the sheet over the nearer cap instead
+    r = 0.08
+    ball, bt = _sphere((0, 0, 0), r, 30 + seed)
+    sv, st = _sheet(0.2, 0.2, 25, 40 + seed)
+    rest, tris, n = _two((ball, bt), (sv, st))
+    lbs = rest.copy()
+    lbs[:n, 0] += 0.2 + 0.6 * r
+    before = intersecting_pairs_brute_force(lbs, tris)
+    assert before > 0
+    groups = np.full(len(rest), -1)
+    groups[:n] = 0  # the hand moves as a whole
+
+    def run(press: bool):
+        u = _untangle(rest, tris, groups, rounds=8, max_step=0.01 * 0.5, max_offset=0.05 * 0.5 * 4, press=press)
+        return u, u.apply(lbs, lbs)
+
+    u, out = run(True)
+    _, plain = run(False)
+    after, after_plain = intersecting_pairs_brute_force(out, tris), intersecting_pairs_brute_force(plain, tris)
+    assert after <= 0.1 * before < after_plain
+    assert u.stats["press"] > 0
+    move = out - lbs
+    assert np.array_equal(out[:n], np.asarray(lbs[:n], np.float32).astype(np.float64))  # the hand as driven
+    # the sheet went back over the cap (-x), not forward through the ball, by about the cap's depth
+    assert move[n:, 0].min() < -0.3 * r and move[n:, 0].max() <= 1e-7
+    assert np.linalg.norm(move[n:], axis=1).max() < 0.4 * r + 0.05 * r + 0.25 * 0.02
+    # none of it left inside the ball (a margin under its jittered radius)
+    centre = lbs[:n].mean(axis=0)
+    assert np.linalg.norm(out[n:] - centre, axis=1).min() > 0.99 * r
+    # only near it: sheet points farther than 2 r from the ball's axis stay
+    far = np.linalg.norm(lbs[n:, 1:] - centre[1:], axis=1) > 2.0 * r
+    assert far.sum() > 0.4 * (len(lbs) - n)
+    assert np.array_equal(out[n:][far], np.asarray(lbs[n:][far], np.float32).astype(np.float64))
+    strained, _, flipped = strain_and_flips(rest, out, lbs, tris)
+    assert strained == 0.0 and flipped == 0.0

@@ -208,9 +208,10 @@ class WrittenMesh:
             self._rest_piece_pairs = self._piece_pair_counts(self.rest_pair_keys)
         return self._rest_piece_pairs
 
-    def piece_pair_ids(self, keys: np.ndarray) -> np.ndarray:
-        """The pair of pieces of each pair of ``keys`` (:meth:`pair_keys_of_two`), as
-        ``lo * P + hi`` (``lo <= hi`` the pieces of its triangles, ``P`` the mesh's pieces)."""
+    @property
+    def piece_of_triangle(self) -> np.ndarray:
+        """``[T]`` the piece (a connected part of the welded mesh, numbered ``0..P-1``) of each
+        of :attr:`welded_triangles` (computed once)."""
         if getattr(self, "_piece_of_tri", None) is None:
             from scipy.sparse.csgraph import connected_components
             import scipy.sparse as sp
@@ -222,9 +223,21 @@ class WrittenMesh:
                                             directed=False)
             self._piece_of_tri = label[t[:, 0]]
             self._pieces = int(label.max()) + 1 if c else 0
+        return self._piece_of_tri
+
+    @property
+    def piece_count(self) -> int:
+        """``P``: how many pieces :attr:`piece_of_triangle` numbers (isolated points count)."""
+        self.piece_of_triangle
+        return self._pieces
+
+    def piece_pair_ids(self, keys: np.ndarray) -> np.ndarray:
+        """The pair of pieces of each pair of ``keys`` (:meth:`pair_keys_of_two`), as
+        ``lo * P + hi`` (``lo <= hi`` the pieces of its triangles, ``P`` :attr:`piece_count`)."""
+        piece = self.piece_of_triangle
         t = len(self.welded_triangles)
         k = np.asarray(keys, dtype=np.int64)
-        a, b = self._piece_of_tri[k // t], self._piece_of_tri[k % t]
+        a, b = piece[k // t], piece[k % t]
         return np.minimum(a, b) * self._pieces + np.maximum(a, b)
 
     def _piece_pair_counts(self, keys: np.ndarray) -> np.ndarray:

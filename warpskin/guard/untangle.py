@@ -26,6 +26,17 @@ other side gives way. A frame starts from the last frame's repair (its displacem
 checks made) where that leaves fewer pairs than its own input: a crossing that lasts is not
 repaired from nothing every frame.
 
+Where a closed piece (a hand, a shoe: closed but for small holes, which are capped for the
+test) crosses a piece it is apart from at rest (a skirt, a shirt), the other piece gives way to
+it (:meth:`Untangle._press`): its triangles' samples inside the closed piece (generalised
+winding number) go out of it, each to the nearest point of its surface or, trying both and
+keeping the better, all along their triangles' normals the way most of those lean (a finger
+through a sheet takes the sheet past it one way, not split round it), a ramp around. This
+needs no side read from the last frame: a hand swept through a skirt in one frame is often
+past the point the rounds' reference says it belongs behind. It runs after the rounds, and,
+where it takes pairs off the frame's start, before them too; the path with the fewest pairs
+beyond the rest pose's is kept.
+
 Invariants: with nothing to repair the input is returned itself; the result never has more
 pairs beyond the rest pose's than the input, nor an edge strained or a triangle turned over
 against LBS that the input does not have. Limits: a crossing deeper
@@ -58,6 +69,7 @@ class Untangle:
         rounds: Rounds of separation per frame (0: off).
         max_step: The most [m] one pair's push may be in one round.
         max_offset: The most [m] a point repaired may lie from its LBS (the tether's cap).
+        press: Closed pieces press the pieces they cross into giving way (:meth:`_press`).
     """
 
     #: Tries per round: the points of the edges the push strains and the triangles it turns
@@ -69,9 +81,23 @@ class Untangle:
     #: Tries per frame to bring the piece pairs that cross at rest to no more crossings than
     #: LBS's there (:meth:`_seam`).
     SEAM_TRIES = 3
+    #: A piece is closed enough to press into another (:meth:`_closed_pieces`) where each of its
+    #: holes spans at most this share of the piece's rest diagonal (a wrist, a shoe's opening).
+    HOLE = 0.5
+    #: The clearance a pressed point keeps from the pressing surface, x the median rest edge.
+    PRESS_GAP = 0.25
+    #: Rounds of the press per frame (:meth:`_press`).
+    PRESS_ROUNDS = 3
+    #: The press's ramp: the share of the pushed points' mean push their neighbours take, ring
+    #: by ring (an edge changes by a quarter of the push at most).
+    _PRESS_RAMP = (0.75, 0.5, 0.25)
+    #: Where a triangle is sampled for the press: barycentric weights of its corners, centre
+    #: and edge midpoints.
+    _SAMPLES = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1 / 3, 1 / 3, 1 / 3],
+                         [0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]])
 
     def __init__(self, guard, groups: np.ndarray | None = None, rounds: int = 8, max_step: float = np.inf,
-                 max_offset: float = np.inf) -> None:
+                 max_offset: float = np.inf, press: bool = True) -> None:
         import warp as wp
 
         self.guard = guard
@@ -116,11 +142,17 @@ class Untangle:
             self._count = wp.zeros(c, dtype=wp.float32)
             self._pairs = wp.zeros(1, dtype=wp.vec2i)
         self._zone = self._rest_zone(self.REST_REACH)
+        #: the pieces closed but for small holes (:meth:`_closed_pieces`), that press into others
+        self._shells = self._closed_pieces() if press else {}
+        #: the clearance [m] a pressed point keeps from the surface it was inside of
+        self.press_gap = self.PRESS_GAP * guard.edge
+        self._inside_at_rest: dict = {}  # (yielding, pressing piece) -> welded points inside at rest
         self._last: np.ndarray | None = None  # the last frame's result, welded
         self._repair: np.ndarray | None = None  # the last frame's repair (result - input), welded
-        #: Per frame: the repairable pairs before and after, the rounds kept, and the pairs
-        #: taken off where pieces cross at rest (:meth:`_seam`).
-        self.stats = {"before": 0, "after": 0, "rounds": 0, "seam": 0}
+        #: Per frame: the repairable pairs before and after, the rounds run, the pairs taken
+        #: off where pieces cross at rest (:meth:`_seam`), and the pairs beyond the rest pose's
+        #: the press took off the rounds' result (:meth:`_press`).
+        self.stats = {"before": 0, "after": 0, "rounds": 0, "seam": 0, "press": 0}
         #: After :meth:`apply` left its input as it was: the keys of the intersecting pairs of
         #: that input and of its LBS (as :attr:`SurfaceGuard.pair_keys`, for the frame's
         #: measures); ``None`` where it repaired or counted nothing.
@@ -150,6 +182,233 @@ class Untangle:
             src = np.unique(t[np.concatenate([a[sel], b[sel]])].ravel())
             near |= np.isfinite(dijkstra(g._graph, directed=False, indices=src, min_only=True, limit=float(r)))
         return zone | near[t].all(axis=1)
+
+    def _closed_pieces(self) -> dict:
+        """``{piece: (triangles [T, 3], caps [K, 2], loop [K])}`` for the pieces of the welded mesh
+        that are closed but for holes each spanning at most :attr:`HOLE` x the piece's rest
+        diagonal (a hand open at the wrist, a shoe at its opening, a closed eye), with at least
+        four triangles: ``caps`` are the directed boundary edges ``(a, b)`` as the piece's own
+        triangles run them, ``loop`` the hole each belongs to (``0..L-1``); the triangles
+        ``(b, a, centre of its loop)`` close the piece with its own orientation. Sheets (a
+        skirt, a hair cap: a hole as wide as the piece) are not listed."""
+        from scipy.sparse.csgraph import connected_components
+        import scipy.sparse as sp
+
+        tris, mesh = self.guard._all_tri, self.mesh
+        piece = mesh.piece_of_triangle
+        rest = mesh.welded(mesh.rest)
+        c = len(rest)
+        out = {}
+        for p in np.unique(piece):
+            t = tris[piece == p]
+            if len(t) < 4:
+                continue
+            directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+            und = np.sort(directed, axis=1)
+            _, inv, counts = np.unique(und, axis=0, return_inverse=True, return_counts=True)
+            edge = directed[counts[inv.ravel()] == 1]
+            size = self._piece_size[self._piece[t[0, 0]]]
+            if not edge.size:
+                out[int(p)] = (t, edge, np.zeros(0, dtype=np.int64))
+                continue
+            g = sp.csr_matrix((np.ones(len(edge)), (edge[:, 0], edge[:, 1])), shape=(c, c))
+            _, label = connected_components(g, directed=False)
+            _, loop = np.unique(label[edge[:, 0]], return_inverse=True)
+            loop = loop.ravel()
+            wide = False
+            for k in range(int(loop.max()) + 1):
+                pts = rest[np.unique(edge[loop == k])]
+                wide |= float(np.linalg.norm(np.ptp(pts, axis=0))) > self.HOLE * size
+            if not wide:
+                out[int(p)] = (t, edge, loop)
+        return out
+
+    @staticmethod
+    def _capped(x: np.ndarray, shell: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """The closed piece ``shell`` (:meth:`_closed_pieces`) at ``x``: ``(points, triangles)``,
+        its own triangles first, then the fans that cap its holes at their loops' centres
+        (appended to the points)."""
+        t, edge, loop = shell
+        if not edge.size:
+            return x, t
+        loops = int(loop.max()) + 1
+        centre = np.zeros((loops, 3))
+        np.add.at(centre, loop, x[edge[:, 0]])
+        centre /= np.bincount(loop, minlength=loops)[:, None]
+        return np.concatenate([x, centre]), np.concatenate([t, np.stack([edge[:, 1], edge[:, 0], len(x) + loop], axis=1)])
+
+    def _exit(self, queries: np.ndarray, direction: np.ndarray, x: np.ndarray, shell: tuple) -> np.ndarray:
+        """``[M]`` [m] how far along the unit ``direction`` each of ``queries`` (inside the closed
+        piece ``shell``, capped) leaves it: the nearest crossing of its surface ahead
+        (:func:`warpskin.kernels.untangle.exit_kernel`)."""
+        import warp as wp
+
+        from ..kernels import untangle as k
+
+        pts, tri = self._capped(x, shell)
+        with wp.ScopedDevice("cpu"):
+            out = wp.zeros(len(queries), dtype=wp.float32)
+            wp.launch(k.exit_kernel, dim=len(queries),
+                      inputs=[wp.array(np.asarray(queries, np.float32), dtype=wp.vec3),
+                              wp.array(np.asarray(direction, np.float32), dtype=wp.vec3),
+                              wp.array(pts.astype(np.float32), dtype=wp.vec3),
+                              wp.array(tri.astype(np.int32), dtype=wp.vec3i)], outputs=[out])
+            return out.numpy().astype(np.float64)
+
+    def _wind(self, queries: np.ndarray, x: np.ndarray, shell: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """The winding number of the closed piece ``shell`` (:meth:`_closed_pieces`, its holes
+        capped at their loops' centres in ``x``) about each of ``queries`` ``[M, 3]`` [m], and the
+        point of the piece's surface nearest each (:func:`warpskin.kernels.untangle.press_kernel`)."""
+        import warp as wp
+
+        from ..kernels import untangle as k
+
+        t = shell[0]
+        pts, tri = self._capped(x, shell)
+        with wp.ScopedDevice("cpu"):
+            w = wp.zeros(len(queries), dtype=wp.float32)
+            near = wp.zeros(len(queries), dtype=wp.vec3)
+            wp.launch(k.press_kernel, dim=len(queries),
+                      inputs=[wp.array(np.asarray(queries, np.float32), dtype=wp.vec3),
+                              wp.array(pts.astype(np.float32), dtype=wp.vec3),
+                              wp.array(tri.astype(np.int32), dtype=wp.vec3i), len(t)], outputs=[w, near])
+            return w.numpy().astype(np.float64), near.numpy().astype(np.float64)
+
+    def _press(self, x: np.ndarray, every: np.ndarray, lw: np.ndarray, harm: tuple, lbs_side: tuple, now: tuple):
+        """Where a closed piece (:meth:`_closed_pieces`: a hand, a shoe) crosses a piece it is
+        apart from at rest (a skirt, a shirt), the other piece gives way, in up to
+        :attr:`PRESS_ROUNDS` rounds of :meth:`_press_push`, each through :meth:`_moved`'s
+        checks, each trying the nearest-surface push and the one-side push and keeping the one
+        that leaves fewer pairs beyond the rest pose's. Returns ``(y, every pair of y,
+        measures)`` of the round with the fewest pairs beyond the rest pose's where that is
+        fewer than ``x``'s, else ``None``. Unlike the
+        rounds' planes, this needs no side read from the last frame: a hand swept through a
+        skirt in one frame dents it from whichever side is nearer."""
+        beyond = self.mesh.pairs_beyond_rest
+        best, fewest = None, beyond(every)
+        for _ in range(self.PRESS_ROUNDS):
+            steps = []
+            for side in (False, True):
+                d = self._press_push(x, every, side)
+                step = None if d is None else self._moved(x, d, lw, harm, every, lbs_side, now)
+                if step is not None:
+                    steps.append(step)
+            if not steps:
+                break
+            step = min(steps, key=lambda s: beyond(s[1]))
+            x, every, now = step
+            if beyond(every) < fewest:
+                best, fewest = step, beyond(every)
+        return best
+
+    def _press_push(self, x: np.ndarray, every: np.ndarray, side: bool) -> np.ndarray | None:
+        """One round of :meth:`_press`: ``[C, 3]`` [m] the push of every welded point, ``None``
+        where there is none. Per pair of pieces apart at rest that cross in ``every`` (keys),
+        one closed (the smaller of two closed ones presses), the other's triangles that cross
+        the closed one or have a corner inside it are sampled at their corners, centre and edge
+        midpoints; a sample inside the closed piece (its winding number above a half) is pushed
+        out plus :attr:`press_gap`: to the nearest point of its surface, or with ``side``
+        along its triangle's normal, the way the nearest-surface pushes lean on the whole (their
+        sum along the normals), to where that ray leaves the piece. Each corner takes the mean
+        of its triangles' samples' pushes weighted by their barycentric weight at it (a
+        triangle whose centre alone is inside, pierced by a finger, moves whole). A ramp
+        (:attr:`_PRESS_RAMP`) goes to the next rings of neighbours (a dent, not a spike).
+        Rigid points, and points inside the closed piece at rest, do not move."""
+        mesh, tris = self.mesh, self.guard._all_tri
+        if not self._shells or not every.size:
+            return None
+        n = self._tri_count
+        piece = mesh.piece_of_triangle
+        ids = mesh.piece_pair_ids(every)
+        apart = mesh.rest_piece_pairs[ids] == 0
+        count = mesh.piece_count
+        num = np.zeros_like(x)
+        den = np.zeros(len(x))
+        still = self._mobile == 0.0
+        for k in np.unique(ids[apart]):
+            a, b = int(k // count), int(k % count)
+            if a == b:
+                continue
+            size = {p: self._piece_size[self._piece[tris[piece == p][0, 0]]] for p in (a, b)}
+            if a in self._shells and (b not in self._shells or size[a] <= size[b]):
+                presser, soft = a, b
+            elif b in self._shells:
+                presser, soft = b, a
+            else:
+                continue
+            shell = self._shells[presser]
+            key = (soft, presser)
+            if key not in self._inside_at_rest:
+                rest = mesh.welded(mesh.rest)
+                own = np.unique(tris[piece == soft])
+                w0, _ = self._wind(rest[own], rest, shell)
+                self._inside_at_rest[key] = own[np.abs(w0) > 0.5]
+            held = still.copy()
+            held[self._inside_at_rest[key]] = True
+            # the soft piece's points near the closed one, and which of them are inside it
+            own_t = np.nonzero(piece == soft)[0]
+            box = np.unique(shell[0])
+            lo, hi = x[box].min(axis=0) - self.press_gap, x[box].max(axis=0) + self.press_gap
+            near_pt = np.zeros(len(x), dtype=bool)
+            pts = np.unique(tris[own_t])
+            near_pt[pts[np.all((x[pts] >= lo) & (x[pts] <= hi), axis=1)]] = True
+            inside = np.zeros(len(x), dtype=bool)
+            cand = np.nonzero(near_pt & ~held)[0]
+            if cand.size:
+                w, _ = self._wind(x[cand], x, shell)
+                inside[cand[np.abs(w) > 0.5]] = True
+            keys = every[ids == k]
+            crossing = np.where(piece[keys // n] == soft, keys // n, keys % n)
+            tri = np.union1d(crossing, own_t[inside[tris[own_t]].any(axis=1)])
+            if not tri.size:
+                continue
+            bary = self._SAMPLES
+            corners = tris[tri]  # [M, 3]
+            q = np.einsum("sk,mkd->msd", bary, x[corners]).reshape(-1, 3)
+            w, surface = self._wind(q, x, shell)
+            inn = np.abs(w) > 0.5
+            if not inn.any():
+                continue
+            # one side for the whole patch (a finger through a sheet: the sheet goes past it
+            # one way, not split round it): the side most of the nearest-surface pushes take,
+            # along the patch's mean normal, each sample out to where that ray leaves the piece
+            push = np.zeros_like(q)
+            if side:  # one side for the patch: each sample along its triangle's normal, the way
+                # most of the nearest-surface pushes lean, out to where that ray leaves the piece
+                normal = np.cross(x[corners[:, 1]] - x[corners[:, 0]], x[corners[:, 2]] - x[corners[:, 0]])
+                normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+                normal = np.repeat(normal, len(bary), axis=0)[inn]
+                lean = np.einsum("ij,ij->i", (surface - q)[inn], normal).sum()
+                ways = normal * (1.0 if lean >= 0.0 else -1.0)
+                push[inn] = ways * (self._exit(q[inn], ways, x, shell) + self.press_gap)[:, None]
+            else:  # each sample to the nearest point of the surface
+                out = (surface - q)[inn]
+                length = np.linalg.norm(out, axis=1)
+                push[inn] = out * ((length + self.press_gap) / np.maximum(length, 1e-30))[:, None]
+            weight = np.tile(bary, (len(tri), 1)) * inn[:, None]  # [M * S, 3]
+            idx = np.repeat(corners, len(bary), axis=0)  # [M * S, 3]
+            for c in range(3):
+                np.add.at(num, idx[:, c], weight[:, c, None] * push)
+                np.add.at(den, idx[:, c], weight[:, c])
+            den[held] = 0.0
+            num[held] = 0.0
+        hit = den > 0.0
+        if not hit.any():
+            return None
+        d = np.zeros_like(x)
+        d[hit] = num[hit] / den[hit, None]
+        reached = hit.copy()
+        last, before = hit, 1.0
+        for share in self._PRESS_RAMP:  # rings of neighbours (within the piece), a falling share
+            near = self._adjacency @ last.astype(np.float64)
+            ring = ~reached & (near > 0)
+            if not ring.any():
+                break
+            d[ring] = (share / before) * (self._adjacency @ (d * last[:, None]))[ring] / near[ring, None]
+            reached |= ring
+            last, before = ring, share
+        d[still] = 0.0
+        return d
 
     def _repairable(self, keys: np.ndarray) -> np.ndarray:
         """The keys of ``keys`` that are repaired: not crossing at rest, not both where pieces
@@ -301,51 +560,12 @@ class Untangle:
             return y, np.union1d(kept, pair_keys(g._query.active(y, active), n)), (strained, turned)
         return None
 
-    def apply(self, points: np.ndarray, lbs: np.ndarray, counted: bool = False) -> np.ndarray:
-        """The repaired points of one frame, ``[N, 3]`` [m] in the mesh's file order (``points``:
-        the guarded result, ``lbs``: the mesh's LBS); call once per frame, in frame order.
-        ``counted``: ``points`` is the guard's result of this frame as it returned it, whose
-        pairs it counted (:attr:`SurfaceGuard.pair_keys`, where not ``None``): they are not
-        counted again. Returns ``points`` itself where nothing is repaired, else the result
-        rounded to float32 as USD stores it."""
-        mesh, g = self.mesh, self.guard
-        self.stats = {"before": 0, "after": 0, "rounds": 0, "seam": 0}
-        self.pair_keys = None
-        x = mesh.welded(as_written(points))
-        ref = mesh.welded(mesh.rest) if self._last is None else self._last
-        carried, self._repair = self._repair, None
-        if self.rounds <= 0 or self._tri_count < 2 or not g.params.enabled:
-            self._last = x
-            return points
-        lw = mesh.welded(as_written(lbs))
-        # every pair but the rest pose's (judged: a push may cross where pieces cross at rest
-        # too), and of them the ones repaired; counted with LBS's in one pass where the guard
-        # did not count them, so that a frame left as it is needs no count of its own after
-        if g.pair_keys is not None and counted:
-            self.pair_keys = g.pair_keys
-        else:
-            self.pair_keys = g._pairs_of_two(x, lw)
-        every = self.pair_keys[0]
+    def _rounds(self, best: tuple, lw: np.ndarray, harm: tuple, lbs_side: tuple) -> tuple:
+        """The rounds of separation (module docstring) from ``best`` = ``(x, every pair of x,
+        its pairs beyond the rest pose's, its measures)``; returns the same of the round with
+        the fewest pairs beyond the rest pose's (``best`` itself where none has fewer)."""
+        x, every, _, now = best
         work = self._repairable(every)
-        # piece pairs crossing at rest that cross more than LBS's beyond the rest pose's
-        zoned = bool(np.any((mesh.piece_pairs_beyond_rest(every) > mesh.piece_pairs_beyond_rest(self.pair_keys[1]))
-                            & (mesh.rest_piece_pairs > 0)))
-        self.stats["before"] = self.stats["after"] = int(work.size)
-        if not work.size and not zoned:
-            self._last = x
-            return points
-        lbs_side = self._lbs_side(lw)
-        harm = now = self._measures(x, lbs_side)
-        self._ref.assign(ref.astype(np.float32))
-        given = x
-        beyond = mesh.pairs_beyond_rest
-        best = (x, every, beyond(every))
-        if carried is not None:  # the last frame's repair first, where it still helps
-            start = self._moved(x, carried, lw, harm, every, lbs_side, now)
-            if start is not None and beyond(start[1]) < best[2]:
-                x, every, now = start
-                best = (x, every, beyond(every))
-                work = self._repairable(every)
         for _ in range(self.rounds):
             if not work.size:
                 break
@@ -367,10 +587,82 @@ class Untangle:
             x, every, now = step
             work = self._repairable(every)
             self.stats["rounds"] += 1
-            count = beyond(every)
+            count = self.mesh.pairs_beyond_rest(every)
             if count < best[2]:
-                best = (x, every, count)
-        x, every, count = best
+                best = (x, every, count, now)
+        return best
+
+    def apply(self, points: np.ndarray, lbs: np.ndarray, counted: bool = False) -> np.ndarray:
+        """The repaired points of one frame, ``[N, 3]`` [m] in the mesh's file order (``points``:
+        the guarded result, ``lbs``: the mesh's LBS); call once per frame, in frame order.
+        ``counted``: ``points`` is the guard's result of this frame as it returned it, whose
+        pairs it counted (:attr:`SurfaceGuard.pair_keys`, where not ``None``): they are not
+        counted again. Returns ``points`` itself where nothing is repaired, else the result
+        rounded to float32 as USD stores it."""
+        mesh, g = self.mesh, self.guard
+        self.stats = {"before": 0, "after": 0, "rounds": 0, "seam": 0, "press": 0}
+        self.pair_keys = None
+        x = mesh.welded(as_written(points))
+        ref = mesh.welded(mesh.rest) if self._last is None else self._last
+        carried, self._repair = self._repair, None
+        if self.rounds <= 0 or self._tri_count < 2 or not g.params.enabled:
+            self._last = x
+            return points
+        lw = mesh.welded(as_written(lbs))
+        # every pair but the rest pose's (judged: a push may cross where pieces cross at rest
+        # too), and of them the ones repaired; counted with LBS's in one pass where the guard
+        # did not count them, so that a frame left as it is needs no count of its own after
+        if g.pair_keys is not None and counted:
+            self.pair_keys = g.pair_keys
+        else:
+            self.pair_keys = g._pairs_of_two(x, lw)
+        every = self.pair_keys[0]
+        work = self._repairable(every)
+        # piece pairs crossing at rest that cross more than LBS's beyond the rest pose's
+        zoned = bool(np.any((mesh.piece_pairs_beyond_rest(every) > mesh.piece_pairs_beyond_rest(self.pair_keys[1]))
+                            & (mesh.rest_piece_pairs > 0)))
+        # pairs of pieces apart at rest, one of them closed: a hand in a skirt (see _press)
+        pressed = False
+        if self._shells and every.size:
+            ids = mesh.piece_pair_ids(every)
+            closed = np.zeros(mesh.piece_count, dtype=bool)
+            closed[list(self._shells)] = True
+            lo, hi = ids // mesh.piece_count, ids % mesh.piece_count
+            pressed = bool(np.any((mesh.rest_piece_pairs[ids] == 0) & (lo != hi) & (closed[lo] | closed[hi])))
+        self.stats["before"] = self.stats["after"] = int(work.size)
+        if not work.size and not zoned and not pressed:
+            self._last = x
+            return points
+        lbs_side = self._lbs_side(lw)
+        harm = now = self._measures(x, lbs_side)
+        self._ref.assign(ref.astype(np.float32))
+        given = x
+        beyond = mesh.pairs_beyond_rest
+        best = (x, every, beyond(every), now)
+        if carried is not None:  # the last frame's repair first, where it still helps
+            step = self._moved(x, carried, lw, harm, every, lbs_side, now)
+            if step is not None and beyond(step[1]) < best[2]:
+                best = (step[0], step[1], beyond(step[1]), step[2])
+        start = best
+        best = self._rounds(best, lw, harm, lbs_side)
+        if pressed:  # closed pieces in others: the other gives way, to the nearer side, after
+            # the rounds, and, where it takes pairs off the start, before them too (the rounds
+            # read a side from the last frame, which a hand swept through in one frame misses)
+            paths = [best]
+            step = self._press(best[0], best[1], lw, harm, lbs_side, best[3])
+            if step is not None:
+                paths.append((step[0], step[1], beyond(step[1]), step[2]))
+            step = self._press(start[0], start[1], lw, harm, lbs_side, start[3])
+            if step is not None:
+                first = self._rounds((step[0], step[1], beyond(step[1]), step[2]), lw, harm, lbs_side)
+                paths.append(first)
+                step = self._press(first[0], first[1], lw, harm, lbs_side, first[3])
+                if step is not None:
+                    paths.append((step[0], step[1], beyond(step[1]), step[2]))
+            pick = min(paths, key=lambda b: b[2])
+            self.stats["press"] = best[2] - pick[2]
+            best = pick
+        x, every, count, now = best  # its measures too: the steps below measure from them
         if zoned:  # where pieces cross at rest: no more than LBS's, per pair of pieces
             for _ in range(self.SEAM_TRIES):
                 step = self._seam(x, every, lw, self.pair_keys[1], harm, lbs_side, now)
