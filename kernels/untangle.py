@@ -164,94 +164,47 @@ def separate_pairs_kernel(
         wp.atomic_add(count, tb[i], 1.0)
 
 
-@wp.func
-def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """The signed solid angle [sr] of triangle ``abc`` seen from ``p`` (Van Oosterom and
-    Strackee 1983): ``2 atan2(a . (b x c), |a||b||c| + (a.b)|c| + (b.c)|a| + (c.a)|b|)`` with
-    ``a, b, c`` taken from ``p``; positive where ``abc`` winds counter-clockwise seen from ``p``."""
-    u = a - p
-    v = b - p
-    w = c - p
-    lu = wp.length(u)
-    lv = wp.length(v)
-    lw = wp.length(w)
-    num = wp.dot(u, wp.cross(v, w))
-    den = lu * lv * lw + wp.dot(u, v) * lw + wp.dot(v, w) * lu + wp.dot(w, u) * lv
-    return 2.0 * wp.atan2(num, den)
-
-
 @wp.kernel
 def press_kernel(
+    capped: wp.uint64,
+    surface: wp.uint64,
     queries: wp.array(dtype=wp.vec3),
-    points: wp.array(dtype=wp.vec3),
-    triangles: wp.array(dtype=wp.vec3i),
-    real: int,
+    max_dist: float,
     # outputs
-    winding: wp.array(dtype=float),
+    inside: wp.array(dtype=wp.int32),
     closest: wp.array(dtype=wp.vec3),
 ):
-    """One thread per query point ``q``: the winding number of the closed surface ``triangles``
-    (into ``points``, ``[N]`` [m]) about ``q``, ``sum of solid angles / 4 pi`` (about +-1 inside
-    a closed surface, 0 outside; Jacobson et al. 2013's generalised winding number), and the
-    point ``closest`` of its first ``real`` triangles (the surface itself, the others being the
-    caps that close its holes) nearest to ``q``. Brute force over the triangles: the surfaces
-    tested are one piece of a written mesh (a hand, a shoe)."""
+    """One thread per query point ``q``: whether it is inside the closed mesh ``capped`` (a
+    piece with its holes capped, built with ``support_winding_number``: its generalised
+    winding number above a half, Jacobson et al. 2013, by Warp's fast winding number), and the
+    point of the mesh ``surface`` (the piece itself, without its caps) nearest it, searched
+    within ``max_dist`` [m] (``q`` itself where none is that near)."""
     i = wp.tid()
     q = queries[i]
-    total = float(0.0)
-    best = float(1.0e30)
-    near = q
-    for k in range(triangles.shape[0]):
-        t = triangles[k]
-        a = points[t[0]]
-        b = points[t[1]]
-        c = points[t[2]]
-        total += solid_angle(q, a, b, c)
-        if k < real:
-            s = point_on_triangle(q, a, b, c)
-            d = wp.length_sq(s - q)
-            if d < best:
-                best = d
-                near = s
-    winding[i] = total / (4.0 * wp.pi)
-    closest[i] = near
+    inside[i] = 0
+    s = wp.mesh_query_point_sign_winding_number(capped, q, max_dist, 2.0, 0.5)
+    if s.result and s.sign < 0.0:
+        inside[i] = 1
+    closest[i] = q
+    c = wp.mesh_query_point_no_sign(surface, q, max_dist)
+    if c.result:
+        closest[i] = wp.mesh_eval_position(surface, c.face, c.u, c.v)
 
 
 @wp.kernel
 def exit_kernel(
+    mesh: wp.uint64,
     queries: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
-    points: wp.array(dtype=wp.vec3),
-    triangles: wp.array(dtype=wp.vec3i),
+    max_t: float,
     # outputs
     exit: wp.array(dtype=float),
 ):
-    """One thread per query point ``q`` with a unit direction ``u``: the least ``t > 0`` at which
-    the ray ``q + t u`` meets one of ``triangles`` (into ``points``, ``[N]`` [m]; the
-    Moller-Trumbore test, both faces): for ``q`` inside the closed surface, where the ray leaves
-    it; 0 where it meets none. Brute force over the triangles, as :func:`press_kernel`."""
+    """One thread per query point ``q`` with a unit direction ``u``: the least ``t`` in
+    ``(0, max_t]`` [m] at which the ray ``q + t u`` meets the mesh (both faces): for ``q``
+    inside a closed mesh, where the ray leaves it; 0 where it meets none."""
     i = wp.tid()
-    q = queries[i]
-    u = directions[i]
-    near = float(1.0e30)
-    for k in range(triangles.shape[0]):
-        t = triangles[k]
-        a = points[t[0]]
-        e1 = points[t[1]] - a
-        e2 = points[t[2]] - a
-        p = wp.cross(u, e2)
-        det = wp.dot(e1, p)
-        if wp.abs(det) > 1.0e-20:
-            inv = 1.0 / det
-            s = q - a
-            bu = wp.dot(s, p) * inv
-            if bu >= 0.0 and bu <= 1.0:
-                r = wp.cross(s, e1)
-                bv = wp.dot(u, r) * inv
-                if bv >= 0.0 and bu + bv <= 1.0:
-                    hit = wp.dot(e2, r) * inv
-                    if hit > 0.0 and hit < near:
-                        near = hit
-    if near == 1.0e30:
-        near = 0.0
-    exit[i] = near
+    h = wp.mesh_query_ray(mesh, queries[i], directions[i], max_t)
+    exit[i] = 0.0
+    if h.result:
+        exit[i] = h.t

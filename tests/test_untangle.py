@@ -314,7 +314,13 @@ def _hull(seed: int, count: int = 60):
     return pts, tris, h.equations
 
 
-def test_the_winding_number_and_nearest_point_of_a_closed_piece(device):
+def _mesh(pts, tris, device, winding=False):
+    return wp.Mesh(points=wp.array(pts, dtype=wp.vec3, device=device),
+                   indices=wp.array(tris.astype(np.int32).ravel(), dtype=wp.int32, device=device),
+                   support_winding_number=winding)
+
+
+def test_the_inside_test_and_nearest_point_of_a_closed_piece(device):
     # press_kernel against the hull's own planes (inside: every facet's n . x + d < 0, kept a
     # generic margin from them) and the nearest point against dense samples of every facet
     pts, tris, eq = _hull(21)
@@ -322,17 +328,14 @@ def test_the_winding_number_and_nearest_point_of_a_closed_piece(device):
     q = rng.normal(size=(400, 3)) * 0.08
     signed = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1)  # > 0 outside, < 0 inside (convex)
     q = q[np.abs(signed) > 2e-3]
-    w = wp.zeros(len(q), dtype=float, device=device)
+    inside = wp.zeros(len(q), dtype=wp.int32, device=device)
     near = wp.zeros(len(q), dtype=wp.vec3, device=device)
-    wp.launch(k.press_kernel, dim=len(q), inputs=[wp.array(q, dtype=wp.vec3, device=device),
-                                                   wp.array(pts, dtype=wp.vec3, device=device),
-                                                   wp.array(tris.astype(np.int32), dtype=wp.vec3i, device=device),
-                                                   len(tris)], outputs=[w, near], device=device)
-    w = w.numpy()
-    inside = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1) < 0.0
-    assert inside.sum() > 50 and (~inside).sum() > 50
-    np.testing.assert_allclose(w[inside], 1.0, atol=1e-3)
-    np.testing.assert_allclose(w[~inside], 0.0, atol=1e-3)
+    capped, surface = _mesh(pts, tris, device, winding=True), _mesh(pts, tris, device)
+    wp.launch(k.press_kernel, dim=len(q), inputs=[capped.id, surface.id, wp.array(q, dtype=wp.vec3, device=device), 1.0],
+              outputs=[inside, near], device=device)
+    ref = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1) < 0.0
+    assert ref.sum() > 50 and (~ref).sum() > 50
+    np.testing.assert_array_equal(inside.numpy() != 0, ref)
     m = 40
     u, v = np.meshgrid(np.linspace(0, 1, m), np.linspace(0, 1, m))
     keep = u + v <= 1.0
@@ -340,11 +343,11 @@ def test_the_winding_number_and_nearest_point_of_a_closed_piece(device):
     from scipy.spatial import cKDTree
 
     samples = np.einsum("sk,tkd->tsd", bary, pts[tris]).reshape(-1, 3)
-    ref = cKDTree(samples).query(q)[0]
+    dense = cKDTree(samples).query(q)[0]
     d = np.linalg.norm(near.numpy() - q, axis=1)
     spacing = np.linalg.norm(pts[tris[:, 1]] - pts[tris[:, 0]], axis=1).max() / (m - 1)
-    assert np.all(d <= ref + 1e-6)
-    assert np.all(d >= ref - spacing)
+    assert np.all(d <= dense + 1e-6)
+    assert np.all(d >= dense - spacing)
     # and the point lies on the surface: on a facet's plane, within float32 rounding
     on = np.abs(near.numpy() @ eq[:, :3].T + eq[:, 3]).min(axis=1)
     assert on.max() < 1e-6
@@ -360,10 +363,9 @@ def test_a_ray_from_inside_leaves_a_closed_piece_where_its_planes_say(device):
     u = rng.normal(size=(len(q), 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
     out = wp.zeros(len(q), dtype=float, device=device)
-    wp.launch(k.exit_kernel, dim=len(q), inputs=[wp.array(q, dtype=wp.vec3, device=device),
-                                                  wp.array(u, dtype=wp.vec3, device=device),
-                                                  wp.array(pts, dtype=wp.vec3, device=device),
-                                                  wp.array(tris.astype(np.int32), dtype=wp.vec3i, device=device)],
+    mesh = _mesh(pts, tris, device)
+    wp.launch(k.exit_kernel, dim=len(q), inputs=[mesh.id, wp.array(q, dtype=wp.vec3, device=device),
+                                                  wp.array(u, dtype=wp.vec3, device=device), 1.0],
               outputs=[out], device=device)
     nu = u @ eq[:, :3].T
     t = np.where(nu > 0, (-eq[:, 3][None, :] - q @ eq[:, :3].T) / np.where(nu > 0, nu, 1.0), np.inf).min(axis=1)
@@ -396,11 +398,13 @@ def test_a_closed_piece_with_a_small_hole_is_closed_by_its_caps_and_a_sheet_is_n
     signed = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1)
     away = np.linalg.norm(q - pts[cut], axis=1) > 0.3 * np.linalg.norm(np.ptp(pts, axis=0))
     q = q[(np.abs(signed) > 2e-3) & away]
-    w, _ = u._wind(q, mesh.welded(rest), u._shells[hull_piece])
+    got, _ = u._shells[hull_piece].inside(q, mesh.welded(rest))
     inside = (q @ eq[:, :3].T + eq[:, 3]).max(axis=1) < 0.0
-    assert inside.sum() > 20
-    np.testing.assert_allclose(np.abs(w[inside]), 1.0, atol=1e-3)
-    np.testing.assert_allclose(w[~inside], 0.0, atol=1e-3)
+    assert inside.sum() > 20 and (~inside).sum() > 20
+    np.testing.assert_array_equal(got, inside)
+    # its one hole found and capped: a loop round the vertex cut out, every edge of its fan
+    shell = u._shells[hull_piece]
+    assert shell.loops == 1 and len(shell.edges) == (tris == cut).any(axis=1).sum()
 
 
 def _sheet(x0: float, half: float, m: int, seed: int):

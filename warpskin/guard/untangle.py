@@ -184,13 +184,12 @@ class Untangle:
         return zone | near[t].all(axis=1)
 
     def _closed_pieces(self) -> dict:
-        """``{piece: (triangles [T, 3], caps [K, 2], loop [K])}`` for the pieces of the welded mesh
-        that are closed but for holes each spanning at most :attr:`HOLE` x the piece's rest
-        diagonal (a hand open at the wrist, a shoe at its opening, a closed eye), with at least
-        four triangles: ``caps`` are the directed boundary edges ``(a, b)`` as the piece's own
-        triangles run them, ``loop`` the hole each belongs to (``0..L-1``); the triangles
-        ``(b, a, centre of its loop)`` close the piece with its own orientation. Sheets (a
-        skirt, a hair cap: a hole as wide as the piece) are not listed."""
+        """``{piece: _Shell}`` for the pieces of the welded mesh that are closed but for holes each
+        spanning at most :attr:`HOLE` x the piece's rest diagonal (a hand open at the wrist, a
+        shoe at its opening, a closed eye), with at least four triangles; the triangles ``(b,
+        a, centre of its loop)`` over each boundary edge ``(a, b)`` (as the piece's own
+        triangles run it) close it with its own orientation. Sheets (a skirt, a hair cap: a
+        hole as wide as the piece) are not listed."""
         from scipy.sparse.csgraph import connected_components
         import scipy.sparse as sp
 
@@ -209,7 +208,7 @@ class Untangle:
             edge = directed[counts[inv.ravel()] == 1]
             size = self._piece_size[self._piece[t[0, 0]]]
             if not edge.size:
-                out[int(p)] = (t, edge, np.zeros(0, dtype=np.int64))
+                out[int(p)] = _Shell(t, edge, np.zeros(0, dtype=np.int64), size)
                 continue
             g = sp.csr_matrix((np.ones(len(edge)), (edge[:, 0], edge[:, 1])), shape=(c, c))
             _, label = connected_components(g, directed=False)
@@ -220,59 +219,8 @@ class Untangle:
                 pts = rest[np.unique(edge[loop == k])]
                 wide |= float(np.linalg.norm(np.ptp(pts, axis=0))) > self.HOLE * size
             if not wide:
-                out[int(p)] = (t, edge, loop)
+                out[int(p)] = _Shell(t, edge, loop, size)
         return out
-
-    @staticmethod
-    def _capped(x: np.ndarray, shell: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """The closed piece ``shell`` (:meth:`_closed_pieces`) at ``x``: ``(points, triangles)``,
-        its own triangles first, then the fans that cap its holes at their loops' centres
-        (appended to the points)."""
-        t, edge, loop = shell
-        if not edge.size:
-            return x, t
-        loops = int(loop.max()) + 1
-        centre = np.zeros((loops, 3))
-        np.add.at(centre, loop, x[edge[:, 0]])
-        centre /= np.bincount(loop, minlength=loops)[:, None]
-        return np.concatenate([x, centre]), np.concatenate([t, np.stack([edge[:, 1], edge[:, 0], len(x) + loop], axis=1)])
-
-    def _exit(self, queries: np.ndarray, direction: np.ndarray, x: np.ndarray, shell: tuple) -> np.ndarray:
-        """``[M]`` [m] how far along the unit ``direction`` each of ``queries`` (inside the closed
-        piece ``shell``, capped) leaves it: the nearest crossing of its surface ahead
-        (:func:`warpskin.kernels.untangle.exit_kernel`)."""
-        import warp as wp
-
-        from ..kernels import untangle as k
-
-        pts, tri = self._capped(x, shell)
-        with wp.ScopedDevice("cpu"):
-            out = wp.zeros(len(queries), dtype=wp.float32)
-            wp.launch(k.exit_kernel, dim=len(queries),
-                      inputs=[wp.array(np.asarray(queries, np.float32), dtype=wp.vec3),
-                              wp.array(np.asarray(direction, np.float32), dtype=wp.vec3),
-                              wp.array(pts.astype(np.float32), dtype=wp.vec3),
-                              wp.array(tri.astype(np.int32), dtype=wp.vec3i)], outputs=[out])
-            return out.numpy().astype(np.float64)
-
-    def _wind(self, queries: np.ndarray, x: np.ndarray, shell: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """The winding number of the closed piece ``shell`` (:meth:`_closed_pieces`, its holes
-        capped at their loops' centres in ``x``) about each of ``queries`` ``[M, 3]`` [m], and the
-        point of the piece's surface nearest each (:func:`warpskin.kernels.untangle.press_kernel`)."""
-        import warp as wp
-
-        from ..kernels import untangle as k
-
-        t = shell[0]
-        pts, tri = self._capped(x, shell)
-        with wp.ScopedDevice("cpu"):
-            w = wp.zeros(len(queries), dtype=wp.float32)
-            near = wp.zeros(len(queries), dtype=wp.vec3)
-            wp.launch(k.press_kernel, dim=len(queries),
-                      inputs=[wp.array(np.asarray(queries, np.float32), dtype=wp.vec3),
-                              wp.array(pts.astype(np.float32), dtype=wp.vec3),
-                              wp.array(tri.astype(np.int32), dtype=wp.vec3i), len(t)], outputs=[w, near])
-            return w.numpy().astype(np.float64), near.numpy().astype(np.float64)
 
     def _press(self, x: np.ndarray, every: np.ndarray, lw: np.ndarray, harm: tuple, lbs_side: tuple, now: tuple):
         """Where a closed piece (:meth:`_closed_pieces`: a hand, a shoe) crosses a piece it is
@@ -287,12 +235,11 @@ class Untangle:
         beyond = self.mesh.pairs_beyond_rest
         best, fewest = None, beyond(every)
         for _ in range(self.PRESS_ROUNDS):
-            steps = []
-            for side in (False, True):
-                d = self._press_push(x, every, side)
-                step = None if d is None else self._moved(x, d, lw, harm, every, lbs_side, now)
-                if step is not None:
-                    steps.append(step)
+            pushes = self._press_push(x, every)
+            if pushes is None:
+                break
+            steps = [step for step in (self._moved(x, d, lw, harm, every, lbs_side, now) for d in pushes)
+                     if step is not None]
             if not steps:
                 break
             step = min(steps, key=lambda s: beyond(s[1]))
@@ -301,19 +248,21 @@ class Untangle:
                 best, fewest = step, beyond(every)
         return best
 
-    def _press_push(self, x: np.ndarray, every: np.ndarray, side: bool) -> np.ndarray | None:
-        """One round of :meth:`_press`: ``[C, 3]`` [m] the push of every welded point, ``None``
+    def _press_push(self, x: np.ndarray, every: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """One round of :meth:`_press`: two pushes ``[C, 3]`` [m] of every welded point, ``None``
         where there is none. Per pair of pieces apart at rest that cross in ``every`` (keys),
         one closed (the smaller of two closed ones presses), the other's triangles that cross
         the closed one or have a corner inside it are sampled at their corners, centre and edge
         midpoints; a sample inside the closed piece (its winding number above a half) is pushed
-        out plus :attr:`press_gap`: to the nearest point of its surface, or with ``side``
-        along its triangle's normal, the way the nearest-surface pushes lean on the whole (their
-        sum along the normals), to where that ray leaves the piece. Each corner takes the mean
-        of its triangles' samples' pushes weighted by their barycentric weight at it (a
-        triangle whose centre alone is inside, pierced by a finger, moves whole). A ramp
-        (:attr:`_PRESS_RAMP`) goes to the next rings of neighbours (a dent, not a spike).
-        Rigid points, and points inside the closed piece at rest, do not move."""
+        out plus :attr:`press_gap`: in the first push to the nearest point of its surface, in
+        the second along its triangle's normal, the way the nearest-surface pushes lean on the
+        whole (their sum along the normals), to where that ray leaves the piece (one side for
+        the patch: a finger through a sheet takes the sheet past it one way, not split round
+        it). Each corner takes the mean of its triangles' samples' pushes weighted by their
+        barycentric weight at it (a triangle whose centre alone is inside, pierced by a finger,
+        moves whole). A ramp (:attr:`_PRESS_RAMP`) goes to the next rings of neighbours (a
+        dent, not a spike). Rigid points, and points inside the closed piece at rest, do not
+        move."""
         mesh, tris = self.mesh, self.guard._all_tri
         if not self._shells or not every.size:
             return None
@@ -322,9 +271,10 @@ class Untangle:
         ids = mesh.piece_pair_ids(every)
         apart = mesh.rest_piece_pairs[ids] == 0
         count = mesh.piece_count
-        num = np.zeros_like(x)
+        nearest, side = np.zeros_like(x), np.zeros_like(x)
         den = np.zeros(len(x))
         still = self._mobile == 0.0
+        bary = self._SAMPLES
         for k in np.unique(ids[apart]):
             a, b = int(k // count), int(k % count)
             if a == b:
@@ -337,78 +287,69 @@ class Untangle:
             else:
                 continue
             shell = self._shells[presser]
+            own_t = np.nonzero(piece == soft)[0]
+            pts = np.unique(tris[own_t])
             key = (soft, presser)
             if key not in self._inside_at_rest:
                 rest = mesh.welded(mesh.rest)
-                own = np.unique(tris[piece == soft])
-                w0, _ = self._wind(rest[own], rest, shell)
-                self._inside_at_rest[key] = own[np.abs(w0) > 0.5]
+                self._inside_at_rest[key] = pts[shell.inside(rest[pts], rest)[0]]
+                shell.at(x)
             held = still.copy()
             held[self._inside_at_rest[key]] = True
             # the soft piece's points near the closed one, and which of them are inside it
-            own_t = np.nonzero(piece == soft)[0]
-            box = np.unique(shell[0])
-            lo, hi = x[box].min(axis=0) - self.press_gap, x[box].max(axis=0) + self.press_gap
-            near_pt = np.zeros(len(x), dtype=bool)
-            pts = np.unique(tris[own_t])
-            near_pt[pts[np.all((x[pts] >= lo) & (x[pts] <= hi), axis=1)]] = True
+            lo = x[shell.points].min(axis=0) - self.press_gap
+            hi = x[shell.points].max(axis=0) + self.press_gap
+            cand = pts[np.all((x[pts] >= lo) & (x[pts] <= hi), axis=1) & ~held[pts]]
             inside = np.zeros(len(x), dtype=bool)
-            cand = np.nonzero(near_pt & ~held)[0]
             if cand.size:
-                w, _ = self._wind(x[cand], x, shell)
-                inside[cand[np.abs(w) > 0.5]] = True
+                inside[cand[shell.inside(x[cand], x)[0]]] = True
             keys = every[ids == k]
             crossing = np.where(piece[keys // n] == soft, keys // n, keys % n)
             tri = np.union1d(crossing, own_t[inside[tris[own_t]].any(axis=1)])
             if not tri.size:
                 continue
-            bary = self._SAMPLES
             corners = tris[tri]  # [M, 3]
             q = np.einsum("sk,mkd->msd", bary, x[corners]).reshape(-1, 3)
-            w, surface = self._wind(q, x, shell)
-            inn = np.abs(w) > 0.5
+            inn, surface = shell.inside(q, x)
             if not inn.any():
                 continue
-            # one side for the whole patch (a finger through a sheet: the sheet goes past it
-            # one way, not split round it): the side most of the nearest-surface pushes take,
-            # along the patch's mean normal, each sample out to where that ray leaves the piece
-            push = np.zeros_like(q)
-            if side:  # one side for the patch: each sample along its triangle's normal, the way
-                # most of the nearest-surface pushes lean, out to where that ray leaves the piece
-                normal = np.cross(x[corners[:, 1]] - x[corners[:, 0]], x[corners[:, 2]] - x[corners[:, 0]])
-                normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
-                normal = np.repeat(normal, len(bary), axis=0)[inn]
-                lean = np.einsum("ij,ij->i", (surface - q)[inn], normal).sum()
-                ways = normal * (1.0 if lean >= 0.0 else -1.0)
-                push[inn] = ways * (self._exit(q[inn], ways, x, shell) + self.press_gap)[:, None]
-            else:  # each sample to the nearest point of the surface
-                out = (surface - q)[inn]
-                length = np.linalg.norm(out, axis=1)
-                push[inn] = out * ((length + self.press_gap) / np.maximum(length, 1e-30))[:, None]
+            out = (surface - q)[inn]
+            length = np.linalg.norm(out, axis=1)
+            near = np.zeros_like(q)
+            near[inn] = out * ((length + self.press_gap) / np.maximum(length, 1e-30))[:, None]
+            normal = np.cross(x[corners[:, 1]] - x[corners[:, 0]], x[corners[:, 2]] - x[corners[:, 0]])
+            normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+            normal = np.repeat(normal, len(bary), axis=0)[inn]
+            ways = normal * (1.0 if np.einsum("ij,ij->i", out, normal).sum() >= 0.0 else -1.0)
+            one = np.zeros_like(q)
+            one[inn] = ways * (shell.exit(q[inn], ways, x) + self.press_gap)[:, None]
             weight = np.tile(bary, (len(tri), 1)) * inn[:, None]  # [M * S, 3]
+            weight[held[np.repeat(corners, len(bary), axis=0)]] = 0.0
             idx = np.repeat(corners, len(bary), axis=0)  # [M * S, 3]
             for c in range(3):
-                np.add.at(num, idx[:, c], weight[:, c, None] * push)
+                np.add.at(nearest, idx[:, c], weight[:, c, None] * near)
+                np.add.at(side, idx[:, c], weight[:, c, None] * one)
                 np.add.at(den, idx[:, c], weight[:, c])
-            den[held] = 0.0
-            num[held] = 0.0
         hit = den > 0.0
         if not hit.any():
             return None
-        d = np.zeros_like(x)
-        d[hit] = num[hit] / den[hit, None]
-        reached = hit.copy()
-        last, before = hit, 1.0
-        for share in self._PRESS_RAMP:  # rings of neighbours (within the piece), a falling share
-            near = self._adjacency @ last.astype(np.float64)
-            ring = ~reached & (near > 0)
-            if not ring.any():
-                break
-            d[ring] = (share / before) * (self._adjacency @ (d * last[:, None]))[ring] / near[ring, None]
-            reached |= ring
-            last, before = ring, share
-        d[still] = 0.0
-        return d
+        out = []
+        for num in (nearest, side):
+            d = np.zeros_like(x)
+            d[hit] = num[hit] / den[hit, None]
+            reached = hit.copy()
+            last, before = hit, 1.0
+            for share in self._PRESS_RAMP:  # rings of neighbours (within the piece), a falling share
+                ring_near = self._adjacency @ last.astype(np.float64)
+                ring = ~reached & (ring_near > 0)
+                if not ring.any():
+                    break
+                d[ring] = (share / before) * (self._adjacency @ (d * last[:, None]))[ring] / ring_near[ring, None]
+                reached |= ring
+                last, before = ring, share
+            d[still] = 0.0
+            out.append(d)
+        return out[0], out[1]
 
     def _repairable(self, keys: np.ndarray) -> np.ndarray:
         """The keys of ``keys`` that are repaired: not crossing at rest, not both where pieces
@@ -677,3 +618,86 @@ class Untangle:
         self.pair_keys = None
         self._repair = x - given
         return x[mesh.weld]
+
+
+class _Shell:
+    """A closed piece of a written mesh (:meth:`Untangle._closed_pieces`) as two Warp meshes on
+    the CPU, refitted to each pose asked about: the piece with its holes capped (fans at the
+    loops' centres, with the piece's own orientation) for the inside test and the rays, and
+    the piece alone for the nearest surface point.
+
+    Args:
+        triangles: ``[T, 3]`` its triangles, into the welded mesh's points.
+        edges: ``[K, 2]`` its boundary edges as its triangles run them.
+        loop: ``[K]`` the hole each boundary edge belongs to.
+        size: Its rest diagonal [m] (the reach of the nearest-point search is twice it).
+    """
+
+    def __init__(self, triangles: np.ndarray, edges: np.ndarray, loop: np.ndarray, size: float) -> None:
+        import warp as wp
+
+        self.triangles, self.edges, self.loop = triangles, edges, loop
+        self.points = np.unique(triangles)
+        local = np.full(int(self.points.max()) + 1, -1, dtype=np.int64)
+        local[self.points] = np.arange(self.points.size)
+        self.loops = int(loop.max()) + 1 if loop.size else 0
+        caps = np.stack([local[edges[:, 1]], local[edges[:, 0]], self.points.size + loop], axis=1) if loop.size \
+            else np.zeros((0, 3), dtype=np.int64)
+        self.reach = 2.0 * float(size)
+        self._x = None
+        with wp.ScopedDevice("cpu"):
+            self.capped = wp.Mesh(points=wp.zeros(self.points.size + self.loops, dtype=wp.vec3),
+                                  indices=wp.array(np.concatenate([local[triangles], caps]).astype(np.int32).ravel(),
+                                                   dtype=wp.int32), support_winding_number=True)
+            self.surface = wp.Mesh(points=wp.zeros(self.points.size, dtype=wp.vec3),
+                                   indices=wp.array(local[triangles].astype(np.int32).ravel(), dtype=wp.int32))
+
+    def at(self, x: np.ndarray) -> None:
+        """Place both meshes at the welded points ``x`` ``[C, 3]`` [m] (refitted; nothing where
+        ``x`` is the pose placed last)."""
+        if self._x is x:
+            return
+        own = x[self.points]
+        centre = np.zeros((self.loops, 3))
+        if self.loops:
+            np.add.at(centre, self.loop, x[self.edges[:, 0]])
+            centre /= np.bincount(self.loop, minlength=self.loops)[:, None]
+        self.capped.points.assign(np.concatenate([own, centre]).astype(np.float32))
+        self.surface.points.assign(own.astype(np.float32))
+        self.capped.refit()
+        self.surface.refit()
+        self._x = x
+
+    def inside(self, queries: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """At the pose ``x``: ``([M] bool, [M, 3])`` whether each of ``queries`` [m] is inside the
+        capped piece, and the nearest point of the piece's surface
+        (:func:`warpskin.kernels.untangle.press_kernel`)."""
+        import warp as wp
+
+        from ..kernels import untangle as k
+
+        self.at(x)
+        with wp.ScopedDevice("cpu"):
+            inside = wp.zeros(len(queries), dtype=wp.int32)
+            near = wp.zeros(len(queries), dtype=wp.vec3)
+            wp.launch(k.press_kernel, dim=len(queries),
+                      inputs=[self.capped.id, self.surface.id, wp.array(np.asarray(queries, np.float32), dtype=wp.vec3),
+                              self.reach], outputs=[inside, near])
+            return inside.numpy() != 0, near.numpy().astype(np.float64)
+
+    def exit(self, queries: np.ndarray, directions: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """At the pose ``x``: ``[M]`` [m] how far along the unit ``directions`` each of ``queries``
+        (inside the capped piece) leaves it, the nearest crossing of its surface ahead
+        (:func:`warpskin.kernels.untangle.exit_kernel`; 0 where the ray meets none)."""
+        import warp as wp
+
+        from ..kernels import untangle as k
+
+        self.at(x)
+        with wp.ScopedDevice("cpu"):
+            out = wp.zeros(len(queries), dtype=wp.float32)
+            wp.launch(k.exit_kernel, dim=len(queries),
+                      inputs=[self.capped.id, wp.array(np.asarray(queries, np.float32), dtype=wp.vec3),
+                              wp.array(np.asarray(directions, np.float32), dtype=wp.vec3), self.reach],
+                      outputs=[out])
+            return out.numpy().astype(np.float64)
