@@ -296,15 +296,18 @@ class Untangle:
                 shell.at(x)
             held = still.copy()
             held[self._inside_at_rest[key]] = True
-            # the soft piece's points near the closed one, and which of them are inside it
-            lo = x[shell.points].min(axis=0) - self.press_gap
-            hi = x[shell.points].max(axis=0) + self.press_gap
-            cand = pts[np.all((x[pts] >= lo) & (x[pts] <= hi), axis=1) & ~held[pts]]
+            # the soft piece's points of its crossing triangles and two rings round them (a
+            # patch sunk wholly inside next to them), and which of those are inside the closed one
+            keys = every[ids == k]
+            crossing = np.where(piece[keys // n] == soft, keys // n, keys % n)
+            near = np.zeros(len(x), dtype=bool)
+            near[tris[crossing].ravel()] = True
+            for _ in range(2):
+                near |= (self._adjacency @ near.astype(np.float64)) > 0
+            cand = np.nonzero(near & ~held)[0]
             inside = np.zeros(len(x), dtype=bool)
             if cand.size:
                 inside[cand[shell.inside(x[cand], x)[0]]] = True
-            keys = every[ids == k]
-            crossing = np.where(piece[keys // n] == soft, keys // n, keys % n)
             tri = np.union1d(crossing, own_t[inside[tris[own_t]].any(axis=1)])
             if not tri.size:
                 continue
