@@ -354,6 +354,18 @@ class Untangle:
             out.append(d)
         return out[0], out[1]
 
+    def _pressable(self, keys: np.ndarray) -> bool:
+        """Whether any pair of ``keys`` is between two pieces apart at rest, one of them closed
+        (:meth:`_press` has something to act on)."""
+        mesh = self.mesh
+        if not self._shells or not keys.size:
+            return False
+        ids = mesh.piece_pair_ids(keys)
+        closed = np.zeros(mesh.piece_count, dtype=bool)
+        closed[list(self._shells)] = True
+        lo, hi = ids // mesh.piece_count, ids % mesh.piece_count
+        return bool(np.any((mesh.rest_piece_pairs[ids] == 0) & (lo != hi) & (closed[lo] | closed[hi])))
+
     def _repairable(self, keys: np.ndarray) -> np.ndarray:
         """The keys of ``keys`` that are repaired: not crossing at rest, not both where pieces
         cross at rest (:meth:`_rest_zone`)."""
@@ -566,13 +578,7 @@ class Untangle:
         zoned = bool(np.any((mesh.piece_pairs_beyond_rest(every) > mesh.piece_pairs_beyond_rest(self.pair_keys[1]))
                             & (mesh.rest_piece_pairs > 0)))
         # pairs of pieces apart at rest, one of them closed: a hand in a skirt (see _press)
-        pressed = False
-        if self._shells and every.size:
-            ids = mesh.piece_pair_ids(every)
-            closed = np.zeros(mesh.piece_count, dtype=bool)
-            closed[list(self._shells)] = True
-            lo, hi = ids // mesh.piece_count, ids % mesh.piece_count
-            pressed = bool(np.any((mesh.rest_piece_pairs[ids] == 0) & (lo != hi) & (closed[lo] | closed[hi])))
+        pressed = self._pressable(every)
         self.stats["before"] = self.stats["after"] = int(work.size)
         if not work.size and not zoned and not pressed:
             self._last = x
@@ -590,13 +596,15 @@ class Untangle:
         start = best
         best = self._rounds(best, lw, harm, lbs_side)
         if pressed:  # closed pieces in others: the other gives way, to the nearer side, after
-            # the rounds, and, where it takes pairs off the start, before them too (the rounds
-            # read a side from the last frame, which a hand swept through in one frame misses)
+            # the rounds, and, where that leaves such pairs and the press takes pairs off the
+            # start, before them too (the rounds read a side from the last frame, which a hand
+            # swept through in one frame misses)
             paths = [best]
             step = self._press(best[0], best[1], lw, harm, lbs_side, best[3])
             if step is not None:
                 paths.append((step[0], step[1], beyond(step[1]), step[2]))
-            step = self._press(start[0], start[1], lw, harm, lbs_side, start[3])
+            left = min(paths, key=lambda b: b[2])[1]
+            step = self._press(start[0], start[1], lw, harm, lbs_side, start[3]) if self._pressable(left) else None
             if step is not None:
                 first = self._rounds((step[0], step[1], beyond(step[1]), step[2]), lw, harm, lbs_side)
                 paths.append(first)
