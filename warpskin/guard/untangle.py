@@ -142,6 +142,12 @@ class Untangle:
             self._count = wp.zeros(c, dtype=wp.float32)
             self._pairs = wp.zeros(1, dtype=wp.vec2i)
         self._zone = self._rest_zone(self.REST_REACH)
+        # per piece of the mesh (WrittenMesh.piece_of_triangle): its triangles and rest diagonal [m]
+        piece_of = mesh.piece_of_triangle
+        order = np.argsort(piece_of, kind="stable")
+        self._piece_tris = np.split(order, np.cumsum(np.bincount(piece_of, minlength=mesh.piece_count))[:-1])
+        self._piece_diag = np.array([self._piece_size[self._piece[tris[t[0], 0]]] if t.size else 0.0
+                                     for t in self._piece_tris])
         #: the pieces closed but for small holes (:meth:`_closed_pieces`), that press into others
         self._shells = self._closed_pieces() if press else {}
         #: the clearance [m] a pressed point keeps from the surface it was inside of
@@ -194,19 +200,18 @@ class Untangle:
         import scipy.sparse as sp
 
         tris, mesh = self.guard._all_tri, self.mesh
-        piece = mesh.piece_of_triangle
         rest = mesh.welded(mesh.rest)
         c = len(rest)
         out = {}
-        for p in np.unique(piece):
-            t = tris[piece == p]
+        for p, own in enumerate(self._piece_tris):
+            t = tris[own]
             if len(t) < 4:
                 continue
             directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
             und = np.sort(directed, axis=1)
             _, inv, counts = np.unique(und, axis=0, return_inverse=True, return_counts=True)
             edge = directed[counts[inv.ravel()] == 1]
-            size = self._piece_size[self._piece[t[0, 0]]]
+            size = self._piece_diag[p]
             if not edge.size:
                 out[int(p)] = _Shell(t, edge, np.zeros(0, dtype=np.int64), size)
                 continue
@@ -279,21 +284,19 @@ class Untangle:
             a, b = int(k // count), int(k % count)
             if a == b:
                 continue
-            size = {p: self._piece_size[self._piece[tris[piece == p][0, 0]]] for p in (a, b)}
-            if a in self._shells and (b not in self._shells or size[a] <= size[b]):
+            if a in self._shells and (b not in self._shells or self._piece_diag[a] <= self._piece_diag[b]):
                 presser, soft = a, b
             elif b in self._shells:
                 presser, soft = b, a
             else:
                 continue
             shell = self._shells[presser]
-            own_t = np.nonzero(piece == soft)[0]
-            pts = np.unique(tris[own_t])
+            own_t = self._piece_tris[soft]
             key = (soft, presser)
             if key not in self._inside_at_rest:
                 rest = mesh.welded(mesh.rest)
+                pts = np.unique(tris[own_t])
                 self._inside_at_rest[key] = pts[shell.inside(rest[pts], rest)[0]]
-                shell.at(x)
             held = still.copy()
             held[self._inside_at_rest[key]] = True
             # the soft piece's points of its crossing triangles and two rings round them (a
@@ -647,7 +650,7 @@ class _Shell:
     def __init__(self, triangles: np.ndarray, edges: np.ndarray, loop: np.ndarray, size: float) -> None:
         import warp as wp
 
-        self.triangles, self.edges, self.loop = triangles, edges, loop
+        self.edges, self.loop = edges, loop
         self.points = np.unique(triangles)
         local = np.full(int(self.points.max()) + 1, -1, dtype=np.int64)
         local[self.points] = np.arange(self.points.size)
